@@ -1,0 +1,55 @@
+"""The one place that makes GL contexts.
+
+Headless (CI, the H100 host, tests): a standalone EGL context, which is Mesa's llvmpipe on a machine
+with no GPU and the NVIDIA driver where there is one. With a window, moderngl-window owns the
+context and ``window_context()`` picks it up.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import moderngl
+
+SHADER_DIR = Path(__file__).resolve().parent.parent / "shaders"
+
+
+class GLUnavailable(RuntimeError):
+    """No usable OpenGL context could be made; the message says why in one line."""
+
+
+def has_display() -> bool:
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def headless_context(require: int = 330) -> moderngl.Context:
+    """A standalone EGL context with at least GL `require` (e.g. 330, 430)."""
+    try:
+        ctx = moderngl.create_context(standalone=True, backend="egl", require=require)
+    except Exception as exc:  # moderngl raises plain Exception subclasses with multi-line text
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise GLUnavailable(f"no EGL context with GL {require // 100}.{require % 100 // 10}: {first}") from exc
+    return ctx
+
+
+def window_context() -> moderngl.Context:
+    """The context of the current window (made current by moderngl-window)."""
+    return moderngl.create_context()
+
+
+def describe(ctx: moderngl.Context) -> dict:
+    return {
+        "gl_renderer": ctx.info.get("GL_RENDERER", "?"),
+        "gl_vendor": ctx.info.get("GL_VENDOR", "?"),
+        "gl_version": ctx.info.get("GL_VERSION", "?"),
+        "version_code": ctx.version_code,
+    }
+
+
+def load_shader(name: str) -> str:
+    path = SHADER_DIR / name
+    try:
+        return path.read_text()
+    except OSError as exc:
+        raise GLUnavailable(f"shader {name} not found in {SHADER_DIR}") from exc

@@ -1,0 +1,250 @@
+"""The import stage's output contract: a skeleton, skinned meshes, clips, attachments and props.
+
+Everything here is plain numpy, float64 for transforms and keys (the truth), float32 / integer for
+vertex data (what the GPU gets). ``validate()`` on each type is called by every stage that takes it,
+so a malformed character is reported where it enters, not as a wrong pose three stages later.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+INTERPOLATIONS = ("LINEAR", "STEP", "CUBICSPLINE")
+PATHS = {"translation": 3, "rotation": 4, "scale": 3}
+
+
+class ModelError(ValueError):
+    """A character, clip or mesh that breaks the contract. The message is one line and names the culprit."""
+
+
+def _finite(name: str, a: np.ndarray) -> None:
+    if not np.all(np.isfinite(a)):
+        raise ModelError(f"{name} holds NaN or Inf")
+
+
+@dataclass
+class Skeleton:
+    """Joints sorted parents-first; transforms are local (relative to the parent joint)."""
+
+    names: tuple[str, ...]
+    parents: np.ndarray  # int32 (J,), -1 for a root
+    rest_translation: np.ndarray  # float64 (J, 3)
+    rest_rotation: np.ndarray  # float64 (J, 4), xyzw
+    rest_scale: np.ndarray  # float64 (J, 3)
+    inverse_bind: np.ndarray  # float64 (J, 4, 4)
+
+    @property
+    def joint_count(self) -> int:
+        return len(self.names)
+
+    def index(self, name: str) -> int:
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise ModelError(f"no joint named {name!r}; joints are {', '.join(self.names)}") from None
+
+    def validate(self) -> "Skeleton":
+        j = len(self.names)
+        if j == 0:
+            raise ModelError("skeleton has no joints")
+        if len(set(self.names)) != j:
+            raise ModelError("skeleton has duplicate joint names")
+        for attr, shape in (
+            ("parents", (j,)),
+            ("rest_translation", (j, 3)),
+            ("rest_rotation", (j, 4)),
+            ("rest_scale", (j, 3)),
+            ("inverse_bind", (j, 4, 4)),
+        ):
+            a = getattr(self, attr)
+            if not isinstance(a, np.ndarray) or a.shape != shape:
+                raise ModelError(f"skeleton.{attr} must have shape {shape}, got {getattr(a, 'shape', type(a))}")
+            _finite(f"skeleton.{attr}", a)
+        for i, p in enumerate(self.parents):
+            if not (-1 <= p < i):
+                raise ModelError(f"joint {self.names[i]!r} has parent {p}: joints must be sorted parents-first")
+        return self
+
+    def depth(self) -> np.ndarray:
+        d = np.zeros(self.joint_count, dtype=np.int32)
+        for i, p in enumerate(self.parents):
+            d[i] = 0 if p < 0 else d[p] + 1
+        return d
+
+
+@dataclass
+class Channel:
+    """One animated property of one joint, exactly as the source stores it.
+
+    ``values`` is (K, C) for LINEAR and STEP and (K, 3, C) for CUBICSPLINE (in-tangent, value, out-tangent).
+    """
+
+    joint: int
+    path: str
+    interpolation: str
+    times: np.ndarray  # float64 (K,)
+    values: np.ndarray
+
+    def validate(self, joint_count: int, where: str) -> None:
+        if self.path not in PATHS:
+            raise ModelError(f"{where}: unknown channel path {self.path!r}")
+        if self.interpolation not in INTERPOLATIONS:
+            raise ModelError(f"{where}: unknown interpolation {self.interpolation!r}")
+        if not 0 <= self.joint < joint_count:
+            raise ModelError(f"{where}: joint index {self.joint} out of range")
+        k = self.times.shape[0] if self.times.ndim == 1 else -1
+        if k < 1:
+            raise ModelError(f"{where}: a channel needs at least one key")
+        c = PATHS[self.path]
+        want = (k, 3, c) if self.interpolation == "CUBICSPLINE" else (k, c)
+        if self.values.shape != want:
+            raise ModelError(f"{where}: {self.path} values have shape {self.values.shape}, expected {want}")
+        _finite(f"{where} times", self.times)
+        _finite(f"{where} values", self.values)
+        if k > 1 and np.any(np.diff(self.times) <= 0.0):
+            raise ModelError(f"{where}: key times must increase strictly")
+
+
+@dataclass
+class Clip:
+    name: str
+    channels: list[Channel]
+    start: float  # seconds; phase 0 maps here (glTF clips may start after t = 0)
+    end: float
+    loop: bool
+    # Phase markers in [0, 1): for locomotion, left_foot_down = 0.0 and right_foot_down = 0.5.
+    markers: dict[str, float] = field(default_factory=dict)
+    stride: float | None = None  # metres travelled per cycle, for locomotion clips played in place
+
+    @property
+    def duration(self) -> float:
+        return self.end - self.start
+
+    def validate(self, skeleton: Skeleton) -> "Clip":
+        where = f"clip {self.name!r}"
+        if not np.isfinite(self.start) or not np.isfinite(self.end):
+            raise ModelError(f"{where}: start/end must be finite")
+        if self.end < self.start:
+            raise ModelError(f"{where}: ends before it starts")
+        seen = set()
+        for ch in self.channels:
+            ch.validate(skeleton.joint_count, f"{where}, joint {skeleton.names[ch.joint] if 0 <= ch.joint < skeleton.joint_count else ch.joint} {ch.path}")
+            key = (ch.joint, ch.path)
+            if key in seen:
+                raise ModelError(f"{where}: two {ch.path} channels for joint {skeleton.names[ch.joint]!r}")
+            seen.add(key)
+        for name, phase in self.markers.items():
+            if not 0.0 <= phase < 1.0:
+                raise ModelError(f"{where}: marker {name!r} phase {phase} is outside [0, 1)")
+        return self
+
+
+@dataclass
+class SkinnedMesh:
+    name: str
+    piece: str  # "body", "head_a", ...: pieces of one variation group are swapped per agent
+    lod: int
+    positions: np.ndarray  # float32 (V, 3), bind space
+    normals: np.ndarray  # float32 (V, 3)
+    joints: np.ndarray  # uint16 (V, 4)
+    weights: np.ndarray  # float32 (V, 4), sum 1
+    indices: np.ndarray  # uint32 (3T,)
+    colors: np.ndarray | None = None  # float32 (V, 4) linear RGBA, or None
+    base_color: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
+    group: str = ""  # variation group ("head"), empty for pieces every agent wears
+
+    @property
+    def triangle_count(self) -> int:
+        return int(self.indices.shape[0] // 3)
+
+    def validate(self, joint_count: int) -> "SkinnedMesh":
+        where = f"mesh {self.name!r}"
+        v = self.positions.shape[0]
+        for attr, shape, dtype in (
+            ("positions", (v, 3), np.float32),
+            ("normals", (v, 3), np.float32),
+            ("joints", (v, 4), np.uint16),
+            ("weights", (v, 4), np.float32),
+        ):
+            a = getattr(self, attr)
+            if a.shape != shape or a.dtype != dtype:
+                raise ModelError(f"{where}: {attr} must be {np.dtype(dtype).name} {shape}, got {a.dtype} {a.shape}")
+        if self.colors is not None and self.colors.shape != (v, 4):
+            raise ModelError(f"{where}: colors must be (V, 4)")
+        _finite(f"{where} positions", self.positions)
+        _finite(f"{where} weights", self.weights)
+        if self.indices.ndim != 1 or self.indices.shape[0] % 3:
+            raise ModelError(f"{where}: indices must be a flat triangle list")
+        if self.indices.size and int(self.indices.max()) >= v:
+            raise ModelError(f"{where}: an index points past the last vertex")
+        if self.joints.size and int(self.joints.max()) >= joint_count:
+            raise ModelError(f"{where}: a vertex references joint {int(self.joints.max())} of {joint_count}")
+        if np.any(self.weights < 0.0) or np.any(np.abs(self.weights.sum(axis=1) - 1.0) > 1e-4):
+            raise ModelError(f"{where}: weights must be non-negative and sum to 1")
+        return self
+
+
+@dataclass
+class RigidMesh:
+    name: str
+    positions: np.ndarray  # float32 (V, 3)
+    normals: np.ndarray  # float32 (V, 3)
+    indices: np.ndarray  # uint32 (3T,)
+    colors: np.ndarray | None = None
+    base_color: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
+
+    @property
+    def triangle_count(self) -> int:
+        return int(self.indices.shape[0] // 3)
+
+
+@dataclass
+class Attachment:
+    """A rigid mesh that follows one joint: world = joint_world @ offset."""
+
+    mesh: RigidMesh
+    joint: int
+    offset: np.ndarray  # float64 (4, 4)
+
+
+@dataclass
+class Prop:
+    """A hand-held prop (weapon). ``grip`` is the grip frame in the prop's mesh space.
+
+    The prop is placed so that its grip frame coincides with a socket joint:
+    prop_world = socket_world @ inverse(grip).
+    """
+
+    mesh: RigidMesh
+    grip: np.ndarray  # float64 (4, 4)
+
+
+@dataclass
+class Character:
+    name: str
+    skeleton: Skeleton
+    meshes: list[SkinnedMesh]
+    clips: list[Clip]
+    attachments: list[Attachment] = field(default_factory=list)
+    props: dict[str, Prop] = field(default_factory=dict)
+    sockets: dict[str, int] = field(default_factory=dict)  # socket name -> joint index
+    warnings: list[str] = field(default_factory=list)  # what the import left out or approximated
+
+    def clip(self, name: str) -> Clip:
+        for c in self.clips:
+            if c.name == name:
+                return c
+        raise ModelError(f"no clip named {name!r}; clips are {', '.join(c.name for c in self.clips)}")
+
+    def validate(self) -> "Character":
+        self.skeleton.validate()
+        for m in self.meshes:
+            m.validate(self.skeleton.joint_count)
+        names = [c.name for c in self.clips]
+        if len(set(names)) != len(names):
+            raise ModelError(f"character {self.name!r} has duplicate clip names")
+        for c in self.clips:
+            c.validate(self.skeleton)
+        return self

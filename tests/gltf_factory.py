@@ -1,0 +1,184 @@
+"""Builds small skinned glTF files with chosen features, so the importer is tested feature by feature.
+
+The character: a chain of 3 joints (root → mid → tip) under an optional non-joint armature node, a
+strip of 6 vertices skinned to them, and one clip that rotates `mid` about Z and moves `root`.
+`expected_skinning` recomputes what the file means with plain matrices, independently of the importer.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from crowd import transforms as tf
+
+KEY_TIMES = np.array([0.5, 1.0, 1.5])  # the clip starts after t = 0
+MID_ANGLES = np.array([0.0, 1.2, 2.4])  # radians about Z
+ROOT_MOVES = np.array([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0], [0.6, 0.1, 0.0]])
+JOINT_T = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
+POSITIONS = np.array([[-0.1, 0.0, 0], [0.1, 0.0, 0], [-0.1, 1.0, 0], [0.1, 1.0, 0], [-0.1, 2.0, 0], [0.1, 2.0, 0]], dtype=np.float32)
+JOINTS = np.array([[0, 1, 0, 0], [0, 0, 0, 0], [1, 0, 2, 0], [1, 2, 0, 0], [2, 1, 0, 0], [2, 0, 0, 0]])
+WEIGHTS = np.array([[0.7, 0.3, 0, 0], [1, 0, 0, 0], [0.5, 0.25, 0.25, 0], [0.6, 0.4, 0, 0], [0.8, 0.2, 0, 0], [1, 0, 0, 0]])
+
+
+def armature_matrix(scale: float, with_rotation: bool) -> np.ndarray:
+    q = tf.quat_from_axis_angle([1.0, 0.0, 0.0], np.pi / 2) if with_rotation else np.array([0, 0, 0, 1.0])
+    return tf.trs_to_mat4(np.array([0.5, 0.0, -0.25]), q, np.array([scale] * 3))
+
+
+def make_gltf(folder: Path, name="test.gltf", armature_scale=1.0, armature_rotation=False, use_matrix=False,
+              joint_type=5121, weight_type=5126, interleaved=False, buffer_mode="data", external_uri=None,
+              interpolation="LINEAR", split_animations=False, morph=False, sparse=False, extra: dict | None = None) -> Path:
+    blob = bytearray()
+    views, accessors = [], []
+
+    def add(arr: np.ndarray, ctype: int, kind: str, normalized=False, minmax=False, stride=None, view=None, offset=0):
+        if view is None:
+            while len(blob) % 4:
+                blob.append(0)
+            views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": arr.nbytes})
+            if stride:
+                views[-1]["byteStride"] = stride
+            blob.extend(arr.tobytes())
+            view = len(views) - 1
+        acc = {"bufferView": view, "componentType": ctype, "count": int(arr.shape[0]) if stride is None else int(arr.shape[0]),
+               "type": kind}
+        if offset:
+            acc["byteOffset"] = offset
+        if normalized:
+            acc["normalized"] = True
+        if minmax:
+            flat = arr.reshape(arr.shape[0], -1)
+            acc["min"] = [float(x) for x in flat.min(0)]
+            acc["max"] = [float(x) for x in flat.max(0)]
+        accessors.append(acc)
+        return len(accessors) - 1
+
+    normals = np.tile(np.array([[0, 0, 1]], dtype=np.float32), (6, 1))
+    if interleaved:
+        inter = np.concatenate([POSITIONS, normals], axis=1).astype(np.float32)
+        while len(blob) % 4:
+            blob.append(0)
+        views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": inter.nbytes, "byteStride": 24, "target": 34962})
+        blob.extend(inter.tobytes())
+        v = len(views) - 1
+        accessors.append({"bufferView": v, "componentType": 5126, "count": 6, "type": "VEC3",
+                          "min": POSITIONS.min(0).tolist(), "max": POSITIONS.max(0).tolist()})
+        pos_acc = len(accessors) - 1
+        accessors.append({"bufferView": v, "byteOffset": 12, "componentType": 5126, "count": 6, "type": "VEC3"})
+        nrm_acc = len(accessors) - 1
+    else:
+        pos_acc = add(POSITIONS, 5126, "VEC3", minmax=True)
+        nrm_acc = add(normals, 5126, "VEC3")
+    if sparse:
+        # A sparse accessor over zeros that fills in the real positions.
+        idx = np.arange(6, dtype=np.uint16)
+        iv = add(idx, 5123, "SCALAR")
+        vv = add(POSITIONS, 5126, "VEC3")
+        accessors.append({"componentType": 5126, "count": 6, "type": "VEC3", "min": POSITIONS.min(0).tolist(),
+                          "max": POSITIONS.max(0).tolist(),
+                          "sparse": {"count": 6, "indices": {"bufferView": accessors[iv]["bufferView"], "componentType": 5123},
+                                     "values": {"bufferView": accessors[vv]["bufferView"]}}})
+        pos_acc = len(accessors) - 1
+    jdt = {5121: np.uint8, 5123: np.uint16}[joint_type]
+    j_acc = add(JOINTS.astype(jdt), joint_type, "VEC4")
+    if weight_type == 5126:
+        w_acc = add((WEIGHTS * 1.25).astype(np.float32), 5126, "VEC4")  # deliberately not summing to 1
+    else:
+        info = np.iinfo({5121: np.uint8, 5123: np.uint16}[weight_type])
+        w_acc = add(np.round(WEIGHTS * info.max).astype(info.dtype), weight_type, "VEC4", normalized=True)
+    indices = np.array([0, 1, 2, 2, 1, 3, 2, 3, 4, 4, 3, 5], dtype=np.uint16)
+    i_acc = add(indices, 5123, "SCALAR")
+
+    arm = armature_matrix(armature_scale, armature_rotation)
+    glob = [arm @ tf.trs_to_mat4(JOINT_T[0], np.array([0, 0, 0, 1.0]), np.ones(3))]
+    for k in (1, 2):
+        glob.append(glob[-1] @ tf.trs_to_mat4(JOINT_T[k], np.array([0, 0, 0, 1.0]), np.ones(3)))
+    ibm = np.linalg.inv(np.array(glob))
+    ibm_acc = add(np.transpose(ibm, (0, 2, 1)).astype(np.float32).reshape(3, 16), 5126, "MAT4")
+
+    t_acc = add(KEY_TIMES.astype(np.float32), 5126, "SCALAR", minmax=True)
+    rot = tf.quat_from_axis_angle([0.0, 0.0, 1.0], MID_ANGLES)
+    if interpolation == "CUBICSPLINE":
+        tangents = np.zeros_like(rot)
+        rot_out = np.stack([tangents, rot, tangents], axis=1).reshape(-1, 4)
+        mov_out = np.stack([np.zeros_like(ROOT_MOVES), ROOT_MOVES, np.zeros_like(ROOT_MOVES)], axis=1).reshape(-1, 3)
+    else:
+        rot_out, mov_out = rot, ROOT_MOVES
+    r_acc = add(rot_out.astype(np.float32), 5126, "VEC4")
+    m_acc = add(mov_out.astype(np.float32), 5126, "VEC3")
+
+    arm_node = {"name": "Armature", "children": [1]}
+    if use_matrix:
+        arm_node["matrix"] = [float(x) for x in arm.T.reshape(-1)]
+    else:
+        t, q, s, _ = tf.mat4_decompose(arm)
+        arm_node.update(translation=t.tolist(), rotation=q.tolist(), scale=s.tolist())
+    nodes = [
+        arm_node,
+        {"name": "root", "children": [2]},
+        {"name": "mid", "translation": JOINT_T[1].tolist(), "children": [3]},
+        {"name": "tip", "translation": JOINT_T[2].tolist()},
+        {"name": "body", "mesh": 0, "skin": 0},
+    ]
+    prim = {"attributes": {"POSITION": pos_acc, "NORMAL": nrm_acc, "JOINTS_0": j_acc, "WEIGHTS_0": w_acc}, "indices": i_acc}
+    if morph:
+        d_acc = add(np.zeros((6, 3), dtype=np.float32), 5126, "VEC3", minmax=True)
+        prim["targets"] = [{"POSITION": d_acc}]
+    samplers = [{"input": t_acc, "output": r_acc, "interpolation": interpolation},
+                {"input": t_acc, "output": m_acc, "interpolation": interpolation}]
+    channels = [{"sampler": 0, "target": {"node": 2, "path": "rotation"}}, {"sampler": 1, "target": {"node": 1, "path": "translation"}}]
+    if split_animations:
+        animations = [{"name": "mid", "samplers": [samplers[0]], "channels": [dict(channels[0], sampler=0)]},
+                      {"name": "root", "samplers": [samplers[1]], "channels": [dict(channels[1], sampler=0)]}]
+    else:
+        animations = [{"name": "wave", "samplers": samplers, "channels": channels}]
+    doc = {
+        "asset": {"version": "2.0"},
+        "scene": 0,
+        "scenes": [{"nodes": [0, 4]}],
+        "nodes": nodes,
+        "meshes": [{"name": "body", "primitives": [prim]}],
+        "skins": [{"joints": [1, 2, 3], "inverseBindMatrices": ibm_acc, "skeleton": 1}],
+        "animations": animations,
+        "accessors": accessors,
+        "bufferViews": views,
+        "buffers": [{"byteLength": len(blob)}],
+    }
+    if extra:
+        doc.update(extra)
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    if buffer_mode == "data":
+        doc["buffers"][0]["uri"] = "data:application/octet-stream;base64," + base64.b64encode(bytes(blob)).decode()
+    else:
+        uri = external_uri or "test.bin"
+        doc["buffers"][0]["uri"] = uri
+        target = (folder / uri)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(bytes(blob))
+    path = folder / name
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def expected_skinning(key: int, armature_scale=1.0, armature_rotation=False, interpolation="LINEAR") -> np.ndarray:
+    """World positions of the 6 vertices at key `key`, by the glTF spec, with plain matrices."""
+    arm = armature_matrix(armature_scale, armature_rotation)
+    rot = tf.quat_from_axis_angle([0.0, 0.0, 1.0], MID_ANGLES[key])
+    root = arm @ tf.trs_to_mat4(ROOT_MOVES[key], np.array([0, 0, 0, 1.0]), np.ones(3))
+    mid = root @ tf.trs_to_mat4(JOINT_T[1], rot, np.ones(3))
+    tip = mid @ tf.trs_to_mat4(JOINT_T[2], np.array([0, 0, 0, 1.0]), np.ones(3))
+    bind = [arm, arm @ tf.trs_to_mat4(JOINT_T[1], np.array([0, 0, 0, 1.0]), np.ones(3))]
+    bind.append(bind[1] @ tf.trs_to_mat4(JOINT_T[2], np.array([0, 0, 0, 1.0]), np.ones(3)))
+    skin = np.array([root, mid, tip]) @ np.linalg.inv(np.array(bind))
+    w = WEIGHTS / WEIGHTS.sum(1, keepdims=True)
+    p = np.concatenate([POSITIONS.astype(np.float64), np.ones((6, 1))], 1)
+    out = np.zeros((6, 3))
+    for k in range(4):
+        out += w[:, k, None] * np.einsum("vij,vj->vi", skin[JOINTS[:, k]], p)[:, :3]
+    return out

@@ -1,0 +1,129 @@
+import numpy as np
+import pytest
+
+from conftest import shared, shared_files
+from crowd import reference
+from crowd import transforms as tf
+from crowd.bake import BakeError, bake, joint_position_error
+from crowd.gltf import load_character
+from crowd.model import Channel, Clip, Skeleton
+
+KEY_BOUND_M = {"f32": 2e-6, "f16": 3e-3}  # at the bake keys: storage rounding only
+
+
+def key_phases(b, ci):
+    n = b.clips[ci].frame_count
+    return np.arange(n) / (n - 1)
+
+
+@pytest.mark.parametrize("precision", ["f32", "f16"])
+def test_zombie_bake_matches_reference_at_keys(zombie, precision):
+    b = bake(zombie.skeleton, zombie.clips, 15, precision)
+    assert b.texels.dtype == {"f32": np.float32, "f16": np.float16}[precision]
+    for clip in zombie.clips:
+        ci = b.clip_index(clip.name)
+        err = joint_position_error(b, zombie.skeleton, clip, key_phases(b, ci))
+        assert err.max() < KEY_BOUND_M[precision], clip.name
+
+
+def test_zombie_bake_between_keys_is_bounded_and_shrinks_with_rate(zombie):
+    """Between keys the error is the lerp's; measured, it must fall as the bake rate rises."""
+    phases = np.linspace(0.0, 1.0, 301)
+    worst = {}
+    for fps in (15, 30, 60):
+        b = bake(zombie.skeleton, zombie.clips, fps)
+        worst[fps] = max(joint_position_error(b, zombie.skeleton, c, phases).max() for c in zombie.clips)
+    assert worst[60] < worst[30] < worst[15] < 0.15  # metres; see docs/BENCHMARKS.md for per-clip figures
+    assert worst[60] < 0.02
+
+
+def test_frame_zero_is_inverse_bind_and_rest_pose_gives_identity(zombie):
+    b = bake(zombie.skeleton, zombie.clips, 15)
+    np.testing.assert_allclose(b.inverse_bind(), zombie.skeleton.inverse_bind, atol=1e-6)
+    bind = reference.global_matrices(zombie.skeleton, reference.rest_pose(zombie.skeleton))[0]
+    np.testing.assert_allclose(bind @ b.inverse_bind(), np.tile(np.eye(4), (zombie.skeleton.joint_count, 1, 1)), atol=1e-6)
+
+
+def test_layout_and_clip_table(zombie):
+    b = bake(zombie.skeleton, zombie.clips, 15)
+    assert b.texels.shape[1:] == (2 * zombie.skeleton.joint_count, 4)
+    table = b.clip_table
+    assert table[0, 0] == 1  # clips start after the inverse-bind row
+    for (first, count, fps, loop), info, clip in zip(table, b.clips, zombie.clips):
+        assert count == info.frame_count and bool(loop) == clip.loop
+        assert fps == pytest.approx((count - 1) / clip.duration, rel=1e-6) and fps >= 15
+    assert table[-1, 0] + table[-1, 1] == b.rows
+    assert np.all(b.parents == zombie.skeleton.parents)
+    assert b.scale is None  # the zombie has no joint scale: no scale texture
+
+
+def test_keys_are_sign_aligned_including_the_loop_wrap(zombie):
+    b = bake(zombie.skeleton, zombie.clips, 15)
+    real = b.texels[:, 0::2].astype(np.float64)
+    for info in b.clips:
+        rows = real[info.first_row : info.first_row + info.frame_count]
+        assert np.all(np.sum(rows[1:] * rows[:-1], axis=-1) >= 0.0), info.name
+
+
+def spinning_skeleton_and_clip():
+    """One joint turning a full 360° over a looping clip: its quaternion ends at -q (antipodal keys)."""
+    sk = Skeleton(("root", "arm"), np.array([-1, 0], dtype=np.int32), np.array([[0, 0, 0], [1.0, 0, 0]]),
+                  tf.quat_identity((2,)), np.ones((2, 3)), np.tile(np.eye(4), (2, 1, 1)))
+    sk.inverse_bind = np.linalg.inv(reference.global_matrices(sk, reference.rest_pose(sk))[0])
+    times = np.linspace(0.0, 1.0, 9)
+    q = tf.quat_from_axis_angle([0.0, 1.0, 0.0], times * 2 * np.pi)
+    q[-1] = q[0]  # the file stores the closing key as +q, the slerp takes the short way from key 7
+    return sk, Clip("spin", [Channel(0, "rotation", "LINEAR", times, q)], 0.0, 1.0, True)
+
+
+def test_antipodal_keys_and_loop_wrap():
+    sk, clip = spinning_skeleton_and_clip()
+    b = bake(sk, [clip], 16)
+    real = b.texels[1:, 0].astype(np.float64)
+    assert np.all(np.sum(real[1:] * real[:-1], axis=-1) > 0)
+    assert np.dot(real[-1], real[0]) < 0  # the closing key is -q of the first: a wrap the texture never lerps
+    phases = np.concatenate([np.linspace(0, 1, 97, endpoint=False), [1 - 1e-9, 1.0, 1.5, 10 * 3600.0 + 0.25]])
+    err = joint_position_error(b, sk, clip, phases)
+    assert err.max() < 0.02  # the lerp's chord error at 16 keys per turn on a 1 m arm
+
+
+def test_f16_halves_the_bytes(zombie):
+    a, h = bake(zombie.skeleton, zombie.clips, 15, "f32"), bake(zombie.skeleton, zombie.clips, 15, "f16")
+    assert h.texels.nbytes * 2 == a.texels.nbytes
+
+
+def test_only_requested_clips_are_baked(zombie):
+    b = bake(zombie.skeleton, [zombie.clip("shamble"), zombie.clip("idle")], 15)
+    assert [c.name for c in b.clips] == ["shamble", "idle"]
+    with pytest.raises(BakeError, match="was not baked"):
+        b.clip_index("run")
+
+
+@pytest.mark.parametrize("fps, precision, message", [(0, "f32", "bake rate"), (float("nan"), "f32", "bake rate"),
+                                                     (1e9, "f32", "bake rate"), (15, "f8", "precision")])
+def test_bad_bake_arguments(zombie, fps, precision, message):
+    with pytest.raises(BakeError, match=message):
+        bake(zombie.skeleton, zombie.clips, fps, precision)
+
+
+def test_too_many_frames_for_a_texture(zombie):
+    with pytest.raises(BakeError, match="do not fit"):
+        bake(zombie.skeleton, zombie.clips, 240, max_rows=1024)
+
+
+def test_hedgehog_animated_scale_gets_a_scale_channel():
+    c = load_character(shared("Quaternius_CubeWorld_Hedgehog.gltf"))
+    b = bake(c.skeleton, c.clips, 30)
+    assert b.scale is not None and b.scale.max() > 1.1
+    for clip in c.clips:
+        ci = b.clip_index(clip.name)
+        assert joint_position_error(b, c.skeleton, clip, key_phases(b, ci)).max() < 1e-5
+
+
+@pytest.mark.parametrize("path", shared_files(), ids=lambda p: p.name)
+def test_shared_files_bake_matches_reference_at_keys(path):
+    c = load_character(path)
+    b = bake(c.skeleton, c.clips, 15)
+    for clip in c.clips:
+        ci = b.clip_index(clip.name)
+        assert joint_position_error(b, c.skeleton, clip, key_phases(b, ci)).max() < 5e-5, clip.name

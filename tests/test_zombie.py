@@ -1,0 +1,171 @@
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pygltflib
+import pytest
+
+from conftest import ROOT
+from crowd import reference
+from crowd.gltf import load_character
+from crowd.gltf_write import glb_bytes
+from crowd.zombie import ASSET_PATH, SOCKET_JOINT, build_character
+
+REQUIRED_JOINTS = {"hips", "spine", "chest", "neck", "head"} | {
+    f"{p}_{s}" for p in ("upper_arm", "forearm", "hand", "thigh", "shin", "foot") for s in "lr"}
+
+
+@pytest.fixture(scope="module")
+def generated():
+    return build_character()
+
+
+def test_committed_glb_is_what_the_generator_writes(generated):
+    assert ASSET_PATH.read_bytes() == glb_bytes(generated), "assets/zombie.glb is stale: run python -m crowd.zombie"
+
+
+def test_skeleton(zombie):
+    names = set(zombie.skeleton.names)
+    assert len(names) >= 20 and REQUIRED_JOINTS <= names
+    assert zombie.sockets == {"weapon_r": zombie.skeleton.index(SOCKET_JOINT)}
+    assert zombie.skeleton.names[zombie.skeleton.parents[zombie.sockets["weapon_r"]]] == "hand_r"
+
+
+def test_meshes_lods_and_pieces(zombie):
+    tris = {}
+    for m in zombie.meshes:
+        tris.setdefault(m.lod, {})[m.piece] = m.triangle_count
+        assert m.weights.shape[1] == 4
+        np.testing.assert_allclose(m.weights.sum(1), 1.0, atol=1e-6)
+        assert np.all(m.weights >= 0)
+    assert set(tris) == {0, 1, 2}
+    default = lambda lod: tris[lod]["body"] + tris[lod]["head_a"] + tris[lod]["shirt_torn"]
+    assert default(0) >= 3000
+    assert 0.18 < default(1) / default(0) < 0.32  # about 1/4
+    assert 0.04 < default(2) / default(0) < 0.09  # about 1/16
+    assert {"head_a", "head_b"} <= set(tris[0]) and "shirt_torn" in tris[0]
+
+
+def test_skin_weights_are_smooth(zombie):
+    """Along every edge of the body only part of the weight moves between joints: no rigid seams."""
+    body = next(m for m in zombie.meshes if m.piece == "body" and m.lod == 0)
+    dense = np.zeros((body.positions.shape[0], zombie.skeleton.joint_count))
+    for k in range(4):
+        np.add.at(dense, (np.arange(dense.shape[0]), body.joints[:, k].astype(np.int64)), body.weights[:, k])
+    edges = body.indices.reshape(-1, 3)[:, [0, 1]]
+    moved = 0.5 * np.abs(dense[edges[:, 0]] - dense[edges[:, 1]]).sum(1)  # weight handed from joint to joint
+    assert moved.max() < 0.95  # 1.0 would be a rigid seam
+    assert np.percentile(moved, 99) < 0.6
+    assert np.mean(body.weights[:, 1] > 0.05) > 0.15  # a good share of vertices blend two or more joints
+
+
+def test_clips(zombie):
+    clips = {c.name: c for c in zombie.clips}
+    assert {"idle", "shamble", "run", "attack", "hit", "death", "crawl"} <= set(clips)
+    assert not clips["death"].loop and clips["shamble"].loop
+    for name in ("shamble", "run"):
+        assert clips[name].markers == {"left_foot_down": 0.0, "right_foot_down": 0.5}
+        assert clips[name].stride > 0
+    # Real motion: each clip moves the hands or feet by a good fraction of a metre.
+    sk = zombie.skeleton
+    ends = [sk.index(n) for n in ("hand_l", "hand_r", "foot_l", "foot_r", "head")]
+    for clip in zombie.clips:
+        g = reference.global_matrices(sk, reference.sample_clip(sk, clip, np.linspace(0, 1, 24)))
+        span = np.ptp(g[:, ends, :3, 3], axis=0).max()
+        assert span > 0.25, f"{clip.name} barely moves ({span:.3f} m)"
+
+
+def test_locomotion_feet_plant_at_markers(zombie):
+    sk = zombie.skeleton
+    clip = zombie.clip("shamble")
+    g = reference.global_matrices(sk, reference.sample_clip(sk, clip, np.array([0.0, 0.5])))
+    left, right = sk.index("foot_l"), sk.index("foot_r")
+    # Left heel strikes at 0 (left foot ahead), right at 0.5.
+    assert g[0, left, 2, 3] > g[0, right, 2, 3] + 0.1
+    assert g[1, right, 2, 3] > g[1, left, 2, 3] + 0.1
+
+
+def test_death_ends_lying_down(zombie):
+    sk = zombie.skeleton
+    g = reference.global_matrices(sk, reference.sample_clip(sk, zombie.clip("death"), np.array([1.0])))
+    assert g[0, sk.index("head"), 1, 3] < 0.4
+
+
+def test_props_have_grip_frames(zombie):
+    assert set(zombie.props) == {"pipe", "axe"}
+    for prop in zombie.props.values():
+        assert prop.mesh.triangle_count > 50
+        assert prop.grip.shape == (4, 4) and np.allclose(prop.grip[3], [0, 0, 0, 1])
+
+
+def test_round_trip_keeps_skeleton_meshes_and_keys(generated, zombie):
+    a, b = generated.skeleton, zombie.skeleton
+    # The importer sorts parents-first by depth; map by name.
+    order = [b.index(n) for n in a.names]
+    np.testing.assert_array_equal([b.names[i] for i in order], a.names)
+    np.testing.assert_allclose(b.rest_translation[order], a.rest_translation, atol=1e-6)
+    np.testing.assert_allclose(b.inverse_bind[order], a.inverse_bind, atol=1e-6)
+    for ma, mb in zip(generated.meshes, zombie.meshes):
+        assert (ma.name, ma.piece, ma.lod, ma.group) == (mb.name, mb.piece, mb.lod, mb.group)
+        np.testing.assert_array_equal(ma.positions, mb.positions)
+        np.testing.assert_array_equal(ma.indices, mb.indices)
+        np.testing.assert_allclose(ma.weights, mb.weights, atol=1e-6)
+        mapped = np.array(order)[ma.joints.astype(np.int64)]
+        np.testing.assert_array_equal(np.where(ma.weights > 0, mapped, 0), np.where(mb.weights > 0, mb.joints, 0))
+    for ca, cb in zip(generated.clips, zombie.clips):
+        assert (ca.name, ca.loop, ca.markers, ca.stride) == (cb.name, cb.loop, cb.markers, cb.stride)
+        keys_b = {(b.names[ch.joint], ch.path): ch for ch in cb.channels}
+        for ch in ca.channels:
+            other = keys_b[(a.names[ch.joint], ch.path)]
+            np.testing.assert_allclose(other.times, ch.times, atol=1e-6)
+            np.testing.assert_allclose(other.values, ch.values, atol=1e-6)
+
+
+def test_bind_pose_reproduces_the_mesh(zombie):
+    skin = reference.skinning_matrices(zombie.skeleton, reference.rest_pose(zombie.skeleton))
+    for m in zombie.meshes:
+        np.testing.assert_allclose(reference.skin_points(skin, m.positions, m.joints, m.weights)[0], m.positions, atol=1e-5)
+
+
+def test_structure_of_the_file():
+    """What a viewer relies on: accessor bounds, POSITION min/max, index ranges, a default scene."""
+    gl = pygltflib.GLTF2().load(str(ASSET_PATH))
+    blob = gl.binary_blob()
+    assert gl.scene == 0 and gl.scenes[0].nodes
+    sizes = {5120: 1, 5121: 1, 5122: 2, 5123: 2, 5125: 4, 5126: 4}
+    ncomp = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
+    for acc in gl.accessors:
+        view = gl.bufferViews[acc.bufferView]
+        assert view.byteOffset % 4 == 0 and view.byteOffset + view.byteLength <= len(blob)
+        assert (acc.byteOffset or 0) + acc.count * sizes[acc.componentType] * ncomp[acc.type] <= view.byteLength
+    for mesh in gl.meshes:
+        for prim in mesh.primitives:
+            pos = gl.accessors[prim.attributes.POSITION]
+            assert pos.min is not None and pos.max is not None
+    for anim in gl.animations:
+        for s in anim.samplers:
+            assert gl.accessors[s.input].min is not None
+
+
+def _validator():
+    node = shutil.which("node")
+    script = ROOT / ".ci" / "node" / "node_modules" / "gltf-validator"
+    if not node or not script.is_dir():
+        pytest.skip("Khronos glTF-Validator not installed (.ci/run installs it with npm)")
+    return node, script
+
+
+def test_khronos_validator_finds_no_errors_or_warnings():
+    node, script = _validator()
+    js = (
+        "const v=require(process.argv[1]);const fs=require('fs');"
+        "v.validateBytes(new Uint8Array(fs.readFileSync(process.argv[2]))).then(r=>{"
+        "console.log(JSON.stringify(r.issues));}).catch(e=>{console.error(String(e));process.exit(2);});"
+    )
+    out = subprocess.run([node, "-e", js, str(script), str(ASSET_PATH)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    issues = json.loads(out.stdout)
+    bad = [m for m in issues["messages"] if m["severity"] <= 1]
+    assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, bad[:5]
