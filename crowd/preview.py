@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import glm
+from pyglm import glm
 import numpy as np
 
 from . import reference
