@@ -22,7 +22,7 @@ import numpy as np
 import pygltflib as g
 
 from . import transforms as tf
-from .model import Attachment, Channel, Character, Clip, ModelError, Prop, RigidMesh, Skeleton, SkinnedMesh
+from .model import Attachment, Channel, Character, Clip, ModelError, Prop, RigidMesh, Skeleton, SkinnedMesh, vertex_normals
 
 _COMPONENT = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
 _NCOMP = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
@@ -454,9 +454,7 @@ def _read_meshes(r: _Reader, nodes, skin_index: int, skin_to_new: np.ndarray, jc
             if _attr(r, prim, "NORMAL") is not None:
                 nrm = r.accessor(_attr(r, prim, "NORMAL"), f"{label} NORMAL").astype(np.float64)
             else:
-                from .zombie import _vertex_normals
-
-                nrm = _vertex_normals(pos, idx)
+                nrm = vertex_normals(pos, idx)
             colors = None
             if _attr(r, prim, "COLOR_0") is not None:
                 c = r.accessor(_attr(r, prim, "COLOR_0"), f"{label} COLOR_0").astype(np.float64)
@@ -496,9 +494,7 @@ def _rigid_mesh(r: _Reader, mesh_index: int, warn: list[str]) -> RigidMesh | Non
         if _attr(r, prim, "NORMAL") is not None:
             nrm = r.accessor(_attr(r, prim, "NORMAL")).astype(np.float64)
         else:
-            from .zombie import _vertex_normals
-
-            nrm = _vertex_normals(pos, idx)
+            nrm = vertex_normals(pos, idx)
         if prim.material is not None and r.gltf.materials and prim.material < len(r.gltf.materials):
             pbr = r.gltf.materials[prim.material].pbrMetallicRoughness
             if pbr is not None and pbr.baseColorFactor is not None:
@@ -621,7 +617,8 @@ def _read_clips(r: _Reader, skeleton: Skeleton, new_index, folds, factor: float,
 
 def _convert_keys(path: str, values: np.ndarray, interp: str, fold: _Fold | None, factor: float, is_root: bool) -> np.ndarray:
     if path == "rotation":
-        values = _apply_channel(values, interp, lambda v, tangent: v if tangent else tf.quat_normalize(v)) if interp != "CUBICSPLINE" else values
+        if interp != "CUBICSPLINE":  # spline keys are normalised after evaluation, not before
+            values = tf.quat_normalize(values)
         if fold is not None:
             values = _apply_channel(values, interp, lambda v, tangent: fold.rotation(v))
         return values

@@ -24,6 +24,17 @@ def _finite(name: str, a: np.ndarray) -> None:
         raise ModelError(f"{name} holds NaN or Inf")
 
 
+def vertex_normals(pos: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Area-weighted smooth vertex normals of a triangle list (for meshes that come without them)."""
+    tri = idx.reshape(-1, 3)
+    face = np.cross(pos[tri[:, 1]] - pos[tri[:, 0]], pos[tri[:, 2]] - pos[tri[:, 0]])
+    n = np.zeros_like(pos)
+    for k in range(3):
+        np.add.at(n, tri[:, k], face)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.where(length > 1e-12, n / np.maximum(length, 1e-12), np.array([0.0, 1.0, 0.0]))
+
+
 @dataclass
 class Skeleton:
     """Joints sorted parents-first; transforms are local (relative to the parent joint)."""

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from . import transforms as tf
-from .model import Channel, Character, Clip, Prop, RigidMesh, Skeleton, SkinnedMesh
+from .model import Channel, Character, Clip, Prop, RigidMesh, Skeleton, SkinnedMesh, vertex_normals
 
 ASSET_PATH = Path(__file__).resolve().parent.parent / "assets" / "zombie.glb"
 SOURCE_FPS = 30  # clips are authored as keys at this rate; the bake resamples them
@@ -111,7 +111,7 @@ class _MeshBuilder:
         wgt = np.concatenate(self.wgt)
         col = np.concatenate(self.col)
         pos = _quantise(pos, 1e-6)
-        normals = _quantise(_vertex_normals(pos, idx), 1e-6)
+        normals = _quantise(vertex_normals(pos, idx), 1e-6)
         jnt, wgt = _top4(jnt, wgt)
         return SkinnedMesh(
             name=name,
@@ -131,16 +131,6 @@ class _MeshBuilder:
 def _quantise(a: np.ndarray, step: float) -> np.ndarray:
     """Round to a grid so that last-bit differences between numpy builds cannot change the file."""
     return np.round(np.asarray(a, dtype=np.float64) / step) * step
-
-
-def _vertex_normals(pos: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    tri = idx.reshape(-1, 3)
-    face = np.cross(pos[tri[:, 1]] - pos[tri[:, 0]], pos[tri[:, 2]] - pos[tri[:, 0]])
-    n = np.zeros_like(pos)
-    for k in range(3):
-        np.add.at(n, tri[:, k], face)
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.where(length > 1e-12, n / np.maximum(length, 1e-12), np.array([0.0, 1.0, 0.0]))
 
 
 def _top4(jnt: np.ndarray, wgt: np.ndarray):
