@@ -150,24 +150,30 @@ class _Reader:
         return arr
 
 
-def _node_local(node) -> np.ndarray:
-    if node.matrix is not None and len(node.matrix) == 16:
-        return np.array(node.matrix, dtype=np.float64).reshape(4, 4).T  # glTF matrices are column-major
+def _node_trs_fields(node):
+    """A node's TRS fields with glTF's defaults (rotation normalised)."""
     t = np.array(node.translation if node.translation is not None else [0, 0, 0], dtype=np.float64)
     q = np.array(node.rotation if node.rotation is not None else [0, 0, 0, 1], dtype=np.float64)
     s = np.array(node.scale if node.scale is not None else [1, 1, 1], dtype=np.float64)
-    return tf.trs_to_mat4(t, tf.quat_normalize(q), s)
+    return t, tf.quat_normalize(q), s
 
 
-def _node_trs(r: _Reader, index: int):
-    node = r.gltf.nodes[index]
-    if node.matrix is not None and len(node.matrix) == 16:
+def _has_matrix(node) -> bool:
+    return node.matrix is not None and len(node.matrix) == 16
+
+
+def _node_local(node) -> np.ndarray:
+    if _has_matrix(node):
+        return np.array(node.matrix, dtype=np.float64).reshape(4, 4).T  # glTF matrices are column-major
+    return tf.trs_to_mat4(*_node_trs_fields(node))
+
+
+def _node_trs(node):
+    """(t, q, s, shear): a `matrix` node is decomposed, and shear says how far TRS is from it."""
+    if _has_matrix(node):
         t, q, s, shear = tf.mat4_decompose(_node_local(node))
         return t, q, s, float(shear)
-    t = np.array(node.translation if node.translation is not None else [0, 0, 0], dtype=np.float64)
-    q = tf.quat_normalize(np.array(node.rotation if node.rotation is not None else [0, 0, 0, 1], dtype=np.float64))
-    s = np.array(node.scale if node.scale is not None else [1, 1, 1], dtype=np.float64)
-    return t, q, s, 0.0
+    return (*_node_trs_fields(node), 0.0)
 
 
 def _crowd_extras(obj) -> dict:
@@ -260,14 +266,6 @@ def _import(r: _Reader) -> Character:
             seen.add(k)
             k = parent[k]
 
-    def world(i: int) -> np.ndarray:
-        m = np.eye(4)
-        while True:
-            m = _node_local(nodes[i]) @ m
-            if i not in parent:
-                return m
-            i = parent[i]
-
     if not gl.skins:
         r.fail("no skin: this importer needs a skinned character")
     skin_use: dict[int, int] = {}
@@ -326,7 +324,7 @@ def _import(r: _Reader) -> Character:
     rest_s = np.zeros((jc, 3))
     folds: list[_Fold | None] = []
     for i, node in enumerate(order):
-        t, q, s, shear = _node_trs(r, node)
+        t, q, s, shear = _node_trs(nodes[node])
         if shear > 1e-5:
             warn.append(f"joint {names[i]!r} matrix has shear {shear:.2g}; approximated by TRS")
         fold = _Fold(between(node, joint_parent(node)))
@@ -383,6 +381,34 @@ def _import(r: _Reader) -> Character:
 
 def _attr(r: _Reader, prim, key: str):
     return getattr(prim.attributes, key, None)
+
+
+def _indices(r: _Reader, prim, vertex_count: int, label: str) -> np.ndarray:
+    if prim.indices is not None:
+        idx = r.accessor(prim.indices, f"{label} indices")[:, 0].astype(np.int64)
+    else:
+        idx = np.arange(vertex_count, dtype=np.int64)
+    idx = idx[: idx.shape[0] // 3 * 3]
+    if idx.size and (idx.min() < 0 or idx.max() >= vertex_count):
+        r.fail(f"{label} has an index past its {vertex_count} vertices")
+    return idx
+
+
+def _normals(r: _Reader, prim, pos: np.ndarray, idx: np.ndarray, label: str) -> np.ndarray:
+    if _attr(r, prim, "NORMAL") is not None:
+        return r.accessor(_attr(r, prim, "NORMAL"), f"{label} NORMAL").astype(np.float64)
+    return vertex_normals(pos, idx)
+
+
+def _base_color(r: _Reader, prim) -> tuple[tuple[float, ...], bool]:
+    """(base colour factor, whether a base colour texture was left out)."""
+    if prim.material is None:
+        return (1.0, 1.0, 1.0, 1.0), False
+    pbr = r._get(r.gltf.materials, prim.material, "material").pbrMetallicRoughness
+    if pbr is None:
+        return (1.0, 1.0, 1.0, 1.0), False
+    base = tuple(float(x) for x in pbr.baseColorFactor) if pbr.baseColorFactor is not None else (1.0, 1.0, 1.0, 1.0)
+    return base, pbr.baseColorTexture is not None
 
 
 def _read_meshes(r: _Reader, nodes, skin_index: int, skin_to_new: np.ndarray, jc: int, warn: list[str]) -> list[SkinnedMesh]:
@@ -444,29 +470,14 @@ def _read_meshes(r: _Reader, nodes, skin_index: int, skin_to_new: np.ndarray, jc
                 joints[zero] = 0
                 total = weights.sum(axis=1, keepdims=True)
             weights = weights / total
-            if prim.indices is not None:
-                idx = r.accessor(prim.indices, f"{label} indices")[:, 0].astype(np.int64)
-            else:
-                idx = np.arange(v, dtype=np.int64)
-            idx = idx[: idx.shape[0] // 3 * 3]
-            if idx.size and (idx.min() < 0 or idx.max() >= v):
-                r.fail(f"{label} has an index past its {v} vertices")
-            if _attr(r, prim, "NORMAL") is not None:
-                nrm = r.accessor(_attr(r, prim, "NORMAL"), f"{label} NORMAL").astype(np.float64)
-            else:
-                nrm = vertex_normals(pos, idx)
+            idx = _indices(r, prim, v, label)
+            nrm = _normals(r, prim, pos, idx, label)
             colors = None
             if _attr(r, prim, "COLOR_0") is not None:
                 c = r.accessor(_attr(r, prim, "COLOR_0"), f"{label} COLOR_0").astype(np.float64)
                 colors = np.concatenate([c, np.ones((v, 1))], axis=1) if c.shape[1] == 3 else c
-            base = (1.0, 1.0, 1.0, 1.0)
-            if prim.material is not None:
-                mat = r._get(gl.materials, prim.material, "material")
-                pbr = mat.pbrMetallicRoughness
-                if pbr is not None and pbr.baseColorFactor is not None:
-                    base = tuple(float(x) for x in pbr.baseColorFactor)
-                if pbr is not None and pbr.baseColorTexture is not None:
-                    textured = True
+            base, has_texture = _base_color(r, prim)
+            textured |= has_texture
             if not np.all(np.isfinite(pos)):
                 r.fail(f"{label} POSITION holds NaN or Inf")
             meshes.append(SkinnedMesh(
@@ -487,18 +498,11 @@ def _rigid_mesh(r: _Reader, mesh_index: int, warn: list[str]) -> RigidMesh | Non
     for prim in mesh.primitives or []:
         if (4 if prim.mode is None else prim.mode) != 4 or _attr(r, prim, "POSITION") is None:
             continue
-        pos = r.accessor(_attr(r, prim, "POSITION")).astype(np.float64)
-        idx = r.accessor(prim.indices)[:, 0].astype(np.int64) if prim.indices is not None else np.arange(pos.shape[0])
-        if idx.size and idx.max() >= pos.shape[0]:
-            r.fail(f"mesh {mesh.name!r} has an index past its vertices")
-        if _attr(r, prim, "NORMAL") is not None:
-            nrm = r.accessor(_attr(r, prim, "NORMAL")).astype(np.float64)
-        else:
-            nrm = vertex_normals(pos, idx)
-        if prim.material is not None and r.gltf.materials and prim.material < len(r.gltf.materials):
-            pbr = r.gltf.materials[prim.material].pbrMetallicRoughness
-            if pbr is not None and pbr.baseColorFactor is not None:
-                base = tuple(float(x) for x in pbr.baseColorFactor)
+        label = f"mesh {mesh.name or mesh_index!r}"
+        pos = r.accessor(_attr(r, prim, "POSITION"), f"{label} POSITION").astype(np.float64)
+        idx = _indices(r, prim, pos.shape[0], label)
+        nrm = _normals(r, prim, pos, idx, label)
+        base, _ = _base_color(r, prim)
         parts_p.append(pos)
         parts_n.append(nrm)
         parts_i.append(idx + count)
