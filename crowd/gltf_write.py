@@ -57,8 +57,8 @@ class _Blob:
         return index
 
 
-def _trs_fields(matrix: np.ndarray) -> dict:
-    t, q, s, _ = mat4_decompose(matrix)
+def _trs_fields(t: np.ndarray, q: np.ndarray, s: np.ndarray) -> dict:
+    """Node TRS fields, leaving out those at their defaults."""
     out = {}
     if np.any(np.abs(t) > 0):
         out["translation"] = [float(x) for x in np.float32(t)]
@@ -100,16 +100,8 @@ def character_to_gltf(character: Character) -> tuple[g.GLTF2, bytes]:
     socket_names = {j: name for name, j in character.sockets.items()}
     gl.nodes.append(g.Node(name=character.name, children=[1 + j for j in range(sk.joint_count) if sk.parents[j] < 0]))
     for j in range(sk.joint_count):
-        node = g.Node(name=sk.names[j], children=[1 + c for c in range(sk.joint_count) if sk.parents[c] == j])
-        t = sk.rest_translation[j]
-        q = sk.rest_rotation[j]
-        s = sk.rest_scale[j]
-        if np.any(t != 0):
-            node.translation = [float(x) for x in np.float32(t)]
-        if np.any(q != [0, 0, 0, 1]):
-            node.rotation = [float(x) for x in np.float32(q)]
-        if np.any(s != 1):
-            node.scale = [float(x) for x in np.float32(s)]
+        node = g.Node(name=sk.names[j], children=[1 + c for c in range(sk.joint_count) if sk.parents[c] == j],
+                      **_trs_fields(sk.rest_translation[j], sk.rest_rotation[j], sk.rest_scale[j]))
         if j in socket_names:
             node.extras = {"crowd": {"socket": socket_names[j]}}
         gl.nodes.append(node)
@@ -133,7 +125,7 @@ def character_to_gltf(character: Character) -> tuple[g.GLTF2, bytes]:
         gl.nodes.append(g.Node(name=prop.mesh.name, mesh=len(gl.meshes) - 1, extras={"crowd": {"prop": name}},
                                children=[len(gl.nodes) + 1]))
         props.append(len(gl.nodes) - 1)
-        gl.nodes.append(g.Node(name=f"{prop.mesh.name}_grip", extras={"crowd": {"grip": name}}, **_trs_fields(prop.grip)))
+        gl.nodes.append(g.Node(name=f"{prop.mesh.name}_grip", extras={"crowd": {"grip": name}}, **_trs_fields(*mat4_decompose(prop.grip)[:3])))
     if props:
         scenes["props"] = props
 
