@@ -526,23 +526,23 @@ def _pose_to_joints(p: dict[str, np.ndarray], n: int) -> tuple[dict[str, np.ndar
     p = {k: np.broadcast_to(np.asarray(v, dtype=np.float64), (n,)).copy() for k, v in p.items()}
     out = {
         "hips": _q(p["hips_pitch"], p["hips_yaw"], p["hips_roll"], "xzy"),
-        "spine": _q(p["spine_pitch"], p["spine_yaw"], 0.0 * p["spine_pitch"]),
+        "spine": _q(p["spine_pitch"], p["spine_yaw"], 0.0),
         "chest": _q(p["chest_pitch"], p["chest_yaw"], p["chest_roll"]),
-        "neck": _q(p["neck_pitch"], 0.5 * p["head_yaw"], 0.0 * p["neck_pitch"]),
+        "neck": _q(p["neck_pitch"], 0.5 * p["head_yaw"], 0.0),
         "head": _q(p["head_pitch"], 0.5 * p["head_yaw"], p["head_roll"]),
-        "jaw": _q(p["jaw"], 0.0 * p["jaw"], 0.0 * p["jaw"]),
+        "jaw": _q(p["jaw"], 0.0, 0.0),
     }
     for s in "lr":
         g = lambda k: p[f"{k}_{s}"]
-        shoulder = _q(0.0 * g("shrug"), -0.3 * g("arm_fwd") * 0.3, 0.4 * g("shrug"))
+        shoulder = _q(0.0, -0.3 * g("arm_fwd") * 0.3, 0.4 * g("shrug"))
         # Twist about the bone, then lower, then swing forward (in the shoulder's frame).
         arm = _q(g("arm_twist"), -g("arm_fwd"), -g("arm_down"), "xzy")
-        forearm = _q(0.0 * g("elbow"), -g("elbow"), 0.0 * g("elbow"))
-        hand = _q(0.0 * g("wrist"), 0.0 * g("wrist"), -g("wrist"))
-        thigh = _q(-g("thigh_flex"), 0.0 * g("thigh_abd"), g("thigh_abd"))
-        shin = _q(g("knee"), 0.0 * g("knee"), 0.0 * g("knee"))
-        foot = _q(g("ankle"), 0.0 * g("ankle"), 0.0 * g("ankle"))
-        toe = _q(g("toe"), 0.0 * g("toe"), 0.0 * g("toe"))
+        forearm = _q(0.0, -g("elbow"), 0.0)
+        hand = _q(0.0, 0.0, -g("wrist"))
+        thigh = _q(-g("thigh_flex"), 0.0, g("thigh_abd"))
+        shin = _q(g("knee"), 0.0, 0.0)
+        foot = _q(g("ankle"), 0.0, 0.0)
+        toe = _q(g("toe"), 0.0, 0.0)
         for name, q in (("shoulder", shoulder), ("upper_arm", arm), ("forearm", forearm), ("hand", hand),
                         ("thigh", thigh), ("shin", shin), ("foot", foot), ("toe", toe)):
             out[f"{name}_{s}"] = q if s == "l" else _mirror(q)

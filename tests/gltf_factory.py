@@ -45,7 +45,7 @@ def make_gltf(folder: Path, name="test.gltf", armature_scale=1.0, armature_rotat
                 views[-1]["byteStride"] = stride
             blob.extend(arr.tobytes())
             view = len(views) - 1
-        acc = {"bufferView": view, "componentType": ctype, "count": int(arr.shape[0]) if stride is None else int(arr.shape[0]),
+        acc = {"bufferView": view, "componentType": ctype, "count": int(arr.shape[0]),
                "type": kind}
         if offset:
             acc["byteOffset"] = offset
