@@ -1,8 +1,8 @@
 """``crowd-demo``: the demo entry point. Thin: it parses flags and calls the stages.
 
-At this stage of the project (foundation issue) the GPU processor and the window are not built yet,
-so the demo imports the character, bakes the requested clips, reports what it baked and how far the
-bake is from the float64 reference, and renders a CPU-skinned contact sheet through headless EGL.
+The interactive window comes with issue 6. Until then, and on any machine without a display, the demo
+runs the headless smoke mode: the whole frame loop offscreen through EGL, a PNG of the last frame and
+a JSON of stats.
 """
 
 from __future__ import annotations
@@ -11,50 +11,62 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="crowd-demo", description="Zombie crowd demo: GPU animation processor and skinned instancing.")
+    p.add_argument("--headless", action="store_true", help="run offscreen through EGL even when a display exists")
+    p.add_argument("--frames", type=int, default=60, help="frames to run (default 60)")
+    p.add_argument("--agents", type=int, default=200, help="number of zombies (default 200)")
+    p.add_argument("--size", default="1280x720", help="frame size WxH (default 1280x720)")
+    p.add_argument("--screenshot", type=Path, default=Path("out/demo.png"), help="PNG of the last frame")
+    p.add_argument("--stats", type=Path, default=None, help="JSON of frame and pass timings")
+    p.add_argument("--model", type=Path, default=None, help="a skinned .glb/.gltf (default: the built-in zombie)")
+    p.add_argument("--roles", default=None, help="clip role overrides, e.g. walk=Walking,idle=Idle")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--bake-fps", type=float, default=15.0)
+    p.add_argument("--precision", choices=["f32", "f16"], default="f32")
+    p.add_argument("--processor", choices=["auto", "compute", "fragment"], default="auto", help="processor path (default: compute where GL 4.3 exists)")
+    p.add_argument("--no-shadows", action="store_true")
+    p.add_argument("--no-culling", action="store_true")
+    return p
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="crowd-demo", description="Zombie crowd demo (foundation stage).")
-    parser.add_argument("--model", type=Path, help="a skinned .glb/.gltf (default: the built-in zombie)")
-    parser.add_argument("--clips", nargs="*", help="clips to bake (default: all)")
-    parser.add_argument("--bake-fps", type=float, default=15.0)
-    parser.add_argument("--precision", choices=["f32", "f16"], default="f32")
-    parser.add_argument("--screenshot", type=Path, default=Path("out/demo.png"))
-    parser.add_argument("--headless", action="store_true", help="no window even when a display exists")
-    args = parser.parse_args(argv)
+    args = _parser().parse_args(argv)
 
-    from crowd.bake import BakeError, bake, joint_position_error
+    from crowd.bake import BakeError
     from crowd.gl import GLUnavailable, has_display
-    from crowd.gltf import GltfImportError, load_character
-    from crowd.preview import render_sheet
+    from crowd.gltf import GltfImportError
+    from crowd.pipeline import MAX_AGENTS, PipelineConfig, PipelineError, smoke_size
+    from crowd.processor import ProcessorError
+    from crowd.render import RenderError
+    from crowd.roles import RoleError, parse_overrides
+    from crowd.smoke import run_headless
 
     if not args.headless:
         reason = "no display found" if not has_display() else "the interactive window is not built yet (issue 6)"
         print(f"crowd-demo: {reason}; running headless (EGL) instead.")
     try:
-        character = load_character(args.model, args.clips)
-        baked = bake(character.skeleton, character.clips, args.bake_fps, args.precision)
-    except (GltfImportError, BakeError) as exc:
+        if not 1 <= args.frames <= 100_000:
+            raise PipelineError(f"--frames must be 1 to 100000, got {args.frames}")
+        if not 0 <= args.agents <= MAX_AGENTS:
+            raise PipelineError(f"--agents must be 0 to {MAX_AGENTS}, got {args.agents}")
+        if args.model is not None and not args.model.is_file():
+            raise PipelineError(f"--model {args.model}: no such file")
+        config = PipelineConfig(agents=args.agents, seed=args.seed, model=args.model, roles=parse_overrides(args.roles),
+                                bake_fps=args.bake_fps, precision=args.precision, processor_path=args.processor,
+                                shadows=not args.no_shadows, culling=not args.no_culling)
+        stats = run_headless(config, args.frames, smoke_size(args.size), args.screenshot, args.stats)
+    except (GltfImportError, BakeError, PipelineError, ProcessorError, RenderError, RoleError, GLUnavailable) as exc:
         print(f"crowd-demo: {exc}", file=sys.stderr)
         return 2
-    for w in character.warnings + baked.warnings:
-        print(f"  note: {w}")
-    print(f"{character.name}: {character.skeleton.joint_count} joints, {len(character.meshes)} skinned meshes, "
-          f"{len(character.clips)} clips baked at {args.bake_fps:g} fps ({args.precision}), {baked.rows} rows, {baked.nbytes} bytes")
-    phases = np.linspace(0.0, 1.0, 241)
-    for clip in character.clips:
-        err = joint_position_error(baked, character.skeleton, clip, phases).max()
-        info = baked.clips[baked.clip_index(clip.name)]
-        print(f"  {clip.name:<16} {clip.duration:6.3f} s  {'loop' if clip.loop else 'once'}  {info.frame_count:4d} frames  "
-              f"max joint error {err * 1e3:8.3f} mm")
-    try:
-        pieces = ("body", "head_a", "shirt_torn") if args.model is None else ()
-        render_sheet(character, [c.name for c in character.clips], 6, 160, args.screenshot, 0.8, pieces)
-    except GLUnavailable as exc:
-        print(f"crowd-demo: {exc}", file=sys.stderr)
-        return 3
-    print(f"wrote {args.screenshot}")
+    for note in stats["warnings"]:
+        print(f"  note: {note}")
+    f = stats["frame_ms"]
+    print(f"{stats['agents']} agents, {stats['frames']} frames at {stats['size'][0]}x{stats['size'][1]} on {stats['gl_renderer']}: "
+          f"frame p50 {f['p50']} ms, p95 {f['p95']} ms; processor ({stats['processor_path']}) {stats['passes_ms'].get('process', 0)} ms; "
+          f"{stats['last_frame']['triangles']:,} triangles; NaN rows {stats['nan_count']}")
+    print(f"wrote {args.screenshot}" + (f" and {args.stats}" if args.stats else ""))
     return 0
 
 

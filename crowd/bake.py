@@ -12,6 +12,8 @@ Layout of ``texels`` (rows, 2 * J, 4), one texture row per baked frame:
   floor(f) + 1, the same for looping and one-shot clips;
 - keys are sign-aligned along each joint's track, closing frame included, so neighbours lerp blindly.
   (A joint that spins a full turn over a loop closes on -q: the extra frame makes that work too.)
+- the last row (``rest_row``) holds the skeleton's rest pose as local DQs: the processor's fallback for
+  a joint whose layer weights add up to about 0 (ozz-animation's blending job does the same).
 
 Dual quaternions carry no scale. A character with joint scale (static or animated, such as
 Quaternius' hedgehog) gets ``scale``: (rows, J) uniform scale per joint and frame; characters without
@@ -69,6 +71,10 @@ class AnimationBake:
     @property
     def rows(self) -> int:
         return self.texels.shape[0]
+
+    @property
+    def rest_row(self) -> int:
+        return self.texels.shape[0] - 1
 
     @property
     def clip_table(self) -> np.ndarray:
@@ -178,6 +184,11 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float = 15.0, precision: st
         actual = n / clip.duration if clip.duration > 0 else float(fps)
         infos.append(ClipInfo(clip.name, row, n + 1, actual, clip.loop, clip.duration))
         row += n + 1
+    rest_q = skeleton.rest_rotation
+    real_rows.append(rest_q[None])
+    dual_rows.append(tf.dq_from_rt(rest_q, skeleton.rest_translation)[1][None])
+    scale_rows.append(_uniform_scale(skeleton.rest_scale, "rest pose", warnings)[None])
+    row += 1
     if row > max_rows:
         raise BakeError(f"{row} frames do not fit a {max_rows}-row texture: bake fewer clips or at a lower rate than {fps} fps")
     if 2 * jc > max_rows:

@@ -2,12 +2,15 @@
 
 - ``bake``: the bake's size and its joint-position error against the float64 reference, per clip and
   bake rate (CPU only: this is about the data, not the GPU).
+- ``scale``: GPU ms of the animation processor and of the skinned instanced draw against agent count,
+  with the unskinned instanced draw of the same meshes measured in the same run as the ceiling.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import platform
 import sys
 import time
@@ -58,6 +61,113 @@ def bench_bake(args) -> int:
     return 0
 
 
+def bench_scale(args) -> int:
+    """Every agent at LOD0, no culling, no shadows: the draw is geometry-bound, so the unskinned draw of
+    the same meshes and instances is the ceiling the skinned draw is compared with."""
+    import moderngl
+
+    from .bake import bake
+    from .gl import describe, headless_context
+    from .gltf import load_character
+    from .pipeline import smoke_size
+    from .processor import CLIP, PHASE, WEIGHT, AnimationProcessor, empty_layers
+    from .render import Camera, CrowdRenderer, Instances
+    from .roles import clips_used, match_roles
+    from .smoke import offscreen_framebuffer
+
+    size = smoke_size(args.size)
+    counts = [int(x) for x in args.agents.split(",")]
+    ctx = headless_context()
+    info = describe(ctx)
+    character = load_character(args.model)
+    roles, _ = match_roles(character.clips)
+    baked = bake(character.skeleton, [character.clip(n) for n in clips_used(roles)], 15.0, "f32")
+    renderer = CrowdRenderer(ctx, character, baked.joint_count, AnimationProcessor(ctx, baked, 1, path="fragment").agents_per_row,
+                             lod_distances=(1e9, 1e9), shadows=False, culling=False)
+    processors = {"compute": AnimationProcessor(ctx, baked, args.layers, path="compute")} if ctx.version_code >= 430 else {}
+    processors["fragment"] = AnimationProcessor(ctx, baked, args.layers, path="fragment")
+    fb, attachments = offscreen_framebuffer(ctx, size)
+    query = ctx.query(time=True)
+    rng = np.random.default_rng(1)
+    rows = []
+    print(f"{info['gl_renderer']} | {info['gl_version']} | {size[0]}x{size[1]} | {args.layers} layers | median of {args.frames} frames")
+    print(f"{'agents':>8} {'proc ms':>8} {'frag ms':>8} {'draw ms':>8} {'frame ms':>9} {'Mtri/s':>8} {'ceil Mtri/s':>11} {'ratio':>6} {'loop ms':>8}")
+
+    def gpu_ms(fn):
+        with query:
+            fn()
+        return query.elapsed / 1e6
+
+    for n in counts:
+        side = math.ceil(math.sqrt(n))
+        pos = np.zeros((n, 3))
+        pos[:, 0] = (np.arange(n) % side - side / 2) * 1.5
+        pos[:, 2] = (np.arange(n) // side - side / 2) * 1.5
+        heads = renderer.groups.get("head", [])
+        inst = Instances(pos, rng.uniform(-3, 3, n).astype(np.float32), np.ones(n, np.float32), np.full((n, 4), 200, np.uint8),
+                         {"head": rng.integers(0, len(heads), n)} if heads else {})
+        extent = side * 1.5 / 2
+        camera = Camera(eye=np.array([0.0, extent * 1.6 + 3, extent * 1.6 + 5]), target=np.zeros(3), aspect=size[0] / size[1], far=extent * 8 + 50)
+        layers = empty_layers(n, args.layers)
+        layers[..., CLIP] = rng.integers(0, len(baked.clips), (n, args.layers))
+        layers[..., PHASE] = rng.uniform(0, 1, (n, args.layers))
+        layers[..., WEIGHT] = rng.uniform(0.1, 1.0, (n, args.layers))
+        for proc in processors.values():
+            proc.resize(n)
+            proc.upload(layers)
+        main_proc = processors.get("compute", processors["fragment"])
+        view_proj = renderer.prepare(camera, inst)
+        tris = renderer.last["triangles"]
+        samples = {"proc": [], "frag": [], "draw": [], "ceil": [], "loop": [], "frame": []}
+        for frame in range(args.frames + 2):
+            t0 = time.perf_counter()
+            main_proc.upload(layers)
+            renderer.prepare(camera, inst)
+            fb.use()
+            fb.clear(0.1, 0.1, 0.1, 1.0, depth=1.0)
+            p_ms = gpu_ms(main_proc.run)
+            d_ms = gpu_ms(lambda: renderer.color_pass(fb, view_proj, main_proc, skinned=True))
+            ctx.finish()
+            f_ms = (time.perf_counter() - t0) * 1e3
+            fb.clear(0.1, 0.1, 0.1, 1.0, depth=1.0)
+            c_ms = gpu_ms(lambda: renderer.color_pass(fb, view_proj, main_proc, skinned=False))
+            fb.clear(0.1, 0.1, 0.1, 1.0, depth=1.0)
+            l_ms = gpu_ms(lambda: renderer.color_pass(fb, view_proj, main_proc, skinned="loop"))
+            for variant in args.variants.split(",") if args.variants else []:
+                fb.clear(0.1, 0.1, 0.1, 1.0, depth=1.0)
+                samples.setdefault(variant, []).append(gpu_ms(lambda: renderer.color_pass(fb, view_proj, main_proc, skinned=variant)))
+            fr_ms = gpu_ms(processors["fragment"].run) if "compute" in processors else p_ms
+            if frame >= 2:  # the first frames compile and upload
+                for k, v in (("proc", p_ms), ("frag", fr_ms), ("draw", d_ms), ("ceil", c_ms), ("loop", l_ms), ("frame", f_ms)):
+                    samples[k].append(v)
+        med = {k: float(np.median(v)) for k, v in samples.items()}
+        if args.variants:
+            print("   variants ms: " + ", ".join(f"{k} {med[k]:.3f}" for k in args.variants.split(",")))
+        row = {"agents": n, "triangles": tris, "processor_ms": round(med["proc"], 4), "processor_fragment_ms": round(med["frag"], 4),
+               "draw_ms": round(med["draw"], 4), "frame_ms": round(med["frame"], 3),
+               "tris_per_s": round(tris / (med["draw"] / 1e3)), "ceiling_ms": round(med["ceil"], 4),
+               "ceiling_tris_per_s": round(tris / (med["ceil"] / 1e3)),
+               "draw_loop_ms": round(med["loop"], 4)}
+        row["ratio"] = round(row["tris_per_s"] / row["ceiling_tris_per_s"], 3)
+        rows.append(row)
+        print(f"{n:>8} {row['processor_ms']:>8.3f} {row['processor_fragment_ms']:>8.3f} {row['draw_ms']:>8.3f} {row['frame_ms']:>9.2f} "
+              f"{row['tris_per_s'] / 1e6:>8.0f} {row['ceiling_tris_per_s'] / 1e6:>11.0f} {row['ratio']:>6.3f} {row['draw_loop_ms']:>8.3f}")
+    for proc in processors.values():
+        proc.release()
+    renderer.release()
+    fb.release()
+    for a in attachments:
+        a.release()
+    if args.json:
+        from .gltf_write import atomic_write_bytes
+
+        device = f"{info['gl_renderer']}, {info['gl_version']}; {_device_cpu()}; moderngl {moderngl.__version__}"
+        atomic_write_bytes(Path(args.json), json.dumps({"device": device, "size": list(size), "layers": args.layers,
+                                                        "model": str(args.model or "built-in zombie"), "rows": rows}, indent=1).encode())
+    ctx.release()
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="crowd-bench", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -67,13 +177,25 @@ def main(argv=None) -> int:
     p.add_argument("--samples", type=int, default=1201, help="phases per clip at which the error is measured")
     p.add_argument("--json", type=Path)
     p.set_defaults(run=bench_bake)
+    p = sub.add_parser("scale", help="processor and skinned draw GPU ms against agent count, with the unskinned ceiling")
+    p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
+    p.add_argument("--agents", default="256,1024,4096,16384,65536,131072")
+    p.add_argument("--size", default="1920x1080")
+    p.add_argument("--frames", type=int, default=10)
+    p.add_argument("--layers", type=int, default=4)
+    p.add_argument("--variants", default="one_bone", help="skin shader ablations timed in the same run (loop is always timed)")
+    p.add_argument("--json", type=Path)
+    p.set_defaults(run=bench_scale)
     args = parser.parse_args(argv)
-    from .gltf import GltfImportError
     from .bake import BakeError
+    from .gl import GLUnavailable
+    from .gltf import GltfImportError
+    from .pipeline import PipelineError
+    from .processor import ProcessorError
 
     try:
         return args.run(args)
-    except (GltfImportError, BakeError) as exc:
+    except (GltfImportError, BakeError, GLUnavailable, PipelineError, ProcessorError) as exc:
         print(f"crowd-bench: {exc}", file=sys.stderr)
         return 2
 

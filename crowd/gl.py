@@ -23,8 +23,15 @@ def has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
-def headless_context(require: int = 330) -> moderngl.Context:
-    """A standalone EGL context with at least GL `require` (e.g. 330, 430)."""
+def headless_context(require: int | None = None) -> moderngl.Context:
+    """A standalone EGL context with at least GL `require` (330, 430, ...). With no requirement, the
+    best of 4.3 and 3.3: EGL drivers hand out exactly the version asked for (NVIDIA gives 3.3 to a
+    3.3 request), so asking for 3.3 alone would hide the compute path."""
+    if require is None:
+        try:
+            return headless_context(430)
+        except GLUnavailable:
+            return headless_context(330)
     try:
         ctx = moderngl.create_context(standalone=True, backend="egl", require=require)
     except Exception as exc:  # moderngl raises plain Exception subclasses with multi-line text
@@ -47,7 +54,25 @@ def describe(ctx: moderngl.Context) -> dict:
     }
 
 
-def load_shader(name: str) -> str:
+def load_shader(name: str, defines: dict | None = None) -> str:
+    """Source of shaders/<name> with ``#include "file"`` lines expanded (one level is all we use) and
+    ``#define KEY VALUE`` lines inserted after ``#version``: features a scene does not use are compiled
+    out rather than branched around."""
+    text = _read_shader(name)
+    lines = []
+    for line in text.splitlines():
+        stripped = line.strip()
+        if stripped.startswith("#include"):
+            lines.append(_read_shader(stripped.split('"')[1]))
+        else:
+            lines.append(line)
+    if not lines or not lines[0].startswith("#version"):
+        raise GLUnavailable(f"shader {name} must start with #version")
+    extra = [f"#define {key} {value}" for key, value in (defines or {}).items()]
+    return "\n".join(lines[:1] + extra + lines[1:]) + "\n"
+
+
+def _read_shader(name: str) -> str:
     path = SHADER_DIR / name
     try:
         return path.read_text()

@@ -32,7 +32,7 @@ def gl_context():
     from crowd.gl import GLUnavailable, headless_context
 
     try:
-        ctx = headless_context(330)
+        ctx = headless_context()
     except GLUnavailable as exc:
         pytest.skip(str(exc))
     yield ctx

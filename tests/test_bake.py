@@ -52,8 +52,10 @@ def test_layout_and_clip_table(zombie):
     for (first, count, fps, loop), info, clip in zip(table, b.clips, zombie.clips):
         assert count == info.frame_count and bool(loop) == clip.loop
         assert fps == pytest.approx((count - 1) / clip.duration, rel=1e-6) and fps >= 15
-    assert table[-1, 0] + table[-1, 1] == b.rows
+    assert table[-1, 0] + table[-1, 1] == b.rest_row == b.rows - 1
     assert np.all(b.parents == zombie.skeleton.parents)
+    rest = np.concatenate([zombie.skeleton.rest_rotation, tf.dq_from_rt(zombie.skeleton.rest_rotation, zombie.skeleton.rest_translation)[1]], axis=1)
+    assert np.allclose(b.texels[b.rest_row].astype(np.float64).reshape(-1, 2, 4).reshape(-1, 8), rest, atol=1e-6)
     assert b.scale is None  # the zombie has no joint scale: no scale texture
 
 
@@ -79,7 +81,7 @@ def spinning_skeleton_and_clip():
 def test_antipodal_keys_and_loop_wrap():
     sk, clip = spinning_skeleton_and_clip()
     b = bake(sk, [clip], 16)
-    real = b.texels[1:, 0].astype(np.float64)
+    real = b.texels[1 : b.rest_row, 0].astype(np.float64)  # the clip's rows, without the rest row
     assert np.all(np.sum(real[1:] * real[:-1], axis=-1) > 0)
     assert np.dot(real[-1], real[0]) < 0  # the closing key is -q of the first: a wrap the texture never lerps
     phases = np.concatenate([np.linspace(0, 1, 97, endpoint=False), [1 - 1e-9, 1.0, 1.5, 10 * 3600.0 + 0.25]])

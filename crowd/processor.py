@@ -1,0 +1,378 @@
+"""Process stage: per-agent animation layers → the FinalAnimationTexture of skinning matrices, on the GPU.
+
+Contract (the shape of an ozz-animation job: validated inputs, documented edge cases):
+
+input ``layers``: float32 (N, L, 4) with L = the processor's layer count (1..4); per layer
+  ``[clip, phase, weight, mask]`` (column constants CLIP, PHASE, WEIGHT, MASK):
+  - clip: index into the bake's clips (integer valued);
+  - phase: any finite value; looping clips wrap it into [0, 1), one-shot clips clamp it to [0, 1];
+  - weight: finite, at most MAX_WEIGHT; negative weights count as 0; weights need not sum to 1;
+  - mask: -1 for the whole body, else a row of the processor's joint masks (factor per joint in [0, 1]).
+  Per joint: weights are multiplied by the mask, the DQ keys are lerped and made unit, signs are
+  aligned to the heaviest layer, the weighted sum is normalised; a joint whose weights add up to less
+  than REST_THRESHOLD takes the rest pose. Then the hierarchy is concatenated and multiplied by the
+  inverse bind.
+
+output: the palette, three RGBA32F textures ("planes") holding rows 0, 1 and 2 of each 3x4 skinning
+  matrix. Agent a, joint j lives at texel ((a % agents_per_row) * J + j, a // agents_per_row) of each
+  plane: one palette row per agent, several agents side by side in a texture row so that 65,536 agents
+  fit a texture no GPU refuses. The GL 3.3 path needs the planes: multiple render targets write the
+  same pixel of several attachments, so the three texels of a joint sit at one coordinate of three
+  textures. The compute path writes the same planes, so the renderers do not care which path ran.
+
+Paths: "compute" (GL 4.3, one dispatch) and "fragment" (GL 3.3, one draw); "auto" takes compute where
+the context has GL 4.3. Both run the same GLSL (shaders/processor_common.glsl).
+"""
+
+from __future__ import annotations
+
+import math
+
+import moderngl
+import numpy as np
+
+from . import transforms as tf
+from .bake import AnimationBake
+from .gl import load_shader
+from .reference import REST_THRESHOLD
+
+CLIP, PHASE, WEIGHT, MASK = range(4)
+MAX_LAYERS = 4
+MAX_JOINTS = 256  # one compute work group of 256 invocations holds at least one whole agent
+MAX_WEIGHT = 1.0e6  # larger weights would overflow the float32 sum long before they mean anything
+GROUP_SIZE = 256
+PATHS = ("auto", "compute", "fragment")
+_DTYPE_BYTES = {"f1": 1, "u1": 1, "f2": 2, "u2": 2, "i2": 2, "f4": 4, "u4": 4, "i4": 4}
+# Agents side by side in one palette texture row: keeps textures under 4096 texels wide, a size every
+# GL 3.3+ driver we target accepts (GL_MAX_TEXTURE_SIZE is 16384 on llvmpipe, 32768 on NVIDIA).
+MAX_TEXTURE_WIDTH = 4096
+
+
+class ProcessorError(ValueError):
+    """Bad processor input; the message is one line."""
+
+
+def empty_layers(agents: int, layer_count: int = MAX_LAYERS) -> np.ndarray:
+    """Layers that contribute nothing (weight 0, whole-body mask): every joint falls back to rest."""
+    layers = np.zeros((agents, layer_count, 4), dtype=np.float32)
+    layers[..., MASK] = -1.0
+    return layers
+
+
+def validate_layers(layers, clip_count: int, mask_count: int, layer_count: int) -> np.ndarray:
+    """Check the layers contract; returns a C-contiguous float32 (N, L, 4) array."""
+    a = np.asarray(layers)
+    if a.ndim != 3 or a.shape[1] != layer_count or a.shape[2] != 4:
+        raise ProcessorError(f"layers must have shape (agents, {layer_count}, 4), got {a.shape}")
+    if not np.issubdtype(a.dtype, np.floating) and not np.issubdtype(a.dtype, np.integer):
+        raise ProcessorError(f"layers must be numeric, got {a.dtype}")
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    if a.size == 0:
+        return a
+    if not np.all(np.isfinite(a)):
+        bad = np.argwhere(~np.isfinite(a))[0]
+        raise ProcessorError(f"layers hold NaN or Inf (agent {bad[0]}, layer {bad[1]}, {('clip', 'phase', 'weight', 'mask')[bad[2]]})")
+    clip = a[..., CLIP]
+    if np.any(clip != np.round(clip)) or np.any(clip < 0) or np.any(clip >= clip_count):
+        raise ProcessorError(f"layer clip indices must be whole numbers in [0, {clip_count})")
+    if float(np.max(a[..., WEIGHT])) > MAX_WEIGHT:
+        raise ProcessorError(f"a layer weight exceeds {MAX_WEIGHT:g} (largest {float(np.max(a[..., WEIGHT])):.3g}); weights are relative, scale them down")
+    mask = a[..., MASK]
+    if np.any(mask != np.round(mask)) or np.any(mask < -1) or np.any(mask >= mask_count):
+        raise ProcessorError(f"layer masks must be -1 (whole body) or whole numbers in [0, {mask_count})")
+    return a
+
+
+def validate_masks(masks, joint_count: int) -> np.ndarray | None:
+    if masks is None:
+        return None
+    m = np.asarray(masks, dtype=np.float32)
+    if m.ndim == 1:
+        m = m[None]
+    if m.ndim != 2 or m.shape[1] != joint_count or m.shape[0] == 0:
+        raise ProcessorError(f"joint masks must have shape (masks, {joint_count}), got {np.shape(masks)}")
+    if not np.all(np.isfinite(m)) or np.any(m < 0) or np.any(m > 1):
+        raise ProcessorError("joint mask factors must be finite and within [0, 1]")
+    return np.ascontiguousarray(m)
+
+
+def reference_palette(bake: AnimationBake, layers, masks=None) -> np.ndarray:
+    """Float64 model of the processor on the same baked keys: (N, J, 3, 4) skinning matrix rows.
+
+    The bake's own error against the source clips is measured elsewhere (bake.joint_position_error,
+    issue 7's report); this function isolates what the GPU adds: float32 arithmetic.
+    """
+    masks = validate_masks(masks, bake.joint_count)
+    layers = validate_layers(layers, len(bake.clips), 0 if masks is None else masks.shape[0], np.shape(layers)[1]).astype(np.float64)
+    n, lcount, _ = layers.shape
+    jc = bake.joint_count
+    texels = bake.texels.astype(np.float64)
+    scales = None if bake.scale is None else bake.scale.astype(np.float64)
+    table = bake.clip_table.astype(np.float64)
+    real = np.zeros((lcount, n, jc, 4))
+    dual = np.zeros((lcount, n, jc, 4))
+    scale = np.zeros((lcount, n, jc))
+    weight = np.zeros((lcount, n, jc))
+    for l in range(lcount):
+        clip = layers[:, l, CLIP].astype(np.int64)
+        first, count, _, loop = table[clip].T
+        phase = layers[:, l, PHASE]
+        phase = np.where(loop > 0.5, phase - np.floor(phase), np.clip(phase, 0.0, 1.0))
+        f = phase * (count - 1.0)
+        i0 = np.clip(np.floor(f), 0.0, count - 2.0)
+        u = (f - i0)[:, None, None]
+        row = (first + i0).astype(np.int64)
+        r = texels[row, 0::2] + (texels[row + 1, 0::2] - texels[row, 0::2]) * u
+        d = texels[row, 1::2] + (texels[row + 1, 1::2] - texels[row, 1::2]) * u
+        inv = 1.0 / np.linalg.norm(r, axis=-1, keepdims=True)
+        real[l], dual[l] = r * inv, d * inv
+        if scales is not None:
+            scale[l] = scales[row] + (scales[row + 1] - scales[row]) * u[..., 0]
+        else:
+            scale[l] = 1.0
+        w = np.repeat(np.maximum(layers[:, l, WEIGHT], 0.0)[:, None], jc, axis=1)
+        mask = layers[:, l, MASK].astype(np.int64)
+        if masks is not None:
+            w = np.where(mask[:, None] >= 0, w * masks[np.maximum(mask, 0)].astype(np.float64), w)
+        weight[l] = w
+    real = np.where(weight[..., None] > 0, real, 0.0)
+    dual = np.where(weight[..., None] > 0, dual, 0.0)
+    scale = np.where(weight > 0, scale, 0.0)
+    # First maximum, as the shader's strict '>' scan finds it.
+    heaviest = np.argmax(weight, axis=0)
+    ref = np.take_along_axis(real, heaviest[None, ..., None], axis=0)[0]
+    signed = np.where(np.sum(real * ref[None], axis=-1) < 0.0, -weight, weight)
+    r = np.sum(signed[..., None] * real, axis=0)
+    d = np.sum(signed[..., None] * dual, axis=0)
+    total = weight.sum(axis=0)
+    s = np.sum(weight * scale, axis=0) / np.where(total < REST_THRESHOLD, 1.0, total)
+    low = total < REST_THRESHOLD
+    rest_r = texels[bake.rest_row, 0::2]
+    rest_d = texels[bake.rest_row, 1::2]
+    rest_s = np.ones(jc) if scales is None else scales[bake.rest_row]
+    r = np.where(low[..., None], rest_r[None], r)
+    d = np.where(low[..., None], rest_d[None], d)
+    s = np.where(low, rest_s[None], s)
+    local = tf.dq_to_mat4(r, d, s)
+    glob = np.empty_like(local)
+    for j, p in enumerate(bake.parents):
+        glob[:, j] = local[:, j] if p < 0 else glob[:, p] @ local[:, j]
+    return (glob @ bake.inverse_bind()[None])[:, :, :3, :]
+
+
+def palette_joint_positions(palette_rows: np.ndarray, inverse_bind: np.ndarray) -> np.ndarray:
+    """Model-space joint positions from skinning matrix rows (N, J, 3, 4): skin × bind, translation."""
+    bind = np.linalg.inv(np.asarray(inverse_bind, dtype=np.float64))
+    rows = np.asarray(palette_rows, dtype=np.float64)
+    return np.einsum("njrc,jc->njr", rows, bind[:, :, 3])
+
+
+class AnimationProcessor:
+    """Owns the bake's GPU textures, the layers texture and the palette planes, and releases them."""
+
+    def __init__(self, ctx: moderngl.Context, bake: AnimationBake, layer_count: int = MAX_LAYERS, masks=None, path: str = "auto"):
+        if path not in PATHS:
+            raise ProcessorError(f"processor path must be one of {', '.join(PATHS)}, got {path!r}")
+        if not 1 <= layer_count <= MAX_LAYERS:
+            raise ProcessorError(f"layer count must be 1 to {MAX_LAYERS}, got {layer_count}")
+        jc = bake.joint_count
+        if not 1 <= jc <= MAX_JOINTS:
+            raise ProcessorError(f"the processor handles 1 to {MAX_JOINTS} joints, this skeleton has {jc}")
+        if np.any(bake.parents >= np.arange(jc)):
+            raise ProcessorError("the hierarchy must list parents before their children")
+        if path == "auto":
+            path = "compute" if ctx.version_code >= 430 else "fragment"
+        if path == "compute" and ctx.version_code < 430:
+            raise ProcessorError(f"the compute path needs GL 4.3, this context has {ctx.version_code}")
+        self.ctx = ctx
+        self.bake = bake
+        self.path = path
+        self.layer_count = layer_count
+        self.joint_count = jc
+        self.masks = validate_masks(masks, jc)
+        self.agents_per_row = max(1, MAX_TEXTURE_WIDTH // max(jc, layer_count))
+        self.agents_per_group = GROUP_SIZE // jc
+        self.agents = 0
+        self._own: dict[str, list] = {"animation": [], "palette": [], "layers": []}
+
+        dtype = "f4" if bake.precision == "f32" else "f2"
+        self.anim_texture = self._texture("animation", (2 * jc, bake.rows), 4, bake.texels, dtype)
+        self.scale_texture = None if bake.scale is None else self._texture("animation", (jc, bake.rows), 1, bake.scale, dtype)
+        self.parents_texture = self._texture("animation", (jc, 1), 1, bake.parents.astype(np.int32), "i4")
+        self.clips_texture = self._texture("animation", (len(bake.clips), 1), 4, bake.clip_table, "f4")
+        self.masks_texture = None if self.masks is None else self._texture("animation", (jc, self.masks.shape[0]), 1, self.masks, "f4")
+        defines = {"LAYERS": layer_count, "REST_THRESHOLD": f"{REST_THRESHOLD:.1e}", "MAX_JOINTS": MAX_JOINTS}
+        if self.scale_texture is not None:
+            defines["HAS_SCALE"] = 1
+        if self.masks_texture is not None:
+            defines["HAS_MASKS"] = 1
+        if path == "compute":
+            self.program = ctx.compute_shader(load_shader("processor.comp.glsl", defines))
+        else:
+            self.program = ctx.program(vertex_shader=load_shader("processor.vert.glsl"), fragment_shader=load_shader("processor.frag.glsl", defines))
+        samplers = {"u_anim": 0, "u_parents": 1, "u_clips": 2, "u_layers": 3, "u_anim_scale": 4, "u_masks": 5}
+        for name, unit in samplers.items():
+            if name in self.program:
+                self.program[name] = unit
+        self._set("u_joints", jc)
+        self._set("u_agents_per_row", self.agents_per_row)
+        self._set("u_agents_per_group", self.agents_per_group)
+        self._set("u_rest_row", bake.rest_row)
+        self.layers_texture = None
+        self.planes: tuple = ()
+        self._framebuffer = None
+        self._quad = None
+        self._quad_vao = None
+
+    # -- resources
+
+    def _texture(self, group, size, components, data, dtype):
+        tex = self.ctx.texture(size, components, np.ascontiguousarray(data).tobytes(), dtype=dtype)
+        tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        self._own[group].append(tex)
+        return tex
+
+    def _set(self, name, value):
+        if name in self.program:
+            self.program[name] = value
+
+    def _release_group(self, group):
+        for obj in self._own[group]:
+            obj.release()
+        self._own[group] = []
+
+    def palette_rows(self, agents: int | None = None) -> int:
+        n = self.agents if agents is None else agents
+        return math.ceil(n / self.agents_per_row)
+
+    def palette_size(self) -> tuple[int, int]:
+        return (self.agents_per_row * self.joint_count, self.palette_rows())
+
+    def resize(self, agents: int) -> None:
+        """Make room for exactly `agents` agents; everything for agents no longer there is released."""
+        if not isinstance(agents, (int, np.integer)) or agents < 0:
+            raise ProcessorError(f"agent count must be a whole number >= 0, got {agents!r}")
+        agents = int(agents)
+        if self.palette_rows(agents) == self.palette_rows() and self.planes and agents:
+            self.agents = agents
+            self._update_quad()
+            return
+        self._release_group("palette")
+        self._release_group("layers")
+        self.planes, self.layers_texture, self._framebuffer = (), None, None
+        self.agents = agents
+        if agents == 0:
+            return  # no agents: no palette, no layer texture, no pass
+        rows = self.palette_rows()
+        self.planes = tuple(self._texture("palette", (self.agents_per_row * self.joint_count, rows), 4, np.zeros((rows, self.agents_per_row * self.joint_count, 4), np.float32), "f4") for _ in range(3))
+        self.layers_texture = self._texture("layers", (self.agents_per_row * self.layer_count, rows), 4, np.zeros((rows, self.agents_per_row * self.layer_count, 4), np.float32), "f4")
+        if self.path == "fragment":
+            fb = self.ctx.framebuffer(color_attachments=list(self.planes))
+            self._own["palette"].append(fb)
+            self._framebuffer = fb
+        self._update_quad()
+
+    def _update_quad(self):
+        """Fragment path: the quad over full palette rows plus the partial last row, in one buffer."""
+        if self.path != "fragment":
+            return
+        if self._quad is None:
+            self._quad = self.ctx.buffer(reserve=12 * 2 * 4)
+            self._quad_vao = self.ctx.vertex_array(self.program, [(self._quad, "2f", "in_position")])
+            self._own["animation"] += [self._quad_vao, self._quad]
+        width, height = self.palette_size()
+        full, partial = divmod(self.agents, self.agents_per_row)
+        rects = []
+        if full:
+            rects.append((0, 0, width, full))
+        if partial:
+            rects.append((0, full, partial * self.joint_count, full + 1))
+        verts = []
+        for x0, y0, x1, y1 in rects:
+            a, b = 2.0 * x0 / width - 1.0, 2.0 * x1 / width - 1.0
+            c, d = 2.0 * y0 / height - 1.0, 2.0 * y1 / height - 1.0
+            verts += [(a, c), (b, c), (b, d), (a, c), (b, d), (a, d)]
+        self._quad_vertices = len(verts)
+        if verts:
+            self._quad.write(np.asarray(verts, dtype=np.float32).tobytes())
+
+    # -- the pass
+
+    def upload(self, layers) -> None:
+        """Validate and upload this frame's layers (N, L, 4); N must equal the agent count."""
+        a = validate_layers(layers, len(self.bake.clips), 0 if self.masks is None else self.masks.shape[0], self.layer_count)
+        if a.shape[0] != self.agents:
+            raise ProcessorError(f"layers are for {a.shape[0]} agents, the processor holds {self.agents}")
+        if self.agents == 0:
+            return
+        rows = self.palette_rows()
+        padded = np.zeros((rows * self.agents_per_row, self.layer_count, 4), np.float32)
+        padded[: self.agents] = a
+        self.layers_texture.write(padded.reshape(rows, self.agents_per_row * self.layer_count, 4).tobytes())
+
+    def run(self) -> bool:
+        """Write every agent's palette row in one dispatch or one draw. Returns False when nothing ran."""
+        if self.agents == 0:
+            return False
+        self.anim_texture.use(0)
+        self.parents_texture.use(1)
+        self.clips_texture.use(2)
+        self.layers_texture.use(3)
+        if self.scale_texture is not None:
+            self.scale_texture.use(4)
+        if self.masks_texture is not None:
+            self.masks_texture.use(5)
+        self._set("u_agents", self.agents)
+        if self.path == "compute":
+            for unit, plane in enumerate(self.planes):
+                plane.bind_to_image(unit, read=False, write=True)
+            groups = math.ceil(self.agents / self.agents_per_group)
+            gx = min(groups, 32768)
+            self.program.run(gx, math.ceil(groups / gx), 1)
+            # Later passes read the palette through texelFetch (and the readback through pack buffers).
+            self.ctx.memory_barrier(moderngl.TEXTURE_FETCH_BARRIER_BIT | moderngl.PIXEL_BUFFER_BARRIER_BIT | moderngl.TEXTURE_UPDATE_BARRIER_BIT)
+        else:
+            self._framebuffer.use()
+            self.ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND | moderngl.CULL_FACE)
+            self._quad_vao.render(moderngl.TRIANGLES, vertices=self._quad_vertices)
+        return True
+
+    def process(self, layers) -> bool:
+        self.upload(layers)
+        return self.run()
+
+    def bind_palette(self, first_unit: int) -> None:
+        for i, plane in enumerate(self.planes):
+            plane.use(first_unit + i)
+
+    def read_palette(self) -> np.ndarray:
+        """(N, J, 3, 4) float32 skinning matrix rows, read back synchronously (tests and stats only)."""
+        n, jc, k = self.agents, self.joint_count, self.agents_per_row
+        if n == 0:
+            return np.zeros((0, jc, 3, 4), np.float32)
+        rows = self.palette_rows()
+        planes = [np.frombuffer(p.read(), np.float32).reshape(rows * k, jc, 4)[:n] for p in self.planes]
+        return np.stack(planes, axis=2)
+
+    def nan_rows(self) -> int:
+        """Agents whose palette row holds NaN or Inf."""
+        pal = self.read_palette()
+        return int(np.count_nonzero(~np.all(np.isfinite(pal), axis=(1, 2, 3)))) if len(pal) else 0
+
+    def gpu_bytes(self) -> dict[str, int]:
+        out = {}
+        for group, objs in self._own.items():
+            total = 0
+            for obj in objs:
+                if isinstance(obj, moderngl.Texture):
+                    total += obj.width * obj.height * obj.components * _DTYPE_BYTES[obj.dtype]
+                elif isinstance(obj, moderngl.Buffer):
+                    total += obj.size
+            out[group] = total
+        return out
+
+    def release(self) -> None:
+        for group in list(self._own):
+            self._release_group(group)
+        self.planes, self.layers_texture, self._framebuffer = (), None, None
+        self.program.release()

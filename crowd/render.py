@@ -1,0 +1,393 @@
+"""Render stage: skinned instanced draws of the crowd, its shadow pass, and the ground.
+
+Contract: ``CrowdRenderer.draw(framebuffer, camera, instances, processor)``.
+- ``instances`` (``Instances``): per agent a float64 world position, heading, scale, tint and, for
+  each variation group ("head"), which piece it wears. Agent i's palette row is row i.
+- The processor must have written this frame's palette; every pass here only reads it.
+- One instanced draw per (mesh piece, LOD) with agents in it: visible agents are sorted into draws by
+  the LOD their distance picks and the pieces they wear. Culling is a vectorised sphere-frustum test
+  on the CPU.
+- Positions are camera-relative: the CPU subtracts the camera in float64 and the GPU only sees small
+  float32 numbers, so agents 1e5 m from the origin do not jitter.
+- With shadows on, a depth pass from the sun reuses the same instance buffers and palette rows
+  (process once, use in every pass). With shadows off, the shadow map does not exist.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import moderngl
+import numpy as np
+from pyglm import glm
+
+from .gl import load_shader
+from .model import Character, SkinnedMesh
+from .vertex_cache import optimize_triangle_order
+
+# Per-vertex record. Half-float weights keep the skinned position within ~0.05 mm of float32
+# weights for this character's bone spans (unorm8 weights would be up to ~0.3 mm off).
+VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("normal", "<f2", 4), ("joints", "u1", 4), ("weights", "<f2", 4), ("color", "u1", 4)])
+VERTEX_FORMAT = ("3f 4f2 4u1 4f2 4f1", "in_position", "in_normal", "in_joints", "in_weights", "in_color")
+# Per-instance record, 28 bytes. `palette` is the texel of the agent's joint 0 in the palette planes.
+INSTANCE_DTYPE = np.dtype([("position", "<f4", 3), ("yaw_scale", "<f4", 2), ("palette", "<u2", 2), ("tint", "u1", 4)])
+INSTANCE_FORMAT = ("3f 2f 2u2 4f1/i", "i_position", "i_yaw_scale", "i_palette", "i_tint")
+DEFAULT_LOD_DISTANCES = (14.0, 40.0)
+FOG_COLOR = (0.09, 0.1, 0.13)  # linear; the clear colour matches it after the display curve  # metres: LOD0 closer than 14 m, LOD1 to 40 m, LOD2 beyond
+
+
+class RenderError(ValueError):
+    """Bad render input; the message is one line."""
+
+
+@dataclass
+class Camera:
+    eye: np.ndarray  # float64 (3,)
+    target: np.ndarray  # float64 (3,)
+    fov_y: float = 45.0  # degrees
+    near: float = 0.1
+    far: float = 400.0
+    aspect: float = 16 / 9
+
+    def view_proj(self) -> np.ndarray:
+        """Camera-relative view-projection (the eye at the origin): float32 4x4, rows as in the maths
+        (numpy's view of a pyglm matrix); upload it with ``gl_bytes``."""
+        forward = np.asarray(self.target, np.float64) - np.asarray(self.eye, np.float64)
+        view = glm.lookAt(glm.vec3(0.0), glm.vec3(*forward.astype(np.float32)), glm.vec3(0.0, 1.0, 0.0))
+        proj = glm.perspective(math.radians(self.fov_y), self.aspect, self.near, self.far)
+        return np.array(proj * view, dtype=np.float32).reshape(4, 4)
+
+    def validate(self) -> "Camera":
+        eye, target = np.asarray(self.eye, np.float64), np.asarray(self.target, np.float64)
+        if eye.shape != (3,) or target.shape != (3,) or not np.all(np.isfinite(eye)) or not np.all(np.isfinite(target)):
+            raise RenderError("camera eye and target must be finite 3-vectors")
+        if np.linalg.norm(target - eye) < 1e-6:
+            raise RenderError("camera eye and target coincide")
+        if not 0 < self.near < self.far or not 1.0 <= self.fov_y <= 170.0 or not self.aspect > 0:
+            raise RenderError("camera needs 0 < near < far, a field of view of 1 to 170 degrees and a positive aspect")
+        return self
+
+
+@dataclass
+class Instances:
+    position: np.ndarray  # float64 (N, 3) world position of the agent's origin (on the ground)
+    yaw: np.ndarray  # float32 (N,) heading about +Y, radians
+    scale: np.ndarray  # float32 (N,)
+    tint: np.ndarray  # uint8 (N, 4)
+    variant: dict[str, np.ndarray] = field(default_factory=dict)  # group → (N,) index into the group's pieces
+
+    def __len__(self) -> int:
+        return int(self.position.shape[0])
+
+    def validate(self, groups: dict[str, list[str]]) -> "Instances":
+        n = len(self)
+        if self.position.shape != (n, 3) or self.yaw.shape != (n,) or self.scale.shape != (n,) or self.tint.shape != (n, 4):
+            raise RenderError("instances need position (N, 3), yaw (N,), scale (N,) and tint (N, 4)")
+        if not (np.all(np.isfinite(self.position)) and np.all(np.isfinite(self.yaw)) and np.all(np.isfinite(self.scale))):
+            raise RenderError("instance positions, headings and scales must be finite")
+        if n and (np.min(self.scale) <= 0 or np.max(self.scale) > 100):
+            raise RenderError("instance scales must be in (0, 100]")
+        for group, pieces in groups.items():
+            v = self.variant.get(group)
+            if v is None:
+                continue
+            if v.shape != (n,) or (n and (v.min() < 0 or v.max() >= len(pieces))):
+                raise RenderError(f"variant of group {group!r} must be (N,) indices below {len(pieces)}")
+        return self
+
+
+def frustum_planes(view_proj: np.ndarray) -> np.ndarray:
+    """(6, 4) normalised planes (inside: dot(n, p) + d >= 0) of a view-projection (rows as in the maths)."""
+    m = np.asarray(view_proj, np.float64)
+    planes = np.stack([m[3] + m[0], m[3] - m[0], m[3] + m[1], m[3] - m[1], m[3] + m[2], m[3] - m[2]])
+    return planes / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+
+
+def gl_bytes(matrix: np.ndarray) -> bytes:
+    """A 4x4 matrix (rows as in the maths) in the column-major order GLSL's mat4 expects."""
+    return np.ascontiguousarray(np.asarray(matrix, np.float32).T).tobytes()
+
+
+def sphere_visible(planes: np.ndarray, centers: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    dist = centers @ planes[:, :3].T + planes[:, 3]
+    return np.all(dist >= -radii[:, None], axis=1)
+
+
+def pack_vertices(mesh: SkinnedMesh) -> np.ndarray:
+    """Interleaved vertex records with each vertex's influences sorted by descending weight, so the
+    shader can stop at the first zero weight."""
+    v = np.zeros(mesh.positions.shape[0], VERTEX_DTYPE)
+    v["position"] = mesh.positions
+    v["normal"][:, :3] = mesh.normals
+    order = np.argsort(-mesh.weights, axis=1, kind="stable")
+    w = np.take_along_axis(mesh.weights, order, axis=1)
+    v["joints"] = np.take_along_axis(mesh.joints, order, axis=1).astype(np.uint8)
+    v["weights"] = w / w.sum(axis=1, keepdims=True)
+    colors = mesh.colors if mesh.colors is not None else np.ones((len(v), 4), np.float32)
+    base = np.asarray(mesh.base_color, np.float32)
+    v["color"] = np.round(np.clip(colors * base, 0.0, 1.0) * 255.0).astype(np.uint8)
+    return v
+
+
+@dataclass
+class _Draw:
+    piece: str
+    lod: int
+    triangles: int
+    vbo: moderngl.Buffer
+    ibo: moderngl.Buffer
+    instances: moderngl.Buffer
+    vaos: dict = field(default_factory=dict)  # program key → VertexArray
+    count: int = 0
+
+
+class CrowdRenderer:
+    """Owns the meshes, instance buffers, programs, shadow map and ground of the crowd view."""
+
+    def __init__(self, ctx: moderngl.Context, character: Character, joint_count: int, agents_per_row: int,
+                 pieces: tuple[str, ...] | None = None, lod_distances=DEFAULT_LOD_DISTANCES, shadows: bool = True,
+                 shadow_size: int = 2048, culling: bool = True):
+        self.ctx = ctx
+        self.joint_count = joint_count
+        self.agents_per_row = agents_per_row
+        self.culling = culling
+        self.lod_distances = tuple(float(d) for d in lod_distances)
+        if len(self.lod_distances) != 2 or not 0 < self.lod_distances[0] <= self.lod_distances[1]:
+            raise RenderError("LOD distances must be two increasing positive numbers")
+        meshes = [m for m in character.meshes if pieces is None or m.piece in pieces]
+        if not meshes:
+            raise RenderError("the character has no skinned mesh to draw")
+        self.lod_count = max(m.lod for m in meshes) + 1
+        self.groups: dict[str, list[str]] = {}
+        for m in meshes:
+            if m.group and m.piece not in self.groups.setdefault(m.group, []):
+                self.groups[m.group].append(m.piece)
+        self._piece_group = {m.piece: m.group for m in meshes}
+        self._objects: dict[str, list] = {"meshes": [], "instances": [], "programs": [], "shadow_map": [], "ground": []}
+        self.draws: list[_Draw] = []
+        for m in sorted(meshes, key=lambda m: (m.lod, m.piece)):
+            vbo = self._own("meshes", ctx.buffer(pack_vertices(m).tobytes()))
+            ibo = self._own("meshes", ctx.buffer(optimize_triangle_order(m.indices, len(m.positions)).tobytes()))
+            inst = self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
+            self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, vbo, ibo, inst))
+        # A sphere around the bind pose, widened for poses that reach out or lie down (death).
+        allpos = np.concatenate([m.positions for m in meshes]).astype(np.float64)
+        lo, hi = allpos.min(axis=0), allpos.max(axis=0)
+        self.bound_center = (lo + hi) / 2.0
+        self.bound_radius = float(np.linalg.norm(hi - lo) * 0.5 * 1.3)
+        self._programs: dict[tuple, moderngl.Program] = {}
+        self.shadows = shadows
+        self.shadow_size = int(shadow_size)
+        self.shadow_map = None
+        self._shadow_fbo = None
+        if shadows:
+            self.shadow_map = self._own("shadow_map", ctx.depth_texture((self.shadow_size, self.shadow_size)))
+            self.shadow_map.compare_func = "<="
+            self.shadow_map.filter = (moderngl.LINEAR, moderngl.LINEAR)
+            self.shadow_map.repeat_x = self.shadow_map.repeat_y = False
+            self._shadow_fbo = self._own("shadow_map", ctx.framebuffer(depth_attachment=self.shadow_map))
+        ground_prog = self._program("ground", False)
+        extent = 1000.0
+        quad = np.array([[-extent, -extent], [extent, -extent], [extent, extent], [-extent, -extent], [extent, extent], [-extent, extent]], np.float32)
+        self._ground_vbo = self._own("ground", ctx.buffer(quad.tobytes()))
+        self._ground_vao = self._own("ground", ctx.vertex_array(ground_prog, [(self._ground_vbo, "2f", "in_position")]))
+        self.sun_dir = np.array([0.45, 0.75, 0.35]) / np.linalg.norm([0.45, 0.75, 0.35])
+        self.last = {"triangles": 0, "instances": 0, "visible": 0, "draws": 0, "lod_counts": [0] * self.lod_count}
+
+    # -- resources
+
+    def _own(self, group, obj):
+        self._objects[group].append(obj)
+        return obj
+
+    def _program(self, kind: str, skinned: bool | str) -> moderngl.Program:
+        """kind: color, depth or ground; skinned: True, False (the ceiling), or an ablation of skin.vert.glsl
+        ("loop", "one_bone")."""
+        key = (kind, skinned)
+        if key in self._programs:
+            return self._programs[key]
+        defines = {}
+        if self.shadows:
+            defines["SHADOWS"] = 1
+        if kind == "ground":
+            prog = self.ctx.program(vertex_shader=load_shader("ground.vert.glsl"), fragment_shader=load_shader("ground.frag.glsl", defines))
+        else:
+            vdefs = {"UNSKINNED": 1} if skinned is False else ({} if skinned is True else {f"SKIN_{skinned.upper()}": 1})
+            if kind == "depth":
+                vdefs["DEPTH_ONLY"] = 1
+                frag = load_shader("depth.frag.glsl")
+            else:
+                frag = load_shader("skin.frag.glsl", defines)
+            prog = self.ctx.program(vertex_shader=load_shader("skin.vert.glsl", vdefs), fragment_shader=frag)
+            for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
+                if name in prog:
+                    prog[name] = unit
+        if "u_shadow_map" in prog:
+            prog["u_shadow_map"] = 3
+        self._programs[key] = self._own("programs", prog)
+        return prog
+
+    def _vao(self, draw: _Draw, kind: str, skinned: bool) -> moderngl.VertexArray:
+        key = (kind, skinned)
+        if key not in draw.vaos:
+            prog = self._program(kind, skinned)
+            vfmt, *vnames = VERTEX_FORMAT
+            ifmt, *inames = INSTANCE_FORMAT
+            # Attributes a variant does not read (the depth pass has no colour) are skipped by name.
+            vfmt_parts = vfmt.split()
+            vsel = [(f, n) for f, n in zip(vfmt_parts, vnames)]
+            vspec = " ".join(f if n in prog else _padding(f) for f, n in vsel)
+            ispec = " ".join(f if n in prog else _padding(f) for f, n in zip(ifmt.replace("/i", "").split(), inames)) + "/i"
+            content = [(draw.vbo, vspec, *[n for n in vnames if n in prog]), (draw.instances, ispec, *[n for n in inames if n in prog])]
+            draw.vaos[key] = self._own("programs", self.ctx.vertex_array(prog, content, index_buffer=draw.ibo, index_element_size=4))
+        return draw.vaos[key]
+
+    def gpu_bytes(self) -> dict[str, int]:
+        out = {}
+        for group, objs in self._objects.items():
+            total = 0
+            for obj in objs:
+                if isinstance(obj, moderngl.Buffer):
+                    total += obj.size
+                elif isinstance(obj, moderngl.Texture):
+                    total += obj.width * obj.height * 4
+            if group != "programs":
+                out["shadow_map" if group == "shadow_map" else group] = total
+        return out
+
+    def release(self) -> None:
+        for objs in self._objects.values():
+            for obj in reversed(objs):
+                obj.release()
+        self._objects = {k: [] for k in self._objects}
+        self._programs.clear()
+        self.draws = []
+
+    # -- per frame
+
+    @staticmethod
+    def clear_color() -> tuple[float, float, float]:
+        return tuple(c ** (1 / 2.2) for c in FOG_COLOR)
+
+    def prepare(self, camera: Camera, instances: Instances) -> np.ndarray:
+        """Cull, pick LODs, sort agents into draws and upload their records. Returns the view-projection."""
+        camera.validate()
+        instances.validate(self.groups)
+        view_proj = camera.view_proj()
+        n = len(instances)
+        eye = np.asarray(camera.eye, np.float64)
+        rel = instances.position - eye[None]
+        scale = instances.scale.astype(np.float64)
+        centers = rel + self.bound_center[None] * scale[:, None]
+        radii = self.bound_radius * scale
+        if self.culling and n:
+            # Agents just outside the view may still cast shadows into it: widen their sphere.
+            margin = 3.0 if self.shadows else 0.0
+            visible = sphere_visible(frustum_planes(view_proj), centers, radii + margin)
+        else:
+            visible = np.ones(n, bool)
+        dist = np.linalg.norm(centers, axis=1)
+        lod = np.searchsorted(np.asarray(self.lod_distances), dist, side="right")
+        lod = np.minimum(lod, self.lod_count - 1)
+        records = np.zeros(n, INSTANCE_DTYPE)
+        records["position"] = rel
+        records["yaw_scale"][:, 0] = instances.yaw
+        records["yaw_scale"][:, 1] = instances.scale
+        agent = np.arange(n)
+        records["palette"][:, 0] = (agent % self.agents_per_row) * self.joint_count
+        records["palette"][:, 1] = agent // self.agents_per_row
+        records["tint"] = instances.tint
+        triangles = 0
+        instances_total = 0
+        draws = 0
+        for draw in self.draws:
+            select = visible & (lod == draw.lod)
+            group = self._piece_group[draw.piece]
+            if group:
+                variant = instances.variant.get(group)
+                index = self.groups[group].index(draw.piece)
+                select &= (variant == index) if variant is not None else (index == 0)
+            chosen = records[select]
+            draw.count = len(chosen)
+            if draw.count:
+                data = chosen.tobytes()
+                if draw.instances.size != len(data):
+                    draw.instances.orphan(len(data))  # exact size: a smaller crowd frees what it no longer needs
+                draw.instances.write(data)
+                triangles += draw.count * draw.triangles
+                instances_total += draw.count
+                draws += 1
+            elif draw.instances.size != INSTANCE_DTYPE.itemsize:
+                draw.instances.orphan(INSTANCE_DTYPE.itemsize)
+        self.last = {"triangles": triangles, "instances": instances_total, "visible": int(visible.sum()), "draws": draws,
+                     "lod_counts": [int(np.count_nonzero(visible & (lod == k))) for k in range(self.lod_count)]}
+        return view_proj
+
+    def light_view_proj(self, camera: Camera) -> np.ndarray:
+        """Orthographic sun view over the area around the camera's target (camera-relative)."""
+        target = np.asarray(camera.target, np.float64) - np.asarray(camera.eye, np.float64)
+        reach = float(np.clip(np.linalg.norm(target) * 1.2, 12.0, 60.0))
+        center = glm.vec3(*target.astype(np.float32))
+        sun = glm.vec3(*self.sun_dir.astype(np.float32))
+        view = glm.lookAt(center + sun * (reach * 2.0), center, glm.vec3(0.0, 1.0, 0.0))
+        proj = glm.ortho(-reach, reach, -reach, reach, 0.1, reach * 4.0)
+        return np.array(proj * view, dtype=np.float32).reshape(4, 4)
+
+    def shadow_pass(self, camera: Camera, processor) -> bool:
+        if not self.shadows:
+            return False
+        light = self.light_view_proj(camera)
+        self._shadow_fbo.use()
+        self._shadow_fbo.clear(depth=1.0)
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.disable(moderngl.CULL_FACE)
+        processor.bind_palette(0)
+        prog = self._program("depth", True)
+        prog["u_view_proj"].write(gl_bytes(light))
+        for draw in self.draws:
+            if draw.count:
+                self._vao(draw, "depth", True).render(moderngl.TRIANGLES, instances=draw.count)
+        self._light = light
+        return True
+
+    def _set_lighting(self, prog):
+        values = {"u_sun_dir": tuple(self.sun_dir), "u_sun_color": (1.7, 1.45, 1.1), "u_sky_color": (0.16, 0.2, 0.3),
+                  "u_ground_color": (0.1, 0.08, 0.06), "u_fog_color": FOG_COLOR, "u_fog_density": 0.004}
+        for name, value in values.items():
+            if name in prog:
+                prog[name] = value
+        if self.shadows and "u_light_view_proj" in prog:
+            prog["u_light_view_proj"].write(gl_bytes(self._light))
+            self.shadow_map.use(3)
+
+    def color_pass(self, framebuffer, view_proj: np.ndarray, processor, skinned: bool = True) -> None:
+        framebuffer.use()
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.disable(moderngl.CULL_FACE)
+        if skinned:
+            processor.bind_palette(0)
+        prog = self._program("color", skinned)
+        prog["u_view_proj"].write(gl_bytes(view_proj))
+        self._set_lighting(prog)
+        for draw in self.draws:
+            if draw.count:
+                self._vao(draw, "color", skinned).render(moderngl.TRIANGLES, instances=draw.count)
+
+    def ground_pass(self, framebuffer, camera: Camera, view_proj: np.ndarray) -> None:
+        framebuffer.use()
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        prog = self._program("ground", False)
+        prog["u_view_proj"].write(gl_bytes(view_proj))
+        eye = np.asarray(camera.eye, np.float64)
+        prog["u_eye"] = (float(np.mod(eye[0], 1000.0)), float(eye[1]), float(np.mod(eye[2], 1000.0)))
+        self._set_lighting(prog)
+        self._ground_vao.render(moderngl.TRIANGLES)
+
+
+def _padding(fmt: str) -> str:
+    """A format item's bytes as padding, for attributes a program variant does not read."""
+    count = int(fmt[0]) if fmt[0].isdigit() else 1
+    kind = fmt[1:] if fmt[0].isdigit() else fmt
+    size = {"f": 4, "u": 4, "i": 4, "f1": 1, "u1": 1, "f2": 2, "u2": 2, "f4": 4, "u4": 4}[kind]
+    return f"{count * size}x"

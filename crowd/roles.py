@@ -1,0 +1,101 @@
+"""Clip roles: which clip of a character plays idle, walk, run, attack, hit and death.
+
+The built-in zombie names its clips after their roles (its walk is "shamble"); imported models use
+whatever their artist typed ("Walk", "Walking", "Zombie_Walk", "clip0"). Roles are matched by name,
+and any of them can be overridden: ``parse_overrides("walk=Walk_Gun,idle=Idle")``.
+
+Matching, per role: a clip whose lower-cased name equals a role word wins, then one that starts with
+it, then one that contains it; among equals the shortest name ("Run" before "Run_Gun"). Roles with
+no match fall back: walk → idle, else the first looping clip (else the first clip), idle and run → walk; the
+actions (attack, hit, death) stay unassigned and are simply not played. Only assigned clips are baked.
+"""
+
+from __future__ import annotations
+
+ROLES = ("idle", "walk", "run", "attack", "hit", "death")
+ROLE_WORDS = {
+    "idle": ("idle", "stand", "breath"),
+    "walk": ("walk", "shamble", "stroll", "shuffle"),
+    "run": ("run", "sprint", "jog", "chase"),
+    "attack": ("attack", "punch", "bite", "slash", "stab", "swing", "strike"),
+    "hit": ("hit", "hurt", "damage", "react", "recoil", "flinch"),
+    "death": ("death", "die", "dying", "dead"),
+}
+
+
+class RoleError(ValueError):
+    """Bad role override; the message is one line."""
+
+
+def parse_overrides(text: str | None) -> dict[str, str]:
+    if not text:
+        return {}
+    out = {}
+    for item in text.split(","):
+        role, sep, clip = item.partition("=")
+        role, clip = role.strip(), clip.strip()
+        if not sep or not role or not clip:
+            raise RoleError(f"role overrides look like 'walk=Walking,idle=Idle', got {item!r}")
+        if role not in ROLES:
+            raise RoleError(f"unknown role {role!r}; roles are {', '.join(ROLES)}")
+        out[role] = clip
+    return out
+
+
+def _score(name: str, word: str) -> tuple | None:
+    low = name.lower()
+    if low == word:
+        return (0, len(name))
+    if low.startswith(word):
+        return (1, len(name))
+    if word in low:
+        return (2, len(name))
+    return None
+
+
+def match_roles(clips, overrides: dict[str, str] | None = None) -> tuple[dict[str, str | None], list[str]]:
+    """(role → clip name or None, notes). `clips` are model.Clip objects (name and loop are used)."""
+    names = [c.name for c in clips]
+    if not names:
+        raise RoleError("the character has no clips")
+    overrides = dict(overrides or {})
+    for role, clip in overrides.items():
+        if role not in ROLES:
+            raise RoleError(f"unknown role {role!r}; roles are {', '.join(ROLES)}")
+        if clip not in names:
+            raise RoleError(f"role {role}: no clip named {clip!r}; clips are {', '.join(names)}")
+    roles: dict[str, str | None] = {}
+    notes: list[str] = []
+    for role in ROLES:
+        if role in overrides:
+            roles[role] = overrides[role]
+            continue
+        best = None
+        for rank, word in enumerate(ROLE_WORDS[role]):
+            for name in names:
+                s = _score(name, word)
+                if s is not None and (best is None or (s[0], rank, s[1]) < best[0]):
+                    best = ((s[0], rank, s[1]), name)
+        roles[role] = best[1] if best else None
+    if roles["walk"] is None:
+        looping = [c.name for c in clips if c.loop]
+        roles["walk"] = roles["idle"] or (looping[0] if looping else names[0])
+        notes.append(f"no clip is named like a walk; walk plays {roles['walk']!r}")
+    for role in ("idle", "run"):
+        if roles[role] is None:
+            roles[role] = roles["walk"]
+            notes.append(f"no {role} clip; {role} plays the walk {roles['walk']!r}")
+    for role in ("attack", "hit", "death"):
+        if roles[role] is None:
+            notes.append(f"no {role} clip; agents will not {({'attack': 'attack', 'hit': 'react to hits', 'death': 'die'})[role]}")
+    return roles, notes
+
+
+def clips_used(roles: dict[str, str | None]) -> list[str]:
+    """Distinct clip names the roles need, in role order: what the bake must hold, nothing more."""
+    out: list[str] = []
+    for role in ROLES:
+        name = roles.get(role)
+        if name and name not in out:
+            out.append(name)
+    return out

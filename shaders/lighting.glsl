@@ -1,0 +1,40 @@
+// Shared lighting for the crowd and the ground: a low sun with soft shadows, a cool sky and warm
+// ground bounce, a rim light so silhouettes read against the ground, and distance fog.
+uniform vec3 u_sun_dir;         // toward the sun, unit
+uniform vec3 u_sun_color;
+uniform vec3 u_sky_color;
+uniform vec3 u_ground_color;
+uniform vec3 u_fog_color;
+uniform float u_fog_density;
+#ifdef SHADOWS
+uniform sampler2DShadow u_shadow_map;
+uniform mat4 u_light_view_proj;  // camera-relative, like the positions
+#endif
+
+float sun_visibility(vec3 world, vec3 n) {
+#ifdef SHADOWS
+    // Slope-scaled offset along the normal against acne, then a 3x3 PCF.
+    vec4 l = u_light_view_proj * vec4(world + n * 0.03, 1.0);
+    vec3 uvz = l.xyz / l.w * 0.5 + 0.5;
+    if (any(lessThan(uvz, vec3(0.0))) || any(greaterThan(uvz, vec3(1.0)))) return 1.0;
+    vec2 texel = 1.0 / vec2(textureSize(u_shadow_map, 0));
+    float lit = 0.0;
+    for (int y = -1; y <= 1; ++y)
+        for (int x = -1; x <= 1; ++x)
+            lit += texture(u_shadow_map, vec3(uvz.xy + vec2(x, y) * texel, uvz.z - 0.0015));
+    return lit / 9.0;
+#else
+    return 1.0;
+#endif
+}
+
+vec3 shade(vec3 albedo, vec3 world, vec3 n) {
+    vec3 view = normalize(-world);  // the camera is at the origin
+    float ndl = max(dot(n, u_sun_dir), 0.0);
+    vec3 ambient = mix(u_ground_color, u_sky_color, 0.5 + 0.5 * n.y);
+    float rim = pow(1.0 - max(dot(n, view), 0.0), 3.0) * 0.35;
+    vec3 color = albedo * (ambient + u_sun_color * ndl * sun_visibility(world, n)) + rim * u_sky_color;
+    float fog = 1.0 - exp(-u_fog_density * length(world));
+    color = mix(color, u_fog_color, clamp(fog, 0.0, 1.0));
+    return pow(max(color, vec3(0.0)), vec3(1.0 / 2.2));  // linear → display
+}

@@ -1,0 +1,44 @@
+#version 430
+// Animation processor, compute path (GL 4.3): one invocation per (agent, joint); a work group holds
+// 256 / J whole agents. Each invocation blends its joint's local transform once into shared memory,
+// then walks its chain to the root through shared memory and writes its skinning matrix.
+#include "processor_common.glsl"
+
+layout(local_size_x = 256) in;
+layout(rgba32f, binding = 0) uniform writeonly image2D u_palette0;
+layout(rgba32f, binding = 1) uniform writeonly image2D u_palette1;
+layout(rgba32f, binding = 2) uniform writeonly image2D u_palette2;
+uniform int u_agents_per_group;
+
+shared vec4 s_local0[256];
+shared vec4 s_local1[256];
+shared vec4 s_local2[256];
+
+void main() {
+    int t = int(gl_LocalInvocationIndex);
+    int slot = t / u_joints;
+    int joint = t - slot * u_joints;
+    int group = int(gl_WorkGroupID.y * gl_NumWorkGroups.x + gl_WorkGroupID.x);
+    int agent = group * u_agents_per_group + slot;
+    bool working = slot < u_agents_per_group && agent < u_agents;
+    if (working) {
+        Affine m = blended_local(agent, joint);
+        s_local0[t] = m.r0;
+        s_local1[t] = m.r1;
+        s_local2[t] = m.r2;
+    }
+    barrier();
+    if (!working) return;
+    int base = slot * u_joints;
+    Affine m = Affine(s_local0[t], s_local1[t], s_local2[t]);
+    int p = parent_of(joint);
+    for (int k = 0; k < MAX_JOINTS && p >= 0; ++k) {
+        m = compose(Affine(s_local0[base + p], s_local1[base + p], s_local2[base + p]), m);
+        p = parent_of(p);
+    }
+    m = compose(m, stored_affine(joint, 0));  // row 0 holds the inverse bind pose
+    ivec2 texel = ivec2((agent % u_agents_per_row) * u_joints + joint, agent / u_agents_per_row);
+    imageStore(u_palette0, texel, m.r0);
+    imageStore(u_palette1, texel, m.r1);
+    imageStore(u_palette2, texel, m.r2);
+}

@@ -1,0 +1,28 @@
+#version 330 core
+// Animation processor, GL 3.3 path: one fragment per (agent, joint) with x = agents' slot * J + joint
+// and y = palette row. A fragment cannot share its neighbours' work, so it blends every ancestor of
+// its joint itself, in the same order as the compute path, and writes the three rows of the skinning
+// matrix at once through three render targets.
+#include "processor_common.glsl"
+
+layout(location = 0) out vec4 o_row0;
+layout(location = 1) out vec4 o_row1;
+layout(location = 2) out vec4 o_row2;
+
+void main() {
+    int x = int(gl_FragCoord.x);
+    int y = int(gl_FragCoord.y);
+    int slot = x / u_joints;
+    int joint = x - slot * u_joints;
+    int agent = y * u_agents_per_row + slot;
+    Affine m = blended_local(agent, joint);
+    int p = parent_of(joint);
+    for (int k = 0; k < MAX_JOINTS && p >= 0; ++k) {
+        m = compose(blended_local(agent, p), m);
+        p = parent_of(p);
+    }
+    m = compose(m, stored_affine(joint, 0));  // row 0 holds the inverse bind pose
+    o_row0 = m.r0;
+    o_row1 = m.r1;
+    o_row2 = m.r2;
+}

@@ -1,0 +1,201 @@
+"""Headless smoke mode, the frame pipeline and the renderer on llvmpipe."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from crowd.pipeline import CrowdPipeline, PipelineConfig, PipelineError, smoke_size
+from crowd.render import Camera, CrowdRenderer, Instances, RenderError, frustum_planes, sphere_visible
+from crowd.roles import RoleError, clips_used, match_roles, parse_overrides
+from crowd.smoke import FIXED_DT, offscreen_framebuffer, read_image, run_headless
+from conftest import ROOT, shared
+
+SIZE = (320, 180)
+
+
+def test_smoke_frame_shows_zombies_where_they_stand(gl_context):
+    pipeline = CrowdPipeline(gl_context, PipelineConfig(agents=40, seed=3))
+    fb, attachments = offscreen_framebuffer(gl_context, SIZE)
+    try:
+        pipeline.camera = pipeline.default_camera(SIZE[0] / SIZE[1])
+        for _ in range(3):
+            pipeline.frame(fb, FIXED_DT)
+        crowd = read_image(fb, SIZE).astype(int)
+        hips = pipeline.project(pipeline.joint_world_positions(0), SIZE)
+        pipeline.set_agent_count(0)  # same camera, same ground, no zombies
+        pipeline.frame(fb, FIXED_DT)
+        empty = read_image(fb, SIZE).astype(int)
+        assert "process" in pipeline.passes_run and "draw" in pipeline.passes_run
+    finally:
+        pipeline.release()
+        fb.release()
+        for a in attachments:
+            a.release()
+    changed = np.any(np.abs(crowd - empty) > 12, axis=2)
+    assert changed.mean() > 0.02  # zombies (and their shadows) cover a visible share of the frame
+    inside = [(x, y) for x, y in hips if 1 <= x < SIZE[0] - 1 and 1 <= y < SIZE[1] - 1]
+    assert len(inside) >= 30
+    covered = [changed[int(y) - 1 : int(y) + 2, int(x) - 1 : int(x) + 2].any() for x, y in inside]
+    assert np.mean(covered) > 0.9  # each agent's projected hips land on its drawn body
+
+
+@pytest.mark.parametrize("agents", [0, 1])
+def test_zero_and_one_agent(tmp_path, gl_context, agents):
+    stats = run_headless(PipelineConfig(agents=agents), 3, SIZE, tmp_path / "a.png", tmp_path / "a.json", ctx=gl_context)
+    saved = json.loads((tmp_path / "a.json").read_text())
+    assert saved["agents"] == agents and saved["nan_count"] == 0
+    assert ("process" in saved["passes_run"]) == (agents > 0)
+    assert ("draw" in saved["passes_run"]) == (agents > 0)
+    assert (saved["gpu_bytes"]["palette"] > 0) == (agents > 0)
+    assert (tmp_path / "a.png").stat().st_size > 1000
+    assert stats["last_frame"]["instances"] == (3 * agents)  # body, head, shirt
+
+
+def test_stats_fields_and_no_shadow_resources_when_shadows_are_off(tmp_path, gl_context):
+    stats = run_headless(PipelineConfig(agents=20, shadows=False), 4, SIZE, None, tmp_path / "s.json", ctx=gl_context)
+    saved = json.loads((tmp_path / "s.json").read_text())
+    for key in ("gl_renderer", "gl_version", "agents", "frames", "size", "frame_ms", "passes_ms", "passes_run", "gpu_bytes", "nan_count"):
+        assert key in saved, key
+    assert set(saved["frame_ms"]) == {"p50", "p95", "max"}
+    assert saved["passes_clock"]["process"] == "gpu" and saved["passes_ms"]["process"] > 0
+    assert "shadow" not in saved["passes_run"] and "shadow_map" not in saved["gpu_bytes"] or saved["gpu_bytes"]["shadow_map"] == 0
+    assert saved["bake"]["clips"] == ["idle", "shamble", "run", "attack", "hit", "death"]  # crawl is not used: not baked
+    assert stats["nan_count"] == 0
+
+
+def test_processor_paths_draw_the_same_frame(gl_context):
+    images = {}
+    for path in ("compute", "fragment"):
+        stats = run_headless(PipelineConfig(agents=30, processor_path=path), 2, SIZE, ctx=gl_context)
+        assert stats["processor_path"] == path
+        images[path] = stats["_image"].astype(int)
+    assert np.max(np.abs(images["compute"] - images["fragment"])) <= 1
+
+
+def test_cli_writes_png_and_json(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "app.demo", "--headless", "--frames", "3", "--agents", "12", "--size", "160x90",
+                          "--screenshot", str(tmp_path / "x.png"), "--stats", str(tmp_path / "x.json"), "--seed", "4"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert json.loads((tmp_path / "x.json").read_text())["size"] == [160, 90]
+    assert (tmp_path / "x.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--model", "missing.glb"], "no such file"),
+    (["--size", "12"], "size must"),
+    (["--agents", "-3"], "--agents"),
+    (["--roles", "walk"], "role overrides"),
+    (["--frames", "0"], "--frames"),
+])
+def test_cli_bad_arguments_exit_nonzero_with_one_line(tmp_path, args, words):
+    out = subprocess.run([sys.executable, "-m", "app.demo", "--headless", "--screenshot", str(tmp_path / "x.png"), *args],
+                         cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2
+    assert words in out.stderr and "Traceback" not in out.stderr and len(out.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_cli_bad_model_file(tmp_path):
+    bad = tmp_path / "bad.glb"
+    bad.write_bytes(b"glTF\x02\x00\x00\x00garbage")
+    out = subprocess.run([sys.executable, "-m", "app.demo", "--headless", "--model", str(bad), "--screenshot", str(tmp_path / "x.png")],
+                         cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "Traceback" not in out.stderr and len(out.stderr.strip().splitlines()) == 1
+
+
+def test_imported_model_runs_through_the_pipeline(tmp_path, gl_context):
+    path = shared("Quaternius_Zombie_Basic.gltf")
+    stats = run_headless(PipelineConfig(agents=8, model=path, processor_path="fragment"), 2, SIZE, ctx=gl_context)
+    assert stats["roles"]["walk"] == "Walk" and stats["roles"]["death"] == "Death"
+    assert stats["nan_count"] == 0 and stats["last_frame"]["instances"] >= 8
+
+
+def test_roles_match_by_name_and_can_be_overridden(zombie):
+    roles, notes = match_roles(zombie.clips)
+    assert roles == {"idle": "idle", "walk": "shamble", "run": "run", "attack": "attack", "hit": "hit", "death": "death"} and not notes
+    assert "crawl" not in clips_used(roles)
+
+    class C:
+        def __init__(self, name, loop=True):
+            self.name, self.loop = name, loop
+
+    roles, _ = match_roles([C("Run_Gun"), C("Walk_Gun"), C("Run"), C("Walking"), C("Idle_Attack"), C("Idle"), C("Zombie_Death", False)])
+    assert roles["run"] == "Run" and roles["walk"] == "Walking" and roles["idle"] == "Idle" and roles["death"] == "Zombie_Death"
+    roles, notes = match_roles([C("clip0")])
+    assert roles["walk"] == roles["idle"] == roles["run"] == "clip0" and roles["attack"] is None and notes
+    roles, _ = match_roles([C("Walk"), C("Shuffle")], parse_overrides("walk=Shuffle"))
+    assert roles["walk"] == "Shuffle"
+    with pytest.raises(RoleError, match="no clip named"):
+        match_roles([C("Walk")], {"walk": "Run"})
+    with pytest.raises(RoleError, match="unknown role"):
+        parse_overrides("dance=Walk")
+
+
+def test_frustum_culling_and_render_input_checks(gl_context, zombie):
+    cam = Camera(eye=np.array([0.0, 2.0, 10.0]), target=np.array([0.0, 1.0, 0.0]))
+    planes = frustum_planes(cam.view_proj())
+    centers = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 20.0], [100.0, 1.0, 0.0], [0.0, 1.0, -300.0]]) - cam.eye
+    assert sphere_visible(planes, centers, np.ones(4)).tolist() == [True, False, False, True]
+    renderer = CrowdRenderer(gl_context, zombie, zombie.skeleton.joint_count, 100, shadows=False)
+    try:
+        n = 2
+        good = Instances(np.zeros((n, 3)), np.zeros(n, np.float32), np.ones(n, np.float32), np.full((n, 4), 255, np.uint8), {"head": np.array([0, 1])})
+        renderer.prepare(cam, good)
+        assert renderer.last["instances"] == 6
+        bad = Instances(np.full((n, 3), np.nan), good.yaw, good.scale, good.tint)
+        with pytest.raises(RenderError, match="finite"):
+            renderer.prepare(cam, bad)
+        with pytest.raises(RenderError, match="variant"):
+            renderer.prepare(cam, Instances(good.position, good.yaw, good.scale, good.tint, {"head": np.array([0, 5])}))
+        with pytest.raises(RenderError, match="coincide"):
+            renderer.prepare(Camera(eye=np.zeros(3), target=np.zeros(3)), good)
+    finally:
+        renderer.release()
+
+
+def test_far_from_origin_agents_render_like_near_ones(gl_context):
+    """Camera-relative positions: the same crowd 1e5 m away draws the same picture."""
+    images = []
+    for offset in (0.0, 1.0e5):
+        pipeline = CrowdPipeline(gl_context, PipelineConfig(agents=9, seed=2))
+        fb, attachments = offscreen_framebuffer(gl_context, SIZE)
+        try:
+            shift = np.array([offset, 0.0, -offset])
+            pipeline.placement.position += shift
+            pipeline.placement.origin += shift
+            pipeline.camera = pipeline.default_camera(SIZE[0] / SIZE[1])
+            pipeline.camera.eye = pipeline.camera.eye + shift
+            pipeline.camera.target = pipeline.camera.target + shift
+            pipeline.frame(fb, 0.0)
+            images.append(read_image(fb, SIZE).astype(int))
+        finally:
+            pipeline.release()
+            fb.release()
+            for a in attachments:
+                a.release()
+    # The ground grid is anchored to the world, so it may shift; the zombies must not.
+    diff = np.abs(images[0] - images[1]).max(axis=2)
+    assert np.mean(diff > 40) < 0.01
+
+
+def test_pipeline_config_errors(gl_context):
+    with pytest.raises(PipelineError, match="agent count"):
+        CrowdPipeline(gl_context, PipelineConfig(agents=-1))
+    with pytest.raises(PipelineError):
+        smoke_size("0x0")
+
+
+def test_triangle_reorder_keeps_the_mesh_and_shades_fewer_vertices(zombie):
+    from crowd.vertex_cache import optimize_triangle_order, shaded_vertices_per_triangle
+
+    body = next(m for m in zombie.meshes if m.piece == "body" and m.lod == 0)
+    order = optimize_triangle_order(body.indices, len(body.positions))
+    canon = lambda idx: sorted(tuple(np.roll(t, -int(np.argmin(t)))) for t in idx.reshape(-1, 3))  # noqa: E731
+    assert canon(order) == canon(body.indices)  # same triangles, same winding
+    assert shaded_vertices_per_triangle(order) < 0.95 * shaded_vertices_per_triangle(body.indices)
