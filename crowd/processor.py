@@ -193,7 +193,7 @@ class AnimationProcessor:
         self.agents_per_row = max(1, MAX_TEXTURE_WIDTH // max(jc, layer_count))
         self.agents_per_group = GROUP_SIZE // jc
         self.agents = 0
-        self._own: dict[str, list] = {"animation": [], "palette": [], "layers": []}
+        self._own: dict[str, list] = {"animation": [], "palette": [], "layers": [], "processor_quad": []}
 
         dtype = "f4" if bake.precision == "f32" else "f2"
         self.anim_texture = self._texture("animation", (2 * jc, bake.rows), 4, bake.texels, dtype)
@@ -279,7 +279,7 @@ class AnimationProcessor:
         if self._quad is None:
             self._quad = self.ctx.buffer(reserve=12 * 2 * 4)
             self._quad_vao = self.ctx.vertex_array(self.program, [(self._quad, "2f", "in_position")])
-            self._own["animation"] += [self._quad_vao, self._quad]
+            self._own["processor_quad"] += [self._quad_vao, self._quad]
         width, height = self.palette_size()
         full, partial = divmod(self.agents, self.agents_per_row)
         rects = []

@@ -78,11 +78,7 @@ def run_headless(config: PipelineConfig, frames: int, size: tuple[int, int], scr
             atomic_write_bytes(Path(screenshot), png_bytes(image))
         if stats_path is not None:
             atomic_write_bytes(Path(stats_path), (json.dumps(stats, indent=2) + "\n").encode())
-        stats["_image"] = image
-        stats["_pipeline_hips"] = None
-        if pipeline.agents:
-            hips = pipeline.joint_world_positions(0)
-            stats["_hips_pixels"] = pipeline.project(hips, size)
+        stats["_image"] = image  # for callers in Python (tests); never written to the JSON
         return stats
     finally:
         if pipeline is not None:
