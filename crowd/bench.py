@@ -82,10 +82,10 @@ def bench_scale(args) -> int:
     character = load_character(args.model)
     roles, _ = match_roles(character.clips)
     baked = bake(character.skeleton, [character.clip(n) for n in clips_used(roles)], 15.0, "f32")
-    renderer = CrowdRenderer(ctx, character, baked.joint_count, AnimationProcessor(ctx, baked, 1, path="fragment").agents_per_row,
-                             lod_distances=(1e9, 1e9), shadows=False, culling=False)
     processors = {"compute": AnimationProcessor(ctx, baked, args.layers, path="compute")} if ctx.version_code >= 430 else {}
     processors["fragment"] = AnimationProcessor(ctx, baked, args.layers, path="fragment")
+    renderer = CrowdRenderer(ctx, character, baked.joint_count, processors["fragment"].agents_per_row,
+                             lod_distances=(1e9, 1e9), shadows=False, culling=False)
     fb, attachments = offscreen_framebuffer(ctx, size)
     query = ctx.query(time=True)
     rng = np.random.default_rng(1)

@@ -45,6 +45,20 @@ def window_context() -> moderngl.Context:
     return moderngl.create_context()
 
 
+_DTYPE_BYTES = {"f1": 1, "u1": 1, "f2": 2, "u2": 2, "i2": 2, "f4": 4, "u4": 4, "i4": 4}
+
+
+def gpu_bytes(objects) -> int:
+    """Bytes of GPU memory held by the textures and buffers among `objects` (other objects count 0)."""
+    total = 0
+    for obj in objects:
+        if isinstance(obj, moderngl.Texture):
+            total += obj.width * obj.height * obj.components * _DTYPE_BYTES[obj.dtype]
+        elif isinstance(obj, moderngl.Buffer):
+            total += obj.size
+    return total
+
+
 def describe(ctx: moderngl.Context) -> dict:
     return {
         "gl_renderer": ctx.info.get("GL_RENDERER", "?"),

@@ -33,7 +33,7 @@ import numpy as np
 
 from . import transforms as tf
 from .bake import AnimationBake
-from .gl import load_shader
+from .gl import gpu_bytes, load_shader
 from .reference import REST_THRESHOLD
 
 CLIP, PHASE, WEIGHT, MASK = range(4)
@@ -42,7 +42,6 @@ MAX_JOINTS = 256  # one compute work group of 256 invocations holds at least one
 MAX_WEIGHT = 1.0e6  # larger weights would overflow the float32 sum long before they mean anything
 GROUP_SIZE = 256
 PATHS = ("auto", "compute", "fragment")
-_DTYPE_BYTES = {"f1": 1, "u1": 1, "f2": 2, "u2": 2, "i2": 2, "f4": 4, "u4": 4, "i4": 4}
 # Agents side by side in one palette texture row: keeps textures under 4096 texels wide, a size every
 # GL 3.3+ driver we target accepts (GL_MAX_TEXTURE_SIZE is 16384 on llvmpipe, 32768 on NVIDIA).
 MAX_TEXTURE_WIDTH = 4096
@@ -360,16 +359,7 @@ class AnimationProcessor:
         return int(np.count_nonzero(~np.all(np.isfinite(pal), axis=(1, 2, 3)))) if len(pal) else 0
 
     def gpu_bytes(self) -> dict[str, int]:
-        out = {}
-        for group, objs in self._own.items():
-            total = 0
-            for obj in objs:
-                if isinstance(obj, moderngl.Texture):
-                    total += obj.width * obj.height * obj.components * _DTYPE_BYTES[obj.dtype]
-                elif isinstance(obj, moderngl.Buffer):
-                    total += obj.size
-            out[group] = total
-        return out
+        return {group: gpu_bytes(objs) for group, objs in self._own.items()}
 
     def release(self) -> None:
         for group in list(self._own):

@@ -22,7 +22,7 @@ import moderngl
 import numpy as np
 from pyglm import glm
 
-from .gl import load_shader
+from .gl import gpu_bytes, load_shader
 from .model import Character, SkinnedMesh
 from .vertex_cache import optimize_triangle_order
 
@@ -232,29 +232,12 @@ class CrowdRenderer:
         key = (kind, skinned)
         if key not in draw.vaos:
             prog = self._program(kind, skinned)
-            vfmt, *vnames = VERTEX_FORMAT
-            ifmt, *inames = INSTANCE_FORMAT
-            # Attributes a variant does not read (the depth pass has no colour) are skipped by name.
-            vfmt_parts = vfmt.split()
-            vsel = [(f, n) for f, n in zip(vfmt_parts, vnames)]
-            vspec = " ".join(f if n in prog else _padding(f) for f, n in vsel)
-            ispec = " ".join(f if n in prog else _padding(f) for f, n in zip(ifmt.replace("/i", "").split(), inames)) + "/i"
-            content = [(draw.vbo, vspec, *[n for n in vnames if n in prog]), (draw.instances, ispec, *[n for n in inames if n in prog])]
+            content = [(draw.vbo, *_read_by(prog, VERTEX_FORMAT)), (draw.instances, *_read_by(prog, INSTANCE_FORMAT))]
             draw.vaos[key] = self._own("programs", self.ctx.vertex_array(prog, content, index_buffer=draw.ibo, index_element_size=4))
         return draw.vaos[key]
 
     def gpu_bytes(self) -> dict[str, int]:
-        out = {}
-        for group, objs in self._objects.items():
-            total = 0
-            for obj in objs:
-                if isinstance(obj, moderngl.Buffer):
-                    total += obj.size
-                elif isinstance(obj, moderngl.Texture):
-                    total += obj.width * obj.height * 4
-            if group != "programs":
-                out["shadow_map" if group == "shadow_map" else group] = total
-        return out
+        return {group: gpu_bytes(objs) for group, objs in self._objects.items() if group != "programs"}
 
     def release(self) -> None:
         for objs in self._objects.values():
@@ -383,6 +366,16 @@ class CrowdRenderer:
         prog["u_eye"] = (float(np.mod(eye[0], 1000.0)), float(eye[1]), float(np.mod(eye[2], 1000.0)))
         self._set_lighting(prog)
         self._ground_vao.render(moderngl.TRIANGLES)
+
+
+def _read_by(prog: moderngl.Program, layout: tuple) -> tuple:
+    """(format, *names) of a buffer layout for one program: attributes the program does not read (the
+    depth pass has no colour) become padding, so every variant shares the buffer's stride."""
+    fmt, *names = layout
+    per_instance = fmt.endswith("/i")
+    items = fmt.removesuffix("/i").split()
+    spec = " ".join(f if n in prog else _padding(f) for f, n in zip(items, names)) + ("/i" if per_instance else "")
+    return (spec, *[n for n in names if n in prog])
 
 
 def _padding(fmt: str) -> str:
