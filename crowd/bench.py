@@ -91,7 +91,7 @@ def bench_scale(args) -> int:
     rng = np.random.default_rng(1)
     rows = []
     print(f"{info['gl_renderer']} | {info['gl_version']} | {size[0]}x{size[1]} | {args.layers} layers | median of {args.frames} frames")
-    print(f"{'agents':>8} {'proc ms':>8} {'frag ms':>8} {'draw ms':>8} {'frame ms':>9} {'Mtri/s':>8} {'ceil Mtri/s':>11} {'ratio':>6} {'loop ms':>8}")
+    print(f"{'agents':>8} {'proc ms':>8} {'frag ms':>8} {'draw ms':>8} {'frame ms':>9} {'Mtri/s':>8} {'ceil Mtri/s':>11} {'ratio':>6}")
 
     def gpu_ms(fn):
         with query:
@@ -118,7 +118,7 @@ def bench_scale(args) -> int:
         main_proc = processors.get("compute", processors["fragment"])
         view_proj = renderer.prepare(camera, inst)
         tris = renderer.last["triangles"]
-        samples = {"proc": [], "frag": [], "draw": [], "ceil": [], "loop": [], "frame": []}
+        samples = {"proc": [], "frag": [], "draw": [], "ceil": [], "frame": []}
         for frame in range(args.frames + 2):
             t0 = time.perf_counter()
             main_proc.upload(layers)
@@ -131,27 +131,19 @@ def bench_scale(args) -> int:
             f_ms = (time.perf_counter() - t0) * 1e3
             fb.clear(0.1, 0.1, 0.1, 1.0, depth=1.0)
             c_ms = gpu_ms(lambda: renderer.color_pass(fb, view_proj, main_proc, skinned=False))
-            fb.clear(0.1, 0.1, 0.1, 1.0, depth=1.0)
-            l_ms = gpu_ms(lambda: renderer.color_pass(fb, view_proj, main_proc, skinned="loop"))
-            for variant in args.variants.split(",") if args.variants else []:
-                fb.clear(0.1, 0.1, 0.1, 1.0, depth=1.0)
-                samples.setdefault(variant, []).append(gpu_ms(lambda: renderer.color_pass(fb, view_proj, main_proc, skinned=variant)))
             fr_ms = gpu_ms(processors["fragment"].run) if "compute" in processors else p_ms
             if frame >= 2:  # the first frames compile and upload
-                for k, v in (("proc", p_ms), ("frag", fr_ms), ("draw", d_ms), ("ceil", c_ms), ("loop", l_ms), ("frame", f_ms)):
+                for k, v in (("proc", p_ms), ("frag", fr_ms), ("draw", d_ms), ("ceil", c_ms), ("frame", f_ms)):
                     samples[k].append(v)
         med = {k: float(np.median(v)) for k, v in samples.items()}
-        if args.variants:
-            print("   variants ms: " + ", ".join(f"{k} {med[k]:.3f}" for k in args.variants.split(",")))
         row = {"agents": n, "triangles": tris, "processor_ms": round(med["proc"], 4), "processor_fragment_ms": round(med["frag"], 4),
                "draw_ms": round(med["draw"], 4), "frame_ms": round(med["frame"], 3),
                "tris_per_s": round(tris / (med["draw"] / 1e3)), "ceiling_ms": round(med["ceil"], 4),
-               "ceiling_tris_per_s": round(tris / (med["ceil"] / 1e3)),
-               "draw_loop_ms": round(med["loop"], 4)}
+               "ceiling_tris_per_s": round(tris / (med["ceil"] / 1e3))}
         row["ratio"] = round(row["tris_per_s"] / row["ceiling_tris_per_s"], 3)
         rows.append(row)
         print(f"{n:>8} {row['processor_ms']:>8.3f} {row['processor_fragment_ms']:>8.3f} {row['draw_ms']:>8.3f} {row['frame_ms']:>9.2f} "
-              f"{row['tris_per_s'] / 1e6:>8.0f} {row['ceiling_tris_per_s'] / 1e6:>11.0f} {row['ratio']:>6.3f} {row['draw_loop_ms']:>8.3f}")
+              f"{row['tris_per_s'] / 1e6:>8.0f} {row['ceiling_tris_per_s'] / 1e6:>11.0f} {row['ratio']:>6.3f}")
     for proc in processors.values():
         proc.release()
     renderer.release()
@@ -183,7 +175,6 @@ def main(argv=None) -> int:
     p.add_argument("--size", default="1920x1080")
     p.add_argument("--frames", type=int, default=10)
     p.add_argument("--layers", type=int, default=4)
-    p.add_argument("--variants", default="one_bone", help="skin shader ablations timed in the same run (loop is always timed)")
     p.add_argument("--json", type=Path)
     p.set_defaults(run=bench_scale)
     args = parser.parse_args(argv)

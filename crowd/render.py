@@ -26,13 +26,17 @@ from .gl import gpu_bytes, load_shader
 from .model import Character, SkinnedMesh
 from .vertex_cache import optimize_triangle_order
 
-# Per-vertex record. Half-float weights keep the skinned position within ~0.05 mm of float32
-# weights for this character's bone spans (unorm8 weights would be up to ~0.3 mm off).
-VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("normal", "<f2", 4), ("joints", "u1", 4), ("weights", "<f2", 4), ("color", "u1", 4)])
-VERTEX_FORMAT = ("3f 4f2 4u1 4f2 4f1", "in_position", "in_normal", "in_joints", "in_weights", "in_color")
-# Per-instance record, 28 bytes. `palette` is the texel of the agent's joint 0 in the palette planes.
-INSTANCE_DTYPE = np.dtype([("position", "<f4", 3), ("yaw_scale", "<f4", 2), ("palette", "<u2", 2), ("tint", "u1", 4)])
-INSTANCE_FORMAT = ("3f 2f 2u2 4f1/i", "i_position", "i_yaw_scale", "i_palette", "i_tint")
+# Per-vertex record, 28 bytes: the position and one uvec4 (see shaders/skin.vert.glsl for why two
+# attributes). packed[0]: normal as three snorm10; packed[1]: joints, 4 x u8 by descending weight;
+# packed[2]: weights 1-3 as unorm10 of 2w (each is at most 1/2 once sorted; weight 0 is 1 minus the rest,
+# so the four sum to 1 exactly); packed[3]: colour, RGBA8.
+VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("packed", "<u4", 4)])
+VERTEX_FORMAT = ("3f 4u", "in_position", "in_packed")
+WEIGHT_STEP = 1.0 / 2046.0  # a stored weight is within half of this of the float weight
+# Per-instance record, 28 bytes: position relative to the camera and scale; palette texel of the agent's
+# joint 0 (x | y << 16), tint RGBA8, cos and sin of the heading as snorm16.
+INSTANCE_DTYPE = np.dtype([("position_scale", "<f4", 4), ("packed", "<u4", 3)])
+INSTANCE_FORMAT = ("4f 3u/i", "i_position_scale", "i_packed")
 DEFAULT_LOD_DISTANCES = (14.0, 40.0)
 FOG_COLOR = (0.09, 0.1, 0.13)  # linear; the clear colour matches it after the display curve  # metres: LOD0 closer than 14 m, LOD1 to 40 m, LOD2 beyond
 
@@ -114,20 +118,43 @@ def sphere_visible(planes: np.ndarray, centers: np.ndarray, radii: np.ndarray) -
     return np.all(dist >= -radii[:, None], axis=1)
 
 
+def _rgba8(values: np.ndarray) -> np.ndarray:
+    """(N, 4) integers 0-255 → (N,) uint32, R in the low byte."""
+    v = np.asarray(values, np.uint32)
+    return v[:, 0] | (v[:, 1] << 8) | (v[:, 2] << 16) | (v[:, 3] << 24)
+
+
+def _snorm(values: np.ndarray, bits: int) -> np.ndarray:
+    """Floats in [-1, 1] → two's-complement fields of `bits` bits (as uint32)."""
+    scale = (1 << (bits - 1)) - 1
+    q = np.rint(np.clip(values, -1.0, 1.0) * scale).astype(np.int32)
+    return (q & ((1 << bits) - 1)).astype(np.uint32)
+
+
 def pack_vertices(mesh: SkinnedMesh) -> np.ndarray:
-    """Interleaved vertex records with each vertex's influences sorted by descending weight, so the
-    shader can stop at the first zero weight."""
+    """Vertex records with each vertex's influences sorted by descending weight, so the shader can
+    skip the third and fourth bones where their weight is zero."""
     v = np.zeros(mesh.positions.shape[0], VERTEX_DTYPE)
     v["position"] = mesh.positions
-    v["normal"][:, :3] = mesh.normals
+    n = _snorm(np.asarray(mesh.normals, np.float64), 10)
+    v["packed"][:, 0] = n[:, 0] | (n[:, 1] << 10) | (n[:, 2] << 20)
     order = np.argsort(-mesh.weights, axis=1, kind="stable")
-    w = np.take_along_axis(mesh.weights, order, axis=1)
-    v["joints"] = np.take_along_axis(mesh.joints, order, axis=1).astype(np.uint8)
-    v["weights"] = w / w.sum(axis=1, keepdims=True)
+    w = np.take_along_axis(np.asarray(mesh.weights, np.float64), order, axis=1)
+    w = w / w.sum(axis=1, keepdims=True)
+    v["packed"][:, 1] = _rgba8(np.take_along_axis(mesh.joints, order, axis=1))
+    q = np.round(w[:, 1:] / WEIGHT_STEP).astype(np.uint32)  # unorm10 of 2w: w is at most 1/2 here
+    v["packed"][:, 2] = q[:, 0] | (q[:, 1] << 10) | (q[:, 2] << 20)
     colors = mesh.colors if mesh.colors is not None else np.ones((len(v), 4), np.float32)
     base = np.asarray(mesh.base_color, np.float32)
-    v["color"] = np.round(np.clip(colors * base, 0.0, 1.0) * 255.0).astype(np.uint8)
+    v["packed"][:, 3] = _rgba8(np.round(np.clip(colors * base, 0.0, 1.0) * 255.0))
     return v
+
+
+def unpack_weights(packed: np.ndarray) -> np.ndarray:
+    """The four weights the shader decodes from packed[:, 2] (the numpy twin of skin.vert.glsl)."""
+    q = (packed[:, None].astype(np.uint32) >> np.array([0, 10, 20], np.uint32)) & 0x3FF
+    w123 = q.astype(np.float64) * WEIGHT_STEP
+    return np.concatenate([1.0 - w123.sum(axis=1, keepdims=True), w123], axis=1)
 
 
 @dataclass
@@ -202,8 +229,7 @@ class CrowdRenderer:
         return obj
 
     def _program(self, kind: str, skinned: bool | str) -> moderngl.Program:
-        """kind: color, depth or ground; skinned: True, False (the ceiling), or an ablation of skin.vert.glsl
-        ("loop", "one_bone")."""
+        """kind: color, depth or ground; skinned: True, or False for the benchmark's unskinned ceiling."""
         key = (kind, skinned)
         if key in self._programs:
             return self._programs[key]
@@ -213,7 +239,7 @@ class CrowdRenderer:
         if kind == "ground":
             prog = self.ctx.program(vertex_shader=load_shader("ground.vert.glsl"), fragment_shader=load_shader("ground.frag.glsl", defines))
         else:
-            vdefs = {"UNSKINNED": 1} if skinned is False else ({} if skinned is True else {f"SKIN_{skinned.upper()}": 1})
+            vdefs = {} if skinned else {"UNSKINNED": 1}
             if kind == "depth":
                 vdefs["DEPTH_ONLY"] = 1
                 frag = load_shader("depth.frag.glsl")
@@ -273,25 +299,34 @@ class CrowdRenderer:
         dist = np.linalg.norm(centers, axis=1)
         lod = np.searchsorted(np.asarray(self.lod_distances), dist, side="right")
         lod = np.minimum(lod, self.lod_count - 1)
-        records = np.zeros(n, INSTANCE_DTYPE)
-        records["position"] = rel
-        records["yaw_scale"][:, 0] = instances.yaw
-        records["yaw_scale"][:, 1] = instances.scale
-        agent = np.arange(n)
-        records["palette"][:, 0] = (agent % self.agents_per_row) * self.joint_count
-        records["palette"][:, 1] = agent // self.agents_per_row
-        records["tint"] = instances.tint
+        # Records for the visible agents only, sorted once per variation group so that each draw's
+        # instances are one contiguous slice (a boolean mask per draw cost 12 passes over the crowd).
+        shown = np.flatnonzero(visible).astype(np.uint32)
+        lod = lod[shown]
+        records = np.empty(len(shown), INSTANCE_DTYPE)
+        records["position_scale"][:, :3] = rel[shown]
+        records["position_scale"][:, 3] = instances.scale[shown]
+        # Both fit 16 bits: x < 4096 (the palette width) and at most 1e6 agents take at most 62,500 rows.
+        records["packed"][:, 0] = (shown % self.agents_per_row) * self.joint_count | ((shown // self.agents_per_row) << 16)
+        records["packed"][:, 1] = _rgba8(instances.tint[shown])
+        yaw = instances.yaw[shown]
+        records["packed"][:, 2] = _snorm(np.cos(yaw), 16) | (_snorm(np.sin(yaw), 16) << 16)
+        slices = {}  # group ("" for pieces every agent wears) → (records sorted by draw key, start offsets per key)
+        for group in ["", *self.groups]:
+            choices = len(self.groups[group]) if group else 1
+            variant = instances.variant.get(group) if group else None
+            key = (lod * choices + (variant[shown] if variant is not None else 0)).astype(np.uint16)
+            order = np.argsort(key, kind="stable")  # a radix sort for 16-bit keys
+            starts = np.concatenate([[0], np.cumsum(np.bincount(key, minlength=self.lod_count * choices))])
+            slices[group] = (records[order], starts, choices)
         triangles = 0
         instances_total = 0
         draws = 0
         for draw in self.draws:
-            select = visible & (lod == draw.lod)
             group = self._piece_group[draw.piece]
-            if group:
-                variant = instances.variant.get(group)
-                index = self.groups[group].index(draw.piece)
-                select &= (variant == index) if variant is not None else (index == 0)
-            chosen = records[select]
+            sorted_records, starts, choices = slices[group]
+            k = draw.lod * choices + (self.groups[group].index(draw.piece) if group else 0)
+            chosen = sorted_records[starts[k]:starts[k + 1]]
             draw.count = len(chosen)
             if draw.count:
                 data = chosen.tobytes()
@@ -303,8 +338,8 @@ class CrowdRenderer:
                 draws += 1
             elif draw.instances.size != INSTANCE_DTYPE.itemsize:
                 draw.instances.orphan(INSTANCE_DTYPE.itemsize)
-        self.last = {"triangles": triangles, "instances": instances_total, "visible": int(visible.sum()), "draws": draws,
-                     "lod_counts": [int(np.count_nonzero(visible & (lod == k))) for k in range(self.lod_count)]}
+        self.last = {"triangles": triangles, "instances": instances_total, "visible": len(shown), "draws": draws,
+                     "lod_counts": np.bincount(lod, minlength=self.lod_count).tolist()}
         return view_proj
 
     def light_view_proj(self, camera: Camera) -> np.ndarray:

@@ -1,9 +1,9 @@
 """Triangle order for the GPU's vertex reuse (Tom Forsyth's "linear-speed vertex cache optimisation").
 
-Why by hand: the skinned vertex shader is the crowd's bottleneck on an H100 (every invocation waits on
-its palette fetches), so every vertex the GPU shades twice costs. Reordering triangles so that
+Why: on an H100 the crowd's draws are bound by vertex processing (chiefly fetching vertex attributes,
+docs/BENCHMARKS.md), so every vertex the GPU processes twice costs. Reordering triangles so that
 neighbours share vertices cuts vertex shader invocations per triangle; the geometry is unchanged.
-meshoptimizer does this in C, but it ships no wheel for our Python versions (only an alpha sdist), and
+Why by hand: meshoptimizer does this in C, but it ships no wheel for our Python versions (only an alpha sdist), and
 the algorithm is short. It runs once per mesh at load time.
 """
 

@@ -3,20 +3,22 @@
 // piece at that LOD. Each instance reads its agent's palette row, written once per frame by the
 // animation processor and reused by every pass (colour and shadow).
 //
-// Defines: DEPTH_ONLY (shadow pass: position only), UNSKINNED (the benchmark's ceiling: the same draw
-// without bone fetches), SKIN_LOOP and SKIN_ONE_BONE (the benchmark's ablations: one loop over the
-// four influences that stops at the first zero weight; only the first bone, at full weight).
+// Why everything but the position is packed into one uvec4 (and the instance into a vec4 and a uvec3):
+// on the H100 the draw is bound by how many vertex attributes the shader reads, not by the bone
+// fetches or the skinning maths. Reading joints and weights as two more attributes made even an
+// unskinned draw as slow as the skinned one; with two attributes per vertex, skinning costs about 2 %
+// (docs/BENCHMARKS.md, "Vertex layout"). The bit layouts are written by crowd/render.py: pack_vertices
+// and CrowdRenderer.prepare.
+//
+// Defines: DEPTH_ONLY (shadow pass: position only), UNSKINNED (the benchmark's ceiling: the same
+// draw and buffers without bone fetches).
 
 in vec3 in_position;   // bind space
-in vec4 in_normal;     // xyz bind-space normal (half floats)
-in uvec4 in_joints;    // joint indices, sorted by descending weight
-in vec4 in_weights;    // half floats, sorted descending, sum 1
-in vec4 in_color;      // unorm8 vertex colour
+in uvec4 in_packed;    // x: normal, snorm10 x3 | y: joints, 4 x u8 (by descending weight)
+                       // z: weights 1-3 as unorm10 of 2w (weight 0 = 1 - the rest) | w: colour, RGBA8
 
-in vec3 i_position;    // agent origin relative to the camera (float64 on the CPU, then float32)
-in vec2 i_yaw_scale;   // heading about +Y (radians), uniform scale
-in uvec2 i_palette;    // the agent's palette row: texel of its joint 0 (x = slot * J, y = texture row)
-in vec4 i_tint;        // unorm8 tint
+in vec4 i_position_scale;  // agent origin relative to the camera (float64 on the CPU, then float32), uniform scale
+in uvec3 i_packed;         // x: palette texel of joint 0 (x | y << 16) | y: tint, RGBA8 | z: cos, sin of the heading, snorm16 x2
 
 uniform mat4 u_view_proj;  // camera-relative: the camera sits at the origin
 uniform sampler2D u_palette0;
@@ -29,60 +31,50 @@ out vec3 v_normal;
 out vec4 v_color;
 #endif
 
+vec4 unpack_rgba8(uint v) {
+    return vec4((uvec4(v) >> uvec4(0u, 8u, 16u, 24u)) & 0xFFu) / 255.0;
+}
+
 void main() {
     vec4 p = vec4(in_position, 1.0);
+    // Sign extension of each 10-bit field: shift it to the top, then arithmetic shift back down.
+    vec3 bind_normal = vec3(ivec3(uvec3(in_packed.x) << uvec3(22u, 12u, 2u)) >> 22) / 511.0;
 #ifdef UNSKINNED
     vec3 skinned = in_position;
-    vec3 normal = in_normal.xyz;
+    vec3 normal = bind_normal;
 #else
-    // The CPU hands each instance its palette texel, so no vertex pays for an integer division.
-    ivec2 base = ivec2(i_palette);
-#if defined(SKIN_ONE_BONE)
-    ivec2 t0 = base + ivec2(int(in_joints.x), 0);
-    vec4 r0 = texelFetch(u_palette0, t0, 0);
-    vec4 r1 = texelFetch(u_palette1, t0, 0);
-    vec4 r2 = texelFetch(u_palette2, t0, 0);
-#elif defined(SKIN_LOOP)
-    vec4 r0 = vec4(0.0);
-    vec4 r1 = vec4(0.0);
-    vec4 r2 = vec4(0.0);
-    for (int i = 0; i < 4; ++i) {
-        float w = in_weights[i];
-        if (w == 0.0) break;
-        ivec2 texel = base + ivec2(int(in_joints[i]), 0);
-        r0 += w * texelFetch(u_palette0, texel, 0);
-        r1 += w * texelFetch(u_palette1, texel, 0);
-        r2 += w * texelFetch(u_palette2, texel, 0);
-    }
-#else
+    ivec2 base = ivec2(i_packed.x & 0xFFFFu, i_packed.x >> 16);
+    ivec4 joints = ivec4((uvec4(in_packed.y) >> uvec4(0u, 8u, 16u, 24u)) & 0xFFu);
+    vec3 w123 = vec3((uvec3(in_packed.z) >> uvec3(0u, 10u, 20u)) & 0x3FFu) / 2046.0;
+    float w0 = 1.0 - (w123.x + w123.y + w123.z);
     // Weights are sorted: nearly every vertex of a game character has one or two influences, so the
-    // first two bones are fetched unconditionally (six independent fetches the GPU can overlap) and
-    // the third and fourth only where their weight is not zero.
-    ivec2 t0 = base + ivec2(int(in_joints.x), 0);
-    ivec2 t1 = base + ivec2(int(in_joints.y), 0);
-    vec4 r0 = in_weights.x * texelFetch(u_palette0, t0, 0) + in_weights.y * texelFetch(u_palette0, t1, 0);
-    vec4 r1 = in_weights.x * texelFetch(u_palette1, t0, 0) + in_weights.y * texelFetch(u_palette1, t1, 0);
-    vec4 r2 = in_weights.x * texelFetch(u_palette2, t0, 0) + in_weights.y * texelFetch(u_palette2, t1, 0);
-    if (in_weights.z > 0.0) {
-        ivec2 t2 = base + ivec2(int(in_joints.z), 0);
-        ivec2 t3 = base + ivec2(int(in_joints.w), 0);
-        r0 += in_weights.z * texelFetch(u_palette0, t2, 0) + in_weights.w * texelFetch(u_palette0, t3, 0);
-        r1 += in_weights.z * texelFetch(u_palette1, t2, 0) + in_weights.w * texelFetch(u_palette1, t3, 0);
-        r2 += in_weights.z * texelFetch(u_palette2, t2, 0) + in_weights.w * texelFetch(u_palette2, t3, 0);
+    // first two bones are fetched unconditionally and the third and fourth only where their weight is
+    // not zero.
+    ivec2 t0 = base + ivec2(joints.x, 0);
+    ivec2 t1 = base + ivec2(joints.y, 0);
+    vec4 r0 = w0 * texelFetch(u_palette0, t0, 0) + w123.x * texelFetch(u_palette0, t1, 0);
+    vec4 r1 = w0 * texelFetch(u_palette1, t0, 0) + w123.x * texelFetch(u_palette1, t1, 0);
+    vec4 r2 = w0 * texelFetch(u_palette2, t0, 0) + w123.x * texelFetch(u_palette2, t1, 0);
+    if (w123.y > 0.0) {
+        ivec2 t2 = base + ivec2(joints.z, 0);
+        ivec2 t3 = base + ivec2(joints.w, 0);
+        r0 += w123.y * texelFetch(u_palette0, t2, 0) + w123.z * texelFetch(u_palette0, t3, 0);
+        r1 += w123.y * texelFetch(u_palette1, t2, 0) + w123.z * texelFetch(u_palette1, t3, 0);
+        r2 += w123.y * texelFetch(u_palette2, t2, 0) + w123.z * texelFetch(u_palette2, t3, 0);
     }
-#endif
     vec3 skinned = vec3(dot(r0, p), dot(r1, p), dot(r2, p));
-    vec3 normal = vec3(dot(r0.xyz, in_normal.xyz), dot(r1.xyz, in_normal.xyz), dot(r2.xyz, in_normal.xyz));
+    vec3 normal = vec3(dot(r0.xyz, bind_normal), dot(r1.xyz, bind_normal), dot(r2.xyz, bind_normal));
 #endif
-    float c = cos(i_yaw_scale.x);
-    float s = sin(i_yaw_scale.x);
     // Heading about +Y: the character's +Z (its front) turns toward (sin, 0, cos).
+    vec2 cs = vec2(ivec2(uvec2(i_packed.z) << uvec2(16u, 0u)) >> 16) / 32767.0;
+    float c = cs.x;
+    float s = cs.y;
     vec3 local = vec3(c * skinned.x + s * skinned.z, skinned.y, -s * skinned.x + c * skinned.z);
-    vec3 world = i_position + i_yaw_scale.y * local;
+    vec3 world = i_position_scale.xyz + i_position_scale.w * local;
     gl_Position = u_view_proj * vec4(world, 1.0);
 #ifndef DEPTH_ONLY
     v_world = world;
     v_normal = vec3(c * normal.x + s * normal.z, normal.y, -s * normal.x + c * normal.z);
-    v_color = in_color * i_tint;
+    v_color = unpack_rgba8(in_packed.w) * unpack_rgba8(i_packed.y);
 #endif
 }
