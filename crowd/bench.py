@@ -2,6 +2,8 @@
 
 - ``bake``: the bake's size and its joint-position error against the float64 reference, per clip and
   bake rate (CPU only: this is about the data, not the GPU).
+- ``ai``: CPU ms per crowd-AI step (one 1/60 s substep plus writing the processor's layers) against
+  agent count, on one core.
 - ``scale``: GPU ms of the animation processor and of the skinned instanced draw against agent count,
   with the unskinned instanced draw of the same meshes measured in the same run as the ceiling.
 """
@@ -160,6 +162,63 @@ def bench_scale(args) -> int:
     return 0
 
 
+def bench_ai(args) -> int:
+    """Steps a crowd around a scripted player for a warm-up, then times steps. The separation's share is
+    timed by wrapping that method, so the table says what bounds a step."""
+    from .ai import CrowdAI, PlayerScript, motion_for, upper_body_mask
+    from .bake import bake
+    from .gltf import load_character
+    from .roles import clips_used, match_roles
+
+    character = load_character(args.model)
+    roles, _ = match_roles(character.clips)
+    baked = bake(character.skeleton, [character.clip(n) for n in clips_used(roles)])
+    mask = 0 if upper_body_mask(character.skeleton) is not None else -1
+    motion = motion_for(character, baked, roles, mask, 2)
+    device = _device_cpu()
+    print(f"{device} | one core | median of {args.steps} steps after {args.warmup} warm-up steps of 1/60 s")
+    print(f"{'agents':>8} {'ms/step':>9} {'separation':>11} {'p95 ms':>8} {'chasing':>8}")
+    rows = []
+    for n in [int(x) for x in args.agents.split(",")]:
+        ai = CrowdAI(n, args.seed, motion)
+        script = PlayerScript(ai.half_extent * 0.5)
+        layers = np.empty((n, 4, 4), np.float32)
+        separate = ai._separate
+        spent = []
+
+        def timed_separate(h, separate=separate, spent=spent):
+            t = time.perf_counter()
+            separate(h)
+            spent.append(time.perf_counter() - t)
+
+        ai._separate = timed_separate
+        for _ in range(args.warmup):
+            script.update(ai)
+            ai.step(1 / 60)
+        spent.clear()
+        times = []
+        for _ in range(args.steps):
+            script.update(ai)
+            t = time.perf_counter()
+            ai.step(1 / 60)
+            ai.write_layers(layers)
+            times.append(time.perf_counter() - t)
+        faults = ai.check()
+        if faults:
+            print(f"crowd-bench: the AI broke an invariant at {n} agents: {'; '.join(faults)}", file=sys.stderr)
+            return 1
+        row = {"agents": n, "ms_per_step": round(float(np.median(times)) * 1e3, 4),
+               "separation_ms": round(float(np.median(spent)) * 1e3, 4), "p95_ms": round(float(np.percentile(times, 95)) * 1e3, 4),
+               "states": ai.counts()}
+        rows.append(row)
+        print(f"{n:>8} {row['ms_per_step']:>9.3f} {row['separation_ms']:>11.3f} {row['p95_ms']:>8.3f} {row['states']['chase']:>8}")
+    if args.json:
+        from .gltf_write import atomic_write_bytes
+
+        atomic_write_bytes(Path(args.json), json.dumps({"device": device, "rows": rows}, indent=1).encode())
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="crowd-bench", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -177,7 +236,16 @@ def main(argv=None) -> int:
     p.add_argument("--layers", type=int, default=4)
     p.add_argument("--json", type=Path)
     p.set_defaults(run=bench_scale)
+    p = sub.add_parser("ai", help="CPU ms per crowd-AI step against agent count")
+    p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
+    p.add_argument("--agents", default="200,1000,10000,100000")
+    p.add_argument("--steps", type=int, default=120)
+    p.add_argument("--warmup", type=int, default=120)
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--json", type=Path)
+    p.set_defaults(run=bench_ai)
     args = parser.parse_args(argv)
+    from .ai import AIError
     from .bake import BakeError
     from .gl import GLUnavailable
     from .gltf import GltfImportError
@@ -186,7 +254,7 @@ def main(argv=None) -> int:
 
     try:
         return args.run(args)
-    except (GltfImportError, BakeError, GLUnavailable, PipelineError, ProcessorError) as exc:
+    except (GltfImportError, BakeError, GLUnavailable, PipelineError, ProcessorError, AIError) as exc:
         print(f"crowd-bench: {exc}", file=sys.stderr)
         return 2
 

@@ -1,4 +1,4 @@
-"""One frame of the crowd, stage after stage: simulate → process → shadow → draw → ground.
+"""One frame of the crowd, stage after stage: ai → upload → process → cull/LOD → shadow → draw → ground.
 
 ``CrowdPipeline`` owns one instance of each stage and nothing else; each stage owns its GL objects.
 The headless smoke mode, the window (issue 6) and the benchmarks drive this same class.
@@ -14,7 +14,7 @@ import numpy as np
 
 from .bake import bake
 from .gltf import load_character
-from .placement import LAYERS, Placement, upper_body_mask
+from .ai import LAYERS, AIConfig, CrowdAI, PlayerScript, motion_for, upper_body_mask
 from .processor import AnimationProcessor, palette_joint_positions
 from .render import DEFAULT_LOD_DISTANCES, Camera, CrowdRenderer
 from .roles import clips_used, match_roles
@@ -39,6 +39,9 @@ class PipelineConfig:
     shadows: bool = True
     culling: bool = True
     lod_distances: tuple = DEFAULT_LOD_DISTANCES
+    ai: AIConfig = field(default_factory=AIConfig)
+    origin: tuple = (0.0, 0.0)  # world centre (x, z) in metres; float64 all the way to the camera subtraction
+    scripted_player: bool = True  # headless: the player walks a circle and strikes; the window moves it instead
 
 
 class CrowdPipeline:
@@ -56,9 +59,11 @@ class CrowdPipeline:
         self.processor = AnimationProcessor(ctx, self.bake, LAYERS, masks=masks, path=config.processor_path)
         self.renderer = CrowdRenderer(ctx, self.character, self.bake.joint_count, self.processor.agents_per_row,
                                       lod_distances=config.lod_distances, shadows=config.shadows, culling=config.culling)
-        strides = {c.name: (c.stride or 0.0) for c in self.character.clips}
         heads = len(self.renderer.groups.get("head", []))
-        self.placement = Placement(config.agents, config.seed, self.bake, self.roles, strides, masks is not None, heads)
+        self.motion = motion_for(self.character, self.bake, self.roles, 0 if masks is not None else -1, heads)
+        self.ai = CrowdAI(config.agents, config.seed, self.motion, config.ai, config.origin)
+        self.player_script = PlayerScript(self.ai.half_extent * 0.5) if config.scripted_player else None
+        self._layers = np.empty((config.agents, LAYERS, 4), np.float32)
         self.processor.resize(config.agents)
         self.timer = PassTimer(ctx)
         self.frames = 0
@@ -67,20 +72,22 @@ class CrowdPipeline:
 
     @property
     def agents(self) -> int:
-        return self.placement.n
+        return self.ai.n
 
     def set_agent_count(self, agents: int) -> None:
         if not isinstance(agents, (int, np.integer)) or not 0 <= agents <= MAX_AGENTS:
             raise PipelineError(f"agent count must be 0 to {MAX_AGENTS}, got {agents!r}")
-        self.placement.resize(int(agents))
+        self.ai.resize(int(agents))
         self.processor.resize(int(agents))
+        self._layers = np.empty((int(agents), LAYERS, 4), np.float32)
 
     def default_camera(self, aspect: float) -> Camera:
         """A three-quarter view that frames the whole crowd (or one agent up close)."""
-        extent = max(self.placement.half_extent, 1.2)
+        extent = max(self.ai.half_extent, 1.2)
         dist = extent * 1.5 + 2.5
-        eye = np.array([dist * 0.45, dist * 0.5, dist * 0.85])
-        return Camera(eye=eye, target=np.array([0.0, 0.8, 0.0]), aspect=aspect, far=max(200.0, dist * 4))
+        centre = np.array([self.ai.origin[0], 0.0, self.ai.origin[1]])
+        eye = centre + np.array([dist * 0.45, dist * 0.5, dist * 0.85])
+        return Camera(eye=eye, target=centre + np.array([0.0, 0.8, 0.0]), aspect=aspect, far=max(200.0, dist * 4))
 
     def _run(self, name: str) -> None:
         if name not in self.passes_run:
@@ -88,11 +95,13 @@ class CrowdPipeline:
 
     def frame(self, framebuffer: moderngl.Framebuffer, dt: float) -> None:
         t = self.timer
-        with t.cpu("simulate"):
-            self.placement.step(dt)
-            instances = self.placement.instances()
-            layers = self.placement.layers()
-        self._run("simulate")
+        with t.cpu("ai"):
+            if self.player_script is not None:
+                self.player_script.update(self.ai)
+            self.ai.step(dt)
+            instances = self.ai.instances()
+            layers = self.ai.write_layers(self._layers)
+        self._run("ai")
         with t.cpu("upload"):
             self.processor.upload(layers)
         if self.agents:
@@ -129,10 +138,11 @@ class CrowdPipeline:
         """World position of one joint of every agent, from the GPU palette (synchronous; tests, stats)."""
         pal = self.processor.read_palette()
         model = palette_joint_positions(pal[:, joint : joint + 1], self.character.skeleton.inverse_bind[joint : joint + 1])[:, 0]
-        yaw = self.placement.yaw.astype(np.float64)
+        yaw = self.ai.yaw
         c, s = np.cos(yaw), np.sin(yaw)
         rotated = np.stack([c * model[:, 0] + s * model[:, 2], model[:, 1], -s * model[:, 0] + c * model[:, 2]], axis=1)
-        return self.placement.position + self.placement.scale[:, None].astype(np.float64) * rotated
+        ground = np.stack([self.ai.x, np.zeros(self.ai.n), self.ai.z], axis=1)
+        return ground + self.ai.scale[:, None].astype(np.float64) * rotated
 
     def gpu_bytes(self) -> dict[str, int]:
         out = dict(self.processor.gpu_bytes())
@@ -147,6 +157,8 @@ class CrowdPipeline:
             "bake": {"fps": self.bake.fps, "precision": self.bake.precision, "clips": [c.name for c in self.bake.clips],
                      "rows": self.bake.rows, "bytes": self.bake.nbytes},
             "roles": self.roles,
+            "ai": {"states": self.ai.counts(), "player_hits_taken": self.ai.player_hits_taken, "faults": self.ai.check(),
+                   "notes": list(self.motion.notes)},
             "passes_ms": self.timer.medians(),
             "passes_clock": {k: self.timer.clock[k] for k in self.timer.order},
             "passes_run": list(self.passes_run),

@@ -63,6 +63,8 @@ def test_stats_fields_and_no_shadow_resources_when_shadows_are_off(tmp_path, gl_
         assert key in saved, key
     assert set(saved["frame_ms"]) == {"p50", "p95", "max"}
     assert saved["passes_clock"]["process"] == "gpu" and saved["passes_ms"]["process"] > 0
+    assert saved["passes_clock"]["ai"] == "cpu" and saved["passes_ms"]["ai"] > 0  # the crowd AI's CPU ms per frame
+    assert saved["ai"]["faults"] == [] and sum(saved["ai"]["states"].values()) == 20
     assert "shadow" not in saved["passes_run"] and "shadow_map" not in saved["gpu_bytes"] or saved["gpu_bytes"]["shadow_map"] == 0
     assert saved["bake"]["clips"] == ["idle", "shamble", "run", "attack", "hit", "death"]  # crawl is not used: not baked
     assert stats["nan_count"] == 0
@@ -163,15 +165,10 @@ def test_far_from_origin_agents_render_like_near_ones(gl_context):
     """Camera-relative positions: the same crowd 1e5 m away draws the same picture."""
     images = []
     for offset in (0.0, 1.0e5):
-        pipeline = CrowdPipeline(gl_context, PipelineConfig(agents=9, seed=2))
+        pipeline = CrowdPipeline(gl_context, PipelineConfig(agents=9, seed=2, origin=(offset, -offset)))
         fb, attachments = offscreen_framebuffer(gl_context, SIZE)
         try:
-            shift = np.array([offset, 0.0, -offset])
-            pipeline.placement.position += shift
-            pipeline.placement.origin += shift
             pipeline.camera = pipeline.default_camera(SIZE[0] / SIZE[1])
-            pipeline.camera.eye = pipeline.camera.eye + shift
-            pipeline.camera.target = pipeline.camera.target + shift
             pipeline.frame(fb, 0.0)
             images.append(read_image(fb, SIZE).astype(int))
         finally:
