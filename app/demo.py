@@ -34,6 +34,7 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
 
+    from crowd.ai import AIError
     from crowd.bake import BakeError
     from crowd.gl import GLUnavailable, has_display
     from crowd.gltf import GltfImportError
@@ -57,7 +58,7 @@ def main(argv=None) -> int:
                                 bake_fps=args.bake_fps, precision=args.precision, processor_path=args.processor,
                                 shadows=not args.no_shadows, culling=not args.no_culling)
         stats = run_headless(config, args.frames, smoke_size(args.size), args.screenshot, args.stats)
-    except (GltfImportError, BakeError, PipelineError, ProcessorError, RenderError, RoleError, GLUnavailable) as exc:
+    except (AIError, GltfImportError, BakeError, PipelineError, ProcessorError, RenderError, RoleError, GLUnavailable) as exc:
         print(f"crowd-demo: {exc}", file=sys.stderr)
         return 2
     for note in stats["warnings"]:
