@@ -168,11 +168,15 @@ def upper_body_mask(skeleton) -> np.ndarray | None:
     return mask[None]
 
 
-def motion_for(character, bake, roles: dict, upper_body_mask: int = -1, head_count: int = 0) -> Motion:
-    """The Motion of a character's baked roles; its weapons are the props it can hold in a socket."""
+def motion_for(character, bake, roles: dict) -> Motion:
+    """The Motion of a character's baked roles. Upper-body actions use mask row 0 when the skeleton has
+    an upper body (the processor gets `upper_body_mask(skeleton)` as its masks); heads are the pieces of
+    the "head" variation group; weapons are the props the character can hold in a socket."""
     strides = {c.name: (c.stride or 0.0) for c in character.clips}
+    mask_row = 0 if upper_body_mask(character.skeleton) is not None else -1
+    heads = len({m.piece for m in character.meshes if m.group == "head"})
     weapons = len(character.props) if character.sockets else 0
-    return Motion.from_bake(bake, roles, strides, upper_body_mask, head_count, weapons)
+    return Motion.from_bake(bake, roles, strides, mask_row, heads, weapons)
 
 
 class PlayerScript:
@@ -211,8 +215,7 @@ class CrowdAI:
         self.player = origin.copy()
         self.player_hits_taken = 0
         # Action lengths by action code, for one gather per step; NO_ACTION never ends by time.
-        self._action_length = np.array([np.inf] + [max(motion.duration[r], 1e-3) if motion.clip[r] >= 0 else np.inf
-                                                   for r in ACTION_ROLES[1:]])
+        self._action_length = np.array([np.inf] + [motion.duration[r] if motion.clip[r] >= 0 else np.inf for r in ACTION_ROLES[1:]])
         self._action_clip = np.array([0] + [max(motion.clip[r], 0) for r in ACTION_ROLES[1:]], np.float32)
         self.n = 0
         self._allocate(0)
@@ -410,7 +413,6 @@ class CrowdAI:
         # Velocity with limited acceleration; the dying and the dead stop at once (no sliding corpses).
         cx, cz = dx * scale - self.vx, dz * scale - self.vz
         limit = np.minimum(1.0, (cfg.max_accel * h) / np.maximum(np.sqrt(cx * cx + cz * cz), 1e-12))
-        limit[state >= DYING] = 0.0
         self.vx += cx * limit
         self.vz += cz * limit
         still = np.flatnonzero(state >= DYING)

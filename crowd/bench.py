@@ -165,7 +165,7 @@ def bench_scale(args) -> int:
 def bench_ai(args) -> int:
     """Steps a crowd around a scripted player for a warm-up, then times steps. The separation's share is
     timed by wrapping that method, so the table says what bounds a step."""
-    from .ai import CrowdAI, PlayerScript, motion_for, upper_body_mask
+    from .ai import CrowdAI, PlayerScript, motion_for
     from .bake import bake
     from .gltf import load_character
     from .roles import clips_used, match_roles
@@ -173,8 +173,7 @@ def bench_ai(args) -> int:
     character = load_character(args.model)
     roles, _ = match_roles(character.clips)
     baked = bake(character.skeleton, [character.clip(n) for n in clips_used(roles)])
-    mask = 0 if upper_body_mask(character.skeleton) is not None else -1
-    motion = motion_for(character, baked, roles, mask, 2)
+    motion = motion_for(character, baked, roles)
     device = _device_cpu()
     print(f"{device} | one core | median of {args.steps} steps after {args.warmup} warm-up steps of 1/60 s")
     print(f"{'agents':>8} {'ms/step':>9} {'separation':>11} {'p95 ms':>8} {'chasing':>8}")

@@ -59,8 +59,7 @@ class CrowdPipeline:
         self.processor = AnimationProcessor(ctx, self.bake, LAYERS, masks=masks, path=config.processor_path)
         self.renderer = CrowdRenderer(ctx, self.character, self.bake.joint_count, self.processor.agents_per_row,
                                       lod_distances=config.lod_distances, shadows=config.shadows, culling=config.culling)
-        heads = len(self.renderer.groups.get("head", []))
-        self.motion = motion_for(self.character, self.bake, self.roles, 0 if masks is not None else -1, heads)
+        self.motion = motion_for(self.character, self.bake, self.roles)
         self.ai = CrowdAI(config.agents, config.seed, self.motion, config.ai, config.origin)
         self.player_script = PlayerScript(self.ai.half_extent * 0.5) if config.scripted_player else None
         self._layers = np.empty((config.agents, LAYERS, 4), np.float32)

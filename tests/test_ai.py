@@ -24,7 +24,6 @@ from crowd.ai import (
     CrowdAI,
     PlayerScript,
     motion_for,
-    upper_body_mask,
 )
 from crowd.bake import bake
 from crowd.processor import CLIP, MASK, PHASE, WEIGHT, validate_layers
@@ -37,7 +36,7 @@ STEP = 1.0 / 60.0
 def motion(zombie):
     roles, _ = match_roles(zombie.clips)
     baked = bake(zombie.skeleton, [zombie.clip(n) for n in clips_used(roles)])
-    return motion_for(zombie, baked, roles, 0 if upper_body_mask(zombie.skeleton) is not None else -1, 2)
+    return motion_for(zombie, baked, roles)
 
 
 def run(ai: CrowdAI, steps: int, dt: float = STEP, script: PlayerScript | None = None, check_every: int = 10) -> None:
