@@ -68,13 +68,12 @@ def bench_scale(args) -> int:
     the same meshes and instances is the ceiling the skinned draw is compared with."""
     import moderngl
 
-    from .bake import bake
     from .gl import describe, headless_context
     from .gltf import load_character
     from .pipeline import smoke_size
     from .processor import CLIP, PHASE, WEIGHT, AnimationProcessor, empty_layers
     from .render import Camera, CrowdRenderer, Instances
-    from .roles import clips_used, match_roles
+    from .roles import bake_roles, match_roles
     from .smoke import offscreen_framebuffer
 
     size = smoke_size(args.size)
@@ -83,7 +82,7 @@ def bench_scale(args) -> int:
     info = describe(ctx)
     character = load_character(args.model)
     roles, _ = match_roles(character.clips)
-    baked = bake(character.skeleton, [character.clip(n) for n in clips_used(roles)], 15.0, "f32")
+    baked = bake_roles(character, roles)
     processors = {"compute": AnimationProcessor(ctx, baked, args.layers, path="compute")} if ctx.version_code >= 430 else {}
     processors["fragment"] = AnimationProcessor(ctx, baked, args.layers, path="fragment")
     renderer = CrowdRenderer(ctx, character, baked.joint_count, processors["fragment"].agents_per_row,
@@ -166,13 +165,12 @@ def bench_ai(args) -> int:
     """Steps a crowd around a scripted player for a warm-up, then times steps. The separation's share is
     timed by wrapping that method, so the table says what bounds a step."""
     from .ai import CrowdAI, PlayerScript, motion_for
-    from .bake import bake
     from .gltf import load_character
-    from .roles import clips_used, match_roles
+    from .roles import bake_roles, match_roles
 
     character = load_character(args.model)
     roles, _ = match_roles(character.clips)
-    baked = bake(character.skeleton, [character.clip(n) for n in clips_used(roles)])
+    baked = bake_roles(character, roles)
     motion = motion_for(character, baked, roles)
     device = _device_cpu()
     print(f"{device} | one core | median of {args.steps} steps after {args.warmup} warm-up steps of 1/60 s")

@@ -12,12 +12,11 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
-from .bake import bake
 from .gltf import load_character
 from .ai import LAYERS, AIConfig, CrowdAI, PlayerScript, motion_for, upper_body_mask
 from .processor import AnimationProcessor, palette_joint_positions
 from .render import DEFAULT_LOD_DISTANCES, Camera, CrowdRenderer
-from .roles import clips_used, match_roles
+from .roles import bake_roles, match_roles
 from .timing import PassTimer
 
 MAX_AGENTS = 1_000_000
@@ -52,9 +51,8 @@ class CrowdPipeline:
         self.config = config
         self.character = load_character(config.model)
         self.roles, self.role_notes = match_roles(self.character.clips, config.roles)
-        used = clips_used(self.roles)
         # Leave out what the scene does not need: only the clips the roles play are baked.
-        self.bake = bake(self.character.skeleton, [self.character.clip(n) for n in used], config.bake_fps, config.precision)
+        self.bake = bake_roles(self.character, self.roles, config.bake_fps, config.precision)
         masks = upper_body_mask(self.character.skeleton)
         self.processor = AnimationProcessor(ctx, self.bake, LAYERS, masks=masks, path=config.processor_path)
         self.renderer = CrowdRenderer(ctx, self.character, self.bake.joint_count, self.processor.agents_per_row,

@@ -99,3 +99,10 @@ def clips_used(roles: dict[str, str | None]) -> list[str]:
         if name and name not in out:
             out.append(name)
     return out
+
+
+def bake_roles(character, roles: dict[str, str | None], fps: float = 15.0, precision: str = "f32"):
+    """The bake of a character's role clips and nothing else: a scene bakes only what it plays."""
+    from .bake import bake
+
+    return bake(character.skeleton, [character.clip(n) for n in clips_used(roles)], fps, precision)

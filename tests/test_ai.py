@@ -25,9 +25,8 @@ from crowd.ai import (
     PlayerScript,
     motion_for,
 )
-from crowd.bake import bake
 from crowd.processor import CLIP, MASK, PHASE, WEIGHT, validate_layers
-from crowd.roles import clips_used, match_roles
+from crowd.roles import bake_roles, match_roles
 
 STEP = 1.0 / 60.0
 
@@ -35,7 +34,7 @@ STEP = 1.0 / 60.0
 @pytest.fixture(scope="module")
 def motion(zombie):
     roles, _ = match_roles(zombie.clips)
-    baked = bake(zombie.skeleton, [zombie.clip(n) for n in clips_used(roles)])
+    baked = bake_roles(zombie, roles)
     return motion_for(zombie, baked, roles)
 
 

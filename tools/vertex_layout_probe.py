@@ -23,13 +23,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from crowd.bake import bake  # noqa: E402
 from crowd.gl import describe, headless_context, load_shader  # noqa: E402
 from crowd.gltf import load_character  # noqa: E402
 from crowd.gltf_write import atomic_write_bytes  # noqa: E402
 from crowd.processor import CLIP, PHASE, WEIGHT, AnimationProcessor, empty_layers  # noqa: E402
 from crowd.render import INSTANCE_FORMAT, VERTEX_DTYPE, VERTEX_FORMAT, Camera, CrowdRenderer, Instances, _read_by, gl_bytes  # noqa: E402
-from crowd.roles import clips_used, match_roles  # noqa: E402
+from crowd.roles import bake_roles, match_roles  # noqa: E402
 from crowd.smoke import offscreen_framebuffer  # noqa: E402
 
 SEPARATE_VERTEX = np.dtype([("position", "<f4", 3), ("normal", "<f2", 4), ("joints", "u1", 4), ("weights", "<f2", 4), ("color", "u1", 4)])
@@ -76,7 +75,7 @@ def main(argv=None) -> int:
     info = describe(ctx)
     character = load_character(None)
     roles, _ = match_roles(character.clips)
-    baked = bake(character.skeleton, [character.clip(n) for n in clips_used(roles)], 15.0, "f32")
+    baked = bake_roles(character, roles)
     proc = AnimationProcessor(ctx, baked, 4)
     n = args.agents
     rng = np.random.default_rng(1)
