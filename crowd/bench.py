@@ -27,6 +27,31 @@ def _device_cpu() -> str:
     return f"{platform.processor() or platform.machine()} ({platform.system()}), Python {platform.python_version()}, numpy {numpy.__version__}"
 
 
+def grid_crowd(n: int, aspect: float):
+    """The benchmarks' crowd: n agents 1.5 m apart on a square grid, and a camera that sees all of them.
+    Returns (float64 positions (n, 3), Camera)."""
+    from .render import Camera
+
+    side = math.ceil(math.sqrt(n))
+    pos = np.zeros((n, 3))
+    pos[:, 0] = (np.arange(n) % side - side / 2) * 1.5
+    pos[:, 2] = (np.arange(n) // side - side / 2) * 1.5
+    extent = side * 1.5 / 2
+    camera = Camera(eye=np.array([0.0, extent * 1.6 + 3, extent * 1.6 + 5]), target=np.zeros(3), aspect=aspect, far=extent * 8 + 50)
+    return pos, camera
+
+
+def random_layers(n: int, layer_count: int, clip_count: int, rng: np.random.Generator) -> np.ndarray:
+    """Processor input with random clips, phases and weights (0.1 to 1) on every layer."""
+    from .processor import CLIP, PHASE, WEIGHT, empty_layers
+
+    layers = empty_layers(n, layer_count)
+    layers[..., CLIP] = rng.integers(0, clip_count, (n, layer_count))
+    layers[..., PHASE] = rng.uniform(0, 1, (n, layer_count))
+    layers[..., WEIGHT] = rng.uniform(0.1, 1.0, (n, layer_count))
+    return layers
+
+
 def bench_bake(args) -> int:
     from .bake import bake, joint_position_error
     from .gltf import load_character
@@ -71,8 +96,8 @@ def bench_scale(args) -> int:
     from .gl import describe, headless_context
     from .gltf import load_character
     from .pipeline import smoke_size
-    from .processor import CLIP, PHASE, WEIGHT, AnimationProcessor, empty_layers
-    from .render import Camera, CrowdRenderer, Instances
+    from .processor import AnimationProcessor
+    from .render import CrowdRenderer, Instances
     from .roles import bake_roles, match_roles
     from .smoke import offscreen_framebuffer
 
@@ -100,19 +125,11 @@ def bench_scale(args) -> int:
         return query.elapsed / 1e6
 
     for n in counts:
-        side = math.ceil(math.sqrt(n))
-        pos = np.zeros((n, 3))
-        pos[:, 0] = (np.arange(n) % side - side / 2) * 1.5
-        pos[:, 2] = (np.arange(n) // side - side / 2) * 1.5
+        pos, camera = grid_crowd(n, size[0] / size[1])
         heads = renderer.groups.get("head", [])
         inst = Instances(pos, rng.uniform(-3, 3, n).astype(np.float32), np.ones(n, np.float32), np.full((n, 4), 200, np.uint8),
                          {"head": rng.integers(0, len(heads), n)} if heads else {})
-        extent = side * 1.5 / 2
-        camera = Camera(eye=np.array([0.0, extent * 1.6 + 3, extent * 1.6 + 5]), target=np.zeros(3), aspect=size[0] / size[1], far=extent * 8 + 50)
-        layers = empty_layers(n, args.layers)
-        layers[..., CLIP] = rng.integers(0, len(baked.clips), (n, args.layers))
-        layers[..., PHASE] = rng.uniform(0, 1, (n, args.layers))
-        layers[..., WEIGHT] = rng.uniform(0.1, 1.0, (n, args.layers))
+        layers = random_layers(n, args.layers, len(baked.clips), rng)
         for proc in processors.values():
             proc.resize(n)
             proc.upload(layers)

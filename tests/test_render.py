@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import moderngl
 import numpy as np
-import pytest
 
 from crowd.bake import bake
 from crowd.gl import load_shader

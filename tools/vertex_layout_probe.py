@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -26,8 +25,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from crowd.gl import describe, headless_context, load_shader  # noqa: E402
 from crowd.gltf import load_character  # noqa: E402
 from crowd.gltf_write import atomic_write_bytes  # noqa: E402
-from crowd.processor import CLIP, PHASE, WEIGHT, AnimationProcessor, empty_layers  # noqa: E402
-from crowd.render import INSTANCE_FORMAT, VERTEX_DTYPE, VERTEX_FORMAT, Camera, CrowdRenderer, Instances, _read_by, gl_bytes  # noqa: E402
+from crowd.bench import grid_crowd, random_layers  # noqa: E402
+from crowd.processor import AnimationProcessor  # noqa: E402
+from crowd.render import INSTANCE_FORMAT, VERTEX_DTYPE, VERTEX_FORMAT, CrowdRenderer, Instances, _read_by, gl_bytes  # noqa: E402
 from crowd.roles import bake_roles, match_roles  # noqa: E402
 from crowd.smoke import offscreen_framebuffer  # noqa: E402
 
@@ -79,10 +79,7 @@ def main(argv=None) -> int:
     proc = AnimationProcessor(ctx, baked, 4)
     n = args.agents
     rng = np.random.default_rng(1)
-    layers = empty_layers(n, 4)
-    layers[..., CLIP] = rng.integers(0, len(baked.clips), (n, 4))
-    layers[..., PHASE] = rng.uniform(0, 1, (n, 4))
-    layers[..., WEIGHT] = rng.uniform(0.1, 1.0, (n, 4))
+    layers = random_layers(n, 4, len(baked.clips), rng)
     proc.resize(n)
     proc.process(layers)
     half_planes = []
@@ -93,14 +90,9 @@ def main(argv=None) -> int:
         half_planes.append(tex)
 
     renderer = CrowdRenderer(ctx, character, baked.joint_count, proc.agents_per_row, lod_distances=(1e9, 1e9), shadows=False, culling=False)
-    side = math.ceil(math.sqrt(n))
-    pos = np.zeros((n, 3))
-    pos[:, 0] = (np.arange(n) % side - side / 2) * 1.5
-    pos[:, 2] = (np.arange(n) // side - side / 2) * 1.5
+    pos, camera = grid_crowd(n, size[0] / size[1])
     yaw = rng.uniform(-3, 3, n).astype(np.float32)
     instances = Instances(pos, yaw, np.ones(n, np.float32), np.full((n, 4), 200, np.uint8), {"head": np.zeros(n, int)})
-    extent = side * 1.5 / 2
-    camera = Camera(eye=np.array([0.0, extent * 1.6 + 3, extent * 1.6 + 5]), target=np.zeros(3), aspect=size[0] / size[1], far=extent * 8 + 50)
     view_proj = renderer.prepare(camera, instances)
     draws = [d for d in renderer.draws if d.count]
     meshes = {(m.piece, m.lod): m for m in character.meshes}
