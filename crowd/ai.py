@@ -19,8 +19,9 @@ through the skeleton's joint mask; hit and death play on the whole body.
 Stability: dt is clamped to ``max_dt`` and stepped in equal substeps of at most ``substep``.
 Separation is a position correction, not a force: each substep removes at most the fraction
 min(stiffness x h, 1) of each overlap and moves an agent at most half the separation radius, so a
-stiffness x dt far above 1 stays bounded. Neighbours come from a uniform grid over the world (a
-counting sort of cell ids), never from all pairs. Positions are float64; the renderer subtracts the
+stiffness x dt far above 1 stays bounded. Neighbours come from a uniform grid over the world (agents
+sorted by cell), never from all pairs, and the pair list is reused across substeps until an agent has
+moved far enough to invalidate it. Positions are float64; the renderer subtracts the
 camera before anything becomes float32.
 """
 
@@ -214,6 +215,7 @@ class CrowdAI:
         self.time = 0.0
         self.player = origin.copy()
         self.player_hits_taken = 0
+        self.pair_builds = 0  # how often the separation's neighbour list was rebuilt (benchmarks report it)
         # Action lengths by action code, for one gather per step; NO_ACTION never ends by time.
         self._action_length = np.array([np.inf] + [motion.duration[r] if motion.clip[r] >= 0 else np.inf for r in ACTION_ROLES[1:]])
         self._action_clip = np.array([0] + [max(motion.clip[r], 0) for r in ACTION_ROLES[1:]], np.float32)
@@ -234,6 +236,7 @@ class CrowdAI:
         for name, dtype in self._OTHER.items():
             setattr(self, name, np.zeros(n, dtype))
         self.tint = np.zeros((n, 4), np.uint8)
+        self._pairs = None  # the separation's neighbour list (see _neighbour_pairs)
 
     def _names(self):
         return (*self._FLOAT, *self._OTHER, "tint")
@@ -268,6 +271,7 @@ class CrowdAI:
         k = len(idx)
         if not k:
             return
+        self._pairs = None  # an agent that comes back to life is in no pair of the neighbour list
         cfg, rng, h = self.config, self.rng, self.half_extent
         if anywhere:
             pos = rng.uniform(-h, h, (k, 2))
@@ -481,20 +485,71 @@ class CrowdAI:
             self.pause[idx] = np.where(rng.uniform(0, 1, idx.size) < 0.5, rng.uniform(1.0, 4.0, idx.size), 0.0)
 
     def _separate(self, h: float) -> None:
-        """Push overlapping living agents apart, finding neighbours through a uniform grid.
-
-        Cells are twice the separation radius wide, numbered row by row, and agents are sorted by cell.
-        Each pair is visited once, from its earlier agent: the rest of the agent's own cell and the cell
-        to its right form one contiguous run of sorted agents, the three cells of the next row another.
-        Both agents of a close pair move apart by half the overlap (times min(stiffness x h, 1))."""
+        """Push overlapping living agents apart: both agents of a pair closer than the separation radius r
+        move apart by half the overlap, times min(stiffness x h, 1), and no agent moves more than r / 2."""
         cfg = self.config
+        r = cfg.separation_radius
+        i, j = self._neighbour_pairs()
+        if not i.size:
+            return
+        state = self.state
+        dx, dz = self.x[i] - self.x[j], self.z[i] - self.z[j]
+        dist2 = dx * dx + dz * dz
+        # Agents that died since the list was built are skipped here rather than by a rebuild.
+        close = np.flatnonzero((dist2 < r * r) & (state[i] < DYING) & (state[j] < DYING))
+        if not close.size:
+            return
+        i, j, dx, dz = i[close], j[close], dx[close], dz[close]
+        dist = np.sqrt(dist2[close])
+        inv = 1.0 / np.maximum(dist, 1e-12)
+        ux, uz = dx * inv, dz * inv
+        # Coincident agents: a direction made from the pair's agent numbers (deterministic).
+        same = np.flatnonzero(dist < 1e-9)
+        if same.size:
+            angle = 2 * math.pi * np.mod(i[same] * 0.6180339887 + j[same] * 0.7548776662, 1.0)
+            ux[same], uz[same] = np.cos(angle), np.sin(angle)
+        amount = 0.5 * (r - dist)  # each of the two takes half the overlap
+        fx, fz = ux * amount, uz * amount
+        push_x = np.bincount(i, weights=fx, minlength=self.n) - np.bincount(j, weights=fx, minlength=self.n)
+        push_z = np.bincount(i, weights=fz, minlength=self.n) - np.bincount(j, weights=fz, minlength=self.n)
+        # Stiffness x h above 1 removes the whole overlap, never more; no agent moves more than r / 2.
+        gain = min(cfg.separation_stiffness * h, 1.0)
+        norm = np.sqrt(push_x * push_x + push_z * push_z) * gain
+        gain = gain * np.minimum(1.0, 0.5 * r / np.maximum(norm, 1e-12))
+        self.x += push_x * gain
+        self.z += push_z * gain
+
+    def _neighbour_pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """Candidate pairs (i, j) of agents: every pair of living agents closer than the separation radius
+        r, and others up to 2r apart. The list is kept across substeps (a Verlet list, as in molecular
+        dynamics) until some agent has moved r / 2 from where it stood when the list was built: until
+        then no pair can have closed from over 2r to under r, so the list still holds every close pair.
+        Building it costs about seven substeps' use of it; agents move 1 to 7 cm per substep."""
+        r = self.config.separation_radius
+        if self._pairs is not None:
+            mx, mz = self.x - self._pairs_x, self.z - self._pairs_z
+            if float(np.max(mx * mx + mz * mz)) <= 0.25 * r * r:
+                return self._pairs
+        i, j = self._grid_pairs(2.0 * r)
+        dx, dz = self.x[i] - self.x[j], self.z[i] - self.z[j]
+        near = np.flatnonzero(dx * dx + dz * dz < 4.0 * r * r)
+        self._pairs = (i[near], j[near])
+        self._pairs_x, self._pairs_z = self.x.copy(), self.z.copy()
+        self.pair_builds += 1
+        return self._pairs
+
+    def _grid_pairs(self, size: float) -> tuple[np.ndarray, np.ndarray]:
+        """Every pair of living agents in the same or adjacent cells of a uniform grid of `size`-wide
+        cells (so every pair closer than `size`), each pair once; at most SEPARATION_CELL_CAP per run.
+
+        Cells are numbered row by row and agents sorted by cell. Each pair is visited from its earlier
+        agent in that order: the rest of the agent's own cell and the cell to its right form one
+        contiguous run of sorted agents, the three cells of the next row another."""
         live = np.flatnonzero(self.state < DYING)
         if live.size < 2:
-            return
+            return np.zeros(0, np.intp), np.zeros(0, np.intp)
         everyone = live.size == self.n  # the usual case: plain arrays instead of gathers
         x, z = (self.x, self.z) if everyone else (self.x[live], self.z[live])
-        r = cfg.separation_radius
-        size = 2.0 * r  # fewer, fuller cells: the per-cell table and the sort cost more here than extra pairs
         side = int(math.ceil(2.0 * self.half_extent / size)) + 3  # spare cells around: no edge checks
         gx = np.minimum(np.maximum((x - (self.origin[0] - self.half_extent)) * (1.0 / size) + 1.0, 1.0), side - 2.0)
         gz = np.minimum(np.maximum((z - (self.origin[1] - self.half_extent)) * (1.0 / size) + 1.0, 1.0), side - 2.0)
@@ -511,34 +566,8 @@ class CrowdAI:
         k = k[some]
         i = np.repeat(some % live.size, k)  # positions in the sorted order, i < j
         j = np.repeat(start[some] - np.cumsum(k) + k, k) + np.arange(int(k.sum()))
-        if not i.size:
-            return
-        moved = order if everyone else live[order]
-        px, pz = self.x[moved], self.z[moved]
-        dx, dz = px[i] - px[j], pz[i] - pz[j]
-        dist2 = dx * dx + dz * dz
-        close = np.flatnonzero(dist2 < r * r)
-        if not close.size:
-            return
-        i, j, dx, dz = i[close], j[close], dx[close], dz[close]
-        dist = np.sqrt(dist2[close])
-        inv = 1.0 / np.maximum(dist, 1e-12)
-        ux, uz = dx * inv, dz * inv
-        # Coincident agents: a direction made from the pair's agent numbers (deterministic).
-        same = np.flatnonzero(dist < 1e-9)
-        if same.size:
-            angle = 2 * math.pi * np.mod(moved[i[same]] * 0.6180339887 + moved[j[same]] * 0.7548776662, 1.0)
-            ux[same], uz[same] = np.cos(angle), np.sin(angle)
-        amount = 0.5 * (r - dist)  # each of the two takes half the overlap
-        fx, fz = ux * amount, uz * amount
-        push_x = np.bincount(i, weights=fx, minlength=live.size) - np.bincount(j, weights=fx, minlength=live.size)
-        push_z = np.bincount(i, weights=fz, minlength=live.size) - np.bincount(j, weights=fz, minlength=live.size)
-        # Stiffness x h above 1 removes the whole overlap, never more; no agent moves more than r / 2.
-        gain = min(cfg.separation_stiffness * h, 1.0)
-        norm = np.sqrt(push_x * push_x + push_z * push_z) * gain
-        gain = gain * np.minimum(1.0, 0.5 * r / np.maximum(norm, 1e-12))
-        self.x[moved] += push_x * gain
-        self.z[moved] += push_z * gain
+        agent = order if everyone else live[order]
+        return agent[i], agent[j]
 
     # -- outputs
 

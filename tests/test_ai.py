@@ -122,6 +122,29 @@ def test_thousand_agents_spawned_at_one_point_spread_out(motion):
     assert ai.pos.std(axis=0).mean() > 4.0
 
 
+def test_reused_neighbour_list_holds_every_close_pair(motion):
+    """The separation keeps its pair list across substeps; whenever it is used, it must contain every
+    pair of living agents closer than the separation radius, as an all-pairs search finds them."""
+    ai = CrowdAI(500, 11, motion, AIConfig(half_extent=14.0, health=1))
+    script = PlayerScript(ai.half_extent * 0.5)
+    r = ai.config.separation_radius
+    reused = 0
+    for step in range(240):
+        script.update(ai)
+        ai.step(STEP)
+        builds = ai.pair_builds
+        i, j = ai._neighbour_pairs()
+        reused += ai.pair_builds == builds
+        listed = {(min(a, b), max(a, b)) for a, b in zip(i.tolist(), j.tolist())}
+        pos, alive = ai.pos, np.flatnonzero(ai.alive())
+        d = np.linalg.norm(pos[alive, None] - pos[None, alive], axis=2)
+        a, b = np.nonzero(np.triu(d < r, k=1))
+        close = set(zip(alive[a].tolist(), alive[b].tolist()))
+        assert close <= listed, f"step {step}: {len(close - listed)} close pairs missing from the list"
+    assert 120 < reused < 240  # the list was both reused and rebuilt
+    assert ai.counts()["dying"] + ai.counts()["dead"] > 0  # with agents dying along the way
+
+
 def test_far_from_origin_the_crowd_behaves_the_same(motion):
     """Float64 positions: a world centred 1e5 m out gives the same relative motion (the renderer's
     camera-relative drawing is tested in test_smoke)."""
