@@ -215,6 +215,7 @@ class CrowdAI:
         self.time = 0.0
         self.player = origin.copy()
         self.player_hits_taken = 0
+        self.steps = 0  # step() calls so far; an agent's spawned_step is the step in which it (re)appeared
         self.pair_builds = 0  # how often the separation's neighbour list was rebuilt (benchmarks report it)
         # Action lengths by action code, for one gather per step; NO_ACTION never ends by time.
         self._action_length = np.array([np.inf] + [motion.duration[r] if motion.clip[r] >= 0 else np.inf for r in ACTION_ROLES[1:]])
@@ -228,7 +229,8 @@ class CrowdAI:
     _FLOAT = ("x", "z", "vx", "vz", "hx", "hz", "state_time", "aware", "tx", "tz", "pause", "phase", "action_time", "cooldown",
               "speed_factor", "reaction", "walk_top", "chase_top")
     _OTHER = {"state": np.int8, "action": np.int8, "health": np.int16, "runner": bool, "scale": np.float32, "head": np.int32,
-              "weapon": np.int16}
+              "weapon": np.int16,
+              "spawned_step": np.int64}
 
     def _allocate(self, n: int) -> None:
         for name in self._FLOAT:
@@ -272,6 +274,7 @@ class CrowdAI:
         if not k:
             return
         self._pairs = None  # an agent that comes back to life is in no pair of the neighbour list
+        self.spawned_step[idx] = self.steps
         cfg, rng, h = self.config, self.rng, self.half_extent
         if anywhere:
             pos = rng.uniform(-h, h, (k, 2))
@@ -355,12 +358,10 @@ class CrowdAI:
         if isinstance(dt, bool) or not isinstance(dt, (int, float, np.floating)) or not math.isfinite(dt) or dt < 0:
             raise AIError(f"dt must be a finite number >= 0, got {dt!r}")
         dt = min(float(dt), self.config.max_dt)
-        if dt == 0.0:
-            return 0
-        count = max(1, math.ceil(dt / self.config.substep - 1e-9))
-        h = dt / count
+        count = max(1, math.ceil(dt / self.config.substep - 1e-9)) if dt > 0.0 else 0
         for _ in range(count):
-            self._substep(h)
+            self._substep(dt / count)
+        self.steps += 1
         return count
 
     def _substep(self, h: float) -> None:

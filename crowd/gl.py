@@ -92,3 +92,72 @@ def _read_shader(name: str) -> str:
         return path.read_text()
     except OSError as exc:
         raise GLUnavailable(f"shader {name} not found in {SHADER_DIR}") from exc
+
+
+class Fence:
+    """A GL sync object (glFenceSync, core since GL 3.2) that says whether the GPU has finished the
+    commands submitted before it. moderngl has no fences, so the three entry points are loaded through
+    ctypes from the current context: eglGetProcAddress for EGL contexts (headless), glXGetProcAddressARB
+    for GLX windows. They touch no GL state moderngl caches."""
+
+    _SYNC_GPU_COMMANDS_COMPLETE = 0x9117
+    _SYNC_FLUSH_COMMANDS_BIT = 0x1
+    _SIGNALED = (0x911A, 0x911C)  # GL_ALREADY_SIGNALED, GL_CONDITION_SATISFIED
+    _WAIT_FAILED = 0x911D
+    _api = None
+
+    def __init__(self):
+        api = Fence._load()
+        self._sync = api["glFenceSync"](self._SYNC_GPU_COMMANDS_COMPLETE, 0)
+        if not self._sync:
+            raise GLUnavailable("glFenceSync returned no sync object")
+
+    @classmethod
+    def _load(cls) -> dict:
+        if cls._api is None:
+            import ctypes
+
+            loader = None
+            try:
+                egl = ctypes.CDLL("libEGL.so.1")
+                egl.eglGetCurrentContext.restype = ctypes.c_void_p
+                if egl.eglGetCurrentContext():
+                    egl.eglGetProcAddress.restype = ctypes.c_void_p
+                    egl.eglGetProcAddress.argtypes = [ctypes.c_char_p]
+                    loader = egl.eglGetProcAddress
+            except OSError:
+                pass
+            if loader is None:
+                try:
+                    glx = ctypes.CDLL("libGL.so.1")
+                    glx.glXGetProcAddressARB.restype = ctypes.c_void_p
+                    glx.glXGetProcAddressARB.argtypes = [ctypes.c_char_p]
+                    loader = glx.glXGetProcAddressARB
+                except (OSError, AttributeError) as exc:
+                    raise GLUnavailable(f"no way to load glFenceSync: {exc}") from exc
+            types = {"glFenceSync": ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_uint, ctypes.c_uint),
+                     "glClientWaitSync": ctypes.CFUNCTYPE(ctypes.c_uint, ctypes.c_void_p, ctypes.c_uint, ctypes.c_uint64),
+                     "glDeleteSync": ctypes.CFUNCTYPE(None, ctypes.c_void_p)}
+            api = {}
+            for name, proto in types.items():
+                address = loader(name.encode())
+                if not address:
+                    raise GLUnavailable(f"the GL context has no {name}")
+                api[name] = proto(address)
+            cls._api = api
+        return cls._api
+
+    def signaled(self) -> bool:
+        """True when the GPU has finished everything before the fence; never waits."""
+        return self._api["glClientWaitSync"](self._sync, 0, 0) in self._SIGNALED
+
+    def wait(self, timeout_s: float = 5.0) -> None:
+        """Block until the fence is signaled (flushing first, so it can be)."""
+        status = self._api["glClientWaitSync"](self._sync, self._SYNC_FLUSH_COMMANDS_BIT, int(timeout_s * 1e9))
+        if status not in self._SIGNALED:
+            raise GLUnavailable("a GL fence was not signaled in time" if status != self._WAIT_FAILED else "glClientWaitSync failed")
+
+    def release(self) -> None:
+        if self._sync:
+            self._api["glDeleteSync"](self._sync)
+            self._sync = None

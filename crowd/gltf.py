@@ -472,10 +472,7 @@ def _read_meshes(r: _Reader, nodes, skin_index: int, skin_to_new: np.ndarray, jc
             weights = weights / total
             idx = _indices(r, prim, v, label)
             nrm = _normals(r, prim, pos, idx, label)
-            colors = None
-            if _attr(r, prim, "COLOR_0") is not None:
-                c = r.accessor(_attr(r, prim, "COLOR_0"), f"{label} COLOR_0").astype(np.float64)
-                colors = np.concatenate([c, np.ones((v, 1))], axis=1) if c.shape[1] == 3 else c
+            colors = _colors(r, prim, v, label)
             base, has_texture = _base_color(r, prim)
             textured |= has_texture
             if not np.all(np.isfinite(pos)):
@@ -491,9 +488,19 @@ def _read_meshes(r: _Reader, nodes, skin_index: int, skin_to_new: np.ndarray, jc
     return meshes
 
 
+def _colors(r: _Reader, prim, v: int, label: str) -> np.ndarray | None:
+    """COLOR_0 as float64 RGBA (None when the primitive has none)."""
+    if _attr(r, prim, "COLOR_0") is None:
+        return None
+    c = r.accessor(_attr(r, prim, "COLOR_0"), f"{label} COLOR_0").astype(np.float64)
+    if c.shape != (v, 3) and c.shape != (v, 4):
+        r.fail(f"{label} COLOR_0 must hold one RGB or RGBA colour per vertex, got shape {c.shape}")
+    return np.concatenate([c, np.ones((v, 1))], axis=1) if c.shape[1] == 3 else c
+
+
 def _rigid_mesh(r: _Reader, mesh_index: int, warn: list[str]) -> RigidMesh | None:
     mesh = r._get(r.gltf.meshes, mesh_index, "mesh")
-    parts_p, parts_n, parts_i, base = [], [], [], (1.0, 1.0, 1.0, 1.0)
+    parts_p, parts_n, parts_i, parts_c, base = [], [], [], [], (1.0, 1.0, 1.0, 1.0)
     count = 0
     for prim in mesh.primitives or []:
         if (4 if prim.mode is None else prim.mode) != 4 or _attr(r, prim, "POSITION") is None:
@@ -503,6 +510,7 @@ def _rigid_mesh(r: _Reader, mesh_index: int, warn: list[str]) -> RigidMesh | Non
         idx = _indices(r, prim, pos.shape[0], label)
         nrm = _normals(r, prim, pos, idx, label)
         base, _ = _base_color(r, prim)
+        parts_c.append(_colors(r, prim, pos.shape[0], label))
         parts_p.append(pos)
         parts_n.append(nrm)
         parts_i.append(idx + count)
@@ -510,8 +518,11 @@ def _rigid_mesh(r: _Reader, mesh_index: int, warn: list[str]) -> RigidMesh | Non
     if not parts_p:
         warn.append(f"mesh {mesh.name!r} has no triangles; left out")
         return None
+    colors = None
+    if any(c is not None for c in parts_c):  # primitives without colours are white
+        colors = np.concatenate([np.ones((len(p), 4)) if c is None else c for p, c in zip(parts_p, parts_c)]).astype(np.float32)
     return RigidMesh(mesh.name or f"mesh{mesh_index}", np.concatenate(parts_p).astype(np.float32),
-                     np.concatenate(parts_n).astype(np.float32), np.concatenate(parts_i).astype(np.uint32), None, base)
+                     np.concatenate(parts_n).astype(np.float32), np.concatenate(parts_i).astype(np.uint32), colors, base)
 
 
 def _read_rigid(r: _Reader, nodes, parent, joint_set, new_index, factor: float, warn: list[str]):

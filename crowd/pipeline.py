@@ -1,11 +1,21 @@
-"""One frame of the crowd, stage after stage: ai → upload → process → cull/LOD → shadow → draw → ground.
+"""One frame of the crowd, stage after stage: ai → read back → upload → process → gather → cull/LOD →
+attach → shadow → draw → weapons → ground.
 
 ``CrowdPipeline`` owns one instance of each stage and nothing else; each stage owns its GL objects.
 The headless smoke mode, the window (issue 6) and the benchmarks drive this same class.
+
+Weapons (when the scene has armed agents): frame F gathers the sockets of its armed agents and the
+CPU reads those of frame F - N (N = ``readback_latency``, 1 to 3). Each body is drawn with the palette
+of frame F - N too (the processor keeps N + 1 palettes), so the weapon and the hand come from the same
+matrix: the pose shown lags the simulation by N frames, and nothing else does (positions and headings
+are this frame's). Agents that (re)spawned after frame F - N are drawn with this frame's palette and
+without a weapon until their own history reaches back that far; the first N frames show no weapons.
+Without armed agents there is no gather pass, no read-back buffer and a single palette.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -15,9 +25,11 @@ import numpy as np
 from .gltf import load_character
 from .ai import LAYERS, AIConfig, CrowdAI, PlayerScript, motion_for, upper_body_mask
 from .processor import AnimationProcessor, palette_joint_positions
+from .readback import RING, SocketReadback
 from .render import DEFAULT_LOD_DISTANCES, Camera, CrowdRenderer
 from .roles import bake_roles, match_roles
 from .timing import PassTimer
+from .weapons import AgentFrames, WeaponRenderer
 
 MAX_AGENTS = 1_000_000
 
@@ -41,6 +53,8 @@ class PipelineConfig:
     ai: AIConfig = field(default_factory=AIConfig)
     origin: tuple = (0.0, 0.0)  # world centre (x, z) in metres; float64 all the way to the camera subtraction
     scripted_player: bool = True  # headless: the player walks a circle and strikes; the window moves it instead
+    weapons: bool = True  # armed agents carry weapons (AIConfig.armed_share says how many)
+    readback_latency: int = 2  # frames between gathering a socket and the CPU reading it (1 to 3)
 
 
 class CrowdPipeline:
@@ -54,7 +68,14 @@ class CrowdPipeline:
         # Leave out what the scene does not need: only the clips the roles play are baked.
         self.bake = bake_roles(self.character, self.roles, config.bake_fps, config.precision)
         masks = upper_body_mask(self.character.skeleton)
-        self.processor = AnimationProcessor(ctx, self.bake, LAYERS, masks=masks, path=config.processor_path)
+        if isinstance(config.readback_latency, bool) or config.readback_latency not in range(1, RING + 1):
+            raise PipelineError(f"readback latency must be 1 to {RING} frames, got {config.readback_latency!r}")
+        self.latency = int(config.readback_latency)
+        # Leave out what the scene does not need: no weapons, no socket, or nobody armed → no read-back
+        # stage, no gather pass, no weapon meshes, and one palette instead of a ring.
+        armed = config.weapons and config.ai.armed_share > 0 and bool(self.character.props) and bool(self.character.sockets)
+        self.processor = AnimationProcessor(ctx, self.bake, LAYERS, masks=masks, path=config.processor_path,
+                                            history=self.latency + 1 if armed else 1)
         self.renderer = CrowdRenderer(ctx, self.character, self.bake.joint_count, self.processor.agents_per_row,
                                       lod_distances=config.lod_distances, shadows=config.shadows, culling=config.culling)
         self.motion = motion_for(self.character, self.bake, self.roles)
@@ -62,6 +83,15 @@ class CrowdPipeline:
         self.player_script = PlayerScript(self.ai.half_extent * 0.5) if config.scripted_player else None
         self._layers = np.empty((config.agents, LAYERS, 4), np.float32)
         self.processor.resize(config.agents)
+        self.readback = SocketReadback(ctx, self.bake.joint_count, self.processor.agents_per_row) if armed else None
+        self.weapons = WeaponRenderer(ctx, self.character, config.shadows) if armed else None
+        self._palette_frames: deque = deque(maxlen=self.processor.history)  # the frame of each kept palette, oldest first
+        self._born = np.zeros(config.agents, np.int64)  # frame in which each agent (re)spawned
+        self._read = None  # this frame's read-back (frame F - N), or None
+        self._row_offset = 0  # palette rows each agent was drawn from
+        self.readback_waits: list[float] = []
+        self.readback_stalls = 0
+        self._pose_lag: deque = deque(maxlen=RING + 1)  # simulated seconds of the last frames
         self.timer = PassTimer(ctx)
         self.frames = 0
         self.passes_run: list[str] = []
@@ -74,9 +104,23 @@ class CrowdPipeline:
     def set_agent_count(self, agents: int) -> None:
         if not isinstance(agents, (int, np.integer)) or not 0 <= agents <= MAX_AGENTS:
             raise PipelineError(f"agent count must be 0 to {MAX_AGENTS}, got {agents!r}")
+        old = self.ai.n
         self.ai.resize(int(agents))
         self.processor.resize(int(agents))
         self._layers = np.empty((int(agents), LAYERS, 4), np.float32)
+        born = np.full(int(agents), self.frames, np.int64)
+        born[: min(old, int(agents))] = self._born[: min(old, int(agents))]
+        self._born = born
+
+    def set_readback_latency(self, latency: int) -> None:
+        """1 to 3 frames. The palette ring is reallocated, so weapons are hidden for `latency` frames."""
+        if isinstance(latency, bool) or latency not in range(1, RING + 1):
+            raise PipelineError(f"readback latency must be 1 to {RING} frames, got {latency!r}")
+        self.latency = int(latency)
+        if self.readback is not None:
+            self.processor.set_history(self.latency + 1)
+            self._palette_frames = deque(maxlen=self.processor.history)
+            self.readback.reset()
 
     def default_camera(self, aspect: float) -> Camera:
         """A three-quarter view that frames the whole crowd (or one agent up close)."""
@@ -92,37 +136,104 @@ class CrowdPipeline:
 
     def frame(self, framebuffer: moderngl.Framebuffer, dt: float) -> None:
         t = self.timer
+        f = self.frames
         with t.cpu("ai"):
             if self.player_script is not None:
                 self.player_script.update(self.ai)
+            steps_before = self.ai.steps
             self.ai.step(dt)
             instances = self.ai.instances()
             layers = self.ai.write_layers(self._layers)
         self._run("ai")
+        self._born[self.ai.spawned_step >= steps_before] = f  # respawned (or added) in this frame's step
+        self._pose_lag.append(float(min(dt, self.ai.config.max_dt)))
+        if self.readback is not None:
+            # Before this frame's gather: with N = 3 the slot read now is the one written next.
+            with t.cpu("readback"):
+                self._read = self.readback.fetch(f - self.latency)
+            self._run("readback")
+            if self._read is not None:
+                self.readback_waits.append(self._read.wait_ms)
+                self.readback_stalls += int(self._read.stalled)
         with t.cpu("upload"):
             self.processor.upload(layers)
         if self.agents:
             with t.gpu("process"):
                 self.processor.run()
             self._run("process")
+            if self.processor.runs == 1:  # a new palette: the frames kept before it are gone
+                self._palette_frames.clear()
+            self._palette_frames.append(f)
+        if self.readback is not None and self.agents:
+            armed = np.flatnonzero((self.ai.weapon >= 0) & self.ai.alive())
+            if self.readback.gather(f, self.processor, armed, np.full(armed.size, self.weapons.socket_joint), t):
+                self._run("gather")
+                self._run("transfer")
+        # Each body's palette: frame F - N where the weapon read-back is from that frame, else this one.
+        self._row_offset = 0
+        if self.agents:
+            self._row_offset = self.processor.row_offset(0)
+            if self._read is not None and self._read.frame in self._palette_frames:
+                age = len(self._palette_frames) - 1 - list(self._palette_frames).index(self._read.frame)
+                old = self.processor.row_offset(age)
+                self._row_offset = np.where(self._born <= self._read.frame, old, self._row_offset).astype(np.uint32)
         with t.cpu("cull_lod"):
-            view_proj = self.renderer.prepare(self.camera, instances)
+            view_proj = self.renderer.prepare(self.camera, instances, self._row_offset)
         self._run("cull_lod")
+        if self.weapons is not None:
+            with t.cpu("attach"):
+                read = self._synced_read()
+                self._frames = AgentFrames.of(instances.position, instances.yaw, instances.scale, self.camera.eye)
+                self.weapons.attach(read, self._frames, self.ai.weapon, self.renderer.visible)
+            self._run("attach")
         framebuffer.use()
         framebuffer.clear(*self.renderer.clear_color(), 1.0, depth=1.0)
         if self.renderer.shadows:
             with t.gpu("shadow"):
                 self.renderer.shadow_pass(self.camera, self.processor)
+                if self.weapons is not None and self.weapons.last["weapons"]:
+                    self.weapons.depth_pass(self.renderer.light)
             self._run("shadow")
         if self.renderer.last["instances"]:
             with t.gpu("draw"):
                 self.renderer.color_pass(framebuffer, view_proj, self.processor)
             self._run("draw")
+        if self.weapons is not None and self.weapons.last["weapons"]:
+            with t.gpu("weapons"):
+                self.weapons.color_pass(framebuffer, view_proj, self.renderer)
+            self._run("weapons")
         with t.gpu("ground"):
             self.renderer.ground_pass(framebuffer, self.camera, view_proj)
         self._run("ground")
         t.end_frame()
         self.frames += 1
+
+    def _synced_read(self):
+        """This frame's read-back, limited to agents whose body is drawn with the palette of its frame
+        (those that existed then); None when that palette is gone."""
+        read = self._read
+        if read is None or read.frame not in self._palette_frames:
+            return None
+        keep = read.agents < self.agents
+        keep[keep] = self._born[read.agents[keep]] <= read.frame
+        return type(read)(read.frame, read.agents[keep], read.joints[keep], read.rows[keep], read.wait_ms, read.copy_ms, read.stalled)
+
+    def weapon_error_mm(self, body: str = "drawn") -> float | None:
+        """Largest distance (mm) between a drawn weapon's grip point and its agent's socket point on the
+        body, both as the GPU got them (synchronous palette read: tests, stats and benchmarks only).
+        body="latest" measures against the newest palette instead: the error of drawing the body
+        unsynchronised with the read-back. None when no weapon was drawn."""
+        if self.weapons is None or not self.weapons.last["weapons"]:
+            return None
+        agents, weapon, _ = self.weapons.drawn
+        if body == "drawn":
+            offsets = np.broadcast_to(np.asarray(self._row_offset, np.int64), (self.agents,))[agents]
+        else:
+            offsets = np.full(len(agents), self.processor.row_offset(0), np.int64)
+        rows = self.processor.read_rows(agents, self.weapons.socket_joint, offsets).astype(np.float64)
+        socket_model = np.einsum("kij,j->ki", rows, self.weapons.socket_bind[:, 3])
+        hand = self._frames.points(agents, socket_model)
+        return float(np.max(np.linalg.norm(hand - self.weapons.grip_points(), axis=1)) * 1e3)
 
     def project(self, world: np.ndarray, size: tuple[int, int]) -> np.ndarray:
         """Pixel (x, y from the top-left) of world points (P, 3) in this frame's camera."""
@@ -144,6 +255,10 @@ class CrowdPipeline:
     def gpu_bytes(self) -> dict[str, int]:
         out = dict(self.processor.gpu_bytes())
         out.update(self.renderer.gpu_bytes())
+        if self.readback is not None:
+            out["readback"] = self.readback.gpu_bytes()
+        if self.weapons is not None:
+            out["weapons"] = self.weapons.gpu_bytes()
         return out
 
     def stats(self) -> dict:
@@ -161,10 +276,31 @@ class CrowdPipeline:
             "passes_run": list(self.passes_run),
             "gpu_bytes": self.gpu_bytes(),
             "last_frame": dict(self.renderer.last),
+            "weapons": self.weapon_stats(),
+            "weapon_error_mm": None if self.weapons is None else _round(self.weapon_error_mm()),
+            "readback_wait_ms": self.readback_wait(),
         }
+
+    def readback_wait(self) -> dict | None:
+        if self.readback is None:
+            return None
+        waits = np.asarray(self.readback_waits or [0.0])
+        return {"max": round(float(waits.max()), 4), "median": round(float(np.median(waits)), 4)}
+
+    def weapon_stats(self) -> dict:
+        if self.weapons is None:
+            return {"enabled": False}
+        return {"enabled": True, "latency_frames": self.latency,
+                "pose_lag_ms": round(sum(list(self._pose_lag)[-self.latency:]) * 1e3, 3),  # simulated time the pose trails by
+                "armed": int(np.count_nonzero((self.ai.weapon >= 0) & self.ai.alive())), "drawn": self.weapons.last["weapons"],
+                "gathered": self.readback.last_count, "stalls": self.readback_stalls, "reads": len(self.readback_waits)}
 
     def release(self) -> None:
         self.timer.release()
+        if self.weapons is not None:
+            self.weapons.release()
+        if self.readback is not None:
+            self.readback.release()
         self.renderer.release()
         self.processor.release()
 
@@ -178,6 +314,10 @@ def smoke_size(text: str) -> tuple[int, int]:
     if not sep or not (16 <= size[0] <= 8192 and 16 <= size[1] <= 8192):
         raise PipelineError(f"size must be WxH with each side 16 to 8192, got {text!r}")
     return size
+
+
+def _round(value, digits: int = 5):
+    return None if value is None else round(float(value), digits)
 
 
 def percentiles(values) -> dict:

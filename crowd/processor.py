@@ -20,6 +20,11 @@ output: the palette, three RGBA32F textures ("planes") holding rows 0, 1 and 2 o
   same pixel of several attachments, so the three texels of a joint sit at one coordinate of three
   textures. The compute path writes the same planes, so the renderers do not care which path ran.
 
+history: with ``history`` = H > 1 the planes hold H palettes stacked vertically (a ring): each run
+  writes the next slot, and the palettes of the H - 1 runs before stay readable. The weapons' readback
+  uses it to draw each body with the palette of the frame whose sockets the CPU has read
+  (``row_offset(age)`` is where the palette of `age` runs ago starts). H = 1 (no weapons) keeps one.
+
 Paths: "compute" (GL 4.3, one dispatch) and "fragment" (GL 3.3, one draw); "auto" takes compute where
 the context has GL 4.3. Both run the same GLSL (shaders/processor_common.glsl).
 """
@@ -45,10 +50,18 @@ PATHS = ("auto", "compute", "fragment")
 # Agents side by side in one palette texture row: keeps textures under 4096 texels wide, a size every
 # GL 3.3+ driver we target accepts (GL_MAX_TEXTURE_SIZE is 16384 on llvmpipe, 32768 on NVIDIA).
 MAX_TEXTURE_WIDTH = 4096
+MAX_TEXTURE_HEIGHT = 16384  # llvmpipe's GL_MAX_TEXTURE_SIZE, the smallest of the drivers we target
+MAX_HISTORY = 4  # palettes kept: the latest and up to 3 frames back (the weapons' readback latency)
 
 
 class ProcessorError(ValueError):
     """Bad processor input; the message is one line."""
+
+
+def _check_history(history) -> int:
+    if isinstance(history, bool) or not isinstance(history, (int, np.integer)) or not 1 <= history <= MAX_HISTORY:
+        raise ProcessorError(f"palette history must be a whole number from 1 to {MAX_HISTORY}, got {history!r}")
+    return int(history)
 
 
 def empty_layers(agents: int, layer_count: int = MAX_LAYERS) -> np.ndarray:
@@ -169,7 +182,8 @@ def palette_joint_positions(palette_rows: np.ndarray, inverse_bind: np.ndarray) 
 class AnimationProcessor:
     """Owns the bake's GPU textures, the layers texture and the palette planes, and releases them."""
 
-    def __init__(self, ctx: moderngl.Context, bake: AnimationBake, layer_count: int = MAX_LAYERS, masks=None, path: str = "auto"):
+    def __init__(self, ctx: moderngl.Context, bake: AnimationBake, layer_count: int = MAX_LAYERS, masks=None, path: str = "auto",
+                 history: int = 1):
         if path not in PATHS:
             raise ProcessorError(f"processor path must be one of {', '.join(PATHS)}, got {path!r}")
         if not 1 <= layer_count <= MAX_LAYERS:
@@ -192,6 +206,8 @@ class AnimationProcessor:
         self.agents_per_row = max(1, MAX_TEXTURE_WIDTH // max(jc, layer_count))
         self.agents_per_group = GROUP_SIZE // jc
         self.agents = 0
+        self.history = _check_history(history)
+        self.runs = 0  # runs since the palette was last (re)allocated: slots older than this hold nothing
         self._own: dict[str, list] = {"animation": [], "palette": [], "layers": [], "processor_quad": []}
 
         dtype = "f4" if bake.precision == "f32" else "f2"
@@ -217,6 +233,7 @@ class AnimationProcessor:
         self._set("u_agents_per_row", self.agents_per_row)
         self._set("u_agents_per_group", self.agents_per_group)
         self._set("u_rest_row", bake.rest_row)
+        self._set("u_row_offset", 0)
         self.layers_texture = None
         self.planes: tuple = ()
         self._framebuffer = None
@@ -245,7 +262,21 @@ class AnimationProcessor:
         return math.ceil(n / self.agents_per_row)
 
     def palette_size(self) -> tuple[int, int]:
+        """(width, height) of one palette; the planes are `history` palettes high."""
         return (self.agents_per_row * self.joint_count, self.palette_rows())
+
+    def row_offset(self, age: int = 0) -> int:
+        """First texture row of the palette written `age` runs ago (0: the latest run)."""
+        if not 0 <= age < min(self.history, max(self.runs, 1)):
+            raise ProcessorError(f"no palette from {age} runs ago (history {self.history}, {self.runs} runs since allocation)")
+        return ((self.runs - 1 - age) % self.history) * self.palette_rows()
+
+    def set_history(self, history: int) -> None:
+        """Keep `history` palettes (1 to MAX_HISTORY); the planes are reallocated, so older runs are lost."""
+        history = _check_history(history)
+        if history != self.history:
+            self.history = history
+            self._allocate(self.agents)
 
     def resize(self, agents: int) -> None:
         """Make room for exactly `agents` agents; everything for agents no longer there is released."""
@@ -253,17 +284,26 @@ class AnimationProcessor:
             raise ProcessorError(f"agent count must be a whole number >= 0, got {agents!r}")
         agents = int(agents)
         if self.palette_rows(agents) == self.palette_rows() and self.planes and agents:
-            self.agents = agents
+            self.agents = agents  # the same texture rows: the agents kept keep their palette history
             self._update_quad()
             return
+        self._allocate(agents)
+
+    def _allocate(self, agents: int) -> None:
+        rows = self.palette_rows(agents)
+        height = rows * self.history
+        limit = min(MAX_TEXTURE_HEIGHT, 1 << 16)  # instance records address palette rows in 16 bits
+        if height > limit:
+            raise ProcessorError(f"{agents} agents with a palette history of {self.history} need {height} texture rows, more than {limit}")
         self._release_group("palette")
         self._release_group("layers")
         self.planes, self.layers_texture, self._framebuffer = (), None, None
         self.agents = agents
+        self.runs = 0
         if agents == 0:
             return  # no agents: no palette, no layer texture, no pass
-        rows = self.palette_rows()
-        self.planes = tuple(self._texture("palette", (self.agents_per_row * self.joint_count, rows), 4, np.zeros((rows, self.agents_per_row * self.joint_count, 4), np.float32), "f4") for _ in range(3))
+        width = self.agents_per_row * self.joint_count
+        self.planes = tuple(self._texture("palette", (width, height), 4, np.zeros((height, width, 4), np.float32), "f4") for _ in range(3))
         self.layers_texture = self._texture("layers", (self.agents_per_row * self.layer_count, rows), 4, np.zeros((rows, self.agents_per_row * self.layer_count, 4), np.float32), "f4")
         if self.path == "fragment":
             fb = self.ctx.framebuffer(color_attachments=list(self.planes))
@@ -317,6 +357,8 @@ class AnimationProcessor:
         self.parents_texture.use(1)
         self.clips_texture.use(2)
         self.layers_texture.use(3)
+        offset = (self.runs % self.history) * self.palette_rows()  # the ring slot this run writes
+        self._set("u_row_offset", offset)
         if self.scale_texture is not None:
             self.scale_texture.use(4)
         if self.masks_texture is not None:
@@ -331,9 +373,11 @@ class AnimationProcessor:
             # Later passes read the palette through texelFetch (and the readback through pack buffers).
             self.ctx.memory_barrier(moderngl.TEXTURE_FETCH_BARRIER_BIT | moderngl.PIXEL_BUFFER_BARRIER_BIT | moderngl.TEXTURE_UPDATE_BARRIER_BIT)
         else:
+            self._framebuffer.viewport = (0, offset, *self.palette_size())  # this run's slot of the ring
             self._framebuffer.use()
             self.ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND | moderngl.CULL_FACE)
             self._quad_vao.render(moderngl.TRIANGLES, vertices=self._quad_vertices)
+        self.runs += 1
         return True
 
     def process(self, layers) -> bool:
@@ -341,17 +385,30 @@ class AnimationProcessor:
         return self.run()
 
     def bind_palette(self, first_unit: int) -> None:
+        """Bind the three planes (every palette of the history; instance records say which rows)."""
         for i, plane in enumerate(self.planes):
             plane.use(first_unit + i)
 
-    def read_palette(self) -> np.ndarray:
-        """(N, J, 3, 4) float32 skinning matrix rows, read back synchronously (tests and stats only)."""
+    def read_palette(self, age: int = 0) -> np.ndarray:
+        """(N, J, 3, 4) float32 skinning matrix rows of the palette written `age` runs ago, read back
+        synchronously (tests and stats only)."""
         n, jc, k = self.agents, self.joint_count, self.agents_per_row
         if n == 0:
             return np.zeros((0, jc, 3, 4), np.float32)
         rows = self.palette_rows()
-        planes = [np.frombuffer(p.read(), np.float32).reshape(rows * k, jc, 4)[:n] for p in self.planes]
+        first = self.row_offset(age) if self.runs else 0
+        planes = [np.frombuffer(p.read(), np.float32).reshape(-1, k * jc, 4)[first : first + rows].reshape(rows * k, jc, 4)[:n]
+                  for p in self.planes]
         return np.stack(planes, axis=2)
+
+    def read_rows(self, agents: np.ndarray, joint: int, row_offsets: np.ndarray) -> np.ndarray:
+        """(K, 3, 4) float32 skinning matrix rows of one joint of some agents, each from the palette
+        starting at its row offset (synchronous: tests and stats only)."""
+        agents = np.asarray(agents, np.int64)
+        y = agents // self.agents_per_row + np.asarray(row_offsets, np.int64)
+        x = (agents % self.agents_per_row) * self.joint_count + int(joint)
+        planes = [np.frombuffer(p.read(), np.float32).reshape(p.height, p.width, 4) for p in self.planes]
+        return np.stack([plane[y, x] for plane in planes], axis=1)
 
     def nan_rows(self) -> int:
         """Agents whose palette row holds NaN or Inf."""

@@ -279,8 +279,10 @@ class CrowdRenderer:
     def clear_color() -> tuple[float, float, float]:
         return tuple(c ** (1 / 2.2) for c in FOG_COLOR)
 
-    def prepare(self, camera: Camera, instances: Instances) -> np.ndarray:
-        """Cull, pick LODs, sort agents into draws and upload their records. Returns the view-projection."""
+    def prepare(self, camera: Camera, instances: Instances, row_offset=0) -> np.ndarray:
+        """Cull, pick LODs, sort agents into draws and upload their records. Returns the view-projection.
+        `row_offset` (an int, or one per agent) is the first palette row of the ring slot each agent's
+        palette is read from (see AnimationProcessor.row_offset)."""
         camera.validate()
         instances.validate(self.groups)
         view_proj = camera.view_proj()
@@ -301,13 +303,15 @@ class CrowdRenderer:
         lod = np.minimum(lod, self.lod_count - 1)
         # Records for the visible agents only, sorted once per variation group so that each draw's
         # instances are one contiguous slice (a boolean mask per draw cost 12 passes over the crowd).
+        self.visible = visible
         shown = np.flatnonzero(visible).astype(np.uint32)
         lod = lod[shown]
         records = np.empty(len(shown), INSTANCE_DTYPE)
         records["position_scale"][:, :3] = rel[shown]
         records["position_scale"][:, 3] = instances.scale[shown]
-        # Both fit 16 bits: x < 4096 (the palette width) and at most 1e6 agents take at most 62,500 rows.
-        records["packed"][:, 0] = (shown % self.agents_per_row) * self.joint_count | ((shown // self.agents_per_row) << 16)
+        # Both fit 16 bits: x < 4096 (the palette width), and the processor keeps its rows under 65,536.
+        row = shown // self.agents_per_row + (row_offset[shown] if np.ndim(row_offset) else np.uint32(row_offset))
+        records["packed"][:, 0] = (shown % self.agents_per_row) * self.joint_count | (row.astype(np.uint32) << 16)
         records["packed"][:, 1] = _rgba8(instances.tint[shown])
         yaw = instances.yaw[shown]
         records["packed"][:, 2] = _snorm(np.cos(yaw), 16) | (_snorm(np.sin(yaw), 16) << 16)
@@ -366,17 +370,17 @@ class CrowdRenderer:
         for draw in self.draws:
             if draw.count:
                 self._vao(draw, "depth", True).render(moderngl.TRIANGLES, instances=draw.count)
-        self._light = light
+        self.light = light
         return True
 
-    def _set_lighting(self, prog):
+    def set_lighting(self, prog):
         values = {"u_sun_dir": tuple(self.sun_dir), "u_sun_color": (1.7, 1.45, 1.1), "u_sky_color": (0.16, 0.2, 0.3),
                   "u_ground_color": (0.1, 0.08, 0.06), "u_fog_color": FOG_COLOR, "u_fog_density": 0.004}
         for name, value in values.items():
             if name in prog:
                 prog[name] = value
         if self.shadows and "u_light_view_proj" in prog:
-            prog["u_light_view_proj"].write(gl_bytes(self._light))
+            prog["u_light_view_proj"].write(gl_bytes(self.light))
             self.shadow_map.use(3)
 
     def color_pass(self, framebuffer, view_proj: np.ndarray, processor, skinned: bool = True) -> None:
@@ -387,7 +391,7 @@ class CrowdRenderer:
             processor.bind_palette(0)
         prog = self._program("color", skinned)
         prog["u_view_proj"].write(gl_bytes(view_proj))
-        self._set_lighting(prog)
+        self.set_lighting(prog)
         for draw in self.draws:
             if draw.count:
                 self._vao(draw, "color", skinned).render(moderngl.TRIANGLES, instances=draw.count)
@@ -399,7 +403,7 @@ class CrowdRenderer:
         prog["u_view_proj"].write(gl_bytes(view_proj))
         eye = np.asarray(camera.eye, np.float64)
         prog["u_eye"] = (float(np.mod(eye[0], 1000.0)), float(eye[1]), float(np.mod(eye[2], 1000.0)))
-        self._set_lighting(prog)
+        self.set_lighting(prog)
         self._ground_vao.render(moderngl.TRIANGLES)
 
 

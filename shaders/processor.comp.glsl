@@ -9,6 +9,7 @@ layout(rgba32f, binding = 0) uniform writeonly image2D u_palette0;
 layout(rgba32f, binding = 1) uniform writeonly image2D u_palette1;
 layout(rgba32f, binding = 2) uniform writeonly image2D u_palette2;
 uniform int u_agents_per_group;
+uniform int u_row_offset;  // first row of the palette ring slot this run writes
 
 shared vec4 s_local0[256];
 shared vec4 s_local1[256];
@@ -37,7 +38,7 @@ void main() {
         p = parent_of(p);
     }
     m = compose(m, stored_affine(joint, 0));  // row 0 holds the inverse bind pose
-    ivec2 texel = ivec2((agent % u_agents_per_row) * u_joints + joint, agent / u_agents_per_row);
+    ivec2 texel = ivec2((agent % u_agents_per_row) * u_joints + joint, agent / u_agents_per_row + u_row_offset);
     imageStore(u_palette0, texel, m.r0);
     imageStore(u_palette1, texel, m.r1);
     imageStore(u_palette2, texel, m.r2);

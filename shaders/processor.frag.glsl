@@ -8,10 +8,11 @@
 layout(location = 0) out vec4 o_row0;
 layout(location = 1) out vec4 o_row1;
 layout(location = 2) out vec4 o_row2;
+uniform int u_row_offset;  // first row of the palette ring slot this run writes (the viewport starts there)
 
 void main() {
     int x = int(gl_FragCoord.x);
-    int y = int(gl_FragCoord.y);
+    int y = int(gl_FragCoord.y) - u_row_offset;
     int slot = x / u_joints;
     int joint = x - slot * u_joints;
     int agent = y * u_agents_per_row + slot;

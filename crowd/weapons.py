@@ -1,0 +1,191 @@
+"""Attach stage: weapons placed on the CPU from read-back socket matrices, drawn one instanced draw per
+weapon mesh.
+
+Contract: ``attach(read, agents_frame, weapon_of_agent)``:
+- ``read`` (readback.SocketRead): socket skinning-matrix rows of some frame's armed agents;
+- ``agents_frame`` (AgentFrames): each agent's transform exactly as the crowd's vertex shader applies
+  it this frame: camera-relative position, uniform scale, and the heading's cos and sin as the snorm16
+  values the instance record carries, so weapon and hand go through the same numbers;
+- ``weapon_of_agent``: (N,) weapon index per agent (-1: unarmed).
+
+Per entry: weapon model = agent x (socket skinning matrix x socket bind) x inverse(grip), in float64,
+vectorised; uploaded as float32 camera-relative 3x4 rows. An entry whose agent is unarmed now, or
+out of range, is dropped without touching the others. ``drawn`` keeps what was uploaded (agents,
+weapon indices, rows) so that the error of the frame as drawn can be measured.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import moderngl
+import numpy as np
+
+from .gl import gpu_bytes, load_shader
+from .model import Character, RigidMesh
+from .render import _rgba8, _snorm, gl_bytes
+
+VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("packed", "<u4", 2)])
+INSTANCE_DTYPE = np.dtype([("rows", "<f4", (3, 4))])
+
+
+class WeaponError(ValueError):
+    """Bad weapon input; the message is one line."""
+
+
+@dataclass
+class AgentFrames:
+    """Agent transforms as the crowd's vertex shader applies them (see skin.vert.glsl)."""
+
+    position: np.ndarray  # float32 (N, 3), relative to the camera
+    scale: np.ndarray  # float32 (N,)
+    cos_sin: np.ndarray  # float64 (N, 2): the heading's snorm16 values decoded
+
+    @staticmethod
+    def of(positions: np.ndarray, yaw: np.ndarray, scale: np.ndarray, eye) -> "AgentFrames":
+        rel = (np.asarray(positions, np.float64) - np.asarray(eye, np.float64)[None]).astype(np.float32)
+        yaw = np.asarray(yaw, np.float32)
+        cs = np.stack([_snorm(np.cos(yaw), 16), _snorm(np.sin(yaw), 16)], axis=1).astype(np.uint16).view(np.int16)
+        return AgentFrames(rel, np.asarray(scale, np.float32), cs.astype(np.float64) / 32767.0)
+
+    def matrices(self, agents: np.ndarray) -> np.ndarray:
+        """(M, 4, 4) float64: x' = position + scale * heading(x), the heading turning +Z toward (sin, cos)."""
+        c, s = self.cos_sin[agents, 0], self.cos_sin[agents, 1]
+        k = self.scale[agents].astype(np.float64)
+        m = np.zeros((len(agents), 4, 4))
+        m[:, 0, 0], m[:, 0, 2] = k * c, k * s
+        m[:, 1, 1] = k
+        m[:, 2, 0], m[:, 2, 2] = -k * s, k * c
+        m[:, :3, 3] = self.position[agents]
+        m[:, 3, 3] = 1.0
+        return m
+
+    def points(self, agents: np.ndarray, model_points: np.ndarray) -> np.ndarray:
+        """(M, 3) float64: model-space points of those agents placed as the shader places them."""
+        m = self.matrices(agents)
+        return np.einsum("mij,mj->mi", m[:, :3, :3], model_points) + m[:, :3, 3]
+
+
+def pack_rigid(mesh: RigidMesh) -> np.ndarray:
+    v = np.zeros(len(mesh.positions), VERTEX_DTYPE)
+    v["position"] = mesh.positions
+    n = _snorm(np.asarray(mesh.normals, np.float64), 10)
+    v["packed"][:, 0] = n[:, 0] | (n[:, 1] << 10) | (n[:, 2] << 20)
+    colors = mesh.colors if mesh.colors is not None else np.ones((len(v), 4), np.float32)
+    v["packed"][:, 1] = _rgba8(np.round(np.clip(colors * np.asarray(mesh.base_color, np.float32), 0.0, 1.0) * 255.0))
+    return v
+
+
+class WeaponRenderer:
+    """Owns the weapon meshes, their instance buffers and programs."""
+
+    def __init__(self, ctx: moderngl.Context, character: Character, shadows: bool):
+        if not character.props or not character.sockets:
+            raise WeaponError(f"character {character.name!r} has no weapons to hold (props and a socket joint are both needed)")
+        self.ctx = ctx
+        self.names = list(character.props)
+        self.socket_joint = int(next(iter(character.sockets.values())))
+        bind = np.linalg.inv(np.asarray(character.skeleton.inverse_bind, np.float64))
+        self.socket_bind = bind[self.socket_joint]  # the socket joint's model matrix at bind
+        self.inverse_grip = np.stack([np.linalg.inv(np.asarray(p.grip, np.float64)) for p in character.props.values()])
+        self.grip_origin = np.stack([np.asarray(p.grip, np.float64)[:, 3] for p in character.props.values()])  # (W, 4)
+        self._objects: list = []
+        self._meshes = []
+        for prop in character.props.values():
+            vbo = self._own(ctx.buffer(pack_rigid(prop.mesh).tobytes()))
+            ibo = self._own(ctx.buffer(np.asarray(prop.mesh.indices, np.uint32).tobytes()))
+            inst = self._own(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
+            self._meshes.append({"vbo": vbo, "ibo": ibo, "instances": inst, "count": 0, "vaos": {}})
+        defines = {"SHADOWS": 1} if shadows else {}
+        self._programs = {
+            "color": self._own(ctx.program(vertex_shader=load_shader("weapon.vert.glsl"), fragment_shader=load_shader("skin.frag.glsl", defines))),
+            "depth": self._own(ctx.program(vertex_shader=load_shader("weapon.vert.glsl", {"DEPTH_ONLY": 1}), fragment_shader=load_shader("depth.frag.glsl"))),
+        }
+        if "u_shadow_map" in self._programs["color"]:
+            self._programs["color"]["u_shadow_map"] = 3
+        self.drawn = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 4), np.float32))
+        self.last = {"weapons": 0, "draws": 0}
+
+    def _own(self, obj):
+        self._objects.append(obj)
+        return obj
+
+    def _vao(self, mesh: dict, kind: str) -> moderngl.VertexArray:
+        if kind not in mesh["vaos"]:
+            prog = self._programs[kind]
+            vertex = ("3f 2u", "in_position", "in_packed") if kind == "color" else ("3f 8x", "in_position")
+            mesh["vaos"][kind] = self._own(self.ctx.vertex_array(prog, [(mesh["vbo"], *vertex), (mesh["instances"], "4f 4f 4f/i", "i_row0", "i_row1", "i_row2")],
+                                                                 index_buffer=mesh["ibo"], index_element_size=4))
+        return mesh["vaos"][kind]
+
+    def matrices(self, read, frames: AgentFrames, weapon_of_agent: np.ndarray):
+        """(agents, weapon indices, (K, 4, 4) float64 camera-relative weapon model matrices) for the
+        entries of `read` whose agent exists and is armed now. Vectorised over every entry."""
+        agents, rows = read.agents, read.rows
+        keep = (agents < len(weapon_of_agent)) & (read.joints == self.socket_joint)
+        agents, rows = agents[keep], rows[keep]
+        weapon = weapon_of_agent[agents].astype(np.int64)
+        armed = (weapon >= 0) & (weapon < len(self.names))
+        agents, rows, weapon = agents[armed], rows[armed], weapon[armed]
+        if not np.all(np.isfinite(rows)):
+            raise WeaponError("a read-back socket matrix holds NaN or Inf")
+        skin = np.zeros((len(agents), 4, 4))
+        skin[:, :3] = rows
+        skin[:, 3, 3] = 1.0
+        model = frames.matrices(agents) @ skin @ self.socket_bind[None] @ self.inverse_grip[weapon]
+        return agents, weapon, model
+
+    def attach(self, read, frames: AgentFrames, weapon_of_agent: np.ndarray, visible: np.ndarray | None = None) -> int:
+        """Place and upload this frame's weapons (none when `read` is None). Returns how many."""
+        if read is None:
+            agents, weapon, model = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4, 4))
+        else:
+            agents, weapon, model = self.matrices(read, frames, np.asarray(weapon_of_agent))
+            if visible is not None:
+                shown = visible[agents]
+                agents, weapon, model = agents[shown], weapon[shown], model[shown]
+        rows = model[:, :3].astype(np.float32)
+        order = np.argsort(weapon, kind="stable")
+        starts = np.searchsorted(weapon[order], np.arange(len(self.names) + 1))
+        for w, mesh in enumerate(self._meshes):
+            chosen = rows[order[starts[w]:starts[w + 1]]]
+            mesh["count"] = len(chosen)
+            size = max(chosen.nbytes, INSTANCE_DTYPE.itemsize)
+            if mesh["instances"].size != size:
+                mesh["instances"].orphan(size)
+            if len(chosen):
+                mesh["instances"].write(np.ascontiguousarray(chosen).tobytes())
+        self.drawn = (agents, weapon, rows)
+        self.last = {"weapons": int(len(agents)), "draws": sum(1 for m in self._meshes if m["count"])}
+        return len(agents)
+
+    def grip_points(self) -> np.ndarray:
+        """(K, 3) float64: the grip point of each drawn weapon, through the float32 rows the GPU got."""
+        agents, weapon, rows = self.drawn
+        return np.einsum("kij,kj->ki", rows.astype(np.float64), self.grip_origin[weapon])
+
+    def depth_pass(self, light_view_proj: np.ndarray) -> None:
+        prog = self._programs["depth"]
+        prog["u_view_proj"].write(gl_bytes(light_view_proj))
+        for mesh in self._meshes:
+            if mesh["count"]:
+                self._vao(mesh, "depth").render(moderngl.TRIANGLES, instances=mesh["count"])
+
+    def color_pass(self, framebuffer, view_proj: np.ndarray, renderer) -> None:
+        framebuffer.use()
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        prog = self._programs["color"]
+        prog["u_view_proj"].write(gl_bytes(view_proj))
+        renderer.set_lighting(prog)
+        for mesh in self._meshes:
+            if mesh["count"]:
+                self._vao(mesh, "color").render(moderngl.TRIANGLES, instances=mesh["count"])
+
+    def gpu_bytes(self) -> int:
+        return gpu_bytes(self._objects)
+
+    def release(self) -> None:
+        for obj in reversed(self._objects):
+            obj.release()
+        self._objects = []
+        self._meshes = []

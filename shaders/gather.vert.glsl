@@ -1,0 +1,6 @@
+#version 330 core
+// One triangle that covers the viewport (no vertex buffer: the corners come from gl_VertexID).
+void main() {
+    vec2 p = vec2(float((gl_VertexID & 1) * 4 - 1), float((gl_VertexID >> 1) * 4 - 1));
+    gl_Position = vec4(p, 0.0, 1.0);
+}
