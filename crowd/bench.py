@@ -6,6 +6,9 @@
   agent count, on one core.
 - ``scale``: GPU ms of the animation processor and of the skinned instanced draw against agent count,
   with the unskinned instanced draw of the same meshes measured in the same run as the ceiling.
+- ``readback``: the weapons' socket gather and GPU→CPU transfer against the number of armed agents,
+  the CPU's wait on it, and the weapon-to-hand error with the body drawn in step with the read-back
+  (sync) and from the newest palette (unsync), side by side in one run.
 """
 
 from __future__ import annotations
@@ -237,6 +240,77 @@ def bench_ai(args) -> int:
     return 0
 
 
+def bench_readback(args) -> int:
+    """A 10,000-agent crowd (the AI running, the scripted player striking) in which the first k agents
+    are armed. Frames are submitted back to back without glFinish, as a window would, so the read of
+    frame F - N overlaps the GPU's work; then a few frames measure the errors (their synchronous
+    palette reads would disturb the timing)."""
+    from .gl import describe, headless_context
+    from .pipeline import CrowdPipeline, PipelineConfig, smoke_size
+    from .smoke import offscreen_framebuffer
+
+    size = smoke_size(args.size)
+    ctx = headless_context()
+    info = describe(ctx)
+    device = f"{info['gl_renderer']}, {info['gl_version']}; {_device_cpu()}"
+    print(f"{device} | {args.agents} agents, {size[0]}x{size[1]}, latency {args.latency} | medians of {args.frames} frames")
+    print(f"{'armed':>7} {'gathered':>8} {'gather ms':>10} {'transfer ms':>12} {'wait ms':>8} {'wait max':>9} {'read cpu':>9} "
+          f"{'attach':>7} {'sync mm':>9} {'unsync mm':>10}")
+    fb, attachments = offscreen_framebuffer(ctx, size)
+    rows = []
+    try:
+        for armed in [int(x) for x in args.armed.split(",")]:
+            pipeline = CrowdPipeline(ctx, PipelineConfig(agents=args.agents, seed=args.seed, readback_latency=args.latency))
+            try:
+                pipeline.camera = pipeline.default_camera(size[0] / size[1])
+                weapons = pipeline.ai.weapon
+                weapons[:] = np.where(np.arange(weapons.size) < armed, np.arange(weapons.size) % 2, -1)
+                for _ in range(args.warmup):
+                    pipeline.frame(fb, 1 / 60)
+                ctx.finish()
+                pipeline.timer.end_frame(drain=True)
+                pipeline.timer.samples.clear()
+                pipeline.readback_waits.clear()
+                pipeline.readback_stalls = 0
+                for _ in range(args.frames):
+                    pipeline.frame(fb, 1 / 60)
+                ctx.finish()
+                pipeline.timer.end_frame(drain=True)
+                samples = pipeline.timer.samples
+                waits = np.asarray(pipeline.readback_waits or [0.0])
+                gathered = pipeline.readback.last_count
+                sync = unsync = 0.0
+                for _ in range(args.error_frames):
+                    pipeline.frame(fb, 1 / 60)
+                    sync = max(sync, pipeline.weapon_error_mm() or 0.0)
+                    unsync = max(unsync, pipeline.weapon_error_mm(body="latest") or 0.0)
+
+                def med(name):
+                    return round(float(np.median(samples[name])), 4) if samples.get(name) else 0.0
+
+                row = {"armed": armed, "gathered": gathered, "gather_ms": med("gather"), "transfer_ms": med("transfer"),
+                       "wait_ms": round(float(np.median(waits)), 4), "wait_max_ms": round(float(waits.max()), 4),
+                       "stalls": pipeline.readback_stalls, "readback_cpu_ms": med("readback"), "attach_ms": med("attach"),
+                       "sync_error_mm": round(sync, 5), "unsync_error_mm": round(unsync, 3)}
+                rows.append(row)
+                print(f"{armed:>7} {gathered:>8} {row['gather_ms']:>10.4f} {row['transfer_ms']:>12.4f} {row['wait_ms']:>8.4f} "
+                      f"{row['wait_max_ms']:>9.4f} {row['readback_cpu_ms']:>9.4f} {row['attach_ms']:>7.3f} {row['sync_error_mm']:>9.5f} "
+                      f"{row['unsync_error_mm']:>10.3f}")
+            finally:
+                pipeline.release()
+    finally:
+        fb.release()
+        for a in attachments:
+            a.release()
+    if args.json:
+        from .gltf_write import atomic_write_bytes
+
+        atomic_write_bytes(Path(args.json), json.dumps({"device": device, "agents": args.agents, "latency": args.latency,
+                                                        "size": list(size), "rows": rows}, indent=1).encode())
+    ctx.release()
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="crowd-bench", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -262,6 +336,17 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--json", type=Path)
     p.set_defaults(run=bench_ai)
+    p = sub.add_parser("readback", help="weapon socket gather, transfer and wait against armed agents; sync vs unsync error")
+    p.add_argument("--agents", type=int, default=10000)
+    p.add_argument("--armed", default="0,100,1000,10000")
+    p.add_argument("--latency", type=int, default=2)
+    p.add_argument("--size", default="1920x1080")
+    p.add_argument("--frames", type=int, default=120)
+    p.add_argument("--warmup", type=int, default=30)
+    p.add_argument("--error-frames", type=int, default=10)
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--json", type=Path)
+    p.set_defaults(run=bench_readback)
     args = parser.parse_args(argv)
     from .ai import AIError
     from .bake import BakeError

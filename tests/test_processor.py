@@ -247,6 +247,43 @@ def test_resizing_releases_what_it_no_longer_needs(gl_context, zombie_bake):
         assert all(released(o) for o in kept)
 
 
+@pytest.mark.parametrize("path", PATHS)
+def test_history_keeps_the_palettes_of_earlier_runs(gl_context, zombie, zombie_bake, path):
+    """A ring of 4 palettes: after six runs with different layers, ages 0-3 hold runs 5, 4, 3 and 2,
+    each as exact as a single palette; a resize within the same rows keeps the history, one that
+    needs more rows (or a new history length) starts it again."""
+    rng = np.random.default_rng(21)
+    n = 300  # two palette rows (178 agents per row for 23 joints): a partial last row too
+    runs = [random_layers(rng, n, 2, len(zombie_bake.clips)) for _ in range(6)]
+    proc = AnimationProcessor(gl_context, zombie_bake, 2, path=path, history=4)
+    try:
+        proc.resize(n)
+        for layers in runs:
+            proc.process(layers)
+        offsets = {proc.row_offset(age) for age in range(4)}
+        assert len(offsets) == 4 and max(offsets) == 3 * proc.palette_rows()
+        for age in range(4):
+            gpu = proc.read_palette(age).astype(np.float64)
+            ref = reference_palette(zombie_bake, runs[5 - age])
+            assert joint_error(zombie.skeleton.inverse_bind, gpu, ref) <= ZOMBIE_TOL_M, f"age {age}"
+        with pytest.raises(ProcessorError, match="no palette from 4 runs ago"):
+            proc.row_offset(4)
+        proc.resize(n - 10)  # same rows: history kept for the agents still there
+        kept = proc.read_palette(1).astype(np.float64)
+        assert joint_error(zombie.skeleton.inverse_bind, kept, reference_palette(zombie_bake, runs[4][: n - 10])) <= ZOMBIE_TOL_M
+        proc.resize(1000)  # more rows: a new palette, no history
+        assert proc.runs == 0
+        proc.process(runs[0].repeat(4, axis=0)[:1000])
+        with pytest.raises(ProcessorError):
+            proc.row_offset(1)
+        proc.set_history(2)
+        assert proc.planes[0].height == 2 * proc.palette_rows() and proc.runs == 0
+    finally:
+        proc.release()
+    with pytest.raises(ProcessorError, match="palette history"):
+        AnimationProcessor(gl_context, zombie_bake, 1, history=5)
+
+
 def test_auto_path_follows_the_context(gl_context, zombie_bake):
     proc = AnimationProcessor(gl_context, zombie_bake, 1)
     try:

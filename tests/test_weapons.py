@@ -1,0 +1,253 @@
+"""Weapons in hand: the socket read-back (gather, pixel-pack ring, fences), the palette ring that keeps
+each body in step with it, and the CPU placement of weapons, on llvmpipe.
+
+The bound: the weapon's grip point and the hand's socket point come from the same float32 matrix
+(the gather is a bit-exact copy), placed by the same agent transform; what separates them is float32
+rounding of the weapon's model matrix (about 1e-7 of a camera distance of at most 50 m, so 0.005 mm).
+The issue's ceiling is 0.1 mm and the tests use it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from crowd.ai import DYING, AIConfig
+from crowd.bench import random_layers
+from crowd.pipeline import CrowdPipeline, PipelineConfig, PipelineError
+from crowd.processor import AnimationProcessor, reference_palette
+from crowd.readback import ENTRIES_PER_ROW, ReadbackError, SocketReadback
+from crowd.roles import bake_roles, match_roles
+from crowd.smoke import FIXED_DT, offscreen_framebuffer
+from test_processor import released
+
+SIZE = (192, 108)
+ERROR_MM = 0.1
+
+
+class Harness:
+    """A pipeline that renders into a small offscreen framebuffer and remembers each frame's layers."""
+
+    def __init__(self, ctx, **config):
+        ai = config.pop("ai", AIConfig(half_extent=9.0, armed_share=0.7))
+        self.pipeline = CrowdPipeline(ctx, PipelineConfig(ai=ai, **{"agents": 40, "seed": 5, "shadows": False, **config}))
+        self.fb, self.attachments = offscreen_framebuffer(ctx, SIZE)
+        self.pipeline.camera = self.pipeline.default_camera(SIZE[0] / SIZE[1])
+        self.layers = []  # per frame: the layers the processor got
+
+    def frame(self, dt=FIXED_DT):
+        self.pipeline.frame(self.fb, dt)
+        self.layers.append(self.pipeline._layers.copy())
+
+    def release(self):
+        self.pipeline.release()
+        self.fb.release()
+        for a in self.attachments:
+            a.release()
+
+
+@pytest.fixture
+def harness(gl_context):
+    made = []
+
+    def make(**config):
+        h = Harness(gl_context, **config)
+        made.append(h)
+        return h
+
+    yield make
+    for h in made:
+        h.release()
+
+
+def drawn_agents(p: CrowdPipeline) -> set:
+    return set(p.weapons.drawn[0].tolist())
+
+
+def test_weapon_stays_in_the_hand_for_100_frames_while_clips_change(harness):
+    """Every armed agent, every frame: grip point on the socket within 0.1 mm in the frame as drawn,
+    while the AI switches clips and, every seventh frame, random clips and phases are forced on a
+    third of the crowd. Drawing the body from the newest palette instead would be far off."""
+    h = harness(shadows=True)
+    p = h.pipeline
+    rng = np.random.default_rng(2)
+    write = p.ai.write_layers
+
+    def forced(out):
+        write(out)
+        if p.frames % 7 == 3:
+            pick = rng.uniform(size=len(out)) < 0.33
+            out[pick] = random_layers(int(pick.sum()), out.shape[1], len(p.bake.clips), rng)
+        return out
+
+    p.ai.write_layers = forced
+    worst, unsynced, armed_frames = 0.0, 0.0, 0
+    for f in range(100):
+        h.frame()
+        if f < p.latency:
+            assert p.weapons.last["weapons"] == 0  # the ring has not reached back N frames yet
+            continue
+        # Exactly the agents armed and alive N frames ago that are still there, all in view here.
+        read = p._read
+        assert read is not None and read.frame == f - p.latency
+        assert drawn_agents(p) == set(read.agents.tolist()) and p.weapons.last["weapons"] == len(read.agents)
+        if p.weapons.last["weapons"]:
+            armed_frames += 1
+            worst = max(worst, p.weapon_error_mm())
+            unsynced = max(unsynced, p.weapon_error_mm(body="latest"))
+    assert armed_frames == 100 - p.latency
+    assert worst <= ERROR_MM, f"{worst:.4f} mm"
+    assert unsynced > 20.0  # the same check catches a body drawn from the wrong frame
+    assert len(set(p.ai.action.tolist())) > 1 and p.weapons.last["draws"] == 2  # actions played; both weapon meshes drawn
+    assert "gather" in p.passes_run and "weapons" in p.passes_run and p.readback_stalls == 0
+
+
+@pytest.mark.parametrize("latency", [1, 2, 3])
+def test_each_latency_reads_and_draws_frame_f_minus_n(harness, latency):
+    h = harness(readback_latency=latency)
+    p = h.pipeline
+    socket = p.weapons.socket_joint
+    for f in range(latency + 6):
+        h.frame()
+        if f < latency:
+            assert p._read is None and p.weapons.last["weapons"] == 0
+            continue
+        read = p._read
+        assert read.frame == f - latency
+        # The socket rows read back are the processor's output for the layers of frame F - N ...
+        ref = reference_palette(p.bake, h.layers[f - latency])[read.agents, socket]
+        assert np.max(np.abs(read.rows - ref)) < 1e-5
+        # ... and every body is drawn from that frame's palette, bit for bit the rows that were read.
+        drawn_rows = p.processor.read_rows(read.agents, socket, np.broadcast_to(p._row_offset, (p.agents,))[read.agents])
+        assert np.array_equal(drawn_rows, read.rows)
+        assert p.weapon_error_mm() <= ERROR_MM
+    stats = p.stats()
+    assert stats["weapons"]["latency_frames"] == latency
+    assert stats["weapons"]["pose_lag_ms"] == pytest.approx(latency * FIXED_DT * 1e3, abs=1e-3)
+    assert p.processor.history == latency + 1
+
+
+def test_latency_can_change_at_run_time(harness):
+    h = harness()
+    p = h.pipeline
+    for _ in range(4):
+        h.frame()
+    p.set_readback_latency(3)
+    for k in range(5):
+        h.frame()
+        assert (p.weapons.last["weapons"] > 0) == (k >= 3)  # a new palette ring: hidden for 3 frames
+    assert p.weapon_error_mm() <= ERROR_MM
+    with pytest.raises(PipelineError, match="latency"):
+        p.set_readback_latency(4)
+
+
+def test_dying_and_removed_agents_drop_their_weapon_and_nobody_else_does(harness):
+    h = harness(scripted_player=False)
+    p = h.pipeline
+    p.ai.player = np.array([500.0, 500.0])  # nobody notices the player: the crowd only wanders
+    p.ai.weapon[:] = np.arange(p.agents) % 2  # everyone armed, both weapons
+    for _ in range(4):
+        h.frame()
+    everyone = drawn_agents(p)
+    assert everyone == set(range(p.agents))
+    victim = 7
+    p.ai.health[victim] = 1
+    p.ai.hit([victim])
+    assert p.ai.state[victim] == DYING
+    h.frame()  # gathered without the victim; the weapons drawn are still those of frame F - 2
+    assert drawn_agents(p) == everyone
+    for _ in range(p.latency):
+        h.frame()
+    assert drawn_agents(p) == everyone - {victim}
+    assert p.weapon_error_mm() <= ERROR_MM
+
+    # Removing the last agent drops its weapon at once (same palette rows: the history is kept).
+    p.set_agent_count(p.agents - 1)
+    h.frame()
+    assert drawn_agents(p) == everyone - {victim, p.agents}
+    assert p.weapon_error_mm() <= ERROR_MM
+    # New agents are drawn from this frame's palette, without a weapon, until N frames have passed.
+    p.set_agent_count(p.agents + 5)
+    p.ai.weapon[-5:] = 0
+    h.frame()
+    new = set(range(p.agents - 5, p.agents))
+    assert not drawn_agents(p) & new and p.weapon_error_mm() <= ERROR_MM
+    for _ in range(p.latency):
+        h.frame()
+    assert new <= drawn_agents(p) and p.weapon_error_mm() <= ERROR_MM
+    # Past a palette row (178 agents for 23 joints) the palette is reallocated: weapons hide N frames.
+    p.set_agent_count(400)
+    h.frame()
+    assert p.weapons.last["weapons"] == 0
+    for _ in range(p.latency):
+        h.frame()
+    assert p.weapons.last["weapons"] > 0 and p.weapon_error_mm() <= ERROR_MM
+
+
+@pytest.mark.parametrize("config", [{"weapons": False}, {"ai": AIConfig(armed_share=0.0)}])
+def test_no_armed_agent_means_no_gather_pass_and_no_readback_buffers(harness, config):
+    armed = harness()
+    unarmed = harness(**config)
+    for _ in range(3):
+        armed.frame()
+        unarmed.frame()
+    a, u = armed.pipeline.stats(), unarmed.pipeline.stats()
+    for name in ("readback", "gather", "transfer", "attach", "weapons"):
+        assert name not in u["passes_run"]
+    assert "gather" in a["passes_run"] and "transfer" in a["passes_run"]
+    assert "readback" not in u["gpu_bytes"] and "weapons" not in u["gpu_bytes"] and a["gpu_bytes"]["readback"] > 0
+    # One palette instead of a ring of latency + 1.
+    assert a["gpu_bytes"]["palette"] == 3 * u["gpu_bytes"]["palette"]
+    assert u["weapon_error_mm"] is None and u["readback_wait_ms"] is None and u["weapons"] == {"enabled": False}
+
+
+def test_readback_resize_and_release_leak_nothing(harness):
+    h = harness(agents=0)
+    p = h.pipeline
+    for n in (0, 10_000, 0, 200):
+        p.set_agent_count(n)
+        for _ in range(3):
+            h.frame()
+    assert p.weapon_error_mm() is None or p.weapon_error_mm() <= ERROR_MM
+    owned = list(p.readback._buffers) + [p.readback._target, p.readback._entries, p.readback.program] + list(p.weapons._objects)
+    assert p.readback.capacity >= 4096  # grew for 10,000 agents
+    p.release()
+    assert all(released(o) for o in owned)
+    h.pipeline = type("Released", (), {"release": lambda self: None})()
+
+
+def test_gather_is_a_bit_exact_copy_over_several_rows(gl_context, zombie):
+    roles, _ = match_roles(zombie.clips)
+    baked = bake_roles(zombie, roles)
+    rng = np.random.default_rng(4)
+    n = 3000
+    proc = AnimationProcessor(gl_context, baked, 4, history=2)
+    rb = SocketReadback(gl_context, baked.joint_count, proc.agents_per_row)
+    try:
+        proc.resize(n)
+        for frame in range(2):
+            proc.process(random_layers(n, 4, len(baked.clips), rng))
+            agents = rng.choice(n, ENTRIES_PER_ROW + 500, replace=False)  # two gather rows, the second partial
+            joints = rng.integers(0, baked.joint_count, agents.size)
+            assert rb.gather(frame, proc, agents, joints)
+            read = rb.fetch(frame)
+            assert read.frame == frame and np.array_equal(read.agents, agents)
+            assert np.array_equal(read.rows, proc.read_palette()[agents, joints])
+        assert rb.fetch(5) is None and rb.fetch(-1) is None  # never gathered
+        assert not rb.gather(2, proc, [], [])  # nothing armed: no pass, an empty read
+        assert rb.fetch(2).rows.shape == (0, 3, 4)
+        with pytest.raises(ReadbackError, match="agents"):
+            rb.gather(3, proc, [n], [0])
+        with pytest.raises(ReadbackError, match="joints"):
+            rb.gather(3, proc, [0], [baked.joint_count])
+        with pytest.raises(ReadbackError, match="one joint per agent"):
+            rb.gather(3, proc, [0, 1], [0])
+    finally:
+        rb.release()
+        proc.release()
+
+
+def test_pipeline_rejects_a_bad_latency(gl_context):
+    for bad in (0, 4, 2.5, True):
+        with pytest.raises(PipelineError, match="latency"):
+            CrowdPipeline(gl_context, PipelineConfig(agents=2, readback_latency=bad))
