@@ -28,6 +28,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--processor", choices=["auto", "compute", "fragment"], default="auto", help="processor path (default: compute where GL 4.3 exists)")
     p.add_argument("--no-shadows", action="store_true")
     p.add_argument("--no-culling", action="store_true")
+    p.add_argument("--no-weapons", action="store_true", help="nobody is armed: no socket read-back, no gather pass")
+    p.add_argument("--readback-latency", type=int, default=2, help="frames between gathering a weapon socket and reading it (1-3)")
     return p
 
 
@@ -40,9 +42,11 @@ def main(argv=None) -> int:
     from crowd.gltf import GltfImportError
     from crowd.pipeline import MAX_AGENTS, PipelineConfig, PipelineError, smoke_size
     from crowd.processor import ProcessorError
+    from crowd.readback import ReadbackError
     from crowd.render import RenderError
     from crowd.roles import RoleError, parse_overrides
     from crowd.smoke import run_headless
+    from crowd.weapons import WeaponError
 
     if not args.headless:
         reason = "no display found" if not has_display() else "the interactive window is not built yet (issue 6)"
@@ -56,9 +60,11 @@ def main(argv=None) -> int:
             raise PipelineError(f"--model {args.model}: no such file")
         config = PipelineConfig(agents=args.agents, seed=args.seed, model=args.model, roles=parse_overrides(args.roles),
                                 bake_fps=args.bake_fps, precision=args.precision, processor_path=args.processor,
-                                shadows=not args.no_shadows, culling=not args.no_culling)
+                                shadows=not args.no_shadows, culling=not args.no_culling, weapons=not args.no_weapons,
+                                readback_latency=args.readback_latency)
         stats = run_headless(config, args.frames, smoke_size(args.size), args.screenshot, args.stats)
-    except (AIError, GltfImportError, BakeError, PipelineError, ProcessorError, RenderError, RoleError, GLUnavailable) as exc:
+    except (AIError, GltfImportError, BakeError, PipelineError, ProcessorError, RenderError, RoleError, GLUnavailable,
+            ReadbackError, WeaponError) as exc:
         print(f"crowd-demo: {exc}", file=sys.stderr)
         return 2
     for note in stats["warnings"]:
@@ -67,6 +73,11 @@ def main(argv=None) -> int:
     print(f"{stats['agents']} agents, {stats['frames']} frames at {stats['size'][0]}x{stats['size'][1]} on {stats['gl_renderer']}: "
           f"frame p50 {f['p50']} ms, p95 {f['p95']} ms; processor ({stats['processor_path']}) {stats['passes_ms'].get('process', 0)} ms; "
           f"{stats['last_frame']['triangles']:,} triangles; NaN rows {stats['nan_count']}")
+    w = stats["weapons"]
+    if w["enabled"]:
+        print(f"weapons: {w['drawn']} drawn, read back {w['latency_frames']} frames late (pose lag {w['pose_lag_ms']} ms); "
+              f"weapon-to-hand error {stats['weapon_error_mm']} mm; read-back wait median {stats['readback_wait_ms']['median']} ms, "
+              f"max {stats['readback_wait_ms']['max']} ms, {w['stalls']} stalls")
     print(f"wrote {args.screenshot}" + (f" and {args.stats}" if args.stats else ""))
     return 0
 

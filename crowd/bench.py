@@ -354,10 +354,12 @@ def main(argv=None) -> int:
     from .gltf import GltfImportError
     from .pipeline import PipelineError
     from .processor import ProcessorError
+    from .readback import ReadbackError
+    from .weapons import WeaponError
 
     try:
         return args.run(args)
-    except (GltfImportError, BakeError, GLUnavailable, PipelineError, ProcessorError, AIError) as exc:
+    except (GltfImportError, BakeError, GLUnavailable, PipelineError, ProcessorError, AIError, ReadbackError, WeaponError) as exc:
         print(f"crowd-bench: {exc}", file=sys.stderr)
         return 2
 

@@ -183,7 +183,7 @@ class CrowdPipeline:
         if self.weapons is not None:
             with t.cpu("attach"):
                 read = self._synced_read()
-                self._frames = AgentFrames.of(instances.position, instances.yaw, instances.scale, self.camera.eye)
+                self._frames = AgentFrames(instances.position, instances.yaw, instances.scale, self.camera.eye)
                 self.weapons.attach(read, self._frames, self.ai.weapon, self.renderer.visible)
             self._run("attach")
         framebuffer.use()
@@ -293,6 +293,7 @@ class CrowdPipeline:
         return {"enabled": True, "latency_frames": self.latency,
                 "pose_lag_ms": round(sum(list(self._pose_lag)[-self.latency:]) * 1e3, 3),  # simulated time the pose trails by
                 "armed": int(np.count_nonzero((self.ai.weapon >= 0) & self.ai.alive())), "drawn": self.weapons.last["weapons"],
+                "triangles": self.weapons.last["triangles"],
                 "gathered": self.readback.last_count, "stalls": self.readback_stalls, "reads": len(self.readback_waits)}
 
     def release(self) -> None:

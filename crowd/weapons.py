@@ -16,8 +16,6 @@ weapon indices, rows) so that the error of the frame as drawn can be measured.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import moderngl
 import numpy as np
 
@@ -33,37 +31,32 @@ class WeaponError(ValueError):
     """Bad weapon input; the message is one line."""
 
 
-@dataclass
 class AgentFrames:
-    """Agent transforms as the crowd's vertex shader applies them (see skin.vert.glsl)."""
+    """Agent transforms as the crowd's vertex shader applies them (see skin.vert.glsl): the position
+    relative to the camera in float32, the float32 scale, and the heading's cos and sin as the snorm16
+    values of the instance record. Computed only for the agents asked about, so unarmed agents cost
+    nothing here."""
 
-    position: np.ndarray  # float32 (N, 3), relative to the camera
-    scale: np.ndarray  # float32 (N,)
-    cos_sin: np.ndarray  # float64 (N, 2): the heading's snorm16 values decoded
+    def __init__(self, positions: np.ndarray, yaw: np.ndarray, scale: np.ndarray, eye):
+        self._position = np.asarray(positions, np.float64)
+        self._yaw = np.asarray(yaw, np.float32)
+        self._scale = np.asarray(scale, np.float32)
+        self._eye = np.asarray(eye, np.float64)
 
-    @staticmethod
-    def of(positions: np.ndarray, yaw: np.ndarray, scale: np.ndarray, eye) -> "AgentFrames":
-        rel = (np.asarray(positions, np.float64) - np.asarray(eye, np.float64)[None]).astype(np.float32)
-        yaw = np.asarray(yaw, np.float32)
+    def of(self, agents: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(position float32 (M, 3), scale float64 (M,), cos_sin float64 (M, 2)) of those agents."""
+        rel = (self._position[agents] - self._eye[None]).astype(np.float32)
+        yaw = self._yaw[agents]
         cs = np.stack([_snorm(np.cos(yaw), 16), _snorm(np.sin(yaw), 16)], axis=1).astype(np.uint16).view(np.int16)
-        return AgentFrames(rel, np.asarray(scale, np.float32), cs.astype(np.float64) / 32767.0)
-
-    def matrices(self, agents: np.ndarray) -> np.ndarray:
-        """(M, 4, 4) float64: x' = position + scale * heading(x), the heading turning +Z toward (sin, cos)."""
-        c, s = self.cos_sin[agents, 0], self.cos_sin[agents, 1]
-        k = self.scale[agents].astype(np.float64)
-        m = np.zeros((len(agents), 4, 4))
-        m[:, 0, 0], m[:, 0, 2] = k * c, k * s
-        m[:, 1, 1] = k
-        m[:, 2, 0], m[:, 2, 2] = -k * s, k * c
-        m[:, :3, 3] = self.position[agents]
-        m[:, 3, 3] = 1.0
-        return m
+        return rel, self._scale[agents].astype(np.float64), cs.astype(np.float64) / 32767.0
 
     def points(self, agents: np.ndarray, model_points: np.ndarray) -> np.ndarray:
-        """(M, 3) float64: model-space points of those agents placed as the shader places them."""
-        m = self.matrices(agents)
-        return np.einsum("mij,mj->mi", m[:, :3, :3], model_points) + m[:, :3, 3]
+        """(M, 3) float64: model-space points of those agents placed as the shader places them:
+        x' = position + scale * heading(x), the heading turning +Z toward (sin, cos)."""
+        rel, k, cs = self.of(agents)
+        p = np.asarray(model_points, np.float64)
+        c, s = cs[:, 0], cs[:, 1]
+        return rel + k[:, None] * np.stack([c * p[:, 0] + s * p[:, 2], p[:, 1], c * p[:, 2] - s * p[:, 0]], axis=1)
 
 
 def pack_rigid(mesh: RigidMesh) -> np.ndarray:
@@ -97,7 +90,7 @@ class WeaponRenderer:
             vbo = self._own(ctx.buffer(pack_rigid(prop.mesh).tobytes()))
             ibo = self._own(ctx.buffer(np.asarray(prop.mesh.indices, np.uint32).tobytes()))
             inst = self._own(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
-            self._meshes.append({"vbo": vbo, "ibo": ibo, "instances": inst, "count": 0, "vaos": {}})
+            self._meshes.append({"vbo": vbo, "ibo": ibo, "instances": inst, "count": 0, "vaos": {}, "triangles": prop.mesh.triangle_count})
         defines = {"SHADOWS": 1} if shadows else {}
         self._programs = {
             "color": self._own(ctx.program(vertex_shader=load_shader("weapon.vert.glsl"), fragment_shader=load_shader("skin.frag.glsl", defines))),
@@ -106,7 +99,7 @@ class WeaponRenderer:
         if "u_shadow_map" in self._programs["color"]:
             self._programs["color"]["u_shadow_map"] = 3
         self.drawn = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 4), np.float32))
-        self.last = {"weapons": 0, "draws": 0}
+        self.last = {"weapons": 0, "draws": 0, "triangles": 0}
 
     def _own(self, obj):
         self._objects.append(obj)
@@ -144,8 +137,8 @@ class WeaponRenderer:
         for w in range(len(self.names)):
             a, b = starts[w], starts[w + 1]
             local[:, a:b] = socket[:, a:b] @ self._socket_to_weapon[w]
-        cs = frames.cos_sin[agents]
-        k = frames.scale[agents].astype(np.float64)[:, None]
+        position, scale, cs = frames.of(agents)
+        k = scale[:, None]
         kc, ks = k * cs[:, 0:1], k * cs[:, 1:2]
         out = np.empty(local.shape)
         np.multiply(kc, local[0], out=out[0])
@@ -153,7 +146,7 @@ class WeaponRenderer:
         np.multiply(k, local[1], out=out[1])
         np.multiply(kc, local[2], out=out[2])
         out[2] -= ks * local[0]
-        out[:, :, 3] += frames.position[agents].T
+        out[:, :, 3] += position.T
         return agents, weapon, out.transpose(1, 0, 2).astype(np.float32)
 
     def attach(self, read, frames: AgentFrames, weapon_of_agent: np.ndarray, visible: np.ndarray | None = None) -> int:
@@ -175,7 +168,8 @@ class WeaponRenderer:
             if len(chosen):
                 mesh["instances"].write(chosen.tobytes())
         self.drawn = (agents, weapon, rows)
-        self.last = {"weapons": int(len(agents)), "draws": sum(1 for m in self._meshes if m["count"])}
+        self.last = {"weapons": int(len(agents)), "draws": sum(1 for m in self._meshes if m["count"]),
+                     "triangles": sum(m["count"] * m["triangles"] for m in self._meshes)}
         return len(agents)
 
     def grip_points(self) -> np.ndarray:
