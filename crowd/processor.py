@@ -50,7 +50,6 @@ PATHS = ("auto", "compute", "fragment")
 # Agents side by side in one palette texture row: keeps textures under 4096 texels wide, a size every
 # GL 3.3+ driver we target accepts (GL_MAX_TEXTURE_SIZE is 16384 on llvmpipe, 32768 on NVIDIA).
 MAX_TEXTURE_WIDTH = 4096
-MAX_TEXTURE_HEIGHT = 16384  # llvmpipe's GL_MAX_TEXTURE_SIZE, the smallest of the drivers we target
 MAX_HISTORY = 4  # palettes kept: the latest and up to 3 frames back (the weapons' readback latency)
 
 
@@ -292,7 +291,9 @@ class AnimationProcessor:
     def _allocate(self, agents: int) -> None:
         rows = self.palette_rows(agents)
         height = rows * self.history
-        limit = min(MAX_TEXTURE_HEIGHT, 1 << 16)  # instance records address palette rows in 16 bits
+        # The driver's texture size (16,384 on llvmpipe, 32,768 on NVIDIA), and instance records address
+        # palette rows in 16 bits.
+        limit = min(int(self.ctx.info.get("GL_MAX_TEXTURE_SIZE", 16384)), 1 << 16)
         if height > limit:
             raise ProcessorError(f"{agents} agents with a palette history of {self.history} need {height} texture rows, more than {limit}")
         self._release_group("palette")

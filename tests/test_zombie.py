@@ -1,7 +1,6 @@
 import json
 import shutil
 import subprocess
-from pathlib import Path
 
 import numpy as np
 import pygltflib
@@ -9,7 +8,6 @@ import pytest
 
 from conftest import ROOT
 from crowd import reference
-from crowd.gltf import load_character
 from crowd.gltf_write import glb_bytes
 from crowd.zombie import ASSET_PATH, SOCKET_JOINT, build_character
 
