@@ -16,20 +16,21 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="crowd-demo", description="Zombie crowd demo: GPU animation processor and skinned instancing.")
     p.add_argument("--headless", action="store_true", help="run offscreen through EGL even when a display exists")
     p.add_argument("--frames", type=int, default=60, help="frames to run (default 60)")
-    p.add_argument("--agents", type=int, default=200, help="number of zombies (default 200)")
+    p.add_argument("--scene", type=Path, default=None, help="a scene file (TOML; see scenes/); flags given as well override it")
+    p.add_argument("--agents", type=int, default=None, help="number of zombies (default: the scene's, 200)")
     p.add_argument("--size", default="1280x720", help="frame size WxH (default 1280x720)")
     p.add_argument("--screenshot", type=Path, default=Path("out/demo.png"), help="PNG of the last frame")
     p.add_argument("--stats", type=Path, default=None, help="JSON of frame and pass timings")
     p.add_argument("--model", type=Path, default=None, help="a skinned .glb/.gltf (default: the built-in zombie)")
     p.add_argument("--roles", default=None, help="clip role overrides, e.g. walk=Walking,idle=Idle")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--bake-fps", type=float, default=15.0)
-    p.add_argument("--precision", choices=["f32", "f16"], default="f32")
-    p.add_argument("--processor", choices=["auto", "compute", "fragment"], default="auto", help="processor path (default: compute where GL 4.3 exists)")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--bake-fps", type=float, default=None)
+    p.add_argument("--precision", choices=["f32", "f16"], default=None)
+    p.add_argument("--processor", choices=["auto", "compute", "fragment"], default=None, help="processor path (default: compute where GL 4.3 exists)")
     p.add_argument("--no-shadows", action="store_true")
     p.add_argument("--no-culling", action="store_true")
     p.add_argument("--no-weapons", action="store_true", help="nobody is armed: no socket read-back, no gather pass")
-    p.add_argument("--readback-latency", type=int, default=2, help="frames between gathering a weapon socket and reading it (1-3)")
+    p.add_argument("--readback-latency", type=int, default=None, help="frames between gathering a weapon socket and reading it (1-3, default 2)")
     return p
 
 
@@ -40,11 +41,12 @@ def main(argv=None) -> int:
     from crowd.bake import BakeError
     from crowd.gl import GLUnavailable, has_display
     from crowd.gltf import GltfImportError
-    from crowd.pipeline import MAX_AGENTS, PipelineConfig, PipelineError, smoke_size
+    from crowd.pipeline import PipelineError, smoke_size
     from crowd.processor import ProcessorError
     from crowd.readback import ReadbackError
     from crowd.render import RenderError
     from crowd.roles import RoleError, parse_overrides
+    from crowd.scene import Scene, SceneError, load_scene
     from crowd.smoke import run_headless
     from crowd.weapons import WeaponError
 
@@ -54,17 +56,24 @@ def main(argv=None) -> int:
     try:
         if not 1 <= args.frames <= 100_000:
             raise PipelineError(f"--frames must be 1 to 100000, got {args.frames}")
-        if not 0 <= args.agents <= MAX_AGENTS:
-            raise PipelineError(f"--agents must be 0 to {MAX_AGENTS}, got {args.agents}")
         if args.model is not None and not args.model.is_file():
             raise PipelineError(f"--model {args.model}: no such file")
-        config = PipelineConfig(agents=args.agents, seed=args.seed, model=args.model, roles=parse_overrides(args.roles),
-                                bake_fps=args.bake_fps, precision=args.precision, processor_path=args.processor,
-                                shadows=not args.no_shadows, culling=not args.no_culling, weapons=not args.no_weapons,
-                                readback_latency=args.readback_latency)
-        stats = run_headless(config, args.frames, smoke_size(args.size), args.screenshot, args.stats)
+        scene = Scene()
+        if args.scene is not None:
+            try:
+                scene = load_scene(args.scene)
+            except SceneError as exc:  # a broken scene file loses nothing: the run goes on with the defaults
+                print(f"crowd-demo: {exc}; running the default scene instead", file=sys.stderr)
+        off = lambda flag: False if flag else None  # a --no-x flag turns x off; without it the scene decides
+        scene = scene.with_overrides(agents=args.agents, seed=args.seed, model=args.model, roles=parse_overrides(args.roles) or None,
+                                     bake_fps=args.bake_fps, precision=args.precision, processor=args.processor,
+                                     shadows=off(args.no_shadows), culling=off(args.no_culling), weapons=off(args.no_weapons),
+                                     readback_latency=args.readback_latency)
+        size = smoke_size(args.size)
+        stats = run_headless(scene.pipeline_config(), args.frames, size, args.screenshot, args.stats,
+                             camera=scene.camera_for(size[0] / size[1]))
     except (AIError, GltfImportError, BakeError, PipelineError, ProcessorError, RenderError, RoleError, GLUnavailable,
-            ReadbackError, WeaponError) as exc:
+            ReadbackError, WeaponError, SceneError) as exc:
         print(f"crowd-demo: {exc}", file=sys.stderr)
         return 2
     for note in stats["warnings"]:

@@ -43,14 +43,14 @@ def png_bytes(image: np.ndarray) -> bytes:
 
 
 def run_headless(config: PipelineConfig, frames: int, size: tuple[int, int], screenshot: Path | None = None,
-                 stats_path: Path | None = None, ctx: moderngl.Context | None = None) -> dict:
+                 stats_path: Path | None = None, ctx: moderngl.Context | None = None, camera=None) -> dict:
     own_ctx = ctx is None
     ctx = ctx or headless_context()
     pipeline = None
     fb, attachments = offscreen_framebuffer(ctx, size)
     try:
         pipeline = CrowdPipeline(ctx, config)
-        pipeline.camera = pipeline.default_camera(size[0] / size[1])
+        pipeline.camera = camera if camera is not None else pipeline.default_camera(size[0] / size[1])
         frame_ms = []
         for _ in range(frames):
             t0 = time.perf_counter()
