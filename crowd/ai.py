@@ -130,12 +130,18 @@ class Motion:
     notes: tuple = ()
 
     @staticmethod
-    def from_bake(bake, roles: dict, strides: dict, upper_body_mask: int = -1, head_count: int = 0, weapon_count: int = 0) -> "Motion":
+    def from_bake(bake, roles: dict, strides: dict, upper_body_mask: int = -1, head_count: int = 0, weapon_count: int = 0,
+                  clip_speed: dict | None = None) -> "Motion":
+        """`clip_speed` (clip name → time scale, default 1) plays a clip faster or slower: its duration is
+        divided by the scale, so a walk played 1.5x faster also moves 1.5x faster and its feet stay put."""
         clip, duration, notes = {}, {}, []
         for role in ("idle", "walk", "run", "attack", "hit", "death"):
             name = roles.get(role)
             clip[role] = bake.clip_index(name) if name else -1
-            duration[role] = max(bake.clips[clip[role]].duration, 1e-3) if name else 0.0
+            speed = float((clip_speed or {}).get(name, 1.0)) if name else 1.0
+            if not math.isfinite(speed) or not 0.05 <= speed <= 20.0:
+                raise AIError(f"clip {name!r}: playback speed must be 0.05 to 20, got {speed!r}")
+            duration[role] = max(bake.clips[clip[role]].duration / speed, 1e-3) if name else 0.0
         walk_stride = float(strides.get(roles["walk"]) or 0.0)
         if walk_stride <= 0:
             walk_stride = DEFAULT_WALK_SPEED * duration["walk"]
@@ -169,7 +175,7 @@ def upper_body_mask(skeleton) -> np.ndarray | None:
     return mask[None]
 
 
-def motion_for(character, bake, roles: dict) -> Motion:
+def motion_for(character, bake, roles: dict, clip_speed: dict | None = None) -> Motion:
     """The Motion of a character's baked roles. Upper-body actions use mask row 0 when the skeleton has
     an upper body (the processor gets `upper_body_mask(skeleton)` as its masks); heads are the pieces of
     the "head" variation group; weapons are the props the character can hold in a socket."""
@@ -177,7 +183,7 @@ def motion_for(character, bake, roles: dict) -> Motion:
     mask_row = 0 if upper_body_mask(character.skeleton) is not None else -1
     heads = len({m.piece for m in character.meshes if m.group == "head"})
     weapons = len(character.props) if character.sockets else 0
-    return Motion.from_bake(bake, roles, strides, mask_row, heads, weapons)
+    return Motion.from_bake(bake, roles, strides, mask_row, heads, weapons, clip_speed)
 
 
 class PlayerScript:
@@ -217,12 +223,30 @@ class CrowdAI:
         self.player_hits_taken = 0
         self.steps = 0  # step() calls so far; an agent's spawned_step is the step in which it (re)appeared
         self.pair_builds = 0  # how often the separation's neighbour list was rebuilt (benchmarks report it)
-        # Action lengths by action code, for one gather per step; NO_ACTION never ends by time.
-        self._action_length = np.array([np.inf] + [motion.duration[r] if motion.clip[r] >= 0 else np.inf for r in ACTION_ROLES[1:]])
-        self._action_clip = np.array([0] + [max(motion.clip[r], 0) for r in ACTION_ROLES[1:]], np.float32)
+        self._motion_tables(motion)
         self.n = 0
         self._allocate(0)
         self.resize(agents)
+
+    def _motion_tables(self, motion: Motion) -> None:
+        # Action lengths by action code, for one gather per step; NO_ACTION never ends by time.
+        self._action_length = np.array([np.inf] + [motion.duration[r] if motion.clip[r] >= 0 else np.inf for r in ACTION_ROLES[1:]])
+        self._action_clip = np.array([0] + [max(motion.clip[r], 0) for r in ACTION_ROLES[1:]], np.float32)
+
+    def set_motion(self, motion: Motion) -> None:
+        """New clips, durations or speeds (a re-bake, a clip's playback speed): every agent keeps its state
+        and its speed factor; top speeds follow the new locomotion speeds."""
+        self.motion = motion
+        self._motion_tables(motion)
+        self.walk_top[:] = motion.walk_speed * self.speed_factor
+        self.chase_top[:] = np.where(self.runner, motion.run_speed, motion.walk_speed) * self.speed_factor
+
+    def set_config(self, config: AIConfig) -> None:
+        """New AI settings at run time (the panel): the world size follows the new settings."""
+        self.config = config.validate()
+        self.half_extent = self.config.half_extent_for(self.n)
+        self._pairs = None
+        self._bound()
 
     # -- agents (one numpy array per attribute; x and z apart so the hot loop reads contiguous memory)
 

@@ -19,6 +19,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import dataclasses
+
 import moderngl
 import numpy as np
 
@@ -73,7 +75,10 @@ class CrowdPipeline:
         self.latency = int(config.readback_latency)
         # Leave out what the scene does not need: no weapons, no socket, or nobody armed → no read-back
         # stage, no gather pass, no weapon meshes, and one palette instead of a ring.
-        armed = config.weapons and config.ai.armed_share > 0 and bool(self.character.props) and bool(self.character.sockets)
+        armed = self._armed(config)
+        self._masks = masks
+        self.clip_speed: dict[str, float] = {}  # clip name → playback speed (time scale), where not 1
+        self.layer_override = None  # callable(layers) applied after the AI wrote them (the panel's force clip and weights)
         self.processor = AnimationProcessor(ctx, self.bake, LAYERS, masks=masks, path=config.processor_path,
                                             history=self.latency + 1 if armed else 1)
         self.renderer = CrowdRenderer(ctx, self.character, self.bake.joint_count, self.processor.agents_per_row,
@@ -101,6 +106,91 @@ class CrowdPipeline:
     def agents(self) -> int:
         return self.ai.n
 
+    def _armed(self, config: PipelineConfig) -> bool:
+        return config.weapons and config.ai.armed_share > 0 and bool(self.character.props) and bool(self.character.sockets)
+
+    # -- run-time settings: the panel and the command line both come through these
+
+    def _new_renderer(self, **changes) -> None:
+        """Shadows decide the shaders and the shadow map, so switching them builds the renderer (and
+        the weapons' programs) again; the old objects are released."""
+        self.config = dataclasses.replace(self.config, **changes)
+        old = self.renderer
+        self.renderer = CrowdRenderer(self.ctx, self.character, self.bake.joint_count, self.processor.agents_per_row,
+                                      lod_distances=self.config.lod_distances, shadows=self.config.shadows, culling=self.config.culling)
+        old.release()
+        if self.weapons is not None:
+            self.weapons.release()
+            self.weapons = WeaponRenderer(self.ctx, self.character, self.config.shadows)
+
+    def set_shadows(self, on: bool) -> None:
+        if bool(on) != self.renderer.shadows:
+            self._new_renderer(shadows=bool(on))
+
+    def set_culling(self, on: bool) -> None:
+        self.config = dataclasses.replace(self.config, culling=bool(on))
+        self.renderer.culling = bool(on)
+
+    def set_lod_distances(self, near: float, far: float) -> None:
+        if not (np.isfinite(near) and np.isfinite(far) and 0 < near <= far):
+            raise PipelineError(f"LOD distances must be two increasing positive numbers, got {near!r}, {far!r}")
+        self.config = dataclasses.replace(self.config, lod_distances=(float(near), float(far)))
+        self.renderer.lod_distances = (float(near), float(far))
+
+    def set_weapons(self, on: bool) -> None:
+        """Weapons on: the read-back stage, weapon meshes and a palette ring appear; off: all of them go."""
+        self.config = dataclasses.replace(self.config, weapons=bool(on))
+        armed = self._armed(self.config)
+        if armed == (self.readback is not None):
+            return
+        if armed:
+            self.readback = SocketReadback(self.ctx, self.bake.joint_count, self.processor.agents_per_row)
+            self.weapons = WeaponRenderer(self.ctx, self.character, self.config.shadows)
+        else:
+            self.readback.release()
+            self.weapons.release()
+            self.readback = self.weapons = None
+            self._read = None
+        self.processor.set_history(self.latency + 1 if armed else 1)
+        self._palette_frames = deque(maxlen=self.processor.history)
+
+    def set_ai_config(self, config: AIConfig) -> None:
+        self.ai.set_config(config)
+        self.config = dataclasses.replace(self.config, ai=self.ai.config)
+
+    def rebake(self, fps: float, precision: str) -> None:
+        """Bake the scene's clips again at another rate or precision, live: a new bake and processor
+        replace the old ones (released), and the crowd keeps its state."""
+        bake = bake_roles(self.character, self.roles, fps, precision)
+        for i, clip in enumerate(bake.clips):  # loop settings made in the panel survive the re-bake
+            old = next((c for c in self.bake.clips if c.name == clip.name), None)
+            if old is not None:
+                bake.clips[i] = dataclasses.replace(clip, loop=old.loop)
+        processor = AnimationProcessor(self.ctx, bake, LAYERS, masks=self._masks, path=self.config.processor_path,
+                                       history=self.processor.history)
+        processor.resize(self.agents)
+        self.processor.release()
+        self.processor, self.bake = processor, bake
+        self.config = dataclasses.replace(self.config, bake_fps=float(fps), precision=precision)
+        self._palette_frames.clear()
+        if self.readback is not None:
+            self.readback.reset()
+        self.ai.set_motion(motion_for(self.character, self.bake, self.roles, self.clip_speed))
+        self.motion = self.ai.motion
+
+    def set_clip_speed(self, name: str, speed: float) -> None:
+        """A clip's playback speed (three.js's timeScale). Locomotion clips move the zombie faster too, so
+        their feet stay planted; actions end sooner."""
+        self.bake.clip_index(name)
+        speeds = {**self.clip_speed, name: float(speed)}
+        motion = motion_for(self.character, self.bake, self.roles, speeds)  # checks the range
+        self.clip_speed = {k: v for k, v in speeds.items() if v != 1.0}
+        self.ai.set_motion(motion)
+        self.motion = motion
+
+    def set_clip_loop(self, name: str, loop: bool) -> None:
+        self.processor.set_clip_loop(self.bake.clip_index(name), loop)
+
     def set_agent_count(self, agents: int) -> None:
         if not isinstance(agents, (int, np.integer)) or not 0 <= agents <= MAX_AGENTS:
             raise PipelineError(f"agent count must be 0 to {MAX_AGENTS}, got {agents!r}")
@@ -111,6 +201,13 @@ class CrowdPipeline:
         born = np.full(int(agents), self.frames, np.int64)
         born[: min(old, int(agents))] = self._born[: min(old, int(agents))]
         self._born = born
+        self.config = dataclasses.replace(self.config, agents=int(agents))
+
+    def set_seed(self, seed: int) -> None:
+        """A new crowd from another seed (same count, settings and clips); every agent starts anew."""
+        self.config = dataclasses.replace(self.config, seed=int(seed))
+        self.ai = CrowdAI(self.agents, int(seed), self.motion, self.ai.config, self.config.origin)
+        self._born[:] = self.frames
 
     def set_readback_latency(self, latency: int) -> None:
         """1 to 3 frames. The palette ring is reallocated, so weapons are hidden for `latency` frames."""
@@ -144,6 +241,8 @@ class CrowdPipeline:
             self.ai.step(dt)
             instances = self.ai.instances()
             layers = self.ai.write_layers(self._layers)
+            if self.layer_override is not None:
+                self.layer_override(layers)
         self._run("ai")
         self._born[self.ai.spawned_step >= steps_before] = f  # respawned (or added) in this frame's step
         self._pose_lag.append(float(min(dt, self.ai.config.max_dt)))

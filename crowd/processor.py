@@ -31,6 +31,7 @@ the context has GL 4.3. Both run the same GLSL (shaders/processor_common.glsl).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import moderngl
@@ -384,6 +385,13 @@ class AnimationProcessor:
     def process(self, layers) -> bool:
         self.upload(layers)
         return self.run()
+
+    def set_clip_loop(self, clip: int, loop: bool) -> None:
+        """Loop a clip (its phase wraps) or play it once (its phase clamps): the clip table is rewritten."""
+        if not 0 <= clip < len(self.bake.clips):
+            raise ProcessorError(f"no clip {clip}; the bake has {len(self.bake.clips)}")
+        self.bake.clips[clip] = dataclasses.replace(self.bake.clips[clip], loop=bool(loop))
+        self.clips_texture.write(np.ascontiguousarray(self.bake.clip_table).tobytes())
 
     def bind_palette(self, first_unit: int) -> None:
         """Bind the three planes (every palette of the history; instance records say which rows)."""

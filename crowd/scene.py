@@ -5,7 +5,8 @@ baked), the AI's settings, the features it switches on (weapons, shadows, LOD, c
 
     [scene]        name, model ("" = the built-in zombie; relative paths are from the scene's folder),
                    agents, seed
-    [clips]        bake_fps, precision ("f32" | "f16"), roles = { walk = "shamble", ... }
+    [clips]        bake_fps, precision ("f32" | "f16"), roles = { walk = "shamble", ... },
+                   speed = { shamble = 1.2, ... } (playback speed), loop = { attack = true, ... }
     [ai]           any AIConfig field (crowd/ai.py), e.g. runner_share = 0.3
     [features]     weapons, readback_latency (1-3), shadows, culling, lod_distances = [near, far],
                    processor ("auto" | "compute" | "fragment")
@@ -56,6 +57,8 @@ class Scene:
     bake_fps: float = 15.0
     precision: str = "f32"
     roles: dict = field(default_factory=dict)
+    clip_speed: dict = field(default_factory=dict)  # clip name → playback speed
+    clip_loop: dict = field(default_factory=dict)  # clip name → loop (true) or play once (false), where set
     ai: AIConfig = field(default_factory=AIConfig)
     weapons: bool = True
     readback_latency: int = 2
@@ -111,7 +114,7 @@ class Scene:
 # table → key → kind (int, float, bool, str, roles, pair, vec3, path); [ai] takes the AIConfig fields
 _SCHEMA = {
     "scene": {"name": "str", "model": "path", "agents": "int", "seed": "int"},
-    "clips": {"bake_fps": "float", "precision": "str", "roles": "roles"},
+    "clips": {"bake_fps": "float", "precision": "str", "roles": "roles", "speed": "speeds", "loop": "loops"},
     "features": {"weapons": "bool", "readback_latency": "int", "shadows": "bool", "culling": "bool", "lod_distances": "pair",
                  "processor": "str"},
     "camera": {"eye": "vec3", "target": "vec3", "fov_y": "float"},
@@ -144,6 +147,15 @@ def _typed(where: str, kind: str, value):
         if not isinstance(value, list) or len(value) != n:
             raise bad(f"a list of {n} numbers")
         return tuple(_typed(where, "float", v) for v in value)
+    if kind in ("speeds", "loops"):
+        if not isinstance(value, dict):
+            raise bad("a table of clip name = value")
+        for clip, v in value.items():
+            if kind == "loops" and not isinstance(v, bool):
+                raise SceneError(f"{where}.{clip} must be true or false, got {v!r}")
+            if kind == "speeds" and (isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.05 <= v <= 20.0):
+                raise SceneError(f"{where}.{clip} must be a playback speed of 0.05 to 20, got {v!r}")
+        return {k: (float(v) if kind == "speeds" else v) for k, v in value.items()}
     if kind == "roles":
         if not isinstance(value, dict):
             raise bad("a table of role = clip name")
@@ -193,6 +205,10 @@ def scene_from_dict(data: dict, base: Path | None = None, source: str = "scene")
             raise SceneError(f"{where('clips', 'precision')} must be \"f32\" or \"f16\", got {scene.precision!r}")
     if "roles" in c:
         scene.roles = _typed(where("clips", "roles"), "roles", c["roles"])
+    if "speed" in c:
+        scene.clip_speed = _typed(where("clips", "speed"), "speeds", c["speed"])
+    if "loop" in c:
+        scene.clip_loop = _typed(where("clips", "loop"), "loops", c["loop"])
     f = data.get("features", {})
     for key in ("weapons", "shadows", "culling"):
         if key in f:
@@ -259,7 +275,8 @@ def scene_to_dict(scene: Scene, base: Path | None = None) -> dict:
     default_ai = AIConfig()
     out = {
         "scene": {"name": scene.name, "model": model, "agents": scene.agents, "seed": scene.seed},
-        "clips": {"bake_fps": scene.bake_fps, "precision": scene.precision, "roles": dict(scene.roles)},
+        "clips": {"bake_fps": scene.bake_fps, "precision": scene.precision, "roles": dict(scene.roles),
+                  "speed": dict(scene.clip_speed), "loop": dict(scene.clip_loop)},
         "features": {"weapons": scene.weapons, "readback_latency": scene.readback_latency, "shadows": scene.shadows,
                      "culling": scene.culling, "lod_distances": list(scene.lod_distances), "processor": scene.processor},
         "ai": {f.name: getattr(scene.ai, f.name) for f in dataclasses.fields(AIConfig)

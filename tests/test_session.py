@@ -1,0 +1,199 @@
+"""The panel's actions, without a window: every control goes through CrowdSession, the same object
+the window drives, and the scene it saves loads back as the run that saved it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from crowd.ai import HIT, AIConfig
+from crowd.processor import CLIP, PHASE, WEIGHT
+from crowd.scene import Scene, load_scene
+from crowd.session import CrowdSession, SessionError
+from crowd.smoke import offscreen_framebuffer
+
+SIZE = (192, 108)
+DT = 1.0 / 60.0
+
+
+@pytest.fixture
+def session(gl_context):
+    made = []
+
+    def make(**scene):
+        s = CrowdSession(gl_context, Scene(**{"agents": 30, "shadows": False, "ai": AIConfig(half_extent=8.0), **scene}), SIZE[0] / SIZE[1])
+        fb, attachments = offscreen_framebuffer(gl_context, SIZE)
+        made.append((s, fb, attachments))
+        return s, fb
+
+    yield make
+    for s, fb, attachments in made:
+        s.release()
+        fb.release()
+        for a in attachments:
+            a.release()
+
+
+def test_pause_single_step_and_time_scale(session):
+    s, fb = session()
+    s.frame(fb, DT)
+    t0 = s.pipeline.ai.time
+    s.set_paused(True)
+    for _ in range(3):
+        s.frame(fb, DT)
+    assert s.pipeline.ai.time == t0
+    s.step_once()
+    s.frame(fb, DT)
+    s.frame(fb, DT)
+    assert s.pipeline.ai.time == pytest.approx(t0 + 1 / 60)
+    s.set_paused(False)
+    s.set_time_scale(2.0)
+    s.frame(fb, DT)
+    assert s.pipeline.ai.time == pytest.approx(t0 + 3 / 60)
+    for bad in (-1.0, 11.0, float("nan")):
+        with pytest.raises(SessionError, match="time scale"):
+            s.set_time_scale(bad)
+    with pytest.raises(SessionError, match="frame time"):
+        s.frame(fb, float("inf"))
+
+
+def test_agent_count_live_from_0_to_10000_and_back(session):
+    s, fb = session()
+    s.selected = 25
+    for n in (0, 10_000, 0, 200):
+        s.set_agent_count(n)
+        s.frame(fb, DT)
+        assert s.pipeline.agents == n and s.pipeline.processor.nan_rows() == 0
+    assert s.selected == -1  # agent 25 went away with the count at 0
+    with pytest.raises(SessionError, match="agent count"):
+        s.set_agent_count(-1)
+
+
+def test_play_a_clip_on_all_then_give_control_back(session):
+    s, fb = session()
+    s.frame(fb, DT)
+    s.set_clip_speed("attack", 2.0)
+    s.play("attack", selected_only=False)
+    for _ in range(6):
+        s.frame(fb, DT)
+    layers = s.pipeline._layers
+    attack = s.clip_names().index("attack")
+    assert np.all(layers[:, 0, CLIP] == attack) and np.all(layers[:, 0, WEIGHT] == 1.0) and np.all(layers[:, 1:, WEIGHT] == 0.0)
+    duration = s.pipeline.bake.clips[attack].duration
+    assert layers[0, 0, PHASE] == pytest.approx(6 * DT * 2.0 / duration, rel=1e-4)  # time x speed / duration
+    s.play(None)
+    s.frame(fb, DT)
+    assert set(s.pipeline._layers[:, 0, CLIP].tolist()) == {s.clip_names().index("idle")}  # the AI's idle layer again
+    with pytest.raises(SessionError, match="no agent selected"):
+        s.play("attack")
+    with pytest.raises(SessionError, match="was not baked"):
+        s.play("moonwalk", selected_only=False)
+
+
+def test_held_weight_on_the_selected_agent_only(session):
+    s, fb = session()
+    s.selected = 4
+    s.set_weight(2, 0.75, selected_only=True)
+    s.frame(fb, DT)
+    assert s.pipeline._layers[4, 2, WEIGHT] == 0.75
+    assert s.inspect()["layers"][2]["weight"] == 0.75
+    s.set_weight(2, None)
+    with pytest.raises(SessionError, match="weight"):
+        s.set_weight(1, float("nan"))
+    with pytest.raises(SessionError, match="layer"):
+        s.set_weight(4, 1.0)
+
+
+def test_clip_speed_moves_the_walk_faster_and_loop_reaches_the_gpu(session):
+    s, fb = session()
+    walk = s.pipeline.roles["walk"]
+    base = s.pipeline.motion.walk_speed
+    s.set_clip_speed(walk, 1.5)
+    assert s.pipeline.motion.walk_speed == pytest.approx(1.5 * base)  # feet stay planted
+    assert s.pipeline.ai.walk_top.max() <= 1.5 * base * s.pipeline.ai.config.speed_max + 1e-9
+    with pytest.raises(SessionError, match="playback speed"):
+        s.set_clip_speed(walk, 0.0)
+    s.set_clip_loop("attack", True)
+    table = np.frombuffer(s.pipeline.processor.clips_texture.read(), np.float32).reshape(-1, 4)
+    assert table[s.clip_names().index("attack"), 3] == 1.0
+    s.frame(fb, DT)
+
+
+def test_rebake_and_features_live(session):
+    s, fb = session()
+    s.frame(fb, DT)
+    old_processor = s.pipeline.processor
+    s.rebake(30.0, "f16")
+    assert s.pipeline.bake.fps == 30.0 and s.pipeline.bake.precision == "f16" and old_processor.planes == ()
+    s.set_shadows(True)
+    s.set_weapons(False)
+    s.set_lod_distances(5.0, 10.0)
+    s.set_culling(False)
+    for _ in range(3):
+        s.frame(fb, DT)
+    bytes_ = s.pipeline.gpu_bytes()
+    assert bytes_["shadow_map"] > 0 and "readback" not in bytes_ and s.pipeline.processor.history == 1
+    assert s.pipeline.processor.nan_rows() == 0
+    s.set_weapons(True)
+    s.set_readback_latency(3)
+    for _ in range(5):
+        s.frame(fb, DT)
+    assert s.pipeline.weapons.last["weapons"] > 0 and s.pipeline.weapon_error_mm() <= 0.1
+    with pytest.raises(SessionError, match="bake rate"):
+        s.rebake(0.0, "f32")
+    with pytest.raises(SessionError, match="LOD"):
+        s.set_lod_distances(10.0, 5.0)
+    with pytest.raises(SessionError, match="latency"):
+        s.set_readback_latency(0)
+
+
+def test_pick_an_agent_move_the_player_and_strike(session):
+    s, fb = session()
+    s.frame(fb, DT)
+    ai = s.pipeline.ai
+    chest = np.stack([ai.x, np.full(ai.n, 1.2), ai.z], axis=1)
+    pixels = s.pipeline.project(chest, SIZE)
+    # The agent nearest the camera, so nobody stands in front of it.
+    a = int(np.argmin(np.linalg.norm(chest - s.pipeline.camera.eye, axis=1)))
+    assert s.pick(*pixels[a], SIZE) == a and s.selected == a
+    assert s.pick(SIZE[0] / 2, 1.0, SIZE) == -1 and s.selected == -1  # the sky
+    ground = s.ground_point(*pixels[a], SIZE)
+    assert ground is not None
+    s.move_player((ai.x[a] + 0.5, ai.z[a]))
+    assert s.strike() == a and ai.state[a] == HIT
+    with pytest.raises(SessionError, match="ground point"):
+        s.move_player((float("nan"), 0.0))
+
+
+def test_saved_scene_loads_back_as_the_run_that_saved_it(session, tmp_path):
+    s, fb = session(agents=12)
+    s.set_crossfade(0.4)
+    s.set_clip_speed(s.pipeline.roles["run"], 1.25)
+    s.set_clip_loop("hit", True)
+    s.set_agent_count(17)
+    s.rebake(20.0, "f32")
+    s.frame(fb, DT)
+    path = tmp_path / "tweaked.toml"
+    s.save(path)
+    loaded = load_scene(path)
+    assert loaded == s.to_scene()
+    assert loaded.agents == 17 and loaded.ai.crossfade == 0.4 and loaded.bake_fps == 20.0
+    assert loaded.clip_speed == {s.pipeline.roles["run"]: 1.25} and loaded.clip_loop == {"hit": True}
+    again = CrowdSession(s.ctx, loaded, SIZE[0] / SIZE[1])
+    try:
+        assert again.pipeline.clip_speed == s.pipeline.clip_speed
+        assert again.pipeline.bake.clips[again.clip_names().index("hit")].loop
+        assert np.allclose(again.pipeline.camera.eye, s.pipeline.camera.eye)
+    finally:
+        again.release()
+
+
+def test_inspector(session):
+    s, fb = session()
+    s.frame(fb, DT)
+    s.selected = 3
+    info = s.inspect()
+    assert info["agent"] == 3 and info["state"] in ("wander", "chase", "attack", "hit", "dying", "dead")
+    assert len(info["layers"]) == 4 and {l["clip"] for l in info["layers"][:3]} == {"idle", "shamble", "run"}
+    assert info["weapon"] in (None, "pipe", "axe")
+    assert s.inspect(10_000) is None
