@@ -1,8 +1,9 @@
 """``crowd-demo``: the demo entry point. Thin: it parses flags and calls the stages.
 
-The interactive window comes with issue 6. Until then, and on any machine without a display, the demo
-runs the headless smoke mode: the whole frame loop offscreen through EGL, a PNG of the last frame and
-a JSON of stats.
+With a display it opens the window (app/window.py: the crowd, the player marker and the ImGui panel)
+and runs until it is closed, or for --frames frames. Without one, or with --headless, it runs the
+headless smoke mode: the whole frame loop offscreen through EGL, a PNG of the last frame and a JSON of
+stats. The same flags drive both.
 """
 
 from __future__ import annotations
@@ -15,11 +16,11 @@ from pathlib import Path
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="crowd-demo", description="Zombie crowd demo: GPU animation processor and skinned instancing.")
     p.add_argument("--headless", action="store_true", help="run offscreen through EGL even when a display exists")
-    p.add_argument("--frames", type=int, default=60, help="frames to run (default 60)")
+    p.add_argument("--frames", type=int, default=None, help="frames to run (headless default 60; the window runs until closed)")
     p.add_argument("--scene", type=Path, default=None, help="a scene file (TOML; see scenes/); flags given as well override it")
     p.add_argument("--agents", type=int, default=None, help="number of zombies (default: the scene's, 200)")
     p.add_argument("--size", default="1280x720", help="frame size WxH (default 1280x720)")
-    p.add_argument("--screenshot", type=Path, default=Path("out/demo.png"), help="PNG of the last frame")
+    p.add_argument("--screenshot", type=Path, default=None, help="PNG of the last frame (headless default out/demo.png)")
     p.add_argument("--stats", type=Path, default=None, help="JSON of frame and pass timings")
     p.add_argument("--model", type=Path, default=None, help="a skinned .glb/.gltf (default: the built-in zombie)")
     p.add_argument("--roles", default=None, help="clip role overrides, e.g. walk=Walking,idle=Idle")
@@ -50,11 +51,14 @@ def main(argv=None) -> int:
     from crowd.smoke import run_headless
     from crowd.weapons import WeaponError
 
-    if not args.headless:
-        reason = "no display found" if not has_display() else "the interactive window is not built yet (issue 6)"
-        print(f"crowd-demo: {reason}; running headless (EGL) instead.")
+    windowed = not args.headless and has_display()
+    if not args.headless and not windowed:
+        print("crowd-demo: no display found; running headless (EGL) instead.")
+    if not windowed:
+        args.frames = 60 if args.frames is None else args.frames
+        args.screenshot = args.screenshot or Path("out/demo.png")
     try:
-        if not 1 <= args.frames <= 100_000:
+        if args.frames is not None and not 1 <= args.frames <= 100_000:
             raise PipelineError(f"--frames must be 1 to 100000, got {args.frames}")
         if args.model is not None and not args.model.is_file():
             raise PipelineError(f"--model {args.model}: no such file")
@@ -70,8 +74,15 @@ def main(argv=None) -> int:
                                      shadows=off(args.no_shadows), culling=off(args.no_culling), weapons=off(args.no_weapons),
                                      readback_latency=args.readback_latency)
         size = smoke_size(args.size)
-        stats = run_headless(scene.pipeline_config(), args.frames, size, args.screenshot, args.stats,
-                             camera=scene.camera_for(size[0] / size[1]))
+        stats = None
+        if windowed:
+            stats = _run_window(scene, size, args)
+            if stats is None:
+                args.frames = 60 if args.frames is None else args.frames
+                args.screenshot = args.screenshot or Path("out/demo.png")
+        if stats is None:
+            stats = run_headless(scene.pipeline_config(), args.frames, size, args.screenshot, args.stats,
+                                 camera=scene.camera_for(size[0] / size[1]))
     except (AIError, GltfImportError, BakeError, PipelineError, ProcessorError, RenderError, RoleError, GLUnavailable,
             ReadbackError, WeaponError, SceneError) as exc:
         print(f"crowd-demo: {exc}", file=sys.stderr)
@@ -87,8 +98,26 @@ def main(argv=None) -> int:
         print(f"weapons: {w['drawn']} drawn, read back {w['latency_frames']} frames late (pose lag {w['pose_lag_ms']} ms); "
               f"weapon-to-hand error {stats['weapon_error_mm']} mm; read-back wait median {stats['readback_wait_ms']['median']} ms, "
               f"max {stats['readback_wait_ms']['max']} ms, {w['stalls']} stalls")
-    print(f"wrote {args.screenshot}" + (f" and {args.stats}" if args.stats else ""))
+    if args.screenshot or args.stats:
+        print("wrote " + " and ".join(str(p) for p in (args.screenshot, args.stats) if p))
     return 0
+
+
+def _run_window(scene, size, args):
+    """The window, or None (after one line saying why) when no window can be made here."""
+    try:
+        from app.window import run_window
+    except Exception as exc:  # pyglet raises several types when it finds no usable display
+        print(f"crowd-demo: cannot open a window ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); "
+              "running headless (EGL) instead.", file=sys.stderr)
+        return None
+    try:
+        return run_window(scene, size, args.frames, args.screenshot, args.stats, args.scene)
+    except Exception as exc:
+        if "window" in type(exc).__module__.lower() or "pyglet" in type(exc).__module__.lower() or "Display" in type(exc).__name__:
+            print(f"crowd-demo: cannot open a window ({type(exc).__name__}); running headless (EGL) instead.", file=sys.stderr)
+            return None
+        raise
 
 
 if __name__ == "__main__":

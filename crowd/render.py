@@ -191,7 +191,8 @@ class CrowdRenderer:
             if m.group and m.piece not in self.groups.setdefault(m.group, []):
                 self.groups[m.group].append(m.piece)
         self._piece_group = {m.piece: m.group for m in meshes}
-        self._objects: dict[str, list] = {"meshes": [], "instances": [], "programs": [], "shadow_map": [], "ground": []}
+        self._objects: dict[str, list] = {"meshes": [], "instances": [], "programs": [], "shadow_map": [], "ground": [], "markers": []}
+        self._marker = None  # (program, vao, instance buffer), made on first use: headless runs draw no markers
         self.draws: list[_Draw] = []
         for m in sorted(meshes, key=lambda m: (m.lod, m.piece)):
             vbo = self._own("meshes", ctx.buffer(pack_vertices(m).tobytes()))
@@ -272,6 +273,7 @@ class CrowdRenderer:
         self._objects = {k: [] for k in self._objects}
         self._programs.clear()
         self.draws = []
+        self._marker = None
 
     # -- per frame
 
@@ -395,6 +397,33 @@ class CrowdRenderer:
         for draw in self.draws:
             if draw.count:
                 self._vao(draw, "color", skinned).render(moderngl.TRIANGLES, instances=draw.count)
+
+    def marker_pass(self, framebuffer, camera: Camera, view_proj: np.ndarray, points: np.ndarray, radii, colors) -> None:
+        """Flat rings on the ground at world points (M, 3), float64; colours are linear RGBA."""
+        points = np.asarray(points, np.float64).reshape(-1, 3)
+        if not len(points):
+            return
+        if self._marker is None:
+            prog = self._own("markers", self.ctx.program(vertex_shader=load_shader("marker.vert.glsl"), fragment_shader=load_shader("marker.frag.glsl")))
+            segments = 48
+            a = np.linspace(0.0, 2.0 * math.pi, segments + 1)
+            strip = np.stack([np.repeat(a, 2), np.tile([0.0, 1.0], segments + 1)], axis=1).astype(np.float32)
+            ring = self._own("markers", self.ctx.buffer(strip.tobytes()))
+            inst = self._own("markers", self.ctx.buffer(reserve=32))
+            vao = self._own("markers", self.ctx.vertex_array(prog, [(ring, "2f", "in_ring"), (inst, "4f 4f/i", "i_position_radius", "i_color")]))
+            self._marker = (prog, vao, inst, len(strip))
+        prog, vao, inst, count = self._marker
+        data = np.zeros((len(points), 8), np.float32)
+        data[:, :3] = points - np.asarray(camera.eye, np.float64)[None]
+        data[:, 3] = np.broadcast_to(np.asarray(radii, np.float64), (len(points),))
+        data[:, 4:] = np.broadcast_to(np.asarray(colors, np.float64).reshape(-1, 4), (len(points), 4))
+        if inst.size != data.nbytes:
+            inst.orphan(data.nbytes)
+        inst.write(data.tobytes())
+        framebuffer.use()
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        prog["u_view_proj"].write(gl_bytes(view_proj))
+        vao.render(moderngl.TRIANGLE_STRIP, vertices=count, instances=len(points))
 
     def ground_pass(self, framebuffer, camera: Camera, view_proj: np.ndarray) -> None:
         framebuffer.use()

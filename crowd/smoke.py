@@ -42,6 +42,25 @@ def png_bytes(image: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+def collect_stats(ctx: moderngl.Context, pipeline: CrowdPipeline, frame_ms: list, size, config) -> dict:
+    """The stats JSON of a run (headless or windowed): device, frame times, passes and the pipeline's own."""
+    stats = describe(ctx)
+    stats.update({
+        "agents": pipeline.agents,
+        "frames": len(frame_ms),
+        "size": list(size),
+        "seed": pipeline.config.seed,
+        "model": str(config.model) if config.model else "built-in zombie",
+        "frame_ms": percentiles(frame_ms[1:] if len(frame_ms) > 1 else frame_ms),  # frame 0 compiles shaders
+        "nan_count": pipeline.processor.nan_rows(),
+        "python": platform.python_version(),
+        "moderngl": moderngl.__version__,
+        "warnings": pipeline.character.warnings + pipeline.bake.warnings + pipeline.role_notes,
+    })
+    stats.update(pipeline.stats())
+    return stats
+
+
 def run_headless(config: PipelineConfig, frames: int, size: tuple[int, int], screenshot: Path | None = None,
                  stats_path: Path | None = None, ctx: moderngl.Context | None = None, camera=None) -> dict:
     own_ctx = ctx is None
@@ -59,20 +78,7 @@ def run_headless(config: PipelineConfig, frames: int, size: tuple[int, int], scr
             frame_ms.append((time.perf_counter() - t0) * 1e3)
         pipeline.timer.end_frame(drain=True)
         image = read_image(fb, size)
-        stats = describe(ctx)
-        stats.update({
-            "agents": config.agents,
-            "frames": frames,
-            "size": list(size),
-            "seed": config.seed,
-            "model": str(config.model) if config.model else "built-in zombie",
-            "frame_ms": percentiles(frame_ms[1:] if len(frame_ms) > 1 else frame_ms),  # frame 0 compiles shaders
-            "nan_count": pipeline.processor.nan_rows(),
-            "python": platform.python_version(),
-            "moderngl": moderngl.__version__,
-            "warnings": pipeline.character.warnings + pipeline.bake.warnings + pipeline.role_notes,
-        })
-        stats.update(pipeline.stats())
+        stats = collect_stats(ctx, pipeline, frame_ms, size, config)
         stats["gpu_bytes"]["framebuffer"] = size[0] * size[1] * 8
         if screenshot is not None:
             atomic_write_bytes(Path(screenshot), png_bytes(image))

@@ -6,13 +6,16 @@ a timing never waits for the GPU in a windowed frame loop. Medians are what the 
 
 from __future__ import annotations
 
+import itertools
 import time
+from collections import deque
 from contextlib import contextmanager
 
 import moderngl
 import numpy as np
 
 RING = 3
+KEEP = 100_000  # samples kept per pass: a window left running for hours does not grow without bound
 
 
 class PassTimer:
@@ -21,7 +24,7 @@ class PassTimer:
         self.frame = 0
         self._queries: dict[str, list] = {}
         self._pending: list[tuple[int, str, object]] = []
-        self.samples: dict[str, list[float]] = {}
+        self.samples: dict[str, deque] = {}
         self.clock: dict[str, str] = {}
         self.order: list[str] = []
 
@@ -37,7 +40,7 @@ class PassTimer:
         try:
             yield
         finally:
-            self.samples.setdefault(name, []).append((time.perf_counter() - t0) * 1e3)
+            self._samples(name).append((time.perf_counter() - t0) * 1e3)
 
     @contextmanager
     def gpu(self, name: str):
@@ -59,11 +62,20 @@ class PassTimer:
         keep = []
         for frame, name, query in self._pending:
             if drain or frame <= self.frame - (RING - 1):
-                self.samples.setdefault(name, []).append(query.elapsed / 1e6)
+                self._samples(name).append(query.elapsed / 1e6)
             else:
                 keep.append((frame, name, query))
         self._pending = keep
         self.frame += 1
+
+    def _samples(self, name: str) -> deque:
+        if name not in self.samples:
+            self.samples[name] = deque(maxlen=KEEP)
+        return self.samples[name]
+
+    def recent(self, name: str, count: int) -> list[float]:
+        """The last `count` samples of a pass (the panel's live numbers)."""
+        return list(itertools.islice(reversed(self.samples.get(name, ())), count))
 
     def medians(self) -> dict[str, float]:
         return {name: round(float(np.median(self.samples[name])), 4) for name in self.order if self.samples.get(name)}

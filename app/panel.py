@@ -1,0 +1,228 @@
+"""The ImGui panel: frame rate, pass timings and every animation control. Thin: each widget calls one
+``apply`` action, and each action is one CrowdSession method (so tests drive the same path without a
+window). A control given a bad value shows its one-line error in the panel and changes nothing.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+
+from crowd.ai import AIError
+from crowd.bake import BakeError
+from crowd.pipeline import PipelineError
+from crowd.processor import ProcessorError
+from crowd.scene import SceneError
+from crowd.session import CrowdSession, SessionError
+
+HISTORY_SECONDS = 5.0
+LAYER_NAMES = ("idle", "walk", "run", "action")
+
+
+class Panel:
+    def __init__(self, session: CrowdSession, scene_path: Path | None):
+        self.session = session
+        self.scene_path = scene_path or Path("out/scene.toml")
+        self.status = ""
+        self.frame_times: deque = deque(maxlen=2000)  # seconds; the plot shows the last HISTORY_SECONDS of them
+        self.visible = True
+        bake = session.pipeline.bake
+        self._bake_fps, self._precision = float(bake.fps), bake.precision
+        self._seed = session.pipeline.config.seed
+        self._held = {layer: [False, 1.0] for layer in range(4)}
+        self._weights_selected_only = False
+
+    # -- actions: the only way the panel changes anything
+
+    ACTIONS = {
+        "agents": "set_agent_count", "seed": "set_seed", "crossfade": "set_crossfade", "time_scale": "set_time_scale",
+        "pause": "set_paused", "step": "step_once", "clip_speed": "set_clip_speed", "clip_loop": "set_clip_loop",
+        "play": "play", "weight": "set_weight", "rebake": "rebake", "lod": "set_lod_distances", "culling": "set_culling",
+        "shadows": "set_shadows", "weapons": "set_weapons", "latency": "set_readback_latency",
+    }
+
+    def apply(self, action: str, *args, **kwargs) -> bool:
+        """Run one control's action; False (and the reason in the status line) when it was refused."""
+        try:
+            if action == "save":
+                backup = self.session.save(self.scene_path)
+                self.status = f"saved {self.scene_path}" + (f" (previous kept as {backup.name})" if backup else "")
+            else:
+                getattr(self.session, self.ACTIONS[action])(*args, **kwargs)
+                self.status = ""
+            return True
+        except (SessionError, SceneError, PipelineError, ProcessorError, AIError, BakeError, OSError) as exc:
+            self.status = str(exc).splitlines()[0]
+            return False
+
+    # -- drawing
+
+    def record_frame(self, seconds: float) -> None:
+        self.frame_times.append(float(seconds))
+
+    def draw(self) -> None:
+        from imgui_bundle import imgui
+
+        if not self.visible:
+            return
+        imgui.set_next_window_pos(imgui.ImVec2(10, 10), imgui.Cond_.first_use_ever)
+        imgui.set_next_window_size(imgui.ImVec2(380, 640), imgui.Cond_.first_use_ever)
+        imgui.begin("crowd")
+        self._draw_timing(imgui)
+        if imgui.collapsing_header("Crowd", imgui.TreeNodeFlags_.default_open):
+            self._draw_crowd(imgui)
+        if imgui.collapsing_header("Clips", imgui.TreeNodeFlags_.default_open):
+            self._draw_clips(imgui)
+        if imgui.collapsing_header("Layer weights"):
+            self._draw_weights(imgui)
+        if imgui.collapsing_header("Bake and rendering"):
+            self._draw_rendering(imgui)
+        if imgui.collapsing_header("Selected agent", imgui.TreeNodeFlags_.default_open):
+            self._draw_inspector(imgui)
+        imgui.separator()
+        if imgui.button("Save scene"):
+            self.apply("save")
+        imgui.same_line()
+        imgui.text(str(self.scene_path))
+        if self.status:
+            imgui.text_colored(imgui.ImVec4(1.0, 0.6, 0.3, 1.0), self.status)
+        imgui.end()
+
+    def _draw_timing(self, imgui) -> None:
+        from imgui_bundle import implot
+
+        times = np.asarray(self.frame_times, np.float64)
+        if times.size:
+            recent = times[-int(min(times.size, max(1, HISTORY_SECONDS / max(np.median(times[-60:]), 1e-4)))):]
+            imgui.text(f"{1.0 / max(np.median(recent[-60:]), 1e-6):.0f} fps   frame {np.median(recent[-60:]) * 1e3:.2f} ms (median of 60)")
+            if implot.begin_plot("frame time", imgui.ImVec2(-1, 110)):
+                implot.setup_axes("frame", "ms", implot.AxisFlags_.no_tick_labels, implot.AxisFlags_.auto_fit)
+                implot.setup_axis_limits(implot.ImAxis_.x1, 0, len(recent), implot.Cond_.always)
+                implot.plot_line("ms", np.ascontiguousarray(recent * 1e3))
+                implot.end_plot()
+        timer = self.session.pipeline.timer
+        if imgui.begin_table("passes", 3):
+            for name in timer.order:
+                samples = timer.recent(name, 60)
+                if not samples:
+                    continue
+                imgui.table_next_row()
+                imgui.table_next_column()
+                imgui.text(name)
+                imgui.table_next_column()
+                imgui.text(timer.clock[name].upper())
+                imgui.table_next_column()
+                imgui.text(f"{np.median(samples):.3f} ms")
+            imgui.end_table()
+
+    def _draw_crowd(self, imgui) -> None:
+        s = self.session
+        changed, agents = imgui.slider_int("agents", s.pipeline.agents, 0, 10_000)
+        if changed:
+            self.apply("agents", agents)
+        changed, agents = imgui.input_int("agents (any)", s.pipeline.agents, 100, 1000)
+        if changed:
+            self.apply("agents", max(0, agents))
+        changed, paused = imgui.checkbox("pause", s.paused)
+        if changed:
+            self.apply("pause", paused)
+        imgui.same_line()
+        if imgui.button("step"):
+            self.apply("step")
+        changed, scale = imgui.slider_float("time scale", s.time_scale, 0.0, 4.0)
+        if changed:
+            self.apply("time_scale", scale)
+        _, self._seed = imgui.input_int("seed", self._seed)
+        imgui.same_line()
+        if imgui.button("new crowd"):
+            self.apply("seed", self._seed)
+        changed, fade = imgui.slider_float("cross-fade (s)", s.pipeline.ai.config.crossfade, 0.0, 1.5)
+        if changed:
+            self.apply("crossfade", fade)
+        counts = s.pipeline.ai.counts()
+        imgui.text("  ".join(f"{k} {v}" for k, v in counts.items()))
+        imgui.text("drag: orbit  shift/middle drag: pan  wheel: zoom  click: select")
+        imgui.text("right click: move player  space: strike  P: pause  .: step  H: panel")
+
+    def _draw_clips(self, imgui) -> None:
+        s = self.session
+        for i, clip in enumerate(s.pipeline.bake.clips):
+            imgui.push_id(f"clip{i}")
+            roles = [r for r, name in s.pipeline.roles.items() if name == clip.name]
+            imgui.text(f"{clip.name} ({', '.join(roles) or '-'}, {clip.duration:.2f} s)")
+            changed, speed = imgui.slider_float("speed", s.pipeline.clip_speed.get(clip.name, 1.0), 0.1, 3.0)
+            if changed:
+                self.apply("clip_speed", clip.name, speed)
+            imgui.same_line()
+            changed, loop = imgui.checkbox("loop", clip.loop)
+            if changed:
+                self.apply("clip_loop", clip.name, loop)
+            if imgui.button("play on selected"):
+                self.apply("play", clip.name, selected_only=True)
+            imgui.same_line()
+            if imgui.button("play on all"):
+                self.apply("play", clip.name, selected_only=False)
+            imgui.pop_id()
+        if s.forced is not None and imgui.button("back to the AI"):
+            self.apply("play", None)
+
+    def _draw_weights(self, imgui) -> None:
+        _, self._weights_selected_only = imgui.checkbox("selected agent only", self._weights_selected_only)
+        for layer, name in enumerate(LAYER_NAMES):
+            imgui.push_id(f"w{layer}")
+            held, value = self._held[layer]
+            changed_h, held = imgui.checkbox("hold", held)
+            imgui.same_line()
+            changed_v, value = imgui.slider_float(name, value, 0.0, 2.0)
+            if changed_h or (held and changed_v):
+                if self.apply("weight", layer, value if held else None, selected_only=self._weights_selected_only):
+                    self._held[layer] = [held, value]
+            else:
+                self._held[layer][1] = value
+            imgui.pop_id()
+
+    def _draw_rendering(self, imgui) -> None:
+        s = self.session
+        p = s.pipeline
+        _, self._bake_fps = imgui.slider_float("bake fps", self._bake_fps, 5.0, 60.0, "%.0f")
+        precisions = ["f32", "f16"]
+        _, index = imgui.combo("precision", precisions.index(self._precision), precisions)
+        self._precision = precisions[index]
+        if imgui.button("re-bake"):
+            self.apply("rebake", round(self._bake_fps), self._precision)
+        imgui.text(f"baked: {len(p.bake.clips)} clips at {p.bake.fps:g} fps, {p.bake.precision}, {p.bake.nbytes:,} bytes")
+        near, far = p.renderer.lod_distances
+        changed, (near, far) = imgui.drag_float2("LOD distances (m)", [near, far], 0.5, 1.0, 500.0)
+        if changed:
+            self.apply("lod", near, max(near, far))
+        changed, on = imgui.checkbox("culling", p.renderer.culling)
+        if changed:
+            self.apply("culling", on)
+        changed, on = imgui.checkbox("shadows", p.renderer.shadows)
+        if changed:
+            self.apply("shadows", on)
+        changed, on = imgui.checkbox("weapons", p.config.weapons)
+        if changed:
+            self.apply("weapons", on)
+        changed, latency = imgui.slider_int("read-back latency (frames)", p.latency, 1, 3)
+        if changed:
+            self.apply("latency", latency)
+        if p.weapons is not None:
+            w = p.weapon_stats()
+            imgui.text(f"{w['drawn']} weapons, pose lag {w['pose_lag_ms']:.1f} ms, {w['stalls']} stalls")
+        imgui.text("skinning: dual quaternions (linear blend skinning is not built)")
+        last = p.renderer.last
+        imgui.text(f"{last['instances']:,} instances, {last['triangles']:,} triangles, LODs {last['lod_counts']}")
+
+    def _draw_inspector(self, imgui) -> None:
+        info = self.session.inspect()
+        if info is None:
+            imgui.text("click a zombie to select it")
+            return
+        imgui.text(f"agent {info['agent']}: {info['state']}, health {info['health']}, {info['speed']:.2f} m/s")
+        imgui.text(f"phase {info['phase']:.3f}, weapon {info['weapon'] or 'none'}")
+        for name, layer in zip(LAYER_NAMES, info["layers"]):
+            imgui.text(f"  {name:6s} {layer['clip']:10s} phase {layer['phase']:.3f} weight {layer['weight']:.3f}"
+                       + (f" mask {layer['mask']}" if layer["mask"] >= 0 else ""))

@@ -1,0 +1,211 @@
+"""The demo window: moderngl-window (pyglet) with the crowd, the ground, the player marker and the ImGui
+panel. Thin: input is turned into CrowdSession calls, the panel into Panel actions.
+
+Mouse: left drag orbits, middle drag or shift + left drag pans, the wheel zooms, a left click (without
+dragging) selects the zombie under the cursor, a right click moves the player there.
+Keys: space strikes, W/A/S/D walk the player, P pauses, "." steps one frame, H hides the panel.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import moderngl_window as mglw
+import numpy as np
+
+from crowd.scene import Scene
+from crowd.session import CrowdSession, OrbitControl
+
+from .panel import Panel
+
+PLAYER_SPEED = 4.0  # m/s with W/A/S/D
+MAX_FRAME_DT = 0.25
+
+
+class CrowdWindow(mglw.WindowConfig):
+    gl_version = (3, 3)
+    title = "crowd: zombie horde"
+    window_size = (1280, 720)
+    aspect_ratio = None
+    resizable = True
+    vsync = True
+    clear_color = None
+    # Set by open_window before the window exists (moderngl-window builds the instance itself).
+    launch: dict = {}
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        from imgui_bundle import imgui, implot
+        from moderngl_window.integrations.imgui_bundle import ModernglWindowRenderer
+
+        self.imgui = imgui
+        imgui.create_context()
+        implot.create_context()
+        self.gui = ModernglWindowRenderer(self.wnd)
+        width, height = self.wnd.buffer_size
+        self.session = CrowdSession(self.ctx, self.launch["scene"], width / max(height, 1))
+        self.panel = Panel(self.session, self.launch.get("scene_path"))
+        self.orbit = OrbitControl(self.session.pipeline.camera)
+        self.keys_down: set = set()
+        self._press = None  # where a left press started, to tell a click from a drag
+        self._dragged = 0.0
+        self.frame_ms: list[float] = []
+
+    # -- frames
+
+    def on_render(self, time_s: float, frame_time: float) -> None:
+        started = time.perf_counter()
+        dt = min(max(frame_time, 0.0), MAX_FRAME_DT)
+        self._walk_player(dt)
+        self.orbit.apply(self.session.pipeline.camera)
+        width, height = self.wnd.buffer_size
+        self.session.pipeline.camera.aspect = width / max(height, 1)
+        fbo = self.wnd.fbo
+        self.session.frame(fbo, dt)
+        self.session.draw_markers(fbo)
+        self.panel.record_frame(frame_time if frame_time > 0 else dt)
+        self.imgui.new_frame()
+        self.panel.draw()
+        self.imgui.render()
+        self.gui.render(self.imgui.get_draw_data())
+        self.frame_ms.append((time.perf_counter() - started) * 1e3)
+
+    def _walk_player(self, dt: float) -> None:
+        keys = self.wnd.keys
+        step = np.zeros(2)
+        for key, direction in ((keys.W, (0, -1)), (keys.S, (0, 1)), (keys.A, (-1, 0)), (keys.D, (1, 0))):
+            if key in self.keys_down:
+                step += direction
+        if not step.any():
+            return
+        # Screen-relative: W walks away from the camera.
+        yaw = self.orbit.yaw
+        right = np.array([np.cos(yaw), -np.sin(yaw)])
+        back = np.array([np.sin(yaw), np.cos(yaw)])
+        move = (step[0] * right + step[1] * back) / np.linalg.norm(step) * PLAYER_SPEED * dt
+        self.session.move_player(self.session.pipeline.ai.player + move)
+
+    # -- input: ImGui first; the scene gets what the panel does not want
+
+    def on_resize(self, width: int, height: int) -> None:
+        self.gui.resize(width, height)
+
+    def on_key_event(self, key, action, modifiers) -> None:
+        self.gui.key_event(key, action, modifiers)
+        keys = self.wnd.keys
+        if action == keys.ACTION_RELEASE:
+            self.keys_down.discard(key)
+            return
+        if action != keys.ACTION_PRESS or self.imgui.get_io().want_capture_keyboard:
+            return
+        self.keys_down.add(key)
+        if key == keys.SPACE:
+            self.session.strike()
+        elif key == keys.P:
+            self.panel.apply("pause", not self.session.paused)
+        elif key == keys.PERIOD:
+            self.panel.apply("step")
+        elif key == keys.H:
+            self.panel.visible = not self.panel.visible
+
+    def on_unicode_char_entered(self, char: str) -> None:
+        self.gui.unicode_char_entered(char)
+
+    def on_mouse_position_event(self, x, y, dx, dy) -> None:
+        self.gui.mouse_position_event(x, y, dx, dy)
+
+    def on_mouse_drag_event(self, x, y, dx, dy) -> None:
+        self.gui.mouse_drag_event(x, y, dx, dy)
+        if self.imgui.get_io().want_capture_mouse:
+            return
+        self._dragged += abs(dx) + abs(dy)
+        states = self.wnd.mouse_states
+        if states.middle or (states.left and self.wnd.modifiers.shift):
+            self.orbit.pan(dx, dy)
+        elif states.left:
+            self.orbit.orbit(dx, dy)
+
+    def on_mouse_scroll_event(self, x_offset, y_offset) -> None:
+        self.gui.mouse_scroll_event(x_offset, y_offset)
+        if not self.imgui.get_io().want_capture_mouse:
+            self.orbit.zoom(y_offset)
+
+    def on_mouse_press_event(self, x, y, button) -> None:
+        self.gui.mouse_press_event(x, y, button)
+        if self.imgui.get_io().want_capture_mouse:
+            return
+        self._press, self._dragged = (x, y), 0.0
+        if button == self.wnd.mouse.right:
+            point = self.session.ground_point(*self._pixel(x, y), self.wnd.buffer_size)
+            if point is not None:
+                self.session.move_player(point)
+
+    def on_mouse_release_event(self, x, y, button) -> None:
+        self.gui.mouse_release_event(x, y, button)
+        if self._press is not None and button == self.wnd.mouse.left and self._dragged < 4:
+            self.session.pick(*self._pixel(x, y), self.wnd.buffer_size)
+        self._press = None
+
+    def _pixel(self, x, y) -> tuple[float, float]:
+        """Window coordinates to framebuffer pixels (they differ on high-DPI screens)."""
+        ratio = self.wnd.pixel_ratio
+        return x * ratio, y * ratio
+
+    def on_close(self) -> None:
+        self.session.release()
+
+    def screenshot(self, path: Path) -> None:
+        from crowd.gltf_write import atomic_write_bytes
+        from crowd.smoke import png_bytes
+
+        width, height = self.wnd.buffer_size
+        data = self.wnd.fbo.read(components=3, alignment=1)
+        image = np.frombuffer(data, np.uint8).reshape(height, width, 3)[::-1]
+        atomic_write_bytes(Path(path), png_bytes(np.ascontiguousarray(image)))
+
+
+def open_window(scene: Scene, size: tuple[int, int], scene_path: Path | None = None) -> CrowdWindow:
+    """Make the window (pyglet) and everything in it; the caller runs frames with run_frames."""
+    CrowdWindow.window_size = size
+    CrowdWindow.launch = {"scene": scene, "scene_path": scene_path}
+    return mglw.create_window_config_instance(CrowdWindow, args=["--window", "pyglet"])
+
+
+def render_frame(window: CrowdWindow, dt: float | None = None) -> None:
+    """One frame: events, render, swap. dt None uses the window's clock."""
+    wnd = window.wnd
+    current, delta = window.timer.next_frame()
+    wnd.use()
+    wnd.render(current, delta if dt is None else dt)
+    wnd.swap_buffers()
+
+
+def run_window(scene: Scene, size: tuple[int, int], frames: int | None, screenshot: Path | None, stats_path: Path | None,
+               scene_path: Path | None) -> dict:
+    """The interactive demo: until the window is closed, or for `frames` frames when given (scripts)."""
+    from crowd.gl import describe
+    from crowd.smoke import collect_stats
+
+    window = open_window(scene, size, scene_path)
+    window.timer.start()
+    count = 0
+    try:
+        while not window.wnd.is_closing and (frames is None or count < frames):
+            render_frame(window)
+            count += 1
+        window.session.pipeline.timer.end_frame(drain=True)
+        if screenshot is not None:
+            window.screenshot(screenshot)
+        stats = collect_stats(window.ctx, window.session.pipeline, window.frame_ms, window.wnd.buffer_size, scene)
+        stats["window"] = {"backend": "pyglet", "frames": count, **describe(window.ctx)}
+        if stats_path is not None:
+            from crowd.gltf_write import atomic_write_bytes
+
+            atomic_write_bytes(Path(stats_path), (json.dumps(stats, indent=2) + "\n").encode())
+        return stats
+    finally:
+        if not window.wnd.is_closing:
+            window.session.release()
+        window.wnd.destroy()

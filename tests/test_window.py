@@ -1,0 +1,58 @@
+"""The real window under Xvfb (skipped where Xvfb is absent): it opens, renders the crowd and the panel,
+takes a clip setting through the panel, and its screenshot shows both the zombies and the panel."""
+
+from __future__ import annotations
+
+import ctypes.util
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from conftest import ROOT
+
+
+@pytest.fixture(scope="module")
+def display():
+    xvfb = shutil.which("Xvfb")
+    if xvfb is None:
+        pytest.skip("Xvfb is not installed")
+    if ctypes.util.find_library("GL") is None:
+        pytest.skip("no libGL (GLX) for a window")
+    for number in range(91, 120):
+        if not os.path.exists(f"/tmp/.X11-unix/X{number}") and not os.path.exists(f"/tmp/.X{number}-lock"):
+            break
+    server = subprocess.Popen([xvfb, f":{number}", "-screen", "0", "1024x768x24", "-nolisten", "tcp"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    for _ in range(100):
+        if os.path.exists(f"/tmp/.X11-unix/X{number}"):
+            break
+        time.sleep(0.05)
+    yield f":{number}"
+    server.terminate()
+    server.wait(timeout=10)
+
+
+def test_window_renders_zombies_and_the_panel_and_takes_clip_settings(display, tmp_path):
+    env = {**os.environ, "DISPLAY": display}
+    out = subprocess.run([sys.executable, str(ROOT / "tests" / "window_script.py"), str(tmp_path)], cwd=ROOT, env=env,
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["speed_ok"] and result["loop_ok"] and result["attack_loops"]
+    assert result["clip_speed"] == {"shamble": 1.5}
+    assert result["bad_refused"] and "playback speed" in result["status"]  # refused in the panel's status line
+    with_panel, without_panel, empty = (np.asarray(Image.open(tmp_path / f"{n}.png"), np.int32) for n in ("with_panel", "without_panel", "empty"))
+    assert with_panel.shape == (450, 800, 3)
+    # The panel: its corner of the screen changes when it is hidden; the far side does not.
+    panel_area = np.abs(with_panel[20:400, 20:300] - without_panel[20:400, 20:300]).max(axis=2) > 20
+    assert panel_area.mean() > 0.5
+    # The zombies: outside the panel, the frame with 60 agents differs from the empty one.
+    crowd_area = np.abs(without_panel[:, 420:] - empty[:, 420:]).max(axis=2) > 20
+    assert crowd_area.mean() > 0.02

@@ -1,0 +1,39 @@
+"""Run by tests/test_window.py in a subprocess with DISPLAY pointing at an Xvfb server: opens the real
+window, renders frames with the panel, changes clip settings through the panel's actions (the UI layer)
+and saves screenshots. Prints one JSON line of what it saw."""
+
+import json
+import sys
+from pathlib import Path
+
+from app.window import open_window, render_frame
+from crowd.ai import AIConfig
+from crowd.scene import Scene
+
+out = Path(sys.argv[1])
+window = open_window(Scene(agents=60, ai=AIConfig(half_extent=9.0)), (800, 450))
+panel, session = window.panel, window.session
+for _ in range(5):
+    render_frame(window, 1 / 30)
+walk = session.pipeline.roles["walk"]
+result = {
+    "speed_ok": panel.apply("clip_speed", walk, 1.5),
+    "loop_ok": panel.apply("clip_loop", "attack", True),
+    "bad_refused": not panel.apply("clip_speed", walk, -2.0),
+    "status": panel.status,
+}
+result["clip_speed"] = session.pipeline.clip_speed
+result["attack_loops"] = session.pipeline.bake.clips[session.clip_names().index("attack")].loop
+for _ in range(5):
+    render_frame(window, 1 / 30)
+window.screenshot(out / "with_panel.png")
+panel.visible = False
+render_frame(window, 0.0)
+window.screenshot(out / "without_panel.png")
+panel.apply("agents", 0)
+render_frame(window, 0.0)
+window.screenshot(out / "empty.png")
+result["gl"] = window.ctx.info["GL_RENDERER"]
+window.session.release()
+window.wnd.destroy()
+print(json.dumps(result))
