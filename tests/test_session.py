@@ -197,3 +197,16 @@ def test_inspector(session):
     assert len(info["layers"]) == 4 and {l["clip"] for l in info["layers"][:3]} == {"idle", "shamble", "run"}
     assert info["weapon"] in (None, "pipe", "axe")
     assert s.inspect(10_000) is None
+
+
+def test_panel_actions_go_through_the_session_and_report_refusals(session, tmp_path):
+    from app.panel import Panel
+
+    s, fb = session()
+    panel = Panel(s, tmp_path / "panel.toml")
+    assert panel.apply("clip_speed", "idle", 0.5) and s.pipeline.clip_speed == {"idle": 0.5}
+    assert not panel.apply("agents", -4) and "agent count" in panel.status and s.pipeline.agents == 30
+    assert panel.apply("weight", 1, 0.3) and panel.status == ""
+    assert panel.apply("save") and "saved" in panel.status
+    assert load_scene(tmp_path / "panel.toml").clip_speed == {"idle": 0.5}
+    assert panel.apply("save") and "panel.toml.bak" in panel.status
