@@ -48,6 +48,8 @@ def test_window_renders_zombies_and_the_panel_and_takes_clip_settings(display, t
     assert result["speed_ok"] and result["loop_ok"] and result["attack_loops"]
     assert result["clip_speed"] == {"shamble": 1.5}
     assert result["bad_refused"] and "playback speed" in result["status"]  # refused in the panel's status line
+    assert result["player_moved"] > 0.1 and result["paused"]  # a right click moved the player; P paused
+    assert result["selected"] == result["nearest"]  # a left click on a zombie selected it
     with_panel, without_panel, empty = (np.asarray(Image.open(tmp_path / f"{n}.png"), np.int32) for n in ("with_panel", "without_panel", "empty"))
     assert with_panel.shape == (450, 800, 3)
     # The panel: its corner of the screen changes when it is hidden; the far side does not.

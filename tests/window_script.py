@@ -33,6 +33,27 @@ window.screenshot(out / "without_panel.png")
 panel.apply("agents", 0)
 render_frame(window, 0.0)
 window.screenshot(out / "empty.png")
+# Input as the window gets it: a right click moves the player, a left click selects, P pauses.
+from moderngl_window.context.base import KeyModifiers  # noqa: E402
+
+panel.apply("agents", 60)
+render_frame(window, 1 / 30)
+wnd = window.wnd
+ai = session.pipeline.ai
+before = ai.player.copy()
+window.on_mouse_press_event(400, 300, wnd.mouse.right)
+window.on_mouse_release_event(400, 300, wnd.mouse.right)
+result["player_moved"] = float(abs(ai.player - before).max())
+import numpy as np  # noqa: E402
+
+chest = np.stack([ai.x, np.full(ai.n, 1.2), ai.z], axis=1)
+near = int(np.argmin(np.linalg.norm(chest - session.pipeline.camera.eye, axis=1)))
+x, y = session.pipeline.project(chest[near : near + 1], wnd.buffer_size)[0] / wnd.pixel_ratio
+window.on_mouse_press_event(x, y, wnd.mouse.left)
+window.on_mouse_release_event(x, y, wnd.mouse.left)
+result["selected"], result["nearest"] = session.selected, near
+window.on_key_event(wnd.keys.P, wnd.keys.ACTION_PRESS, KeyModifiers())
+result["paused"] = session.paused
 result["gl"] = window.ctx.info["GL_RENDERER"]
 window.session.release()
 window.wnd.destroy()
