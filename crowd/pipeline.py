@@ -2,7 +2,7 @@
 attach → shadow → draw → weapons → ground.
 
 ``CrowdPipeline`` owns one instance of each stage and nothing else; each stage owns its GL objects.
-The headless smoke mode, the window (issue 6) and the benchmarks drive this same class.
+The headless smoke mode, the window (through crowd.session) and the benchmarks drive this same class.
 
 Weapons (when the scene has armed agents): frame F gathers the sockets of its armed agents and the
 CPU reads those of frame F - N (N = ``readback_latency``, 1 to 3). Each body is drawn with the palette
