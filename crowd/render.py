@@ -131,22 +131,36 @@ def _snorm(values: np.ndarray, bits: int) -> np.ndarray:
     return (q & ((1 << bits) - 1)).astype(np.uint32)
 
 
+def pack_normals(normals: np.ndarray) -> np.ndarray:
+    """(V, 3) unit normals → (V,) uint32 of three snorm10 fields (the skin and weapon shaders decode them)."""
+    n = _snorm(np.asarray(normals, np.float64), 10)
+    return n[:, 0] | (n[:, 1] << 10) | (n[:, 2] << 20)
+
+
+def pack_colors(colors: np.ndarray | None, base_color, count: int) -> np.ndarray:
+    """Vertex colours (white when None) times the material's base colour → (V,) RGBA8 uint32."""
+    colors = colors if colors is not None else np.ones((count, 4), np.float32)
+    return _rgba8(np.round(np.clip(colors * np.asarray(base_color, np.float32), 0.0, 1.0) * 255.0))
+
+
+def heading_snorm16(yaw: np.ndarray) -> np.ndarray:
+    """(N,) headings → (N, 2) uint32 snorm16 fields of cos and sin, as instance records carry them."""
+    return np.stack([_snorm(np.cos(yaw), 16), _snorm(np.sin(yaw), 16)], axis=1)
+
+
 def pack_vertices(mesh: SkinnedMesh) -> np.ndarray:
     """Vertex records with each vertex's influences sorted by descending weight, so the shader can
     skip the third and fourth bones where their weight is zero."""
     v = np.zeros(mesh.positions.shape[0], VERTEX_DTYPE)
     v["position"] = mesh.positions
-    n = _snorm(np.asarray(mesh.normals, np.float64), 10)
-    v["packed"][:, 0] = n[:, 0] | (n[:, 1] << 10) | (n[:, 2] << 20)
+    v["packed"][:, 0] = pack_normals(mesh.normals)
     order = np.argsort(-mesh.weights, axis=1, kind="stable")
     w = np.take_along_axis(np.asarray(mesh.weights, np.float64), order, axis=1)
     w = w / w.sum(axis=1, keepdims=True)
     v["packed"][:, 1] = _rgba8(np.take_along_axis(mesh.joints, order, axis=1))
     q = np.round(w[:, 1:] / WEIGHT_STEP).astype(np.uint32)  # unorm10 of 2w: w is at most 1/2 here
     v["packed"][:, 2] = q[:, 0] | (q[:, 1] << 10) | (q[:, 2] << 20)
-    colors = mesh.colors if mesh.colors is not None else np.ones((len(v), 4), np.float32)
-    base = np.asarray(mesh.base_color, np.float32)
-    v["packed"][:, 3] = _rgba8(np.round(np.clip(colors * base, 0.0, 1.0) * 255.0))
+    v["packed"][:, 3] = pack_colors(mesh.colors, mesh.base_color, len(v))
     return v
 
 
@@ -316,7 +330,8 @@ class CrowdRenderer:
         records["packed"][:, 0] = (shown % self.agents_per_row) * self.joint_count | (row.astype(np.uint32) << 16)
         records["packed"][:, 1] = _rgba8(instances.tint[shown])
         yaw = instances.yaw[shown]
-        records["packed"][:, 2] = _snorm(np.cos(yaw), 16) | (_snorm(np.sin(yaw), 16) << 16)
+        heading = heading_snorm16(yaw)
+        records["packed"][:, 2] = heading[:, 0] | (heading[:, 1] << 16)
         slices = {}  # group ("" for pieces every agent wears) → (records sorted by draw key, start offsets per key)
         for group in ["", *self.groups]:
             choices = len(self.groups[group]) if group else 1

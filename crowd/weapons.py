@@ -21,7 +21,7 @@ import numpy as np
 
 from .gl import gpu_bytes, load_shader
 from .model import Character, RigidMesh
-from .render import _rgba8, _snorm, gl_bytes
+from .render import gl_bytes, heading_snorm16, pack_colors, pack_normals
 
 VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("packed", "<u4", 2)])
 INSTANCE_DTYPE = np.dtype([("rows", "<f4", (3, 4))])
@@ -47,7 +47,7 @@ class AgentFrames:
         """(position float32 (M, 3), scale float64 (M,), cos_sin float64 (M, 2)) of those agents."""
         rel = (self._position[agents] - self._eye[None]).astype(np.float32)
         yaw = self._yaw[agents]
-        cs = np.stack([_snorm(np.cos(yaw), 16), _snorm(np.sin(yaw), 16)], axis=1).astype(np.uint16).view(np.int16)
+        cs = heading_snorm16(yaw).astype(np.uint16).view(np.int16)
         return rel, self._scale[agents].astype(np.float64), cs.astype(np.float64) / 32767.0
 
     def points(self, agents: np.ndarray, model_points: np.ndarray) -> np.ndarray:
@@ -62,10 +62,8 @@ class AgentFrames:
 def pack_rigid(mesh: RigidMesh) -> np.ndarray:
     v = np.zeros(len(mesh.positions), VERTEX_DTYPE)
     v["position"] = mesh.positions
-    n = _snorm(np.asarray(mesh.normals, np.float64), 10)
-    v["packed"][:, 0] = n[:, 0] | (n[:, 1] << 10) | (n[:, 2] << 20)
-    colors = mesh.colors if mesh.colors is not None else np.ones((len(v), 4), np.float32)
-    v["packed"][:, 1] = _rgba8(np.round(np.clip(colors * np.asarray(mesh.base_color, np.float32), 0.0, 1.0) * 255.0))
+    v["packed"][:, 0] = pack_normals(mesh.normals)
+    v["packed"][:, 1] = pack_colors(mesh.colors, mesh.base_color, len(v))
     return v
 
 
