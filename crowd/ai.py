@@ -341,6 +341,10 @@ class CrowdAI:
     def alive(self) -> np.ndarray:
         return self.state < DYING
 
+    def armed(self) -> np.ndarray:
+        """Living agents holding a weapon (a dying one has dropped it)."""
+        return (self.weapon >= 0) & (self.state < DYING)
+
     def nearest_alive(self, point, reach: float) -> int:
         """Index of the nearest living agent within `reach` of a ground point (x, z), or -1."""
         if not self.n:

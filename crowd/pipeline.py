@@ -15,11 +15,10 @@ Without armed agents there is no gather pass, no read-back buffer and a single p
 
 from __future__ import annotations
 
+import dataclasses
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-
-import dataclasses
 
 import moderngl
 import numpy as np
@@ -70,9 +69,7 @@ class CrowdPipeline:
         # Leave out what the scene does not need: only the clips the roles play are baked.
         self.bake = bake_roles(self.character, self.roles, config.bake_fps, config.precision)
         masks = upper_body_mask(self.character.skeleton)
-        if isinstance(config.readback_latency, bool) or config.readback_latency not in range(1, RING + 1):
-            raise PipelineError(f"readback latency must be 1 to {RING} frames, got {config.readback_latency!r}")
-        self.latency = int(config.readback_latency)
+        self.latency = _check_latency(config.readback_latency)
         # Leave out what the scene does not need: no weapons, no socket, or nobody armed → no read-back
         # stage, no gather pass, no weapon meshes, and one palette instead of a ring.
         armed = self._armed(config)
@@ -81,8 +78,7 @@ class CrowdPipeline:
         self.layer_override = None  # callable(layers) applied after the AI wrote them (the panel's force clip and weights)
         self.processor = AnimationProcessor(ctx, self.bake, LAYERS, masks=masks, path=config.processor_path,
                                             history=self.latency + 1 if armed else 1)
-        self.renderer = CrowdRenderer(ctx, self.character, self.bake.joint_count, self.processor.agents_per_row,
-                                      lod_distances=config.lod_distances, shadows=config.shadows, culling=config.culling)
+        self.renderer = self._make_renderer()
         self.motion = motion_for(self.character, self.bake, self.roles)
         self.ai = CrowdAI(config.agents, config.seed, self.motion, config.ai, config.origin)
         self.player_script = PlayerScript(self.ai.half_extent * 0.5) if config.scripted_player else None
@@ -111,21 +107,29 @@ class CrowdPipeline:
 
     # -- run-time settings: the panel and the command line both come through these
 
-    def _new_renderer(self, **changes) -> None:
+    def _make_renderer(self) -> CrowdRenderer:
+        c = self.config
+        return CrowdRenderer(self.ctx, self.character, self.bake.joint_count, self.processor.agents_per_row,
+                             lod_distances=c.lod_distances, shadows=c.shadows, culling=c.culling)
+
+    def _set_palette_history(self, history: int) -> None:
+        """A new palette ring: the frames kept and the read-backs queued against the old one are gone."""
+        self.processor.set_history(history)
+        self._palette_frames = deque(maxlen=self.processor.history)
+        if self.readback is not None:
+            self.readback.reset()
+
+    def set_shadows(self, on: bool) -> None:
         """Shadows decide the shaders and the shadow map, so switching them builds the renderer (and
         the weapons' programs) again; the old objects are released."""
-        self.config = dataclasses.replace(self.config, **changes)
-        old = self.renderer
-        self.renderer = CrowdRenderer(self.ctx, self.character, self.bake.joint_count, self.processor.agents_per_row,
-                                      lod_distances=self.config.lod_distances, shadows=self.config.shadows, culling=self.config.culling)
+        if bool(on) == self.renderer.shadows:
+            return
+        self.config = dataclasses.replace(self.config, shadows=bool(on))
+        old, self.renderer = self.renderer, self._make_renderer()
         old.release()
         if self.weapons is not None:
             self.weapons.release()
             self.weapons = WeaponRenderer(self.ctx, self.character, self.config.shadows)
-
-    def set_shadows(self, on: bool) -> None:
-        if bool(on) != self.renderer.shadows:
-            self._new_renderer(shadows=bool(on))
 
     def set_culling(self, on: bool) -> None:
         self.config = dataclasses.replace(self.config, culling=bool(on))
@@ -151,8 +155,7 @@ class CrowdPipeline:
             self.weapons.release()
             self.readback = self.weapons = None
             self._read = None
-        self.processor.set_history(self.latency + 1 if armed else 1)
-        self._palette_frames = deque(maxlen=self.processor.history)
+        self._set_palette_history(self.latency + 1 if armed else 1)
 
     def set_ai_config(self, config: AIConfig) -> None:
         self.ai.set_config(config)
@@ -211,13 +214,9 @@ class CrowdPipeline:
 
     def set_readback_latency(self, latency: int) -> None:
         """1 to 3 frames. The palette ring is reallocated, so weapons are hidden for `latency` frames."""
-        if isinstance(latency, bool) or latency not in range(1, RING + 1):
-            raise PipelineError(f"readback latency must be 1 to {RING} frames, got {latency!r}")
-        self.latency = int(latency)
+        self.latency = _check_latency(latency)
         if self.readback is not None:
-            self.processor.set_history(self.latency + 1)
-            self._palette_frames = deque(maxlen=self.processor.history)
-            self.readback.reset()
+            self._set_palette_history(self.latency + 1)
 
     def default_camera(self, aspect: float) -> Camera:
         """A three-quarter view that frames the whole crowd (or one agent up close)."""
@@ -264,7 +263,7 @@ class CrowdPipeline:
                 self._palette_frames.clear()
             self._palette_frames.append(f)
         if self.readback is not None and self.agents:
-            armed = np.flatnonzero((self.ai.weapon >= 0) & self.ai.alive())
+            armed = np.flatnonzero(self.ai.armed())
             if self.readback.gather(f, self.processor, armed, np.full(armed.size, self.weapons.socket_joint), t):
                 self._run("gather")
                 self._run("transfer")
@@ -315,7 +314,7 @@ class CrowdPipeline:
             return None
         keep = read.agents < self.agents
         keep[keep] = self._born[read.agents[keep]] <= read.frame
-        return type(read)(read.frame, read.agents[keep], read.joints[keep], read.rows[keep], read.wait_ms, read.copy_ms, read.stalled)
+        return dataclasses.replace(read, agents=read.agents[keep], joints=read.joints[keep], rows=read.rows[keep])
 
     def weapon_error_mm(self, body: str = "drawn") -> float | None:
         """Largest distance (mm) between a drawn weapon's grip point and its agent's socket point on the
@@ -391,7 +390,7 @@ class CrowdPipeline:
             return {"enabled": False}
         return {"enabled": True, "latency_frames": self.latency,
                 "pose_lag_ms": round(sum(list(self._pose_lag)[-self.latency:]) * 1e3, 3),  # simulated time the pose trails by
-                "armed": int(np.count_nonzero((self.ai.weapon >= 0) & self.ai.alive())), "drawn": self.weapons.last["weapons"],
+                "armed": int(np.count_nonzero(self.ai.armed())), "drawn": self.weapons.last["weapons"],
                 "triangles": self.weapons.last["triangles"],
                 "gathered": self.readback.last_count, "stalls": self.readback_stalls, "reads": len(self.readback_waits)}
 
@@ -414,6 +413,12 @@ def smoke_size(text: str) -> tuple[int, int]:
     if not sep or not (16 <= size[0] <= 8192 and 16 <= size[1] <= 8192):
         raise PipelineError(f"size must be WxH with each side 16 to 8192, got {text!r}")
     return size
+
+
+def _check_latency(latency) -> int:
+    if isinstance(latency, bool) or latency not in range(1, RING + 1):
+        raise PipelineError(f"readback latency must be 1 to {RING} frames, got {latency!r}")
+    return int(latency)
 
 
 def _round(value, digits: int = 5):
