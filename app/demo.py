@@ -55,8 +55,7 @@ def main(argv=None) -> int:
     if not args.headless and not windowed:
         print("crowd-demo: no display found; running headless (EGL) instead.")
     if not windowed:
-        args.frames = 60 if args.frames is None else args.frames
-        args.screenshot = args.screenshot or Path("out/demo.png")
+        _headless_defaults(args)
     try:
         if args.frames is not None and not 1 <= args.frames <= 100_000:
             raise PipelineError(f"--frames must be 1 to 100000, got {args.frames}")
@@ -78,8 +77,7 @@ def main(argv=None) -> int:
         if windowed:
             stats = _run_window(scene, size, args)
             if stats is None:
-                args.frames = 60 if args.frames is None else args.frames
-                args.screenshot = args.screenshot or Path("out/demo.png")
+                _headless_defaults(args)
         if stats is None:
             stats = run_headless(scene.pipeline_config(), args.frames, size, args.screenshot, args.stats,
                                  camera=scene.camera_for(size[0] / size[1]))
@@ -101,6 +99,12 @@ def main(argv=None) -> int:
     if args.screenshot or args.stats:
         print("wrote " + " and ".join(str(p) for p in (args.screenshot, args.stats) if p))
     return 0
+
+
+def _headless_defaults(args) -> None:
+    """Headless runs stop by themselves and leave a picture: 60 frames and out/demo.png unless given."""
+    args.frames = 60 if args.frames is None else args.frames
+    args.screenshot = args.screenshot or Path("out/demo.png")
 
 
 def _run_window(scene, size, args):

@@ -8,7 +8,6 @@ Keys: space strikes, W/A/S/D walk the player, P pauses, "." steps one frame, H h
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -158,12 +157,9 @@ class CrowdWindow(mglw.WindowConfig):
 
     def screenshot(self, path: Path) -> None:
         from crowd.gltf_write import atomic_write_bytes
-        from crowd.smoke import png_bytes
+        from crowd.smoke import png_bytes, read_image
 
-        width, height = self.wnd.buffer_size
-        data = self.wnd.fbo.read(components=3, alignment=1)
-        image = np.frombuffer(data, np.uint8).reshape(height, width, 3)[::-1]
-        atomic_write_bytes(Path(path), png_bytes(np.ascontiguousarray(image)))
+        atomic_write_bytes(Path(path), png_bytes(read_image(self.wnd.fbo, self.wnd.buffer_size)))
 
 
 def open_window(scene: Scene, size: tuple[int, int], scene_path: Path | None = None) -> CrowdWindow:
@@ -186,7 +182,7 @@ def run_window(scene: Scene, size: tuple[int, int], frames: int | None, screensh
                scene_path: Path | None) -> dict:
     """The interactive demo: until the window is closed, or for `frames` frames when given (scripts)."""
     from crowd.gl import describe
-    from crowd.smoke import collect_stats
+    from crowd.smoke import collect_stats, write_stats
 
     window = open_window(scene, size, scene_path)
     window.timer.start()
@@ -201,9 +197,7 @@ def run_window(scene: Scene, size: tuple[int, int], frames: int | None, screensh
         stats = collect_stats(window.ctx, window.session.pipeline, window.frame_ms, window.wnd.buffer_size, scene)
         stats["window"] = {"backend": "pyglet", "frames": count, **describe(window.ctx)}
         if stats_path is not None:
-            from crowd.gltf_write import atomic_write_bytes
-
-            atomic_write_bytes(Path(stats_path), (json.dumps(stats, indent=2) + "\n").encode())
+            write_stats(stats_path, stats)
         return stats
     finally:
         if not window.wnd.is_closing:

@@ -406,9 +406,12 @@ class AnimationProcessor:
             return np.zeros((0, jc, 3, 4), np.float32)
         rows = self.palette_rows()
         first = self.row_offset(age) if self.runs else 0
-        planes = [np.frombuffer(p.read(), np.float32).reshape(-1, k * jc, 4)[first : first + rows].reshape(rows * k, jc, 4)[:n]
-                  for p in self.planes]
+        planes = [plane[first : first + rows].reshape(rows * k, jc, 4)[:n] for plane in self._read_planes()]
         return np.stack(planes, axis=2)
+
+    def _read_planes(self) -> list[np.ndarray]:
+        """The three planes, every palette of the history, as (height, width, 4) float32 (synchronous)."""
+        return [np.frombuffer(p.read(), np.float32).reshape(p.height, p.width, 4) for p in self.planes]
 
     def read_rows(self, agents: np.ndarray, joint: int, row_offsets: np.ndarray) -> np.ndarray:
         """(K, 3, 4) float32 skinning matrix rows of one joint of some agents, each from the palette
@@ -416,8 +419,7 @@ class AnimationProcessor:
         agents = np.asarray(agents, np.int64)
         y = agents // self.agents_per_row + np.asarray(row_offsets, np.int64)
         x = (agents % self.agents_per_row) * self.joint_count + int(joint)
-        planes = [np.frombuffer(p.read(), np.float32).reshape(p.height, p.width, 4) for p in self.planes]
-        return np.stack([plane[y, x] for plane in planes], axis=1)
+        return np.stack([plane[y, x] for plane in self._read_planes()], axis=1)
 
     def nan_rows(self) -> int:
         """Agents whose palette row holds NaN or Inf."""

@@ -42,6 +42,10 @@ def png_bytes(image: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+def write_stats(path: Path, stats: dict) -> None:
+    atomic_write_bytes(Path(path), (json.dumps(stats, indent=2) + "\n").encode())
+
+
 def collect_stats(ctx: moderngl.Context, pipeline: CrowdPipeline, frame_ms: list, size, config) -> dict:
     """The stats JSON of a run (headless or windowed): device, frame times, passes and the pipeline's own."""
     stats = describe(ctx)
@@ -83,7 +87,7 @@ def run_headless(config: PipelineConfig, frames: int, size: tuple[int, int], scr
         if screenshot is not None:
             atomic_write_bytes(Path(screenshot), png_bytes(image))
         if stats_path is not None:
-            atomic_write_bytes(Path(stats_path), (json.dumps(stats, indent=2) + "\n").encode())
+            write_stats(stats_path, stats)
         stats["_image"] = image  # for callers in Python (tests); never written to the JSON
         return stats
     finally:
