@@ -58,6 +58,13 @@ class ProcessorError(ValueError):
     """Bad processor input; the message is one line."""
 
 
+def palette_texel(agents, joints, row_offset, agents_per_row: int, joint_count: int) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) int64 texel of joint(s) `joints` of `agents` in a palette plane, in the ring slot that
+    starts at row `row_offset` (an int, or one per agent). The one statement of the palette layout."""
+    agents = np.asarray(agents, np.int64)
+    return (agents % agents_per_row) * joint_count + np.asarray(joints, np.int64), agents // agents_per_row + np.asarray(row_offset, np.int64)
+
+
 def _check_history(history) -> int:
     if isinstance(history, bool) or not isinstance(history, (int, np.integer)) or not 1 <= history <= MAX_HISTORY:
         raise ProcessorError(f"palette history must be a whole number from 1 to {MAX_HISTORY}, got {history!r}")
@@ -416,9 +423,7 @@ class AnimationProcessor:
     def read_rows(self, agents: np.ndarray, joint: int, row_offsets: np.ndarray) -> np.ndarray:
         """(K, 3, 4) float32 skinning matrix rows of one joint of some agents, each from the palette
         starting at its row offset (synchronous: tests and stats only)."""
-        agents = np.asarray(agents, np.int64)
-        y = agents // self.agents_per_row + np.asarray(row_offsets, np.int64)
-        x = (agents % self.agents_per_row) * self.joint_count + int(joint)
+        x, y = palette_texel(agents, joint, row_offsets, self.agents_per_row, self.joint_count)
         return np.stack([plane[y, x] for plane in self._read_planes()], axis=1)
 
     def nan_rows(self) -> int:

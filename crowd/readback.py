@@ -29,6 +29,7 @@ import moderngl
 import numpy as np
 
 from .gl import Fence, gpu_bytes, load_shader
+from .processor import palette_texel
 
 RING = 3
 ENTRIES_PER_ROW = 1024  # gather texture: 3 x 1024 texels wide, one row per 1,024 entries
@@ -130,8 +131,7 @@ class SocketReadback:
             return False
         rows = math.ceil(count / ENTRIES_PER_ROW)
         width = min(count, ENTRIES_PER_ROW)
-        texel_y = agents // self.agents_per_row + processor.row_offset(0)
-        texel_x = (agents % self.agents_per_row) * self.joint_count + joints
+        texel_x, texel_y = palette_texel(agents, joints, processor.row_offset(0), self.agents_per_row, self.joint_count)
         packed = np.zeros(rows * width, np.uint32)
         packed[:count] = texel_x | (texel_y << 16)
         self._entries.write(packed.tobytes(), viewport=(0, 0, width, rows))

@@ -24,6 +24,7 @@ from pyglm import glm
 
 from .gl import gpu_bytes, load_shader
 from .model import Character, SkinnedMesh
+from .processor import palette_texel
 from .vertex_cache import optimize_triangle_order
 
 # Per-vertex record, 28 bytes: the position and one uvec4 (see shaders/skin.vert.glsl for why two
@@ -326,8 +327,8 @@ class CrowdRenderer:
         records["position_scale"][:, :3] = rel[shown]
         records["position_scale"][:, 3] = instances.scale[shown]
         # Both fit 16 bits: x < 4096 (the palette width), and the processor keeps its rows under 65,536.
-        row = shown // self.agents_per_row + (row_offset[shown] if np.ndim(row_offset) else np.uint32(row_offset))
-        records["packed"][:, 0] = (shown % self.agents_per_row) * self.joint_count | (row.astype(np.uint32) << 16)
+        x, y = palette_texel(shown, 0, row_offset[shown] if np.ndim(row_offset) else row_offset, self.agents_per_row, self.joint_count)
+        records["packed"][:, 0] = x.astype(np.uint32) | (y.astype(np.uint32) << 16)
         records["packed"][:, 1] = _rgba8(instances.tint[shown])
         yaw = instances.yaw[shown]
         heading = heading_snorm16(yaw)
