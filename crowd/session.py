@@ -155,15 +155,16 @@ class CrowdSession:
             raise SessionError(str(exc)) from None
 
     def set_clip_speed(self, name: str, speed: float) -> None:
-        self._clip(name)
         try:
             self.pipeline.set_clip_speed(name, speed)
-        except AIError as exc:
+        except (AIError, BakeError) as exc:
             raise SessionError(str(exc)) from None
 
     def set_clip_loop(self, name: str, loop: bool) -> None:
-        self._clip(name)
-        self.pipeline.set_clip_loop(name, loop)
+        try:
+            self.pipeline.set_clip_loop(name, loop)
+        except BakeError as exc:
+            raise SessionError(str(exc)) from None
 
     def play(self, name: str | None, selected_only: bool = True) -> None:
         """Force a clip, from its start, on the selected agent (or on every agent); None gives control
