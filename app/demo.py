@@ -13,7 +13,19 @@ import sys
 from pathlib import Path
 
 
+def _rate(text: str):
+    """--bake-fps: a number, or "source" (each clip at its own key rate); the scene checks the range."""
+    if text == "source":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'expected a number of fps or "source", got {text!r}') from None
+
+
 def _parser() -> argparse.ArgumentParser:
+    from crowd.processor import INTERPOLATIONS
+
     p = argparse.ArgumentParser(prog="crowd-demo", description="Zombie crowd demo: GPU animation processor and skinned instancing.")
     p.add_argument("--headless", action="store_true", help="run offscreen through EGL even when a display exists")
     p.add_argument("--frames", type=int, default=None, help="frames to run (headless default 60; the window runs until closed)")
@@ -25,7 +37,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--model", type=Path, default=None, help="a skinned .glb/.gltf (default: the built-in zombie)")
     p.add_argument("--roles", default=None, help="clip role overrides, e.g. walk=Walking,idle=Idle")
     p.add_argument("--seed", type=int, default=None)
-    p.add_argument("--bake-fps", type=float, default=None)
+    p.add_argument("--bake-fps", type=_rate, default=None, help='bake rate, 1-240 or "source" (default: the scene\'s, 30)')
+    p.add_argument("--interpolation", choices=list(INTERPOLATIONS), default=None,
+                   help="how keys are sampled and layers blended (default: the scene's, qt_lerp; see docs/BENCHMARKS.md)")
     p.add_argument("--precision", choices=["f32", "f16"], default=None)
     p.add_argument("--processor", choices=["auto", "compute", "fragment"], default=None, help="processor path (default: compute where GL 4.3 exists)")
     p.add_argument("--no-shadows", action="store_true")
@@ -69,7 +83,8 @@ def main(argv=None) -> int:
                 print(f"crowd-demo: {exc}; running the default scene instead", file=sys.stderr)
         off = lambda flag: False if flag else None  # a --no-x flag turns x off; without it the scene decides
         scene = scene.with_overrides(agents=args.agents, seed=args.seed, model=args.model, roles=parse_overrides(args.roles) or None,
-                                     bake_fps=args.bake_fps, precision=args.precision, processor=args.processor,
+                                     bake_fps=args.bake_fps, precision=args.precision, interpolation=args.interpolation,
+                                     processor=args.processor,
                                      shadows=off(args.no_shadows), culling=off(args.no_culling), weapons=off(args.no_weapons),
                                      readback_latency=args.readback_latency)
         size = smoke_size(args.size)

@@ -13,7 +13,7 @@ import numpy as np
 from crowd.ai import AIError
 from crowd.bake import BakeError
 from crowd.pipeline import PipelineError
-from crowd.processor import ProcessorError
+from crowd.processor import INTERPOLATIONS, ProcessorError
 from crowd.scene import SceneError
 from crowd.session import CrowdSession, SessionError
 
@@ -29,7 +29,9 @@ class Panel:
         self.frame_times: deque = deque(maxlen=2000)  # seconds; the plot shows the last HISTORY_SECONDS of them
         self.visible = True
         bake = session.pipeline.bake
-        self._bake_fps, self._precision = float(bake.fps), bake.precision
+        self._source_rate = bake.fps == "source"
+        self._bake_fps = 30.0 if self._source_rate else float(bake.fps)
+        self._precision, self._interpolation = bake.precision, session.pipeline.processor.interpolation
         self._seed = session.pipeline.config.seed
         self._held = {layer: [False, 1.0] for layer in range(4)}
         self._weights_selected_only = False
@@ -39,7 +41,7 @@ class Panel:
     ACTIONS = {
         "agents": "set_agent_count", "seed": "set_seed", "crossfade": "set_crossfade", "time_scale": "set_time_scale",
         "pause": "set_paused", "step": "step_once", "clip_speed": "set_clip_speed", "clip_loop": "set_clip_loop",
-        "play": "play", "weight": "set_weight", "rebake": "rebake", "lod": "set_lod_distances", "culling": "set_culling",
+        "play": "play", "weight": "set_weight", "rebake": "rebake", "measure_error": "measure_error", "lod": "set_lod_distances", "culling": "set_culling",
         "shadows": "set_shadows", "weapons": "set_weapons", "latency": "set_readback_latency",
     }
 
@@ -186,13 +188,26 @@ class Panel:
     def _draw_rendering(self, imgui) -> None:
         s = self.session
         p = s.pipeline
-        _, self._bake_fps = imgui.slider_float("bake fps", self._bake_fps, 5.0, 60.0, "%.0f")
+        _, self._source_rate = imgui.checkbox("source rate", self._source_rate)
+        if not self._source_rate:
+            imgui.same_line()
+            _, self._bake_fps = imgui.slider_float("bake fps", self._bake_fps, 5.0, 60.0, "%.0f")
         precisions = ["f32", "f16"]
         _, index = imgui.combo("precision", precisions.index(self._precision), precisions)
         self._precision = precisions[index]
+        _, index = imgui.combo("interpolation", INTERPOLATIONS.index(self._interpolation), list(INTERPOLATIONS))
+        self._interpolation = INTERPOLATIONS[index]
         if imgui.button("re-bake"):
-            self.apply("rebake", round(self._bake_fps), self._precision)
-        imgui.text(f"baked: {len(p.bake.clips)} clips at {p.bake.fps:g} fps, {p.bake.precision}, {p.bake.nbytes:,} bytes")
+            self.apply("rebake", "source" if self._source_rate else round(self._bake_fps), self._precision, self._interpolation)
+        imgui.same_line()
+        if imgui.button("measure error"):
+            self.apply("measure_error")
+        rate = "source rate" if p.bake.fps == "source" else f"{p.bake.fps:g} fps"
+        imgui.text(f"baked: {len(p.bake.clips)} clips at {rate}, {p.bake.precision}, {p.processor.interpolation}, {p.bake.nbytes:,} bytes")
+        if s.bake_error is not None:
+            e = s.bake_error
+            imgui.text(f"shell error against float64: max {e['max_error_mm']:.3g} mm, p99 {e['p99_error_mm']:.3g} mm "
+                       f"({e['poses']} poses, GPU)")
         near, far = p.renderer.lod_distances
         changed, (near, far) = imgui.drag_float2("LOD distances (m)", [near, far], 0.5, 1.0, 500.0)
         if changed:

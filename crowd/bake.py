@@ -1,11 +1,13 @@
 """Bake stage: clips → the AnimationTexture of local joint transforms as dual quaternions.
 
-Contract: ``bake(skeleton, clips, fps=15, precision="f32")`` → ``AnimationBake``.
+Contract: ``bake(skeleton, clips, fps=30, precision="f32")`` → ``AnimationBake``; ``fps`` may also be
+``"source"``: each clip at its own key rate.
 
 Layout of ``texels`` (rows, 2 * J, 4), one texture row per baked frame:
 - row 0 holds each joint's inverse bind transform;
 - each clip owns ``frame_count`` consecutive rows from ``first_row``, sampled at ``fps`` (the clip's
-  duration divided into whole intervals, so the actual rate is at least the asked one);
+  duration divided into whole intervals: the nearest whole number when within 1e-5 of it, else the
+  next, so the actual rate is at least the asked one and frames stay on evenly spaced source keys);
 - texel 2j is joint j's real part (x, y, z, w) and texel 2j+1 its dual part;
 - looping clips store a closing frame equal to their first pose, so frame i and i+1 always exist and
   the shader never wraps inside the texture: ``f = phase * (frame_count - 1)``, lerp frames floor(f) and
@@ -33,6 +35,11 @@ from . import transforms as tf
 from .model import Clip, ModelError, Skeleton
 
 PRECISIONS = {"f32": np.float32, "f16": np.float16}
+SOURCE_RATE = "source"  # bake each clip at its own key rate, frames on its keys
+# The default rate, chosen by `crowd-bench error` (docs/BENCHMARKS.md) with the processor's default
+# interpolation: the cheapest configuration that keeps the built-in zombie within 1 mm. Its clips have
+# 30 keys per second; at 15 fps the attack swing is 97 mm off.
+DEFAULT_FPS = 30.0
 MAX_ROWS = 16384  # GL_MAX_TEXTURE_SIZE guaranteed by every GL 4.x driver we target
 # Joint scale within this of 1 is treated as 1 (exporters leave 0.99996 and the like); at 1 m from the
 # joint that is 0.1 mm. Anything dropped this way is reported in the bake's warnings.
@@ -60,7 +67,7 @@ class AnimationBake:
     texels: np.ndarray  # (rows, 2J, 4) float32 or float16
     scale: np.ndarray | None  # (rows, J) same dtype, or None when every joint keeps scale 1
     clips: list[ClipInfo]
-    fps: float
+    fps: float | str  # the asked rate, or SOURCE_RATE (each ClipInfo has the actual rate)
     precision: str
     warnings: list[str] = field(default_factory=list)
 
@@ -140,11 +147,31 @@ def _uniform_scale(s: np.ndarray, where: str, warnings: list[str]) -> np.ndarray
     return mean
 
 
-def bake(skeleton: Skeleton, clips: list[Clip], fps: float = 15.0, precision: str = "f32", max_rows: int = MAX_ROWS) -> AnimationBake:
+def _intervals(exact: float) -> int:
+    """Whole key intervals for a clip of `exact` intervals at the asked rate. glTF stores key times as
+    float32, so a 1.2 s clip lasts 1.2000000477 s: a plain ceil would bake 73 intervals at 60 fps
+    instead of 72, and the bake's keys would drift off the source keys (issue 7 measured 21 mm)."""
+    nearest = round(exact)
+    if abs(exact - nearest) <= 1e-5 * max(1.0, exact):
+        return max(1, int(nearest))
+    return max(1, math.ceil(exact))
+
+
+def _source_intervals(clip: Clip) -> int:
+    """Intervals that put the bake's frames on the clip's own keys: the clip's duration over the
+    shortest median key interval of its channels (exact for evenly keyed clips)."""
+    steps = [float(np.median(np.diff(c.times))) for c in clip.channels if c.times.shape[0] > 1]
+    steps = [h for h in steps if h > 0]
+    if not steps or clip.duration <= 0:
+        return 1
+    return _intervals(clip.duration / min(steps))
+
+
+def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, precision: str = "f32", max_rows: int = MAX_ROWS) -> AnimationBake:
     """Bake the given clips (only those: pass the scene's clips, not every clip of the file)."""
     skeleton.validate()
-    if not isinstance(fps, (int, float)) or not math.isfinite(fps) or not 1.0 <= fps <= 240.0:
-        raise BakeError(f"bake rate must be between 1 and 240 fps, got {fps!r}")
+    if fps != SOURCE_RATE and (isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps) or not 1.0 <= fps <= 240.0):
+        raise BakeError(f"bake rate must be between 1 and 240 fps or {SOURCE_RATE!r}, got {fps!r}")
     if precision not in PRECISIONS:
         raise BakeError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
     names = [c.name for c in clips]
@@ -171,7 +198,7 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float = 15.0, precision: st
     infos = []
     row = 1
     for clip in clips:
-        n = max(1, math.ceil(clip.duration * fps - 1e-9))  # intervals
+        n = _source_intervals(clip) if fps == SOURCE_RATE else _intervals(clip.duration * fps)
         phases = np.arange(n + 1, dtype=np.float64) / n
         if clip.loop:
             phases[-1] = 0.0  # the closing frame repeats the first pose (then aligned to its predecessor)
@@ -181,7 +208,7 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float = 15.0, precision: st
         real_rows.append(qr)
         dual_rows.append(qd)
         scale_rows.append(_uniform_scale(pose.scale, f"clip {clip.name!r}", warnings))
-        actual = n / clip.duration if clip.duration > 0 else float(fps)
+        actual = n / clip.duration if clip.duration > 0 else (1.0 if fps == SOURCE_RATE else float(fps))
         infos.append(ClipInfo(clip.name, row, n + 1, actual, clip.loop, clip.duration))
         row += n + 1
     rest_q = skeleton.rest_rotation
@@ -215,7 +242,7 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float = 15.0, precision: st
         texels=texels.astype(dtype),
         scale=scale.astype(dtype) if needs_scale else None,
         clips=infos,
-        fps=float(fps),
+        fps=fps if fps == SOURCE_RATE else float(fps),
         precision=precision,
         warnings=warnings,
     )

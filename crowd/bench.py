@@ -6,6 +6,9 @@
   agent count, on one core.
 - ``scale``: GPU ms of the animation processor and of the skinned instanced draw against agent count,
   with the unskinned instanced draw of the same meshes measured in the same run as the ceiling.
+- ``error``: the processor's error against its run time for every bake rate, storage and
+  interpolation, with the Pareto front, the default it picks and the stiff and extreme cases
+  (crowd/error_report.py); ``plot-error`` redraws its plot from the JSON.
 - ``readback``: the weapons' socket gather and GPU→CPU transfer against the number of armed agents,
   the CPU's wait on it, and the weapon-to-hand error with the body drawn in step with the read-back
   (sync) and from the newest palette (unsync), side by side in one run.
@@ -347,6 +350,9 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--json", type=Path)
     p.set_defaults(run=bench_readback)
+    from .error_report import add_parsers
+
+    add_parsers(sub)
     args = parser.parse_args(argv)
     from .ai import AIError
     from .bake import BakeError

@@ -25,7 +25,8 @@ import numpy as np
 
 from .gltf import load_character
 from .ai import LAYERS, AIConfig, CrowdAI, PlayerScript, motion_for, upper_body_mask
-from .processor import AnimationProcessor, palette_joint_positions
+from .bake import DEFAULT_FPS
+from .processor import DEFAULT_INTERPOLATION, AnimationProcessor, palette_joint_positions
 from .readback import RING, SocketReadback
 from .render import DEFAULT_LOD_DISTANCES, Camera, CrowdRenderer
 from .roles import bake_roles, match_roles
@@ -45,8 +46,9 @@ class PipelineConfig:
     seed: int = 1
     model: Path | None = None
     roles: dict = field(default_factory=dict)
-    bake_fps: float = 15.0
+    bake_fps: float | str = DEFAULT_FPS  # or "source": each clip at its own key rate
     precision: str = "f32"
+    interpolation: str = DEFAULT_INTERPOLATION
     processor_path: str = "auto"
     shadows: bool = True
     culling: bool = True
@@ -77,7 +79,7 @@ class CrowdPipeline:
         self.clip_speed: dict[str, float] = {}  # clip name → playback speed (time scale), where not 1
         self.layer_override = None  # callable(layers) applied after the AI wrote them (the panel's force clip and weights)
         self.processor = AnimationProcessor(ctx, self.bake, LAYERS, masks=masks, path=config.processor_path,
-                                            history=self.latency + 1 if armed else 1)
+                                            history=self.latency + 1 if armed else 1, interpolation=config.interpolation)
         self.renderer = self._make_renderer()
         self.motion = motion_for(self.character, self.bake, self.roles)
         self.ai = CrowdAI(config.agents, config.seed, self.motion, config.ai, config.origin)
@@ -161,20 +163,22 @@ class CrowdPipeline:
         self.ai.set_config(config)
         self.config = dataclasses.replace(self.config, ai=self.ai.config)
 
-    def rebake(self, fps: float, precision: str) -> None:
-        """Bake the scene's clips again at another rate or precision, live: a new bake and processor
-        replace the old ones (released), and the crowd keeps its state."""
+    def rebake(self, fps: float | str, precision: str, interpolation: str | None = None) -> None:
+        """Bake the scene's clips again at another rate or precision, or process them with another
+        interpolation, live: a new bake and processor replace the old ones (released), and the crowd
+        keeps its state."""
+        interpolation = self.config.interpolation if interpolation is None else interpolation
         bake = bake_roles(self.character, self.roles, fps, precision)
         for i, clip in enumerate(bake.clips):  # loop settings made in the panel survive the re-bake
             old = next((c for c in self.bake.clips if c.name == clip.name), None)
             if old is not None:
                 bake.clips[i] = dataclasses.replace(clip, loop=old.loop)
         processor = AnimationProcessor(self.ctx, bake, LAYERS, masks=self._masks, path=self.config.processor_path,
-                                       history=self.processor.history)
+                                       history=self.processor.history, interpolation=interpolation)
         processor.resize(self.agents)
         self.processor.release()
         self.processor, self.bake = processor, bake
-        self.config = dataclasses.replace(self.config, bake_fps=float(fps), precision=precision)
+        self.config = dataclasses.replace(self.config, bake_fps=bake.fps, precision=precision, interpolation=interpolation)
         self._palette_frames.clear()
         if self.readback is not None:
             self.readback.reset()
@@ -364,7 +368,8 @@ class CrowdPipeline:
             "agents": self.agents,
             "processor_path": self.processor.path,
             "layers": self.processor.layer_count,
-            "bake": {"fps": self.bake.fps, "precision": self.bake.precision, "clips": [c.name for c in self.bake.clips],
+            "bake": {"fps": self.bake.fps, "precision": self.bake.precision, "interpolation": self.processor.interpolation,
+                     "clips": [c.name for c in self.bake.clips],
                      "rows": self.bake.rows, "bytes": self.bake.nbytes},
             "roles": self.roles,
             "ai": {"states": self.ai.counts(), "player_hits_taken": self.ai.player_hits_taken, "faults": self.ai.check(),

@@ -8,10 +8,11 @@ input ``layers``: float32 (N, L, 4) with L = the processor's layer count (1..4);
   - phase: any finite value; looping clips wrap it into [0, 1), one-shot clips clamp it to [0, 1];
   - weight: finite, at most MAX_WEIGHT; negative weights count as 0; weights need not sum to 1;
   - mask: -1 for the whole body, else a row of the processor's joint masks (factor per joint in [0, 1]).
-  Per joint: weights are multiplied by the mask, the DQ keys are lerped and made unit, signs are
-  aligned to the heaviest layer, the weighted sum is normalised; a joint whose weights add up to less
-  than REST_THRESHOLD takes the rest pose. Then the hierarchy is concatenated and multiplied by the
-  inverse bind.
+  Per joint: weights are multiplied by the mask; each layer samples its keys as the interpolation
+  says (INTERPOLATIONS below: by default rotation nlerp and translation lerp); rotations are sign-aligned
+  to the heaviest layer and their weighted sum normalised, translations and scales are weighted means
+  (dq_lerp instead sums the dual quaternions); a joint whose weights add up to less than REST_THRESHOLD
+  takes the rest pose. Then the hierarchy is concatenated and multiplied by the inverse bind.
 
 output: the palette, three RGBA32F textures ("planes") holding rows 0, 1 and 2 of each 3x4 skinning
   matrix. Agent a, joint j lives at texel ((a % agents_per_row) * J + j, a // agents_per_row) of each
@@ -48,6 +49,14 @@ MAX_JOINTS = 256  # one compute work group of 256 invocations holds at least one
 MAX_WEIGHT = 1.0e6  # larger weights would overflow the float32 sum long before they mean anything
 GROUP_SIZE = 256
 PATHS = ("auto", "compute", "fragment")
+# How one layer turns its two (or four) neighbouring baked keys into a local transform, and how layers
+# blend (crowd-bench error measures each; docs/BENCHMARKS.md says why the default is the default):
+# - dq_lerp: the DQ keys lerped blindly and normalised; layers blended as dual quaternions (DLB);
+# - qt_lerp: each key split into rotation and translation; rotations nlerped, translations lerped;
+#   layers blended the same way (ozz-animation's blending job, and the float64 reference's semantics);
+# - qt_cubic: as qt_lerp, with Catmull-Rom through four keys instead of the lerp between two.
+INTERPOLATIONS = ("dq_lerp", "qt_lerp", "qt_cubic")
+DEFAULT_INTERPOLATION = "qt_lerp"  # chosen by crowd-bench error: see docs/BENCHMARKS.md
 # Agents side by side in one palette texture row: keeps textures under 4096 texels wide, a size every
 # GL 3.3+ driver we target accepts (GL_MAX_TEXTURE_SIZE is 16384 on llvmpipe, 32768 on NVIDIA).
 MAX_TEXTURE_WIDTH = 4096
@@ -63,6 +72,12 @@ def palette_texel(agents, joints, row_offset, agents_per_row: int, joint_count: 
     starts at row `row_offset` (an int, or one per agent). The one statement of the palette layout."""
     agents = np.asarray(agents, np.int64)
     return (agents % agents_per_row) * joint_count + np.asarray(joints, np.int64), agents // agents_per_row + np.asarray(row_offset, np.int64)
+
+
+def check_interpolation(interpolation) -> str:
+    if interpolation not in INTERPOLATIONS:
+        raise ProcessorError(f"interpolation must be one of {', '.join(INTERPOLATIONS)}, got {interpolation!r}")
+    return interpolation
 
 
 def _check_history(history) -> int:
@@ -115,12 +130,74 @@ def validate_masks(masks, joint_count: int) -> np.ndarray | None:
     return np.ascontiguousarray(m)
 
 
-def reference_palette(bake: AnimationBake, layers, masks=None) -> np.ndarray:
+def _key_translation(real: np.ndarray, dual: np.ndarray) -> np.ndarray:
+    """Translation of stored DQ keys, 2 vec(d conj(r)) / |r|^2 (f16 keys are not exactly unit)."""
+    rw, rv = real[..., 3:], real[..., :3]
+    dw, dv = dual[..., 3:], dual[..., :3]
+    t = 2.0 * (rw * dv - dw * rv + np.cross(rv, dv))
+    return t / np.sum(real * real, axis=-1, keepdims=True)
+
+
+def _catmull_rom(p0, p1, p2, p3, u):
+    """Uniform Catmull-Rom between p1 and p2; u broadcasts against the keys' leading axes."""
+    return p1 + u * (0.5 * (p2 - p0) + u * ((p0 - 2.5 * p1 + 2.0 * p2 - 0.5 * p3) + u * (0.5 * (p3 - p0) + 1.5 * (p1 - p2))))
+
+
+def _sample_keys(texels, scales, table, clip, phase, interpolation):
+    """One layer's local transform of every joint, float64, as the shader samples it. Returns
+    (rotation or DQ real (N, J, 4), translation (N, J, 3) or DQ dual (N, J, 4), scale (N, J))."""
+    first, count, _, loop = table[clip].T
+    looping = loop > 0.5
+    phase = np.where(looping, phase - np.floor(phase), np.clip(phase, 0.0, 1.0))
+    f = phase * (count - 1.0)
+    i0 = np.clip(np.floor(f), 0.0, count - 2.0)
+    u = (f - i0)[:, None, None]
+    row = (first + i0).astype(np.int64)
+
+    def key(r):
+        s = np.ones(texels.shape[1] // 2) if scales is None else scales[r]
+        return texels[r, 0::2], texels[r, 1::2], s
+
+    (r1, d1, s1), (r2, d2, s2) = key(row), key(row + 1)
+    if interpolation == "dq_lerp":
+        r = r1 + (r2 - r1) * u
+        d = d1 + (d2 - d1) * u
+        inv = 1.0 / np.linalg.norm(r, axis=-1, keepdims=True)
+        return r * inv, d * inv, s1 + (s2 - s1) * u[..., 0]
+    t1, t2 = _key_translation(r1, d1), _key_translation(r2, d2)
+    if interpolation == "qt_lerp":
+        q = r1 + (r2 - r1) * u
+        return q / np.linalg.norm(q, axis=-1, keepdims=True), t1 + (t2 - t1) * u, s1 + (s2 - s1) * u[..., 0]
+    # qt_cubic: the outer keys wrap around a loop (its closing frame repeats frame 0, so frame 0's
+    # predecessor is frame count - 2 and the closing frame's successor is frame 1) and are extrapolated
+    # linearly at the ends of a one-shot clip.
+    local = row - first.astype(np.int64)
+    last = count.astype(np.int64) - 1
+    at_start, at_end = local == 0, local + 1 == last
+    prev_row = np.where(at_start & looping, first.astype(np.int64) + last - 1, np.maximum(row - 1, first.astype(np.int64)))
+    next_row = np.where(at_end & looping, first.astype(np.int64) + 1, np.minimum(row + 2, first.astype(np.int64) + last))
+    r0, d0, s0 = key(prev_row)
+    r3, d3, s3 = key(next_row)
+    t0, t3 = _key_translation(r0, d0), _key_translation(r3, d3)
+    r0 = np.where(np.sum(r0 * r1, axis=-1, keepdims=True) < 0.0, -r0, r0)
+    r3 = np.where(np.sum(r3 * r2, axis=-1, keepdims=True) < 0.0, -r3, r3)
+    ext_start = (at_start & ~looping)[:, None, None]
+    ext_end = (at_end & ~looping)[:, None, None]
+    r0, t0 = np.where(ext_start, 2.0 * r1 - r2, r0), np.where(ext_start, 2.0 * t1 - t2, t0)
+    r3, t3 = np.where(ext_end, 2.0 * r2 - r1, r3), np.where(ext_end, 2.0 * t2 - t1, t3)
+    s0 = np.where(ext_start[..., 0], 2.0 * s1 - s2, s0)
+    s3 = np.where(ext_end[..., 0], 2.0 * s2 - s1, s3)
+    q = _catmull_rom(r0, r1, r2, r3, u)
+    return q / np.linalg.norm(q, axis=-1, keepdims=True), _catmull_rom(t0, t1, t2, t3, u), _catmull_rom(s0, s1, s2, s3, u[..., 0])
+
+
+def reference_palette(bake: AnimationBake, layers, masks=None, interpolation: str = DEFAULT_INTERPOLATION) -> np.ndarray:
     """Float64 model of the processor on the same baked keys: (N, J, 3, 4) skinning matrix rows.
 
-    The bake's own error against the source clips is measured elsewhere (bake.joint_position_error,
-    issue 7's report); this function isolates what the GPU adds: float32 arithmetic.
+    The bake's own error against the source clips is measured elsewhere (crowd.accuracy, issue 7's
+    report); this function isolates what the GPU adds: float32 arithmetic.
     """
+    interpolation = check_interpolation(interpolation)
     masks = validate_masks(masks, bake.joint_count)
     layers = validate_layers(layers, len(bake.clips), 0 if masks is None else masks.shape[0], np.shape(layers)[1]).astype(np.float64)
     n, lcount, _ = layers.shape
@@ -128,51 +205,45 @@ def reference_palette(bake: AnimationBake, layers, masks=None) -> np.ndarray:
     texels = bake.texels.astype(np.float64)
     scales = None if bake.scale is None else bake.scale.astype(np.float64)
     table = bake.clip_table.astype(np.float64)
+    qt = interpolation != "dq_lerp"
     real = np.zeros((lcount, n, jc, 4))
-    dual = np.zeros((lcount, n, jc, 4))
+    second = np.zeros((lcount, n, jc, 3 if qt else 4))  # translation (QT) or dual part (DQ)
     scale = np.zeros((lcount, n, jc))
     weight = np.zeros((lcount, n, jc))
     for l in range(lcount):
         clip = layers[:, l, CLIP].astype(np.int64)
-        first, count, _, loop = table[clip].T
-        phase = layers[:, l, PHASE]
-        phase = np.where(loop > 0.5, phase - np.floor(phase), np.clip(phase, 0.0, 1.0))
-        f = phase * (count - 1.0)
-        i0 = np.clip(np.floor(f), 0.0, count - 2.0)
-        u = (f - i0)[:, None, None]
-        row = (first + i0).astype(np.int64)
-        r = texels[row, 0::2] + (texels[row + 1, 0::2] - texels[row, 0::2]) * u
-        d = texels[row, 1::2] + (texels[row + 1, 1::2] - texels[row, 1::2]) * u
-        inv = 1.0 / np.linalg.norm(r, axis=-1, keepdims=True)
-        real[l], dual[l] = r * inv, d * inv
-        if scales is not None:
-            scale[l] = scales[row] + (scales[row + 1] - scales[row]) * u[..., 0]
-        else:
-            scale[l] = 1.0
+        real[l], second[l], scale[l] = _sample_keys(texels, scales, table, clip, layers[:, l, PHASE], interpolation)
         w = np.repeat(np.maximum(layers[:, l, WEIGHT], 0.0)[:, None], jc, axis=1)
         mask = layers[:, l, MASK].astype(np.int64)
         if masks is not None:
             w = np.where(mask[:, None] >= 0, w * masks[np.maximum(mask, 0)].astype(np.float64), w)
         weight[l] = w
     real = np.where(weight[..., None] > 0, real, 0.0)
-    dual = np.where(weight[..., None] > 0, dual, 0.0)
+    second = np.where(weight[..., None] > 0, second, 0.0)
     scale = np.where(weight > 0, scale, 0.0)
     # First maximum, as the shader's strict '>' scan finds it.
     heaviest = np.argmax(weight, axis=0)
     ref = np.take_along_axis(real, heaviest[None, ..., None], axis=0)[0]
     signed = np.where(np.sum(real * ref[None], axis=-1) < 0.0, -weight, weight)
     r = np.sum(signed[..., None] * real, axis=0)
-    d = np.sum(signed[..., None] * dual, axis=0)
     total = weight.sum(axis=0)
-    s = np.sum(weight * scale, axis=0) / np.where(total < REST_THRESHOLD, 1.0, total)
+    safe = np.where(total < REST_THRESHOLD, 1.0, total)
+    s = np.sum(weight * scale, axis=0) / safe
     low = total < REST_THRESHOLD
     rest_r = texels[bake.rest_row, 0::2]
     rest_d = texels[bake.rest_row, 1::2]
     rest_s = np.ones(jc) if scales is None else scales[bake.rest_row]
     r = np.where(low[..., None], rest_r[None], r)
-    d = np.where(low[..., None], rest_d[None], d)
     s = np.where(low, rest_s[None], s)
-    local = tf.dq_to_mat4(r, d, s)
+    if qt:
+        t = np.sum(weight[..., None] * second, axis=0) / safe[..., None]
+        t = np.where(low[..., None], _key_translation(rest_r, rest_d)[None], t)
+        r = r / np.linalg.norm(r, axis=-1, keepdims=True)
+        local = tf.trs_to_mat4(t, r, np.repeat(s[..., None], 3, -1))
+    else:
+        d = np.sum(signed[..., None] * second, axis=0)
+        d = np.where(low[..., None], rest_d[None], d)
+        local = tf.dq_to_mat4(r, d, s)
     glob = np.empty_like(local)
     for j, p in enumerate(bake.parents):
         glob[:, j] = local[:, j] if p < 0 else glob[:, p] @ local[:, j]
@@ -190,7 +261,7 @@ class AnimationProcessor:
     """Owns the bake's GPU textures, the layers texture and the palette planes, and releases them."""
 
     def __init__(self, ctx: moderngl.Context, bake: AnimationBake, layer_count: int = MAX_LAYERS, masks=None, path: str = "auto",
-                 history: int = 1):
+                 history: int = 1, interpolation: str = DEFAULT_INTERPOLATION):
         if path not in PATHS:
             raise ProcessorError(f"processor path must be one of {', '.join(PATHS)}, got {path!r}")
         if not 1 <= layer_count <= MAX_LAYERS:
@@ -210,6 +281,7 @@ class AnimationProcessor:
         self.layer_count = layer_count
         self.joint_count = jc
         self.masks = validate_masks(masks, jc)
+        self.interpolation = check_interpolation(interpolation)
         self.agents_per_row = max(1, MAX_TEXTURE_WIDTH // max(jc, layer_count))
         self.agents_per_group = GROUP_SIZE // jc
         self.agents = 0
@@ -228,6 +300,10 @@ class AnimationProcessor:
             defines["HAS_SCALE"] = 1
         if self.masks_texture is not None:
             defines["HAS_MASKS"] = 1
+        if interpolation != "dq_lerp":
+            defines["INTERPOLATION_QT"] = 1
+        if interpolation == "qt_cubic":
+            defines["INTERPOLATION_CUBIC"] = 1
         if path == "compute":
             self.program = ctx.compute_shader(load_shader("processor.comp.glsl", defines))
         else:

@@ -12,6 +12,8 @@ actions (attack, hit, death) stay unassigned and are simply not played. Only ass
 
 from __future__ import annotations
 
+from .bake import DEFAULT_FPS
+
 ROLES = ("idle", "walk", "run", "attack", "hit", "death")
 ROLE_WORDS = {
     "idle": ("idle", "stand", "breath"),
@@ -101,7 +103,7 @@ def clips_used(roles: dict[str, str | None]) -> list[str]:
     return out
 
 
-def bake_roles(character, roles: dict[str, str | None], fps: float = 15.0, precision: str = "f32"):
+def bake_roles(character, roles: dict[str, str | None], fps: float | str = DEFAULT_FPS, precision: str = "f32"):
     """The bake of a character's role clips and nothing else: a scene bakes only what it plays."""
     from .bake import bake
 

@@ -5,7 +5,8 @@ baked), the AI's settings, the features it switches on (weapons, shadows, LOD, c
 
     [scene]        name, model ("" = the built-in zombie; relative paths are from the scene's folder),
                    agents, seed
-    [clips]        bake_fps, precision ("f32" | "f16"), roles = { walk = "shamble", ... },
+    [clips]        bake_fps (1-240 or "source"), precision ("f32" | "f16"),
+                   interpolation ("qt_lerp" | "dq_lerp" | "qt_cubic"), roles = { walk = "shamble", ... },
                    speed = { shamble = 1.2, ... } (playback speed), loop = { attack = true, ... }
     [ai]           any AIConfig field (crowd/ai.py), e.g. runner_share = 0.3
     [features]     weapons, readback_latency (1-3), shadows, culling, lod_distances = [near, far],
@@ -29,8 +30,10 @@ import numpy as np
 import tomli_w
 
 from .ai import AIConfig, AIError
+from .bake import DEFAULT_FPS, SOURCE_RATE
 from .gltf_write import atomic_write_bytes
 from .pipeline import MAX_AGENTS, PipelineConfig
+from .processor import DEFAULT_INTERPOLATION, INTERPOLATIONS
 from .render import DEFAULT_LOD_DISTANCES
 
 SCENE_DIR = Path(__file__).resolve().parent.parent / "scenes"
@@ -54,8 +57,9 @@ class Scene:
     model: Path | None = None
     agents: int = 200
     seed: int = 1
-    bake_fps: float = 15.0
+    bake_fps: float | str = DEFAULT_FPS  # or "source"
     precision: str = "f32"
+    interpolation: str = DEFAULT_INTERPOLATION
     roles: dict = field(default_factory=dict)
     clip_speed: dict = field(default_factory=dict)  # clip name → playback speed
     clip_loop: dict = field(default_factory=dict)  # clip name → loop (true) or play once (false), where set
@@ -106,7 +110,7 @@ class Scene:
 
     def pipeline_config(self) -> PipelineConfig:
         return PipelineConfig(agents=self.agents, seed=self.seed, model=self.model, roles=dict(self.roles), bake_fps=self.bake_fps,
-                              precision=self.precision, processor_path=self.processor, shadows=self.shadows, culling=self.culling,
+                              precision=self.precision, interpolation=self.interpolation, processor_path=self.processor, shadows=self.shadows, culling=self.culling,
                               lod_distances=tuple(self.lod_distances), ai=self.ai, weapons=self.weapons,
                               readback_latency=self.readback_latency)
 
@@ -114,7 +118,7 @@ class Scene:
 # table → key → kind (int, float, bool, str, roles, pair, vec3, path); [ai] takes the AIConfig fields
 _SCHEMA = {
     "scene": {"name": "str", "model": "path", "agents": "int", "seed": "int"},
-    "clips": {"bake_fps": "float", "precision": "str", "roles": "roles", "speed": "speeds", "loop": "loops"},
+    "clips": {"bake_fps": "rate", "precision": "str", "interpolation": "str", "roles": "roles", "speed": "speeds", "loop": "loops"},
     "features": {"weapons": "bool", "readback_latency": "int", "shadows": "bool", "culling": "bool", "lod_distances": "pair",
                  "processor": "str"},
     "camera": {"eye": "vec3", "target": "vec3", "fov_y": "float"},
@@ -137,6 +141,12 @@ def _typed(where: str, kind: str, value):
     if kind == "float":
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             raise bad("a finite number")
+        return float(value)
+    if kind == "rate":  # a bake rate
+        if value == SOURCE_RATE:
+            return value
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 1.0 <= value <= 240.0:
+            raise bad(f"1 to 240 (fps) or \"{SOURCE_RATE}\"")
         return float(value)
     if kind in ("str", "path"):
         if not isinstance(value, str):
@@ -196,13 +206,15 @@ def scene_from_dict(data: dict, base: Path | None = None, source: str = "scene")
         scene.seed = _typed(where("scene", "seed"), "int", s["seed"])
     c = data.get("clips", {})
     if "bake_fps" in c:
-        scene.bake_fps = _typed(where("clips", "bake_fps"), "float", c["bake_fps"])
-        if not 1.0 <= scene.bake_fps <= 240.0:
-            raise SceneError(f"{where('clips', 'bake_fps')} must be 1 to 240, got {scene.bake_fps:g}")
+        scene.bake_fps = _typed(where("clips", "bake_fps"), "rate", c["bake_fps"])
     if "precision" in c:
         scene.precision = _typed(where("clips", "precision"), "str", c["precision"])
         if scene.precision not in ("f32", "f16"):
             raise SceneError(f"{where('clips', 'precision')} must be \"f32\" or \"f16\", got {scene.precision!r}")
+    if "interpolation" in c:
+        scene.interpolation = _typed(where("clips", "interpolation"), "str", c["interpolation"])
+        if scene.interpolation not in INTERPOLATIONS:
+            raise SceneError(f"{where('clips', 'interpolation')} must be one of {', '.join(INTERPOLATIONS)}, got {scene.interpolation!r}")
     if "roles" in c:
         scene.roles = _typed(where("clips", "roles"), "roles", c["roles"])
     if "speed" in c:
@@ -275,7 +287,7 @@ def scene_to_dict(scene: Scene, base: Path | None = None) -> dict:
     default_ai = AIConfig()
     out = {
         "scene": {"name": scene.name, "model": model, "agents": scene.agents, "seed": scene.seed},
-        "clips": {"bake_fps": scene.bake_fps, "precision": scene.precision, "roles": dict(scene.roles),
+        "clips": {"bake_fps": scene.bake_fps, "precision": scene.precision, "interpolation": scene.interpolation, "roles": dict(scene.roles),
                   "speed": dict(scene.clip_speed), "loop": dict(scene.clip_loop)},
         "features": {"weapons": scene.weapons, "readback_latency": scene.readback_latency, "shadows": scene.shadows,
                      "culling": scene.culling, "lod_distances": list(scene.lod_distances), "processor": scene.processor},

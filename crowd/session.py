@@ -16,10 +16,10 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
-from .ai import STATE_NAMES, AIConfig, AIError
-from .bake import BakeError
+from .ai import STATE_NAMES, AIError
+from .bake import SOURCE_RATE, BakeError
 from .pipeline import CrowdPipeline, PipelineError
-from .processor import CLIP, MASK, PHASE, WEIGHT
+from .processor import CLIP, INTERPOLATIONS, MASK, PHASE, WEIGHT
 from .render import Camera
 from .scene import CameraSetting, Scene, SceneError, save_scene
 
@@ -88,6 +88,7 @@ class CrowdSession:
         self.selected = -1
         self.forced: dict | None = None  # {"clip": index, "agents": None (all) or array, "start": time}
         self.held_weights: dict = {}  # layer → (weight, agents or None)
+        self.bake_error: dict | None = None  # the last measure_error(), until the next re-bake
         self._pending_steps = 0
         self.pipeline.layer_override = self._override_layers
 
@@ -209,13 +210,33 @@ class CrowdSession:
 
     # -- rendering features
 
-    def rebake(self, fps: float, precision: str) -> None:
-        if not math.isfinite(fps) or not 1.0 <= fps <= 240.0 or precision not in ("f32", "f16"):
-            raise SessionError(f"bake rate must be 1 to 240 fps and precision f32 or f16, got {fps!r}, {precision!r}")
+    def rebake(self, fps: float | str, precision: str, interpolation: str | None = None) -> None:
+        """Bake again at another rate ("source": each clip at its own key rate) or precision, or process
+        with another interpolation."""
+        rate_ok = fps == SOURCE_RATE or (isinstance(fps, (int, float)) and math.isfinite(fps) and 1.0 <= fps <= 240.0)
+        if not rate_ok or precision not in ("f32", "f16") or interpolation not in (None, *INTERPOLATIONS):
+            raise SessionError(f"bake rate must be 1 to 240 fps or {SOURCE_RATE!r}, precision f32 or f16 and interpolation one of "
+                               f"{', '.join(INTERPOLATIONS)}; got {fps!r}, {precision!r}, {interpolation!r}")
         try:
-            self.pipeline.rebake(float(fps), precision)
+            self.pipeline.rebake(fps if fps == SOURCE_RATE else float(fps), precision, interpolation)
         except BakeError as exc:
             raise SessionError(str(exc)) from None
+        self.bake_error = None
+
+    def measure_error(self, per_clip: int = 24, blends: int = 240) -> dict:
+        """The shell error of the current bake and interpolation on this GPU against the float64
+        reference (crowd.accuracy), over the scene's clips alone and in random blends: what the panel
+        shows next to the bake settings. A few hundred poses: tens of milliseconds on llvmpipe."""
+        from . import accuracy
+
+        p = self.pipeline
+        # The reference plays each clip as the bake does (loop settings changed in the panel included).
+        clips = [dataclasses.replace(p.character.clip(c.name), loop=c.loop) for c in p.bake.clips]
+        samples = accuracy.draw_samples(clips, np.random.default_rng(0), per_clip, blends)
+        truth = accuracy.truth(p.character.skeleton, clips, samples.layers)
+        errors = accuracy.measure_gpu(self.ctx, p.character.skeleton, p.bake, samples.layers, truth, p.processor.interpolation)
+        self.bake_error = {**accuracy.summarise(errors), "poses": int(len(samples.layers))}
+        return self.bake_error
 
     def set_lod_distances(self, near: float, far: float) -> None:
         try:
@@ -343,6 +364,7 @@ class CrowdSession:
         authored = {c.name: c.loop for c in p.character.clips if c.name in bake_loops}
         return dataclasses.replace(
             self.scene, agents=p.agents, seed=p.config.seed, bake_fps=p.bake.fps, precision=p.bake.precision,
+            interpolation=p.processor.interpolation,
             roles=dict(p.config.roles), clip_speed=dict(p.clip_speed),
             clip_loop={k: v for k, v in bake_loops.items() if authored.get(k) != v}, ai=p.ai.config,
             weapons=p.config.weapons, readback_latency=p.latency, shadows=p.renderer.shadows, culling=p.renderer.culling,

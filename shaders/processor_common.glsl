@@ -3,7 +3,8 @@
 // Its float64 twin is crowd.processor.reference_palette: change one, change the other.
 //
 // Defines set by crowd/processor.py: LAYERS (1..4), REST_THRESHOLD, HAS_SCALE (joint scale texture
-// exists), HAS_MASKS (joint mask texture exists), MAX_JOINTS.
+// exists), HAS_MASKS (joint mask texture exists), MAX_JOINTS, and the interpolation:
+// none (dq_lerp), INTERPOLATION_QT (qt_lerp) or INTERPOLATION_QT with INTERPOLATION_CUBIC (qt_cubic).
 
 uniform sampler2D u_anim;        // AnimationTexture (2J, rows): texel 2j = real, 2j+1 = dual of joint j
 #ifdef HAS_SCALE
@@ -36,18 +37,22 @@ Affine compose(Affine a, Affine b) {
     return m;
 }
 
-// Unit dual quaternion (real r, dual d, both xyzw) times a uniform scale applied first.
-Affine dq_affine(vec4 r, vec4 d, float s) {
+// Rotation (unit quaternion q, xyzw), then translation t, with a uniform scale applied first.
+Affine qt_affine(vec4 r, vec3 t, float s) {
     float xx = r.x * r.x, yy = r.y * r.y, zz = r.z * r.z;
     float xy = r.x * r.y, xz = r.x * r.z, yz = r.y * r.z;
     float wx = r.w * r.x, wy = r.w * r.y, wz = r.w * r.z;
-    // t = 2 * vec(d * conj(r))
-    vec3 t = 2.0 * (r.w * d.xyz - d.w * r.xyz + cross(r.xyz, d.xyz));
     Affine m;
     m.r0 = vec4(s * (1.0 - 2.0 * (yy + zz)), s * 2.0 * (xy - wz), s * 2.0 * (xz + wy), t.x);
     m.r1 = vec4(s * 2.0 * (xy + wz), s * (1.0 - 2.0 * (xx + zz)), s * 2.0 * (yz - wx), t.y);
     m.r2 = vec4(s * 2.0 * (xz - wy), s * 2.0 * (yz + wx), s * (1.0 - 2.0 * (xx + yy)), t.z);
     return m;
+}
+
+// Unit dual quaternion (real r, dual d, both xyzw) times a uniform scale applied first.
+Affine dq_affine(vec4 r, vec4 d, float s) {
+    // t = 2 * vec(d * conj(r))
+    return qt_affine(r, 2.0 * (r.w * d.xyz - d.w * r.xyz + cross(r.xyz, d.xyz)), s);
 }
 
 float joint_scale(int joint, int row) {
@@ -58,39 +63,98 @@ float joint_scale(int joint, int row) {
 #endif
 }
 
+// A stored key as it is (the inverse bind pose in row 0, the rest pose in the last row), made unit
+// first: f16 keys are unit only to within about 1e-3, which at 1 m from the origin is a millimetre.
 Affine stored_affine(int joint, int row) {
-    return dq_affine(texelFetch(u_anim, ivec2(2 * joint, row), 0), texelFetch(u_anim, ivec2(2 * joint + 1, row), 0),
-                     joint_scale(joint, row));
+    vec4 r = texelFetch(u_anim, ivec2(2 * joint, row), 0);
+    float inv = 1.0 / length(r);
+    return dq_affine(r * inv, texelFetch(u_anim, ivec2(2 * joint + 1, row), 0) * inv, joint_scale(joint, row));
 }
 
 int parent_of(int joint) {
     return texelFetch(u_parents, ivec2(joint, 0), 0).x;
 }
 
-// One layer's local transform of one joint: the two neighbouring baked keys, lerped blindly (they are
-// sign-aligned at bake time), then divided by |real| so each layer enters the blend as a unit DQ.
-void sample_layer(vec4 layer, int joint, out vec4 real, out vec4 dual, out float scale) {
+#ifdef INTERPOLATION_QT
+// Translation of a stored key; f16 keys are not exactly unit, hence the division by |r|^2.
+vec3 key_translation(vec4 r, vec4 d) {
+    return 2.0 * (r.w * d.xyz - d.w * r.xyz + cross(r.xyz, d.xyz)) / dot(r, r);
+}
+#endif
+
+#ifdef INTERPOLATION_CUBIC
+// Uniform Catmull-Rom between p1 and p2 (Horner form, the same as crowd.processor._catmull_rom).
+vec4 catmull_rom(vec4 p0, vec4 p1, vec4 p2, vec4 p3, float u) {
+    return p1 + u * (0.5 * (p2 - p0) + u * ((p0 - 2.5 * p1 + 2.0 * p2 - 0.5 * p3) + u * (0.5 * (p3 - p0) + 1.5 * (p1 - p2))));
+}
+#endif
+
+// One layer's local transform of one joint from its neighbouring baked keys (they are sign-aligned
+// at bake time, so they lerp blindly). dq_lerp: real and dual parts lerped, then divided by |real|;
+// `second` is the dual part. qt_lerp / qt_cubic: each key split into rotation and translation, the
+// rotation nlerped (or Catmull-Rom'd) and made unit, the translation lerped; `second` is (t, 0).
+void sample_layer(vec4 layer, int joint, out vec4 real, out vec4 second, out float scale) {
     vec4 info = texelFetch(u_clips, ivec2(int(layer.x), 0), 0);
-    float phase = info.w > 0.5 ? fract(layer.y) : clamp(layer.y, 0.0, 1.0);
+    bool looping = info.w > 0.5;
+    float phase = looping ? fract(layer.y) : clamp(layer.y, 0.0, 1.0);
     float f = phase * (info.y - 1.0);
     float i0 = clamp(floor(f), 0.0, info.y - 2.0);
     float u = f - i0;
     int row = int(info.x + i0);
-    vec4 r0 = texelFetch(u_anim, ivec2(2 * joint, row), 0);
-    vec4 d0 = texelFetch(u_anim, ivec2(2 * joint + 1, row), 0);
-    vec4 r1 = texelFetch(u_anim, ivec2(2 * joint, row + 1), 0);
-    vec4 d1 = texelFetch(u_anim, ivec2(2 * joint + 1, row + 1), 0);
-    real = r0 + (r1 - r0) * u;
-    dual = d0 + (d1 - d0) * u;
+    vec4 r1 = texelFetch(u_anim, ivec2(2 * joint, row), 0);
+    vec4 d1 = texelFetch(u_anim, ivec2(2 * joint + 1, row), 0);
+    vec4 r2 = texelFetch(u_anim, ivec2(2 * joint, row + 1), 0);
+    vec4 d2 = texelFetch(u_anim, ivec2(2 * joint + 1, row + 1), 0);
+    float s1 = joint_scale(joint, row);
+    float s2 = joint_scale(joint, row + 1);
+#if !defined(INTERPOLATION_QT)
+    real = r1 + (r2 - r1) * u;
     // Aligned unit keys have a non-negative dot product, so |real| >= sqrt(1/2) here.
     float inv = 1.0 / length(real);
     real *= inv;
-    dual *= inv;
-#ifdef HAS_SCALE
-    float s0 = joint_scale(joint, row);
-    scale = s0 + (joint_scale(joint, row + 1) - s0) * u;
+    second = (d1 + (d2 - d1) * u) * inv;
+    scale = s1 + (s2 - s1) * u;
 #else
-    scale = 1.0;
+    vec3 t1 = key_translation(r1, d1);
+    vec3 t2 = key_translation(r2, d2);
+#ifdef INTERPOLATION_CUBIC
+    // The outer keys: around a loop, frame 0's predecessor is frame count - 2 (the closing frame
+    // repeats frame 0) and the closing frame's successor is frame 1; a one-shot clip extrapolates.
+    int first = int(info.x);
+    int last = int(info.y) - 1;
+    bool at_start = row == first;
+    bool at_end = row + 1 == first + last;
+    int prev_row = at_start ? (looping ? first + last - 1 : row) : row - 1;
+    int next_row = at_end ? (looping ? first + 1 : row + 1) : row + 2;
+    vec4 r0 = texelFetch(u_anim, ivec2(2 * joint, prev_row), 0);
+    vec4 r3 = texelFetch(u_anim, ivec2(2 * joint, next_row), 0);
+    vec3 t0 = key_translation(r0, texelFetch(u_anim, ivec2(2 * joint + 1, prev_row), 0));
+    vec3 t3 = key_translation(r3, texelFetch(u_anim, ivec2(2 * joint + 1, next_row), 0));
+    float s0 = joint_scale(joint, prev_row);
+    float s3 = joint_scale(joint, next_row);
+    // Keys across the loop seam may hold the other sign (a joint that spins a full turn).
+    if (dot(r0, r1) < 0.0) r0 = -r0;
+    if (dot(r3, r2) < 0.0) r3 = -r3;
+    if (at_start && !looping) {
+        r0 = 2.0 * r1 - r2;
+        t0 = 2.0 * t1 - t2;
+        s0 = 2.0 * s1 - s2;
+    }
+    if (at_end && !looping) {
+        r3 = 2.0 * r2 - r1;
+        t3 = 2.0 * t2 - t1;
+        s3 = 2.0 * s2 - s1;
+    }
+    real = catmull_rom(r0, r1, r2, r3, u);
+    vec4 ts = catmull_rom(vec4(t0, s0), vec4(t1, s1), vec4(t2, s2), vec4(t3, s3), u);  // translation and scale
+    second = vec4(ts.xyz, 0.0);
+    scale = ts.w;
+#else
+    real = r1 + (r2 - r1) * u;
+    second = vec4(t1 + (t2 - t1) * u, 0.0);
+    scale = s1 + (s2 - s1) * u;
+#endif
+    real *= 1.0 / length(real);
 #endif
 }
 
@@ -99,7 +163,7 @@ void sample_layer(vec4 layer, int joint, out vec4 real, out vec4 dual, out float
 // real part's norm. A joint whose weights add up to less than REST_THRESHOLD takes the rest pose.
 Affine blended_local(int agent, int joint) {
     vec4 real[LAYERS];
-    vec4 dual[LAYERS];
+    vec4 second[LAYERS];  // dual parts (dq_lerp) or translations (qt_*)
     float scale[LAYERS];
     float weight[LAYERS];
     int heaviest = 0;
@@ -113,10 +177,10 @@ Affine blended_local(int agent, int joint) {
 #endif
         weight[l] = w;
         if (w > 0.0) {
-            sample_layer(layer, joint, real[l], dual[l], scale[l]);  // layers that do not count cost no fetches
+            sample_layer(layer, joint, real[l], second[l], scale[l]);  // layers that do not count cost no fetches
         } else {
             real[l] = vec4(0.0);
-            dual[l] = vec4(0.0);
+            second[l] = vec4(0.0);
             scale[l] = 0.0;
         }
         if (w > weight[heaviest]) heaviest = l;
@@ -128,7 +192,11 @@ Affine blended_local(int agent, int joint) {
     for (int l = 0; l < LAYERS; ++l) {
         float signed_w = dot(real[l], real[heaviest]) < 0.0 ? -weight[l] : weight[l];
         r += signed_w * real[l];
-        d += signed_w * dual[l];
+#ifdef INTERPOLATION_QT
+        d += weight[l] * second[l];  // translations: a weighted mean
+#else
+        d += signed_w * second[l];
+#endif
         s += weight[l] * scale[l];
         total += weight[l];
     }
@@ -137,7 +205,11 @@ Affine blended_local(int agent, int joint) {
     // |r| >= weight[heaviest] >= total / LAYERS: the division below never meets ~0.
     float inv = 1.0 / length(r);
     r *= inv;
+#ifdef INTERPOLATION_QT
+    return qt_affine(r, d.xyz / total, s / total);
+#else
     d *= inv;
     d -= r * dot(r, d);
     return dq_affine(r, d, s / total);
+#endif
 }

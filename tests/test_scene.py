@@ -39,6 +39,9 @@ def test_save_round_trips_atomically_and_keeps_a_backup(tmp_path):
     assert backup == tmp_path / "mine.toml.bak" and backup.read_bytes() == first
     again = load_scene(path)
     assert again.agents == 99 and again.roles == {"run": "crawl"} and again.camera == scene.camera
+    source = changed.with_overrides(bake_fps="source", interpolation="dq_lerp")
+    save_scene(source, path)
+    assert load_scene(path) == source and source.pipeline_config().bake_fps == "source"
 
 
 def test_a_failed_save_leaves_the_old_file_whole(tmp_path, monkeypatch):
@@ -66,7 +69,9 @@ def test_a_failed_save_leaves_the_old_file_whole(tmp_path, monkeypatch):
     ("[scene]\nagents = -1", "scene.agents must be 0 to"),
     ("[scene]\nagents = 2.5", "scene.agents must be a whole number"),
     ("[clips]\nprecision = 'f8'", "clips.precision"),
-    ("[clips]\nbake_fps = 0", "clips.bake_fps"),
+    ("[clips]\nbake_fps = 0", "clips.bake_fps must be 1 to 240 (fps) or \"source\""),
+    ("[clips]\nbake_fps = 'sauce'", "clips.bake_fps must be 1 to 240"),
+    ("[clips]\ninterpolation = 'slerp'", "clips.interpolation must be one of dq_lerp, qt_lerp, qt_cubic"),
     ("[clips]\nroles = { jump = 'run' }", "unknown role 'jump'"),
     ("[features]\nlod_distances = [40.0, 14.0]", "two increasing"),
     ("[features]\nreadback_latency = 0", "readback_latency must be 1 to 3"),

@@ -141,6 +141,24 @@ def test_rebake_and_features_live(session):
     assert s.pipeline.weapons.last["weapons"] > 0 and s.pipeline.weapon_error_mm() <= 0.1
     with pytest.raises(SessionError, match="bake rate"):
         s.rebake(0.0, "f32")
+    with pytest.raises(SessionError, match="interpolation one of"):
+        s.rebake(30.0, "f32", "slerp")
+
+
+def test_rebake_interpolation_and_measured_error(session):
+    """The panel's bake controls: every interpolation and the source rate re-bake live, and the error
+    measured on the GPU tells them apart (dq_lerp blends the hips as a screw: centimetres)."""
+    s, fb = session(agents=20)
+    s.frame(fb, DT)
+    default = s.measure_error(per_clip=6, blends=60)
+    assert default["max_error_mm"] < 1.0 and default["poses"] == 6 * len(s.pipeline.bake.clips) + 60
+    s.rebake("source", "f32", "dq_lerp")
+    assert s.bake_error is None and s.pipeline.bake.fps == "source" and s.pipeline.processor.interpolation == "dq_lerp"
+    s.frame(fb, DT)
+    assert s.measure_error(per_clip=6, blends=60)["max_error_mm"] > 10.0
+    s.rebake(15, "f16", "qt_cubic")
+    s.frame(fb, DT)
+    assert s.to_scene().interpolation == "qt_cubic" and s.to_scene().bake_fps == 15.0
     with pytest.raises(SessionError, match="LOD"):
         s.set_lod_distances(10.0, 5.0)
     with pytest.raises(SessionError, match="latency"):

@@ -1,0 +1,126 @@
+"""Report plots, drawn with imgui-bundle's implot into an offscreen framebuffer (EGL) and saved as PNG,
+so a plot in the docs is the same widget the demo's panel uses, with no plotting library added."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+COLORS = {"dq_lerp": (0.85, 0.33, 0.10, 1.0), "qt_lerp": (0.00, 0.45, 0.74, 1.0), "qt_cubic": (0.47, 0.67, 0.19, 1.0)}
+FRONT_COLOR = (0.10, 0.10, 0.10, 1.0)
+
+
+def _render(size: tuple[int, int], draw) -> np.ndarray:
+    """One ImGui frame of `draw(imgui, implot)` filling a window of `size`, as an RGB image."""
+    import imgui_bundle
+    from imgui_bundle import imgui, implot
+    from moderngl_window.integrations.imgui_bundle import ModernGLRenderer
+
+    from .gl import headless_context
+    from .smoke import offscreen_framebuffer, read_image
+
+    ctx = headless_context()
+    gui = imgui.create_context()
+    plot = implot.create_context()
+    renderer = fb = None
+    attachments = ()
+    try:
+        io = imgui.get_io()
+        io.set_ini_filename("")  # no imgui.ini next to the caller
+        io.display_size = imgui.ImVec2(*size)
+        font = Path(imgui_bundle.__file__).parent / "assets" / "fonts" / "DroidSans.ttf"
+        if font.exists():
+            io.fonts.add_font_from_file_ttf(str(font), 19.0)
+        imgui.style_colors_light()
+        implot.style_colors_light()
+        renderer = ModernGLRenderer(ctx=ctx, display_size=size)
+        fb, attachments = offscreen_framebuffer(ctx, size)
+        for _ in range(2):  # the first frame lays out the legend and the tick labels
+            imgui.new_frame()
+            imgui.set_next_window_pos(imgui.ImVec2(0, 0))
+            imgui.set_next_window_size(imgui.ImVec2(*size))
+            imgui.begin("plot", flags=imgui.WindowFlags_.no_decoration | imgui.WindowFlags_.no_move)
+            draw(imgui, implot)
+            imgui.end()
+            imgui.render()
+            fb.use()
+            fb.clear(1.0, 1.0, 1.0, 1.0)
+            renderer.render(imgui.get_draw_data())
+        return read_image(fb, size)
+    finally:
+        if renderer is not None:
+            renderer.shutdown()
+        if fb is not None:
+            fb.release()
+        for a in attachments:
+            a.release()
+        implot.destroy_context(plot)
+        imgui.destroy_context(gui)
+        ctx.release()
+
+
+def _log_ticks(lo: float, hi: float) -> list[float]:
+    """Round values (1, 1.2, 1.5, 2, 3, 4, 5, 6, 8 times powers of 10) between lo and hi."""
+    out = []
+    for e in range(int(np.floor(np.log10(lo))), int(np.ceil(np.log10(hi))) + 1):
+        out += [m * 10.0 ** e for m in (1, 1.2, 1.5, 2, 3, 4, 5, 6, 8) if lo <= m * 10.0 ** e <= hi]
+    return [float(f"{t:.3g}") for t in out]
+
+
+def error_plot(report: dict, path: Path, size: tuple[int, int] = (1600, 1000)) -> None:
+    """Max shell error (x, log) against processor GPU ms at the larger crowd (y, log): one marked point
+    per configuration (colour: interpolation, marker: storage, label: bake rate), the Pareto front
+    ringed, the default marked, the 1 mm target as a vertical line; the device and versions in the title."""
+    from .gltf_write import atomic_write_bytes
+    from .smoke import png_bytes
+
+    rows = report["rows"]
+    if not rows:
+        raise ValueError("the report has no rows to plot")
+    agents = report.get("cost_agents", [10000, 100000])[1]
+    err = np.array([r["max_error_mm"] for r in rows], np.float64)
+    ms = np.array([r["gpu_ms_100k"] for r in rows], np.float64)
+    front = sorted((i for i, r in enumerate(rows) if r.get("pareto")), key=lambda i: err[i])
+    default = [i for i, r in enumerate(rows) if r.get("default")]
+    title = f"Error against run time: {report.get('device', '?')}"
+
+    def label(r):
+        rate = "src" if r["bake_fps"] == "source" else f"{r['bake_fps']:g}"
+        return f"{rate} {r['storage']}"
+
+    def draw(imgui, implot):
+        if not implot.begin_plot(title, imgui.ImVec2(-1, -1)):
+            return
+        implot.setup_axes("max shell error, mm (3 cm shell against the float64 reference; log)",
+                          f"animation processor GPU ms, {agents:,} agents (log)")
+        implot.setup_axis_scale(implot.ImAxis_.x1, implot.Scale_.log10)
+        implot.setup_axis_scale(implot.ImAxis_.y1, implot.Scale_.log10)
+        implot.setup_axis_limits(implot.ImAxis_.x1, float(err.min()) / 2.5, float(err.max()) * 2.5, implot.Cond_.always)
+        lo, hi = float(ms.min()) / 1.15, float(ms.max()) * 1.15
+        implot.setup_axis_limits(implot.ImAxis_.y1, lo, hi, implot.Cond_.always)
+        ticks = _log_ticks(lo, hi)  # the ms range is often under a decade: label more than the powers of 10
+        implot.setup_axis_ticks(implot.ImAxis_.y1, ticks, [f"{t:g}" for t in ticks], False)
+        implot.setup_legend(implot.Location_.north_west)
+        target = float(report.get("target_mm", 1.0))
+        implot.set_next_line_style(imgui.ImVec4(0.6, 0.0, 0.0, 1.0), 2.0)
+        implot.plot_inf_lines(f"{target:g} mm target", np.array([target]))
+        for interp, color in COLORS.items():
+            for storage, marker in (("f32", implot.Marker_.circle), ("f16", implot.Marker_.square)):
+                idx = [i for i, r in enumerate(rows) if r["interpolation"] == interp and r["storage"] == storage]
+                if not idx:
+                    continue
+                implot.set_next_marker_style(marker, 8.0, imgui.ImVec4(*color), 1.0, imgui.ImVec4(*color))
+                implot.plot_scatter(f"{interp}, {storage}", np.ascontiguousarray(err[idx]), np.ascontiguousarray(ms[idx]))
+        if front:  # the front is over error, ms and bytes, so it is ringed, not drawn as a line
+            implot.set_next_marker_style(implot.Marker_.circle, 13.0, imgui.ImVec4(0, 0, 0, 0), 2.0, imgui.ImVec4(*FRONT_COLOR))
+            implot.plot_scatter("Pareto front (error, ms, bytes)", np.ascontiguousarray(err[front]), np.ascontiguousarray(ms[front]))
+        if default:
+            implot.set_next_marker_style(implot.Marker_.diamond, 22.0, imgui.ImVec4(0, 0, 0, 0), 3.0, imgui.ImVec4(0.8, 0.0, 0.0, 1.0))
+            implot.plot_scatter("default", np.ascontiguousarray(err[default]), np.ascontiguousarray(ms[default]))
+        for i, r in enumerate(rows):  # "source" labels go below the point: they often share it with a fixed rate
+            implot.plot_text(label(r), float(err[i]), float(ms[i]), imgui.ImVec2(0, 16 if r["bake_fps"] == "source" else -16))
+        implot.end_plot()
+
+    image = _render(size, draw)
+    atomic_write_bytes(Path(path), png_bytes(image))
