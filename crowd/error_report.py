@@ -123,15 +123,25 @@ def run(args) -> int:
           f"in {time.perf_counter() - t0:.1f} s")
 
     configs = [(r, s, i) for r in rates for s in storages for i in interpolations]
+    bakes: dict = {}  # (model, rate, storage) → the bake, or the BakeError it raised: the same for every interpolation
+
+    def baked_for(m, rate, storage):
+        key = (m.name, rate, storage)
+        if key not in bakes:
+            try:
+                bakes[key] = bake(m.character.skeleton, m.clips, rate, storage)
+            except BakeError as exc:
+                bakes[key] = exc
+        return bakes[key]
+
     rows, timings = [], {}
     for rate, storage, interp in configs:
         row = {"bake_fps": rate, "storage": storage, "interpolation": interp}
         errors, per_model, skipped = [], {}, []
         for m in models:
-            try:
-                baked = bake(m.character.skeleton, m.clips, rate, storage)
-            except BakeError as exc:  # e.g. a long clip at 60 fps does not fit the texture: say so, measure the rest
-                skipped.append(f"{m.name}: {exc}")
+            baked = baked_for(m, rate, storage)
+            if isinstance(baked, BakeError):  # e.g. a long clip at 60 fps does not fit the texture: say so, measure the rest
+                skipped.append(f"{m.name}: {baked}")
                 continue
             e = accuracy.measure_gpu(ctx, m.character.skeleton, baked, m.samples.layers, m.truth, interp)
             errors.append(e.ravel())
@@ -156,8 +166,7 @@ def run(args) -> int:
     for order in (range(len(configs)), reversed(range(len(configs)))):
         for k in order:
             rate, storage, interp = configs[k]
-            baked = bake(zombie.skeleton, zombie.clips, rate, storage)
-            proc = AnimationProcessor(ctx, baked, MAX_LAYERS, interpolation=interp)
+            proc = AnimationProcessor(ctx, baked_for(models[0], rate, storage), MAX_LAYERS, interpolation=interp)
             try:
                 timings[k].append([_time_processor(query, proc, layers, args.repeats) for layers in cost_layers])
             finally:

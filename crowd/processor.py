@@ -130,12 +130,9 @@ def validate_masks(masks, joint_count: int) -> np.ndarray | None:
     return np.ascontiguousarray(m)
 
 
-def _key_translation(real: np.ndarray, dual: np.ndarray) -> np.ndarray:
-    """Translation of stored DQ keys, 2 vec(d conj(r)) / |r|^2 (f16 keys are not exactly unit)."""
-    rw, rv = real[..., 3:], real[..., :3]
-    dw, dv = dual[..., 3:], dual[..., :3]
-    t = 2.0 * (rw * dv - dw * rv + np.cross(rv, dv))
-    return t / np.sum(real * real, axis=-1, keepdims=True)
+def _translation(real: np.ndarray, dual: np.ndarray) -> np.ndarray:
+    """Translation of stored DQ keys (f16 keys are not exactly unit: dq_to_rt normalises first)."""
+    return tf.dq_to_rt(real, dual)[1]
 
 
 def _catmull_rom(p0, p1, p2, p3, u):
@@ -164,21 +161,21 @@ def _sample_keys(texels, scales, table, clip, phase, interpolation):
         d = d1 + (d2 - d1) * u
         inv = 1.0 / np.linalg.norm(r, axis=-1, keepdims=True)
         return r * inv, d * inv, s1 + (s2 - s1) * u[..., 0]
-    t1, t2 = _key_translation(r1, d1), _key_translation(r2, d2)
+    t1, t2 = _translation(r1, d1), _translation(r2, d2)
     if interpolation == "qt_lerp":
         q = r1 + (r2 - r1) * u
         return q / np.linalg.norm(q, axis=-1, keepdims=True), t1 + (t2 - t1) * u, s1 + (s2 - s1) * u[..., 0]
     # qt_cubic: the outer keys wrap around a loop (its closing frame repeats frame 0, so frame 0's
     # predecessor is frame count - 2 and the closing frame's successor is frame 1) and are extrapolated
     # linearly at the ends of a one-shot clip.
-    local = row - first.astype(np.int64)
+    first_row = first.astype(np.int64)
     last = count.astype(np.int64) - 1
-    at_start, at_end = local == 0, local + 1 == last
-    prev_row = np.where(at_start & looping, first.astype(np.int64) + last - 1, np.maximum(row - 1, first.astype(np.int64)))
-    next_row = np.where(at_end & looping, first.astype(np.int64) + 1, np.minimum(row + 2, first.astype(np.int64) + last))
+    at_start, at_end = row == first_row, row + 1 == first_row + last
+    prev_row = np.where(at_start & looping, first_row + last - 1, np.maximum(row - 1, first_row))
+    next_row = np.where(at_end & looping, first_row + 1, np.minimum(row + 2, first_row + last))
     r0, d0, s0 = key(prev_row)
     r3, d3, s3 = key(next_row)
-    t0, t3 = _key_translation(r0, d0), _key_translation(r3, d3)
+    t0, t3 = _translation(r0, d0), _translation(r3, d3)
     r0 = np.where(np.sum(r0 * r1, axis=-1, keepdims=True) < 0.0, -r0, r0)
     r3 = np.where(np.sum(r3 * r2, axis=-1, keepdims=True) < 0.0, -r3, r3)
     ext_start = (at_start & ~looping)[:, None, None]
@@ -237,7 +234,7 @@ def reference_palette(bake: AnimationBake, layers, masks=None, interpolation: st
     s = np.where(low, rest_s[None], s)
     if qt:
         t = np.sum(weight[..., None] * second, axis=0) / safe[..., None]
-        t = np.where(low[..., None], _key_translation(rest_r, rest_d)[None], t)
+        t = np.where(low[..., None], _translation(rest_r, rest_d)[None], t)
         r = r / np.linalg.norm(r, axis=-1, keepdims=True)
         local = tf.trs_to_mat4(t, r, np.repeat(s[..., None], 3, -1))
     else:

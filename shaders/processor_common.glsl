@@ -49,10 +49,14 @@ Affine qt_affine(vec4 r, vec3 t, float s) {
     return m;
 }
 
+// The translation of a dual quaternion with unit real part: 2 * vec(d * conj(r)).
+vec3 dq_translation(vec4 r, vec4 d) {
+    return 2.0 * (r.w * d.xyz - d.w * r.xyz + cross(r.xyz, d.xyz));
+}
+
 // Unit dual quaternion (real r, dual d, both xyzw) times a uniform scale applied first.
 Affine dq_affine(vec4 r, vec4 d, float s) {
-    // t = 2 * vec(d * conj(r))
-    return qt_affine(r, 2.0 * (r.w * d.xyz - d.w * r.xyz + cross(r.xyz, d.xyz)), s);
+    return qt_affine(r, dq_translation(r, d), s);
 }
 
 float joint_scale(int joint, int row) {
@@ -78,7 +82,7 @@ int parent_of(int joint) {
 #ifdef INTERPOLATION_QT
 // Translation of a stored key; f16 keys are not exactly unit, hence the division by |r|^2.
 vec3 key_translation(vec4 r, vec4 d) {
-    return 2.0 * (r.w * d.xyz - d.w * r.xyz + cross(r.xyz, d.xyz)) / dot(r, r);
+    return dq_translation(r, d) / dot(r, r);
 }
 #endif
 

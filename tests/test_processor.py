@@ -15,9 +15,7 @@ import numpy as np
 import pytest
 
 from crowd import reference
-from crowd import transforms as tf
 from crowd.bake import ClipInfo, bake
-from crowd.model import Channel, Clip, Skeleton
 from crowd.processor import (
     CLIP,
     MASK,
@@ -31,6 +29,7 @@ from crowd.processor import (
     palette_joint_positions,
     reference_palette,
 )
+from crowd.stability import chain_character
 
 PATHS = ("compute", "fragment")
 ZOMBIE_TOL_M = 1e-5
@@ -175,31 +174,9 @@ def test_equal_opposite_weights_inside_a_blend_stay_finite(gl_context, zombie_ba
     assert np.all(np.isfinite(gpu)) and np.max(np.abs(gpu - ref)) < 1e-5
 
 
-def chain_character(joints=64, length=0.1):
-    """A 64-joint chain along +Y, every joint bending about Z and twisting about Y over a clip."""
-    parents = np.arange(-1, joints - 1, dtype=np.int32)
-    rest_t = np.tile([0.0, length, 0.0], (joints, 1))
-    rest_t[0] = 0.0
-    rest_q = np.tile([0.0, 0.0, 0.0, 1.0], (joints, 1))
-    glob = np.eye(4)[None].repeat(joints, 0)
-    for j in range(joints):
-        glob[j, 1, 3] = j * length
-    skel = Skeleton(tuple(f"j{j:02d}" for j in range(joints)), parents, rest_t, rest_q, np.ones((joints, 3)), np.linalg.inv(glob))
-    times = np.linspace(0.0, 2.0, 31)
-    channels = []
-    for j in range(joints):
-        bend = np.sin(2 * np.pi * times / 2.0 + j * 0.2) * np.radians(6.0)
-        twist = np.cos(2 * np.pi * times / 2.0 + j * 0.1) * np.radians(9.0)
-        q = tf.quat_mul(tf.quat_from_axis_angle(np.array([0.0, 0.0, 1.0]), bend), tf.quat_from_axis_angle(np.array([0.0, 1.0, 0.0]), twist))
-        channels.append(Channel(j, "rotation", "LINEAR", times, q))
-    wave = Clip("wave", channels, 0.0, 2.0, True)
-    curl = Clip("curl", [Channel(j, "rotation", "LINEAR", times[[0, -1]], tf.quat_from_axis_angle(np.array([1.0, 0.0, 0.0]), np.radians([0.0, 5.0]))) for j in range(joints)], 0.0, 2.0, False)
-    return skel, [wave, curl]
-
-
 @pytest.mark.parametrize("path", PATHS)
 def test_64_joint_chain(gl_context, path):
-    skel, clips = chain_character()
+    skel, clips = chain_character(length=0.1, fps=15)  # 6.4 m
     baked = bake(skel, clips, 15)
     rng = np.random.default_rng(13)
     layers = random_layers(rng, 200, 2, 2)
