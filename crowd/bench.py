@@ -33,18 +33,23 @@ def _device_cpu() -> str:
     return f"{platform.processor() or platform.machine()} ({platform.system()}), Python {platform.python_version()}, numpy {numpy.__version__}"
 
 
-def grid_crowd(n: int, aspect: float):
-    """The benchmarks' crowd: n agents 1.5 m apart on a square grid, and a camera that sees all of them.
-    Returns (float64 positions (n, 3), Camera)."""
-    from .render import Camera
-
+def grid_layout(n: int):
+    """The benchmarks' crowd: n agents 1.5 m apart on a square grid (Y up), and a camera that sees all of
+    them. Returns (float64 positions (n, 3), eye, target, far); numpy only, so the Panda3D peer can use it."""
     side = math.ceil(math.sqrt(n))
     pos = np.zeros((n, 3))
     pos[:, 0] = (np.arange(n) % side - side / 2) * 1.5
     pos[:, 2] = (np.arange(n) // side - side / 2) * 1.5
     extent = side * 1.5 / 2
-    camera = Camera(eye=np.array([0.0, extent * 1.6 + 3, extent * 1.6 + 5]), target=np.zeros(3), aspect=aspect, far=extent * 8 + 50)
-    return pos, camera
+    return pos, np.array([0.0, extent * 1.6 + 3, extent * 1.6 + 5]), np.zeros(3), extent * 8 + 50
+
+
+def grid_crowd(n: int, aspect: float):
+    """``grid_layout`` with the camera as a render.Camera. Returns (float64 positions (n, 3), Camera)."""
+    from .render import Camera
+
+    pos, eye, target, far = grid_layout(n)
+    return pos, Camera(eye=eye, target=target, aspect=aspect, far=far)
 
 
 def random_layers(n: int, layer_count: int, clip_count: int, rng: np.random.Generator) -> np.ndarray:
@@ -351,8 +356,10 @@ def main(argv=None) -> int:
     p.add_argument("--json", type=Path)
     p.set_defaults(run=bench_readback)
     from .error_report import add_parsers
+    from .peers import add_parsers as add_peers_parsers
 
     add_parsers(sub)
+    add_peers_parsers(sub)
     args = parser.parse_args(argv)
     from .ai import AIError
     from .bake import BakeError

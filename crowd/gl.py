@@ -94,11 +94,40 @@ def _read_shader(name: str) -> str:
         raise GLUnavailable(f"shader {name} not found in {SHADER_DIR}") from exc
 
 
+def current_context_function(name: str, prototype):
+    """A GL entry point of the context current on this thread, through ctypes: eglGetProcAddress for
+    EGL contexts (headless), glXGetProcAddressARB for GLX windows. For the few calls moderngl lacks
+    (fences) and for contexts it does not own (the Panda3D peer's glFinish)."""
+    import ctypes
+
+    loader = None
+    try:
+        egl = ctypes.CDLL("libEGL.so.1")
+        egl.eglGetCurrentContext.restype = ctypes.c_void_p
+        if egl.eglGetCurrentContext():
+            egl.eglGetProcAddress.restype = ctypes.c_void_p
+            egl.eglGetProcAddress.argtypes = [ctypes.c_char_p]
+            loader = egl.eglGetProcAddress
+    except OSError:
+        pass
+    if loader is None:
+        try:
+            glx = ctypes.CDLL("libGL.so.1")
+            glx.glXGetProcAddressARB.restype = ctypes.c_void_p
+            glx.glXGetProcAddressARB.argtypes = [ctypes.c_char_p]
+            loader = glx.glXGetProcAddressARB
+        except (OSError, AttributeError) as exc:
+            raise GLUnavailable(f"no way to load {name}: {exc}") from exc
+    address = loader(name.encode())
+    if not address:
+        raise GLUnavailable(f"the GL context has no {name}")
+    return prototype(address)
+
+
 class Fence:
     """A GL sync object (glFenceSync, core since GL 3.2) that says whether the GPU has finished the
-    commands submitted before it. moderngl has no fences, so the three entry points are loaded through
-    ctypes from the current context: eglGetProcAddress for EGL contexts (headless), glXGetProcAddressARB
-    for GLX windows. They touch no GL state moderngl caches."""
+    commands submitted before it. moderngl has no fences, so the entry points come through
+    ``current_context_function``; they touch no GL state moderngl caches."""
 
     _SYNC_GPU_COMMANDS_COMPLETE = 0x9117
     _SYNC_FLUSH_COMMANDS_BIT = 0x1
@@ -117,34 +146,10 @@ class Fence:
         if cls._api is None:
             import ctypes
 
-            loader = None
-            try:
-                egl = ctypes.CDLL("libEGL.so.1")
-                egl.eglGetCurrentContext.restype = ctypes.c_void_p
-                if egl.eglGetCurrentContext():
-                    egl.eglGetProcAddress.restype = ctypes.c_void_p
-                    egl.eglGetProcAddress.argtypes = [ctypes.c_char_p]
-                    loader = egl.eglGetProcAddress
-            except OSError:
-                pass
-            if loader is None:
-                try:
-                    glx = ctypes.CDLL("libGL.so.1")
-                    glx.glXGetProcAddressARB.restype = ctypes.c_void_p
-                    glx.glXGetProcAddressARB.argtypes = [ctypes.c_char_p]
-                    loader = glx.glXGetProcAddressARB
-                except (OSError, AttributeError) as exc:
-                    raise GLUnavailable(f"no way to load glFenceSync: {exc}") from exc
             types = {"glFenceSync": ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_uint, ctypes.c_uint),
                      "glClientWaitSync": ctypes.CFUNCTYPE(ctypes.c_uint, ctypes.c_void_p, ctypes.c_uint, ctypes.c_uint64),
                      "glDeleteSync": ctypes.CFUNCTYPE(None, ctypes.c_void_p)}
-            api = {}
-            for name, proto in types.items():
-                address = loader(name.encode())
-                if not address:
-                    raise GLUnavailable(f"the GL context has no {name}")
-                api[name] = proto(address)
-            cls._api = api
+            cls._api = {name: current_context_function(name, proto) for name, proto in types.items()}
         return cls._api
 
     def signaled(self) -> bool:

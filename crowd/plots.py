@@ -124,3 +124,54 @@ def error_plot(report: dict, path: Path, size: tuple[int, int] = (1600, 1000)) -
 
     image = _render(size, draw)
     atomic_write_bytes(Path(path), png_bytes(image))
+
+
+PEER_STYLE = {  # (system, mode) → colour, marker
+    ("crowd", "walk"): ((0.00, 0.45, 0.74, 1.0), "circle"),
+    ("crowd", "blend2"): ((0.30, 0.75, 0.93, 1.0), "square"),
+    ("crowd", "walk_lod"): ((0.00, 0.20, 0.45, 1.0), "diamond"),
+    ("panda3d", "cpu_walk"): ((0.85, 0.33, 0.10, 1.0), "circle"),
+    ("panda3d", "gpu_walk"): ((0.64, 0.08, 0.18, 1.0), "up"),
+    ("panda3d", "gpu_blend2"): ((0.93, 0.69, 0.13, 1.0), "square"),
+}
+
+
+def peers_plot(report: dict, path: Path, size: tuple[int, int] = (1600, 1000)) -> None:
+    """Median frame ms (y, log) against agents (x, log) for every (system, mode) of a ``crowd-bench
+    peers`` report, with the 16.7 and 33.3 ms budgets as horizontal lines."""
+    from .gltf_write import atomic_write_bytes
+    from .smoke import png_bytes
+
+    series: dict = {}
+    for r in report["rows"]:
+        series.setdefault((r["system"], r["mode"]), []).append((r["agents"], r["frame_ms"]))
+    if not series:
+        raise ValueError("the report has no rows to plot")
+    agents = np.array([a for s in series.values() for a, _ in s], np.float64)
+    ms = np.array([m for s in series.values() for _, m in s], np.float64)
+    gls = sorted({r["info"]["gl"].split(",")[0] for r in report.get("results", []) if r.get("info")})
+    title = (f"crowd against Panda3D Actors, frame ms against agents, {report['size'][0]}x{report['size'][1]}, "
+             f"{report.get('model', '?')}: {' / '.join(gls) or '?'}")  # the full device string is in the JSON
+
+    def draw(imgui, implot):
+        if not implot.begin_plot(title, imgui.ImVec2(-1, -1)):
+            return
+        implot.setup_axes("agents (log)", "median frame ms, to glFinish (log)")
+        implot.setup_axis_scale(implot.ImAxis_.x1, implot.Scale_.log10)
+        implot.setup_axis_scale(implot.ImAxis_.y1, implot.Scale_.log10)
+        implot.setup_axis_limits(implot.ImAxis_.x1, float(agents.min()) / 1.3, float(agents.max()) * 1.3, implot.Cond_.always)
+        implot.setup_axis_limits(implot.ImAxis_.y1, float(ms.min()) / 1.3, float(ms.max()) * 1.3, implot.Cond_.always)
+        implot.setup_legend(implot.Location_.north_west)
+        for budget in (1000.0 / 60.0, 1000.0 / 30.0):
+            implot.set_next_line_style(imgui.ImVec4(0.5, 0.5, 0.5, 1.0), 1.5)
+            implot.plot_inf_lines(f"{budget:.1f} ms", np.array([budget]), flags=implot.InfLinesFlags_.horizontal)
+        for key, points in series.items():
+            points = sorted(points)
+            color, marker = PEER_STYLE.get(key, ((0.3, 0.3, 0.3, 1.0), "circle"))
+            implot.set_next_line_style(imgui.ImVec4(*color), 2.5)
+            implot.set_next_marker_style(getattr(implot.Marker_, marker), 7.0, imgui.ImVec4(*color), 1.0, imgui.ImVec4(*color))
+            implot.plot_line(f"{key[0]} {key[1]}", np.array([a for a, _ in points], np.float64), np.array([m for _, m in points], np.float64))
+        implot.end_plot()
+
+    image = _render(size, draw)
+    atomic_write_bytes(Path(path), png_bytes(image))

@@ -23,6 +23,7 @@ import numpy as np
 from pyglm import glm
 
 from .gl import gpu_bytes, load_shader
+from .lighting import FOG_COLOR, LIGHTING, SUN_DIR
 from .model import Character, SkinnedMesh
 from .processor import palette_texel
 from .vertex_cache import optimize_triangle_order
@@ -38,8 +39,7 @@ WEIGHT_STEP = 1.0 / 2046.0  # a stored weight is within half of this of the floa
 # joint 0 (x | y << 16), tint RGBA8, cos and sin of the heading as snorm16.
 INSTANCE_DTYPE = np.dtype([("position_scale", "<f4", 4), ("packed", "<u4", 3)])
 INSTANCE_FORMAT = ("4f 3u/i", "i_position_scale", "i_packed")
-DEFAULT_LOD_DISTANCES = (14.0, 40.0)
-FOG_COLOR = (0.09, 0.1, 0.13)  # linear; the clear colour matches it after the display curve  # metres: LOD0 closer than 14 m, LOD1 to 40 m, LOD2 beyond
+DEFAULT_LOD_DISTANCES = (14.0, 40.0)  # metres: LOD0 closer than 14 m, LOD1 to 40 m, LOD2 beyond
 
 
 class RenderError(ValueError):
@@ -235,7 +235,7 @@ class CrowdRenderer:
         quad = np.array([[-extent, -extent], [extent, -extent], [extent, extent], [-extent, -extent], [extent, extent], [-extent, extent]], np.float32)
         self._ground_vbo = self._own("ground", ctx.buffer(quad.tobytes()))
         self._ground_vao = self._own("ground", ctx.vertex_array(ground_prog, [(self._ground_vbo, "2f", "in_position")]))
-        self.sun_dir = np.array([0.45, 0.75, 0.35]) / np.linalg.norm([0.45, 0.75, 0.35])
+        self.sun_dir = np.array(SUN_DIR)
         self.last = {"triangles": 0, "instances": 0, "visible": 0, "draws": 0, "lod_counts": [0] * self.lod_count}
 
     # -- resources
@@ -392,9 +392,7 @@ class CrowdRenderer:
         return True
 
     def set_lighting(self, prog):
-        values = {"u_sun_dir": tuple(self.sun_dir), "u_sun_color": (1.7, 1.45, 1.1), "u_sky_color": (0.16, 0.2, 0.3),
-                  "u_ground_color": (0.1, 0.08, 0.06), "u_fog_color": FOG_COLOR, "u_fog_density": 0.004}
-        for name, value in values.items():
+        for name, value in LIGHTING.items():
             if name in prog:
                 prog[name] = value
         if self.shadows and "u_light_view_proj" in prog:
