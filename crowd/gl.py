@@ -113,11 +113,15 @@ def current_context_function(name: str, prototype):
     if loader is None:
         try:
             glx = ctypes.CDLL("libGL.so.1")
+            glx.glXGetCurrentContext.restype = ctypes.c_void_p
             glx.glXGetProcAddressARB.restype = ctypes.c_void_p
             glx.glXGetProcAddressARB.argtypes = [ctypes.c_char_p]
+            current = glx.glXGetCurrentContext()
             loader = glx.glXGetProcAddressARB
         except (OSError, AttributeError) as exc:
             raise GLUnavailable(f"no way to load {name}: {exc}") from exc
+        if not current:  # a pointer would load, but calling it would do nothing (or crash)
+            raise GLUnavailable(f"no GL context is current on this thread to call {name} on")
     address = loader(name.encode())
     if not address:
         raise GLUnavailable(f"the GL context has no {name}")

@@ -162,7 +162,8 @@ def _has_matrix(node) -> bool:
     return node.matrix is not None and len(node.matrix) == 16
 
 
-def _node_local(node) -> np.ndarray:
+def node_local_matrix(node) -> np.ndarray:
+    """A pygltflib node's local transform as a float64 4x4 (its matrix, or its TRS with glTF's defaults)."""
     if _has_matrix(node):
         return np.array(node.matrix, dtype=np.float64).reshape(4, 4).T  # glTF matrices are column-major
     return tf.trs_to_mat4(*_node_trs_fields(node))
@@ -171,7 +172,7 @@ def _node_local(node) -> np.ndarray:
 def _node_trs(node):
     """(t, q, s, shear): a `matrix` node is decomposed, and shear says how far TRS is from it."""
     if _has_matrix(node):
-        t, q, s, shear = tf.mat4_decompose(_node_local(node))
+        t, q, s, shear = tf.mat4_decompose(node_local_matrix(node))
         return t, q, s, float(shear)
     return (*_node_trs_fields(node), 0.0)
 
@@ -298,7 +299,7 @@ def _import(r: _Reader) -> Character:
         m = np.eye(4)
         k = parent.get(node)
         while k is not None and k != ancestor:
-            m = _node_local(nodes[k]) @ m
+            m = node_local_matrix(nodes[k]) @ m
             k = parent.get(k)
         return m
 
@@ -535,14 +536,14 @@ def _read_rigid(r: _Reader, nodes, parent, joint_set, new_index, factor: float, 
                 grip = np.eye(4)
                 for c in node.children or []:
                     if _crowd_extras(nodes[c]).get("grip") is not None:
-                        grip = _node_local(nodes[c])
+                        grip = node_local_matrix(nodes[c])
                 if mesh is not None:
                     props[extras["prop"]] = Prop(mesh, grip)
                 continue
             # Walk up to the nearest joint, collecting the offset from it.
-            offset, k = _node_local(node), parent.get(ni)
+            offset, k = node_local_matrix(node), parent.get(ni)
             while k is not None and k not in joint_set:
-                offset = _node_local(nodes[k]) @ offset
+                offset = node_local_matrix(nodes[k]) @ offset
                 k = parent.get(k)
             if k is None:
                 warn.append(f"static mesh {node.name or ni!r} is not skinned nor under a joint; left out")

@@ -34,7 +34,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -44,7 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .bench import grid_layout
+from .bench import _device_cpu, grid_layout
+from .processor import CLIP, PHASE, WEIGHT, empty_layers
 
 MODES = {
     ("crowd", "walk"): "GPU processor + skinned instancing, 1 clip, all at LOD0",
@@ -83,16 +83,6 @@ def agent_layout(n: int, seed: int = 1):
     phase = rng.uniform(0.0, 1.0, n)
     weight = rng.uniform(*WEIGHT_RANGE, n)
     return pos, yaw, phase, weight, (eye, target, far)
-
-
-def check_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise PeersError(f"size must be WIDTHxHEIGHT, got {text!r}") from None
-    if not (16 <= w <= 8192 and 16 <= h <= 8192):
-        raise PeersError(f"size must be 16 to 8192 pixels each way, got {text!r}")
-    return w, h
 
 
 # -- the measurement loop, shared by both sides (run in the child process)
@@ -148,7 +138,12 @@ def measure(side, spec: dict) -> dict:
             if hi is None or hi - lo <= max(1, lo // 16):
                 break
             run(int(round(math.sqrt(lo * hi))))
-    return {"system": spec["system"], "mode": spec["mode"], "rows": [rows[k] for k in sorted(rows)], "info": side.info(), "screenshot": shot}
+    return {"system": spec["system"], "mode": spec["mode"], "rows": [rows[k] for k in sorted(rows)], "info": side.info(),
+            "host": _host(), "screenshot": shot}
+
+
+def _host() -> str:
+    return f"{_device_cpu()}, {os.cpu_count()} CPUs"
 
 
 def sustained(rows: list[dict], budget_ms: float) -> int:
@@ -164,13 +159,11 @@ class CrowdSide:
     def __init__(self, spec: dict):
         from .gl import describe, headless_context
         from .gltf import load_character
-        from .processor import PHASE, WEIGHT, CLIP, AnimationProcessor, empty_layers
+        from .processor import AnimationProcessor
         from .render import DEFAULT_LOD_DISTANCES, CrowdRenderer
         from .roles import bake_roles
         from .smoke import offscreen_framebuffer
 
-        self._cols = (CLIP, PHASE, WEIGHT)
-        self._empty_layers = empty_layers
         self.spec = spec
         self.blend = spec["mode"] == "blend2"
         self.size = tuple(spec["size"])
@@ -197,14 +190,13 @@ class CrowdSide:
     def set_agents(self, n: int) -> None:
         from .render import Camera, Instances
 
-        CLIP, _, WEIGHT = self._cols
         pos, yaw, phase, weight, (eye, target, far) = agent_layout(n, self.spec["seed"])
         self.n, self.phase = n, phase
         self.camera = Camera(eye=eye, target=target, aspect=self.size[0] / self.size[1], far=far)
         variants = {"head": np.full(n, self._head)} if self._head is not None else {}
         self.instances = Instances(pos, yaw.astype(np.float32), np.ones(n, np.float32), np.full((n, 4), 255, np.uint8), variants)
         self.processor.resize(n)
-        self.layers = self._empty_layers(n, self.layer_count)
+        self.layers = empty_layers(n, self.layer_count)
         self.layers[:, 0, CLIP] = self.clip_rows[0]
         self.layers[:, 0, WEIGHT] = weight if self.blend else 1.0
         if self.blend:
@@ -212,7 +204,6 @@ class CrowdSide:
             self.layers[:, 1, WEIGHT] = 1.0 - weight
 
     def work(self) -> None:
-        _, PHASE, _ = self._cols
         t = self.frame_index * FRAME_DT
         self.frame_index += 1
         self.layers[:, 0, PHASE] = np.mod(self.phase + t / self.durations[0], 1.0)
@@ -240,7 +231,6 @@ class CrowdSide:
 
     def save_bind_screenshot(self, path: str) -> None:
         """The same agents in the bind pose (no layer weight: every joint at rest), for the IoU check."""
-        _, _, WEIGHT = self._cols
         held = self.layers[..., WEIGHT].copy()
         self.layers[..., WEIGHT] = 0.0
         self.frame_index -= 1
@@ -298,7 +288,14 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
 def pose_checks(results: list[dict], shots: Path) -> list[dict]:
     """Silhouette IoU of each Panda3D mode's screenshot against the crowd's at the same frame."""
     checks = []
-    bind = shots / "crowd_bind.png"
+    masks: dict[str, np.ndarray] = {}
+
+    def mask(name: str) -> np.ndarray:  # each image is read once
+        if name not in masks:
+            masks[name] = _mask(shots / name)
+        return masks[name]
+
+    bind_iou = _iou(mask("crowd_bind.png"), mask("crowd_walk.png")) if (shots / "crowd_bind.png").exists() and (shots / "crowd_walk.png").exists() else None
     for r in results:
         if r.get("system") != "panda3d" or not r.get("screenshot"):
             continue
@@ -306,10 +303,9 @@ def pose_checks(results: list[dict], shots: Path) -> list[dict]:
         shot = shots / Path(r["screenshot"]).name  # a merged report's paths are another machine's
         if not ref.exists() or not shot.exists():
             continue
-        m, ref_mask = _mask(shot), _mask(ref)
-        check = {"system": r["system"], "mode": r["mode"], "against": ref.name, "iou": round(_iou(m, ref_mask), 3)}
-        if bind.exists():
-            check["bind_pose_iou"] = round(_iou(_mask(bind), _mask(shots / "crowd_walk.png")), 3)
+        check = {"system": r["system"], "mode": r["mode"], "against": ref.name, "iou": round(_iou(_mask(shot), mask(ref.name)), 3)}
+        if bind_iou is not None:
+            check["bind_pose_iou"] = round(bind_iou, 3)
         check["ok"] = check["iou"] >= POSE_IOU_MIN and check["iou"] > check.get("bind_pose_iou", 0.0)
         checks.append(check)
     return checks
@@ -338,10 +334,11 @@ def summarise(results: list[dict], budgets=BUDGETS_MS) -> dict:
 
 
 def bench_peers(args) -> int:
-    size = check_size(args.size)
     from .gltf import load_character
+    from .pipeline import smoke_size
     from .roles import match_roles
 
+    size = smoke_size(args.size)
     model = Path(args.model).resolve() if args.model else None
     character = load_character(model)
     roles, _ = match_roles(character.clips)
@@ -403,9 +400,8 @@ def bench_peers(args) -> int:
 
 
 def _device(results: list[dict]) -> str:
-    import numpy
-
-    cpu = f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, Python {platform.python_version()}, numpy {numpy.__version__}"
+    # The measuring machine's host, not this one's: a merged report may come from elsewhere.
+    cpu = next((r["host"] for r in results if r.get("host")), _host())
     seen = []
     for r in results:
         info = r.get("info")

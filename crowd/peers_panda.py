@@ -68,26 +68,13 @@ def panda_ready_gltf(source: Path, target: Path) -> None:
 
 
 def _world_matrix(gltf, parents: dict, node_index: int) -> np.ndarray:
+    from .gltf import node_local_matrix
+
     m = np.eye(4)
     i = node_index
     while i is not None:
-        m = _local_matrix(gltf.nodes[i]) @ m
+        m = node_local_matrix(gltf.nodes[i]) @ m
         i = parents.get(i)
-    return m
-
-
-def _local_matrix(node) -> np.ndarray:
-    if node.matrix:
-        return np.array(node.matrix, np.float64).reshape(4, 4).T
-    t = np.array(node.translation or (0, 0, 0), np.float64)
-    x, y, z, w = node.rotation or (0, 0, 0, 1)
-    r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                  [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                  [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-    s = np.array(node.scale or (1, 1, 1), np.float64)
-    m = np.eye(4)
-    m[:3, :3] = r * s[None, :]
-    m[:3, 3] = t
     return m
 
 
@@ -155,7 +142,7 @@ class PandaSide:
         from .gl import load_shader
 
         defines = {"HARDWARE_SKINNING": 1, "MAX_TRANSFORMS": max(joints + 1, 4)} if self.hardware else {}
-        shader = Shader.make(Shader.SL_GLSL, load_shader("panda_actor.vert.glsl", defines), load_shader("panda_actor.frag.glsl"))
+        shader = Shader.make(Shader.SL_GLSL, load_shader("panda_actor.vert.glsl", defines), load_shader("skin.frag.glsl"))
         attrib = ShaderAttrib.make(shader)
         if self.hardware:
             attrib = attrib.setFlag(ShaderAttrib.F_hardware_skinning, True)
@@ -207,10 +194,7 @@ class PandaSide:
         if self._finish is None:
             from .gl import current_context_function
 
-            egl = ctypes.CDLL("libEGL.so.1")
-            egl.eglGetCurrentContext.restype = ctypes.c_void_p
-            if not egl.eglGetCurrentContext():  # p3headlessgl leaves its context current on this thread
-                raise RuntimeError("Panda3D's EGL context is not current after renderFrame: glFinish would time nothing")
+            # p3headlessgl leaves its context current on this thread; if it did not, this refuses.
             self._finish = current_context_function("glFinish", ctypes.CFUNCTYPE(None))
         self._finish()
 

@@ -1,6 +1,7 @@
 #version 150
 // The Panda3D peer of `crowd-bench peers` (crowd/peers_panda.py): one Actor per agent, drawn with
-// the same lighting as the crowd (lighting.glsl) so both sides pay the same per-pixel cost.
+// the crowd's own fragment shader (skin.frag.glsl, lighting.glsl) so both sides pay the same per-pixel
+// cost; this vertex shader hands it the same inputs.
 //
 // Why hand-written: under EGL Panda3D's shader generator has no Cg profile, and with
 // hardware-animated-vertices on, setShaderAuto() then draws every actor in its bind pose. With

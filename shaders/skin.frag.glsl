@@ -1,4 +1,5 @@
 #version 330 core
+// Shared by the crowd, the weapons and the Panda3D peer of crowd-bench peers (panda_actor.vert.glsl).
 #include "lighting.glsl"
 in vec3 v_world;
 in vec3 v_normal;

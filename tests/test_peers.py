@@ -110,7 +110,7 @@ def test_peers_without_panda3d_measures_the_crowd_and_says_why(tmp_path, monkeyp
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--size", "0x0"], "size must be 16 to 8192"),
+    (["--size", "0x0"], "size must be WxH with each side 16 to 8192"),
     (["--systems", "unity"], "systems are crowd and panda3d"),
     (["--systems", "none", "--merge", "missing.json"], "--merge missing.json"),
 ])
