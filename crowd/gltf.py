@@ -177,7 +177,8 @@ def _node_trs(node):
     return (*_node_trs_fields(node), 0.0)
 
 
-def _crowd_extras(obj) -> dict:
+def crowd_extras(obj) -> dict:
+    """A node's or mesh's ``extras.crowd`` (piece, lod, group, socket, prop), or {} when it has none."""
     extras = getattr(obj, "extras", None)
     if isinstance(extras, dict) and isinstance(extras.get("crowd"), dict):
         return extras["crowd"]
@@ -371,7 +372,7 @@ def _import(r: _Reader) -> Character:
     attachments, props = _read_rigid(r, nodes, parent, joint_set, new_index, factor, warn)
     sockets = {}
     for node, i in new_index.items():
-        name = _crowd_extras(nodes[node]).get("socket")
+        name = crowd_extras(nodes[node]).get("socket")
         if isinstance(name, str):
             sockets[name] = i
     clips = _read_clips(r, skeleton, new_index, folds, factor, joint_set, warn)
@@ -422,7 +423,7 @@ def _read_meshes(r: _Reader, nodes, skin_index: int, skin_to_new: np.ndarray, jc
             continue
         seen_mesh.add(node.mesh)
         mesh = r._get(gl.meshes, node.mesh, "mesh")
-        extras = _crowd_extras(mesh)
+        extras = crowd_extras(mesh)
         for pi, prim in enumerate(mesh.primitives or []):
             label = mesh.name or f"mesh{node.mesh}"
             if len(mesh.primitives) > 1:
@@ -529,13 +530,13 @@ def _rigid_mesh(r: _Reader, mesh_index: int, warn: list[str]) -> RigidMesh | Non
 def _read_rigid(r: _Reader, nodes, parent, joint_set, new_index, factor: float, warn: list[str]):
     attachments, props = [], {}
     for ni, node in enumerate(nodes):
-        extras = _crowd_extras(node)
+        extras = crowd_extras(node)
         if node.mesh is not None and node.skin is None:
             if isinstance(extras.get("prop"), str):
                 mesh = _rigid_mesh(r, node.mesh, warn)
                 grip = np.eye(4)
                 for c in node.children or []:
-                    if _crowd_extras(nodes[c]).get("grip") is not None:
+                    if crowd_extras(nodes[c]).get("grip") is not None:
                         grip = node_local_matrix(nodes[c])
                 if mesh is not None:
                     props[extras["prop"]] = Prop(mesh, grip)
@@ -567,7 +568,7 @@ def _read_clips(r: _Reader, skeleton: Skeleton, new_index, folds, factor: float,
     clips: list[Clip] = []
     for name, members in groups:
         channels: dict[tuple[int, str], Channel] = {}
-        extras = _crowd_extras(anims[members[0]])
+        extras = crowd_extras(anims[members[0]])
         for ai in members:
             anim = anims[ai]
             for ci, ch in enumerate(anim.channels or []):

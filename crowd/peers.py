@@ -12,14 +12,21 @@ Modes (``MODES``):
   so both sides draw the same triangles; ``walk_lod`` adds the demo's LOD distances (14 m, 40 m).
 - panda3d ``cpu_walk``: one Actor per agent with Panda3D's default CPU vertex animation; ``gpu_walk`` and
   ``gpu_blend2``: hardware skinning through a hand-written GLSL 1.50 shader (crowd/peers_panda.py says
-  why); the blend is ``enableBlend`` / ``setControlEffect``.
+  why); the blend is ``enableBlend`` / ``setControlEffect``. ``cpu_walk_lod`` and ``gpu_walk_lod``: the
+  same Actors built with the character's LOD meshes (``setLODNode`` / ``addLOD``) at the crowd's LOD
+  distances, so that ``walk_lod`` is compared with Panda3D drawing the same triangles.
+  ``gpu_walk_threaded``: ``gpu_walk`` on Panda3D's threaded pipeline (``threading-model Cull/Draw``: App,
+  Cull, where Actors animate, and Draw each on a thread of its own, a frame apart), its answer to a
+  CPU-bound frame.
 
 Each (system, mode) runs in a child process of its own, so its process CPU time is its own and the two
 GL stacks never share a process. A frame is timed from the start of its CPU work until glFinish returns,
 so its GPU work lands in the frame that submitted it. ``cpu_ms`` is the process's CPU time (every thread)
 from the start of the frame until glFinish is called: the frame's own CPU work. ``cpu_in_finish_ms`` is
 the CPU time spent inside glFinish: llvmpipe's rasteriser threads drawing the frame, or the NVIDIA driver
-spinning while it waits for the GPU (which is why it is not added to the first). Medians over ``frames``
+spinning while it waits for the GPU (which is why it is not added to the first). On the threaded
+pipeline a frame is timed from one renderFrame to the next, which waits for the frame before it: the
+pipeline's period, its sustained frame time (its latency is longer). Medians over ``frames``
 frames after ``warmup``. Agent counts start at 16 and double until the median passes ``limit_ms``; then,
 per budget (16.7 and 33.3 ms), the count between the bracketing doublings is bisected ``refine`` times
 (3 steps: within 2^(1/8), 9 %). A mode sustains a budget with the largest measured count within it.
@@ -53,9 +60,17 @@ MODES = {
     ("panda3d", "cpu_walk"): "one Actor per agent, 1 clip, CPU vertex animation",
     ("panda3d", "gpu_walk"): "one Actor per agent, 1 clip, hardware skinning (GLSL 1.50)",
     ("panda3d", "gpu_blend2"): "one Actor per agent, 2 clips blended, hardware skinning (GLSL 1.50)",
+    ("panda3d", "cpu_walk_lod"): "one Actor per agent, 1 clip, CPU vertex animation, LOD at 14 m / 40 m",
+    ("panda3d", "gpu_walk_lod"): "one Actor per agent, 1 clip, hardware skinning (GLSL 1.50), LOD at 14 m / 40 m",
+    ("panda3d", "gpu_walk_threaded"): "gpu_walk with App, Cull and Draw on three threads (threading-model Cull/Draw)",
 }
-# Which crowd mode each Panda3D mode is compared with; the walk modes with the faster Panda3D walk.
-PAIRS = (("walk", ("cpu_walk", "gpu_walk")), ("blend2", ("gpu_blend2",)), ("walk_lod", ("cpu_walk", "gpu_walk")))
+# The crowd mode whose screenshot each Panda3D mode's poses must match.
+POSE_REFERENCE = {"cpu_walk": "walk", "gpu_walk": "walk", "gpu_walk_threaded": "walk", "gpu_blend2": "blend2",
+                  "cpu_walk_lod": "walk_lod", "gpu_walk_lod": "walk_lod"}
+# Which Panda3D modes each crowd mode is compared with; the ratio takes the fastest of them. The crowd's
+# LOD is held against every Panda3D walk, with or without Panda3D's own LOD.
+PAIRS = (("walk", ("cpu_walk", "gpu_walk", "gpu_walk_threaded")), ("blend2", ("gpu_blend2",)),
+         ("walk_lod", ("cpu_walk", "gpu_walk", "gpu_walk_threaded", "cpu_walk_lod", "gpu_walk_lod")))
 BUDGETS_MS = (1000.0 / 60.0, 1000.0 / 30.0)
 FRAME_DT = 1.0 / 60.0  # simulated seconds per frame, on both sides
 SHOT_AGENTS = 16
@@ -119,7 +134,7 @@ def measure(side, spec: dict) -> dict:
                "cpu_in_finish_ms": round(float(np.median(in_finish)), 3), "frame_p95_ms": round(float(np.percentile(wall, 95)), 3)}
         row.update(side.row_extra())
         rows[n] = row
-        print(f"  {spec['system']:>8} {spec['mode']:<11} {n:>8} agents  {row['frame_ms']:>9.2f} ms  cpu {row['cpu_ms']:>9.2f} ms"
+        print(f"  {spec['system']:>8} {spec['mode']:<17} {n:>8} agents  {row['frame_ms']:>9.2f} ms  cpu {row['cpu_ms']:>9.2f} ms"
               f" (+{row['cpu_in_finish_ms']:.2f} in glFinish)", flush=True)
         return row
 
@@ -160,7 +175,7 @@ class CrowdSide:
         from .gl import describe, headless_context
         from .gltf import load_character
         from .processor import AnimationProcessor
-        from .render import DEFAULT_LOD_DISTANCES, CrowdRenderer
+        from .render import CrowdRenderer
         from .roles import bake_roles
         from .smoke import offscreen_framebuffer
 
@@ -175,7 +190,7 @@ class CrowdSide:
         self.bake = bake_roles(character, {"walk": walk, "run": run if self.blend else None})
         self.layer_count = 2 if self.blend else 1
         self.processor = AnimationProcessor(self.ctx, self.bake, self.layer_count)
-        lod = DEFAULT_LOD_DISTANCES if spec["mode"] == "walk_lod" else (1e9, 1e9)
+        lod = spec["lod_distances"] if spec["mode"] == "walk_lod" else (1e9, 1e9)
         self.renderer = CrowdRenderer(self.ctx, character, self.bake.joint_count, self.processor.agents_per_row,
                                       lod_distances=lod, shadows=False, culling=True)
         heads = self.renderer.groups.get("head", [])
@@ -299,9 +314,12 @@ def pose_checks(results: list[dict], shots: Path) -> list[dict]:
     for r in results:
         if r.get("system") != "panda3d" or not r.get("screenshot"):
             continue
-        ref = shots / ("crowd_blend2.png" if r["mode"].endswith("blend2") else "crowd_walk.png")
+        ref = shots / f"crowd_{POSE_REFERENCE[r['mode']]}.png"
         shot = shots / Path(r["screenshot"]).name  # a merged report's paths are another machine's
-        if not ref.exists() or not shot.exists():
+        if not ref.exists() or not shot.exists():  # said, not passed: e.g. the Panda3D side run alone
+            missing = ref.name if not ref.exists() else shot.name
+            checks.append({"system": r["system"], "mode": r["mode"], "against": ref.name, "iou": None, "ok": None,
+                           "why": f"not checked: no {missing} in {shots}"})
             continue
         check = {"system": r["system"], "mode": r["mode"], "against": ref.name, "iou": round(_iou(_mask(shot), mask(ref.name)), 3)}
         if bind_iou is not None:
@@ -336,6 +354,7 @@ def summarise(results: list[dict], budgets=BUDGETS_MS) -> dict:
 def bench_peers(args) -> int:
     from .gltf import load_character
     from .pipeline import smoke_size
+    from .render import DEFAULT_LOD_DISTANCES
     from .roles import match_roles
 
     size = smoke_size(args.size)
@@ -363,7 +382,7 @@ def bench_peers(args) -> int:
     shots.mkdir(parents=True, exist_ok=True)
     base = {"model": str(model_file), "clips": [walk, run], "size": list(size), "frames": args.frames, "warmup": args.warmup,
             "limit_ms": args.limit_ms, "budgets": list(BUDGETS_MS), "refine": args.refine, "start": args.start,
-            "max_agents": args.max_agents, "seed": args.seed}
+            "max_agents": args.max_agents, "seed": args.seed, "lod_distances": list(DEFAULT_LOD_DISTANCES)}
     results = []
     for system, mode in modes:
         print(f"{system} {mode}: {MODES[(system, mode)]}", flush=True)
@@ -384,7 +403,7 @@ def bench_peers(args) -> int:
     summary = summarise(results)
     checks = pose_checks(results, shots)
     report = {"device": _device(results), "size": list(size), "model": "built-in zombie" if model is None else model.name,
-              "clips": [walk, run], "protocol": {k: base[k] for k in ("frames", "warmup", "limit_ms", "refine", "start", "seed")},
+              "clips": [walk, run], "protocol": {k: base[k] for k in ("frames", "warmup", "limit_ms", "refine", "start", "seed", "lod_distances")},
               **summary, "pose_check": checks, "results": results, "notes": notes,
               "errors": [{"system": r["system"], "mode": r["mode"], "error": r["error"]} for r in results if "error" in r]}
     _print_report(report)
@@ -396,7 +415,7 @@ def bench_peers(args) -> int:
         from .plots import peers_plot
 
         peers_plot(report, Path(args.plot))
-    return 1 if report["errors"] or any(not c["ok"] for c in checks) else 0
+    return 1 if report["errors"] or any(c["ok"] is False for c in checks) else 0
 
 
 def _device(results: list[dict]) -> str:
@@ -412,15 +431,18 @@ def _device(results: list[dict]) -> str:
 
 def _print_report(report: dict) -> None:
     print(f"\n{report['device']}\n{report['size'][0]}x{report['size'][1]}, {report['model']}, clips {report['clips']}")
-    print(f"{'system':<8} {'mode':<11} {'16.7 ms':>9} {'33.3 ms':>9}")
+    print(f"{'system':<8} {'mode':<17} {'16.7 ms':>9} {'33.3 ms':>9}")
     pairs = {}
     for s in report["sustained"]:
         pairs.setdefault((s["system"], s["mode"]), {})[s["budget_ms"]] = s["agents"]
     for (system, mode), by in pairs.items():
-        print(f"{system:<8} {mode:<11} " + " ".join(f"{by.get(round(b, 1), 0):>9}" for b in BUDGETS_MS))
+        print(f"{system:<8} {mode:<17} " + " ".join(f"{by.get(round(b, 1), 0):>9}" for b in BUDGETS_MS))
     for r in report["ratios"]:
         print(f"{r['budget_ms']:>5} ms: crowd {r['crowd_mode']} {r['crowd_agents']} / panda3d {r['panda3d_mode']} {r['panda3d_agents']} = {r['ratio']}x")
     for c in report["pose_check"]:
+        if c["ok"] is None:
+            print(f"pose check {c['mode']}: {c['why']}")
+            continue
         print(f"pose check {c['mode']}: IoU {c['iou']} against {c['against']} (bind pose {c.get('bind_pose_iou')}) {'ok' if c['ok'] else 'FAILED'}")
     for e in report["errors"]:
         print(f"error: {e['system']} {e['mode']}: {e['error']}")
@@ -474,4 +496,7 @@ def _worker_main(spec_path: str) -> int:
 
 
 if __name__ == "__main__":
+    if len(sys.argv) != 2:  # the worker that bench_peers starts; people run `crowd-bench peers`
+        print("usage: python -m crowd.peers SPEC.json (run by crowd-bench peers)", file=sys.stderr)
+        raise SystemExit(2)
     raise SystemExit(_worker_main(sys.argv[1]))

@@ -133,6 +133,9 @@ PEER_STYLE = {  # (system, mode) → colour, marker
     ("panda3d", "cpu_walk"): ((0.85, 0.33, 0.10, 1.0), "circle"),
     ("panda3d", "gpu_walk"): ((0.64, 0.08, 0.18, 1.0), "up"),
     ("panda3d", "gpu_blend2"): ((0.93, 0.69, 0.13, 1.0), "square"),
+    ("panda3d", "cpu_walk_lod"): ((0.85, 0.33, 0.10, 1.0), "diamond"),
+    ("panda3d", "gpu_walk_lod"): ((0.64, 0.08, 0.18, 1.0), "diamond"),
+    ("panda3d", "gpu_walk_threaded"): ((0.49, 0.18, 0.56, 1.0), "right"),
 }
 
 

@@ -2,6 +2,8 @@
 (pip install '.[peers]'); its tests skip without it, and the command then measures the crowd alone."""
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -70,6 +72,23 @@ def test_panda_ready_gltf_anchors_the_skin_at_the_root_joints_parent(tmp_path):
     assert np.allclose(matrices(after, new)[-1], np.eye(4))  # the zombie node sits at the origin
     assert len(after.meshes) == len(before.meshes) and len(after.animations) == len(before.animations)
     assert [n.name for n in before.nodes] == names
+    # One scene only: panda3d-gltf would skin a mesh that two scenes show to the last scene's Character.
+    assert len(after.scenes) == 1 and after.scenes[0].nodes == before.scenes[before.scene or 0].nodes
+
+
+def test_panda_ready_gltf_shows_the_asked_lod_in_place_of_lod0(tmp_path):
+    import pygltflib
+
+    from crowd.peers_panda import lod_levels, panda_ready_gltf
+    from crowd.zombie import ASSET_PATH
+
+    assert lod_levels(ASSET_PATH) == [0, 1, 2]
+    panda_ready_gltf(ASSET_PATH, tmp_path / "lod1.glb", lod=1)
+    after = pygltflib.GLTF2().load(str(tmp_path / "lod1.glb"))
+    shown = [after.nodes[i].name for i in after.scenes[0].nodes]
+    assert shown == ["zombie", "zombie_body_lod1", "zombie_head_a_lod1", "zombie_shirt_torn_lod1"]
+    with pytest.raises(ValueError, match="no complete LOD 3; its levels are \\[0, 1, 2\\]"):
+        panda_ready_gltf(ASSET_PATH, tmp_path / "lod3.glb", lod=3)
 
 
 def test_crowd_side_measures_and_its_bind_pose_is_told_apart(tmp_path, gl_context):
@@ -123,11 +142,95 @@ def test_peers_refuses_bad_input_in_one_line(tmp_path, capsys, argv, message):
 def test_panda3d_actors_are_measured_and_pass_the_pose_check(tmp_path):
     if peers.panda3d_missing():
         pytest.skip(f"the Panda3D side needs the optional extra: {peers.panda3d_missing()}")
-    code, report = _run_cli(tmp_path, "--modes", "walk,gpu_walk,cpu_walk")
+    code, report = _run_cli(tmp_path, "--modes", "walk,gpu_walk,cpu_walk,gpu_walk_threaded")
     assert code == 0, report.get("errors")
-    assert {(r["system"], r["mode"]) for r in report["rows"]} == {("crowd", "walk"), ("panda3d", "gpu_walk"), ("panda3d", "cpu_walk")}
+    panda_modes = ("gpu_walk", "cpu_walk", "gpu_walk_threaded")
+    assert {(r["system"], r["mode"]) for r in report["rows"]} == {("crowd", "walk"), *(("panda3d", m) for m in panda_modes)}
     checks = {c["mode"]: c for c in report["pose_check"]}
-    for mode in ("gpu_walk", "cpu_walk"):  # drawn posed: close to the crowd's silhouette, far from the bind pose's
+    for mode in panda_modes:  # drawn posed: close to the crowd's silhouette, far from the bind pose's
         assert checks[mode]["ok"] and checks[mode]["iou"] > checks[mode]["bind_pose_iou"] + 0.2
-    info = next(r["info"] for r in report["results"] if r["mode"] == "gpu_walk")
-    assert info["pipe"] == "eglGraphicsPipe" and info["triangles_per_agent"] > 0
+    info = {r["mode"]: r["info"] for r in report["results"]}
+    assert info["gpu_walk"]["pipe"] == "eglGraphicsPipe" and info["gpu_walk"]["triangles_per_agent"] > 0
+    # Threaded, the draw thread's context must be desktop GL, not EGL's default OpenGL ES 1.1.
+    assert "OpenGL ES" not in info["gpu_walk_threaded"]["gl"]
+
+
+def test_every_panda3d_mode_has_a_pose_reference_a_plot_style_and_a_peer_setting():
+    from crowd.peers_panda import HARDWARE
+    from crowd.plots import PEER_STYLE
+
+    panda_modes = {mode for system, mode in peers.MODES if system == "panda3d"}
+    assert panda_modes == set(peers.POSE_REFERENCE) == set(HARDWARE)
+    assert set(peers.POSE_REFERENCE.values()) <= {mode for system, mode in peers.MODES if system == "crowd"}
+    assert set(peers.MODES) <= set(PEER_STYLE)
+    paired = {m for _, modes in peers.PAIRS for m in modes}
+    assert paired == panda_modes
+
+
+def test_panda3d_lod_actor_shows_the_level_the_crowd_would_at_each_distance(tmp_path):
+    """One Actor built with setLODNode / addLOD; the camera at 8, 20 and 60 m from its LOD centre; each
+    level drawn alone in turn: only the level the crowd's LOD distances pick draws anything. Panda3D
+    runs in a child process, as in the benchmark: its GL stack would leave this process's contexts
+    without a current one."""
+    if peers.panda3d_missing():
+        pytest.skip(f"the Panda3D side needs the optional extra: {peers.panda3d_missing()}")
+    from crowd.gltf import load_character
+
+    character = load_character(None)
+    heads = sorted({m.piece for m in character.meshes if m.group == "head"})
+    drawn = [m for m in character.meshes if not m.group or m.piece == heads[0]]  # what the glTF scene shows
+    expected = [sum(m.triangle_count for m in drawn if m.lod == level) for level in range(3)]
+    script = tmp_path / "probe.py"
+    script.write_text(_LOD_PROBE)
+    proc = subprocess.run([sys.executable, str(script), str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert result["triangles_per_level"] == expected and expected[0] > expected[1] > expected[2]
+    for distance, level in ((8.0, 0), (20.0, 1), (60.0, 2)):
+        shows = result["shows"][str(distance)]
+        assert shows == [level], f"at {distance} m Panda3D showed levels {shows}, the crowd would show {level}"
+
+
+_LOD_PROBE = """
+import json, sys
+from pathlib import Path
+from crowd import peers
+from crowd.peers_panda import PandaSide
+from crowd.zombie import ASSET_PATH
+
+out = Path(sys.argv[1])
+spec = {"system": "panda3d", "mode": "gpu_walk_lod", "model": str(ASSET_PATH), "clips": ["shamble", "run"],
+        "size": [160, 90], "seed": 1, "lod_distances": [14.0, 40.0]}
+side = PandaSide(spec)
+side.set_agents(1)
+actor = side.actors[0]
+actor.setPos(0, 0, 0)
+center = side.lod_center
+side.lens.setNearFar(0.1, 200.0)
+result = {"triangles_per_level": side.triangles_per_level, "shows": {}}
+for distance in (8.0, 20.0, 60.0):
+    side.base.cam.setPos(center[0], center[1] - distance, center[2])
+    side.base.cam.lookAt(center)
+    shows = []
+    for only in range(3):
+        for k in range(3):
+            (actor.getLOD(str(k)).show if k == only else actor.getLOD(str(k)).hide)()
+        side.work()
+        side.finish()
+        side.save_screenshot(str(out / "lod.png"))
+        if peers._mask(out / "lod.png").sum() > 0:
+            shows.append(only)
+    result["shows"][str(distance)] = shows
+side.release()
+print(json.dumps(result))
+"""
+
+
+def test_a_pose_check_without_the_crowds_screenshot_says_so_and_passes_nothing(tmp_path):
+    from PIL import Image
+
+    shot = tmp_path / "panda3d_gpu_walk_lod.png"
+    Image.new("RGB", (32, 32)).save(shot)
+    checks = peers.pose_checks([{"system": "panda3d", "mode": "gpu_walk_lod", "screenshot": str(shot), "rows": []}], tmp_path)
+    assert len(checks) == 1 and checks[0]["ok"] is None and checks[0]["iou"] is None
+    assert checks[0]["against"] == "crowd_walk_lod.png" and "not checked: no crowd_walk_lod.png" in checks[0]["why"]
