@@ -156,10 +156,10 @@ class CrowdWindow(mglw.WindowConfig):
         self.session.release()
 
     def screenshot(self, path: Path) -> None:
-        from crowd.gltf_write import atomic_write_bytes
-        from crowd.smoke import png_bytes, read_image
+        from crowd.images import write_png
+        from crowd.smoke import read_image
 
-        atomic_write_bytes(Path(path), png_bytes(read_image(self.wnd.fbo, self.wnd.buffer_size)))
+        write_png(path, read_image(self.wnd.fbo, self.wnd.buffer_size))
 
 
 def open_window(scene: Scene, size: tuple[int, int], scene_path: Path | None = None) -> CrowdWindow:

@@ -239,10 +239,10 @@ class CrowdSide:
         return {"triangles": int(last["triangles"]), "draws": int(last["draws"]), "visible": int(last["visible"])}
 
     def save_screenshot(self, path: str) -> None:
-        from .gltf_write import atomic_write_bytes
-        from .smoke import png_bytes, read_image
+        from .images import write_png
+        from .smoke import read_image
 
-        atomic_write_bytes(Path(path), png_bytes(read_image(self.fb, self.size)))
+        write_png(path, read_image(self.fb, self.size))
 
     def save_bind_screenshot(self, path: str) -> None:
         """The same agents in the bind pose (no layer weight: every joint at rest), for the IoU check."""

@@ -324,18 +324,12 @@ class PandaSide:
         return {"triangles": self.triangles, "draws": None, "visible": None}
 
     def save_screenshot(self, path: str) -> None:
-        import io
-
-        from PIL import Image
-
-        from .gltf_write import atomic_write_bytes
+        from .images import write_png
 
         self.base.graphicsEngine.syncFrame()  # threaded, the last frame may still be drawing
         tex = self.base.win.getScreenshot()
         image = np.frombuffer(bytes(tex.getRamImageAs("RGB")), np.uint8).reshape(tex.getYSize(), tex.getXSize(), 3)[::-1]
-        buf = io.BytesIO()  # crowd.smoke's png_bytes would import the renderer (and pyglm) into this process
-        Image.fromarray(np.ascontiguousarray(image)).save(buf, format="PNG")
-        atomic_write_bytes(Path(path), buf.getvalue())
+        write_png(path, image)
 
     def info(self) -> dict:
         from panda3d.core import PandaSystem

@@ -72,8 +72,7 @@ def error_plot(report: dict, path: Path, size: tuple[int, int] = (1600, 1000)) -
     """Max shell error (x, log) against processor GPU ms at the larger crowd (y, log): one marked point
     per configuration (colour: interpolation, marker: storage, label: bake rate), the Pareto front
     ringed, the default marked, the 1 mm target as a vertical line; the device and versions in the title."""
-    from .gltf_write import atomic_write_bytes
-    from .smoke import png_bytes
+    from .images import write_png
 
     rows = report["rows"]
     if not rows:
@@ -122,8 +121,7 @@ def error_plot(report: dict, path: Path, size: tuple[int, int] = (1600, 1000)) -
             implot.plot_text(label(r), float(err[i]), float(ms[i]), imgui.ImVec2(0, 16 if r["bake_fps"] == "source" else -16))
         implot.end_plot()
 
-    image = _render(size, draw)
-    atomic_write_bytes(Path(path), png_bytes(image))
+    write_png(path, _render(size, draw))
 
 
 PEER_STYLE = {  # (system, mode) → colour, marker
@@ -142,8 +140,7 @@ PEER_STYLE = {  # (system, mode) → colour, marker
 def peers_plot(report: dict, path: Path, size: tuple[int, int] = (1600, 1000)) -> None:
     """Median frame ms (y, log) against agents (x, log) for every (system, mode) of a ``crowd-bench
     peers`` report, with the 16.7 and 33.3 ms budgets as horizontal lines."""
-    from .gltf_write import atomic_write_bytes
-    from .smoke import png_bytes
+    from .images import write_png
 
     series: dict = {}
     for r in report["rows"]:
@@ -176,5 +173,4 @@ def peers_plot(report: dict, path: Path, size: tuple[int, int] = (1600, 1000)) -
             implot.plot_line(f"{key[0]} {key[1]}", np.array([a for a, _ in points], np.float64), np.array([m for _, m in points], np.float64))
         implot.end_plot()
 
-    image = _render(size, draw)
-    atomic_write_bytes(Path(path), png_bytes(image))
+    write_png(path, _render(size, draw))

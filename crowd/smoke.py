@@ -7,7 +7,6 @@ windowed loop would overlap frames instead; this mode measures, it does not pres
 
 from __future__ import annotations
 
-import io
 import json
 import platform
 import time
@@ -18,6 +17,7 @@ import numpy as np
 
 from .gl import describe, headless_context
 from .gltf_write import atomic_write_bytes
+from .images import write_png
 from .pipeline import CrowdPipeline, PipelineConfig, percentiles
 
 FIXED_DT = 1.0 / 30.0  # headless frames advance a fixed step, so a seed gives the same pictures
@@ -32,14 +32,6 @@ def offscreen_framebuffer(ctx: moderngl.Context, size: tuple[int, int]):
 def read_image(framebuffer: moderngl.Framebuffer, size: tuple[int, int]) -> np.ndarray:
     data = framebuffer.read(components=3, alignment=1)
     return np.frombuffer(data, np.uint8).reshape(size[1], size[0], 3)[::-1].copy()
-
-
-def png_bytes(image: np.ndarray) -> bytes:
-    from PIL import Image
-
-    buf = io.BytesIO()
-    Image.fromarray(image).save(buf, format="PNG")
-    return buf.getvalue()
 
 
 def write_stats(path: Path, stats: dict) -> None:
@@ -85,7 +77,7 @@ def run_headless(config: PipelineConfig, frames: int, size: tuple[int, int], scr
         stats = collect_stats(ctx, pipeline, frame_ms, size, config)
         stats["gpu_bytes"]["framebuffer"] = size[0] * size[1] * 8
         if screenshot is not None:
-            atomic_write_bytes(Path(screenshot), png_bytes(image))
+            write_png(screenshot, image)
         if stats_path is not None:
             write_stats(stats_path, stats)
         stats["_image"] = image  # for callers in Python (tests); never written to the JSON
