@@ -13,57 +13,58 @@ import sys
 from pathlib import Path
 
 
-def _rate(text: str):
-    """--bake-fps: a number, or "source" (each clip at its own key rate); the scene checks the range."""
-    if text == "source":
-        return text
-    try:
-        return float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'expected a number of fps or "source", got {text!r}') from None
-
-
 def _parser() -> argparse.ArgumentParser:
-    from crowd.processor import INTERPOLATIONS
+    """The flags: a few of the demo's own, then one per setting of crowd.settings (bounds, defaults and
+    help come from there, so the command line, scene files and panel agree)."""
+    from crowd.settings import SETTINGS, group
 
     p = argparse.ArgumentParser(prog="crowd-demo", description="Zombie crowd demo: GPU animation processor and skinned instancing.")
     p.add_argument("--headless", action="store_true", help="run offscreen through EGL even when a display exists")
-    p.add_argument("--frames", type=int, default=None, help="frames to run (headless default 60; the window runs until closed)")
     p.add_argument("--scene", type=Path, default=None, help="a scene file (TOML; see scenes/); flags given as well override it")
-    p.add_argument("--agents", type=int, default=None, help="number of zombies (default: the scene's, 200)")
-    p.add_argument("--size", default="1280x720", help="frame size WxH (default 1280x720)")
     p.add_argument("--screenshot", type=Path, default=None, help="PNG of the last frame (headless default out/demo.png)")
     p.add_argument("--stats", type=Path, default=None, help="JSON of frame and pass timings")
     p.add_argument("--model", type=Path, default=None, help="a skinned .glb/.gltf (default: the built-in zombie)")
     p.add_argument("--roles", default=None, help="clip role overrides, e.g. walk=Walking,idle=Idle")
-    p.add_argument("--seed", type=int, default=None)
-    p.add_argument("--bake-fps", type=_rate, default=None, help='bake rate, 1-240 or "source" (default: the scene\'s, 30)')
-    p.add_argument("--interpolation", choices=list(INTERPOLATIONS), default=None,
-                   help="how keys are sampled and layers blended (default: the scene's, qt_lerp; see docs/BENCHMARKS.md)")
-    p.add_argument("--precision", choices=["f32", "f16"], default=None)
-    p.add_argument("--processor", choices=["auto", "compute", "fragment"], default=None, help="processor path (default: compute where GL 4.3 exists)")
-    p.add_argument("--no-shadows", action="store_true")
-    p.add_argument("--no-culling", action="store_true")
-    p.add_argument("--no-weapons", action="store_true", help="nobody is armed: no socket read-back, no gather pass")
-    p.add_argument("--readback-latency", type=int, default=None, help="frames between gathering a weapon socket and reading it (1-3, default 2)")
+    for name in ("frames", "size"):
+        s = SETTINGS[name]
+        p.add_argument(s.flag, default=None, metavar=s.name.upper(), help=f"{s.help} ({s.rule()})")
+    titles = {"scene": "crowd", "clips": "the bake", "features": "what is drawn", "ai": "the crowd's behaviour (scene table [ai])"}
+    for table, title in titles.items():
+        g = p.add_argument_group(title)
+        for s in group(table).values():
+            if s.kind == "bool":  # every switch is on by default; the flag turns it off for this run
+                g.add_argument("--no-" + s.flag[2:], dest=s.name, action="store_const", const="false", default=None, help=f"no {s.help}")
+            else:
+                g.add_argument(s.flag, dest=s.name, default=None, metavar=_metavar(s),
+                               help=f"{s.help} ({s.rule()}; default: the scene's, {_show(s.default)})")
     return p
+
+
+def _metavar(setting) -> str:
+    return {"choice": "{" + ",".join(setting.choices) + "}", "pair": "NEAR,FAR", "rate": "FPS", "int": "N"}.get(setting.kind, "X")
+
+
+def _show(value) -> str:
+    return ",".join(f"{v:g}" for v in value) if isinstance(value, tuple) else (f"{value:g}" if isinstance(value, float) else str(value))
 
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
 
-    from crowd.ai import AIError
-    from crowd.bake import BakeError
+    from crowd.sim.ai import AIError
+    from crowd.anim.bake import BakeError
     from crowd.gl import GLUnavailable, has_display
-    from crowd.gltf import GltfImportError
-    from crowd.pipeline import PipelineError, smoke_size
-    from crowd.processor import ProcessorError
-    from crowd.readback import ReadbackError
-    from crowd.render import RenderError
-    from crowd.roles import RoleError, parse_overrides
+    from crowd.asset.gltf import GltfImportError
+    from crowd.frame import FrameError
+    from crowd.pipeline import PipelineError
+    from crowd.anim.processor import ProcessorError
+    from crowd.draw.readback import ReadbackError
+    from crowd.draw.render import RenderError
+    from crowd.anim.roles import RoleError, parse_overrides
     from crowd.scene import Scene, SceneError, load_scene
+    from crowd.settings import SETTINGS, SCENE_GROUPS, SettingError, group, parse
     from crowd.smoke import run_headless
-    from crowd.weapons import WeaponError
+    from crowd.draw.weapons import WeaponError
 
     windowed = not args.headless and has_display()
     if not args.headless and not windowed:
@@ -71,8 +72,7 @@ def main(argv=None) -> int:
     if not windowed:
         _headless_defaults(args)
     try:
-        if args.frames is not None and not 1 <= args.frames <= 100_000:
-            raise PipelineError(f"--frames must be 1 to 100000, got {args.frames}")
+        args.frames = None if args.frames is None else parse("frames", str(args.frames), SceneError, "--frames")
         if args.model is not None and not args.model.is_file():
             raise PipelineError(f"--model {args.model}: no such file")
         scene = Scene()
@@ -81,13 +81,11 @@ def main(argv=None) -> int:
                 scene = load_scene(args.scene)
             except SceneError as exc:  # a broken scene file loses nothing: the run goes on with the defaults
                 print(f"crowd-demo: {exc}; running the default scene instead", file=sys.stderr)
-        off = lambda flag: False if flag else None  # a --no-x flag turns x off; without it the scene decides
-        scene = scene.with_overrides(agents=args.agents, seed=args.seed, model=args.model, roles=parse_overrides(args.roles) or None,
-                                     bake_fps=args.bake_fps, precision=args.precision, interpolation=args.interpolation,
-                                     processor=args.processor,
-                                     shadows=off(args.no_shadows), culling=off(args.no_culling), weapons=off(args.no_weapons),
-                                     readback_latency=args.readback_latency)
-        size = smoke_size(args.size)
+        # Every setting flag given: its text converted and checked by the schema, naming the flag.
+        given = {name: parse(name, text, SceneError, SETTINGS[name].flag) for table in SCENE_GROUPS
+                 for name in group(table) if (text := getattr(args, name)) is not None}
+        scene = scene.with_overrides(model=args.model, roles=parse_overrides(args.roles) or None, **given)
+        size = SETTINGS["size"].default if args.size is None else parse("size", args.size, SceneError, "--size")
         stats = None
         if windowed:
             stats = _run_window(scene, size, args)
@@ -97,7 +95,7 @@ def main(argv=None) -> int:
             stats = run_headless(scene.pipeline_config(), args.frames, size, args.screenshot, args.stats,
                                  camera=scene.camera_for(size[0] / size[1]))
     except (AIError, GltfImportError, BakeError, PipelineError, ProcessorError, RenderError, RoleError, GLUnavailable,
-            ReadbackError, WeaponError, SceneError) as exc:
+            ReadbackError, WeaponError, SceneError, SettingError, FrameError) as exc:
         print(f"crowd-demo: {exc}", file=sys.stderr)
         return 2
     for note in stats["warnings"]:
@@ -118,7 +116,9 @@ def main(argv=None) -> int:
 
 def _headless_defaults(args) -> None:
     """Headless runs stop by themselves and leave a picture: 60 frames and out/demo.png unless given."""
-    args.frames = 60 if args.frames is None else args.frames
+    from crowd.settings import DEFAULTS
+
+    args.frames = DEFAULTS["frames"] if args.frames is None else args.frames
     args.screenshot = args.screenshot or Path("out/demo.png")
 
 

@@ -10,12 +10,20 @@ from pathlib import Path
 
 import numpy as np
 
-from crowd.ai import AIError
-from crowd.bake import BakeError
+from crowd.anim.bake import BakeError
+from crowd.anim.processor import ProcessorError
 from crowd.pipeline import PipelineError
-from crowd.processor import INTERPOLATIONS, ProcessorError
 from crowd.scene import SceneError
 from crowd.session import CrowdSession, SessionError
+from crowd.settings import SETTINGS, SOURCE_RATE
+from crowd.sim.ai import AIError
+from crowd.stats import weapon_stats
+
+# Widget ranges and choices come from the settings schema, where each setting's bounds are declared.
+AGENTS, TIME_SCALE, CROSSFADE = SETTINGS["agents"], SETTINGS["time_scale"], SETTINGS["crossfade"]
+CLIP_SPEED, WEIGHT, BAKE_FPS = SETTINGS["clip_speed"], SETTINGS["layer_weight"], SETTINGS["bake_fps"]
+LOD, LATENCY = SETTINGS["lod_distances"], SETTINGS["readback_latency"]
+PRECISIONS, INTERPOLATIONS = SETTINGS["precision"].choices, SETTINGS["interpolation"].choices
 
 HISTORY_SECONDS = 5.0
 LAYER_NAMES = ("idle", "walk", "run", "action")
@@ -29,8 +37,8 @@ class Panel:
         self.frame_times: deque = deque(maxlen=2000)  # seconds; the plot shows the last HISTORY_SECONDS of them
         self.visible = True
         bake = session.pipeline.bake
-        self._source_rate = bake.fps == "source"
-        self._bake_fps = 30.0 if self._source_rate else float(bake.fps)
+        self._source_rate = bake.fps == SOURCE_RATE
+        self._bake_fps = BAKE_FPS.default if self._source_rate else float(bake.fps)
         self._precision, self._interpolation = bake.precision, session.pipeline.processor.interpolation
         self._seed = session.pipeline.config.seed
         self._held = {layer: [False, 1.0] for layer in range(4)}
@@ -121,26 +129,26 @@ class Panel:
 
     def _draw_crowd(self, imgui) -> None:
         s = self.session
-        changed, agents = imgui.slider_int("agents", s.pipeline.agents, 0, 10_000)
+        changed, agents = imgui.slider_int("agents", s.pipeline.agents, *AGENTS.slider)
         if changed:
             self.apply("agents", agents)
         changed, agents = imgui.input_int("agents (any)", s.pipeline.agents, 100, 1000)
         if changed:
-            self.apply("agents", max(0, agents))
+            self.apply("agents", min(max(int(AGENTS.low), agents), int(AGENTS.high)))
         changed, paused = imgui.checkbox("pause", s.paused)
         if changed:
             self.apply("pause", paused)
         imgui.same_line()
         if imgui.button("step"):
             self.apply("step")
-        changed, scale = imgui.slider_float("time scale", s.time_scale, 0.0, 4.0)
+        changed, scale = imgui.slider_float("time scale", s.time_scale, *TIME_SCALE.slider)
         if changed:
             self.apply("time_scale", scale)
         _, self._seed = imgui.input_int("seed", self._seed)
         imgui.same_line()
         if imgui.button("new crowd"):
             self.apply("seed", self._seed)
-        changed, fade = imgui.slider_float("cross-fade (s)", s.pipeline.ai.config.crossfade, 0.0, 1.5)
+        changed, fade = imgui.slider_float("cross-fade (s)", s.ai_setting("crossfade"), *CROSSFADE.slider)
         if changed:
             self.apply("crossfade", fade)
         counts = s.pipeline.ai.counts()
@@ -154,7 +162,7 @@ class Panel:
             imgui.push_id(f"clip{i}")
             roles = [r for r, name in s.pipeline.roles.items() if name == clip.name]
             imgui.text(f"{clip.name} ({', '.join(roles) or '-'}, {clip.duration:.2f} s)")
-            changed, speed = imgui.slider_float("speed", s.pipeline.clip_speed.get(clip.name, 1.0), 0.1, 3.0)
+            changed, speed = imgui.slider_float("speed", s.pipeline.clip_speed.get(clip.name, 1.0), *CLIP_SPEED.slider)
             if changed:
                 self.apply("clip_speed", clip.name, speed)
             imgui.same_line()
@@ -177,7 +185,7 @@ class Panel:
             held, value = self._held[layer]
             changed_h, held = imgui.checkbox("hold", held)
             imgui.same_line()
-            changed_v, value = imgui.slider_float(name, value, 0.0, 2.0)
+            changed_v, value = imgui.slider_float(name, value, *WEIGHT.slider)
             if changed_h or (held and changed_v):
                 if self.apply("weight", layer, value if held else None, selected_only=self._weights_selected_only):
                     self._held[layer] = [held, value]
@@ -191,25 +199,24 @@ class Panel:
         _, self._source_rate = imgui.checkbox("source rate", self._source_rate)
         if not self._source_rate:
             imgui.same_line()
-            _, self._bake_fps = imgui.slider_float("bake fps", self._bake_fps, 5.0, 60.0, "%.0f")
-        precisions = ["f32", "f16"]
-        _, index = imgui.combo("precision", precisions.index(self._precision), precisions)
-        self._precision = precisions[index]
+            _, self._bake_fps = imgui.slider_float("bake fps", self._bake_fps, *BAKE_FPS.slider, "%.0f")
+        _, index = imgui.combo("precision", PRECISIONS.index(self._precision), list(PRECISIONS))
+        self._precision = PRECISIONS[index]
         _, index = imgui.combo("interpolation", INTERPOLATIONS.index(self._interpolation), list(INTERPOLATIONS))
         self._interpolation = INTERPOLATIONS[index]
         if imgui.button("re-bake"):
-            self.apply("rebake", "source" if self._source_rate else round(self._bake_fps), self._precision, self._interpolation)
+            self.apply("rebake", SOURCE_RATE if self._source_rate else round(self._bake_fps), self._precision, self._interpolation)
         imgui.same_line()
         if imgui.button("measure error"):
             self.apply("measure_error")
-        rate = "source rate" if p.bake.fps == "source" else f"{p.bake.fps:g} fps"
+        rate = "source rate" if p.bake.fps == SOURCE_RATE else f"{p.bake.fps:g} fps"
         imgui.text(f"baked: {len(p.bake.clips)} clips at {rate}, {p.bake.precision}, {p.processor.interpolation}, {p.bake.nbytes:,} bytes")
         if s.bake_error is not None:
             e = s.bake_error
             imgui.text(f"shell error against float64: max {e['max_error_mm']:.3g} mm, p99 {e['p99_error_mm']:.3g} mm "
                        f"({e['poses']} poses, GPU)")
         near, far = p.renderer.lod_distances
-        changed, (near, far) = imgui.drag_float2("LOD distances (m)", [near, far], 0.5, 1.0, 500.0)
+        changed, (near, far) = imgui.drag_float2("LOD distances (m)", [near, far], 0.5, *LOD.slider)
         if changed:
             self.apply("lod", near, max(near, far))
         changed, on = imgui.checkbox("culling", p.renderer.culling)
@@ -221,11 +228,11 @@ class Panel:
         changed, on = imgui.checkbox("weapons", p.config.weapons)
         if changed:
             self.apply("weapons", on)
-        changed, latency = imgui.slider_int("read-back latency (frames)", p.latency, 1, 3)
+        changed, latency = imgui.slider_int("read-back latency (frames)", p.latency, *LATENCY.slider)
         if changed:
             self.apply("latency", latency)
         if p.weapons is not None:
-            w = p.weapon_stats()
+            w = weapon_stats(p)
             imgui.text(f"{w['drawn']} weapons, pose lag {w['pose_lag_ms']:.1f} ms, {w['stalls']} stalls")
         imgui.text("skinning: dual quaternions (linear blend skinning is not built)")
         last = p.renderer.last

@@ -15,8 +15,10 @@ import moderngl_window as mglw
 import numpy as np
 
 from crowd.scene import Scene
-from crowd.session import CrowdSession, OrbitControl
+from crowd.session import CrowdSession
 
+from .camera import OrbitControl
+from .markers import MarkerRings
 from .panel import Panel
 
 PLAYER_SPEED = 4.0  # m/s with W/A/S/D
@@ -47,6 +49,7 @@ class CrowdWindow(mglw.WindowConfig):
         self.session = CrowdSession(self.ctx, self.launch["scene"], width / max(height, 1))
         self.panel = Panel(self.session, self.launch.get("scene_path"))
         self.orbit = OrbitControl(self.session.pipeline.camera)
+        self.markers = MarkerRings(self.ctx)
         self.keys_down: set = set()
         self._press = None  # where a left press started, to tell a click from a drag
         self._dragged = 0.0
@@ -63,7 +66,7 @@ class CrowdWindow(mglw.WindowConfig):
         self.session.pipeline.camera.aspect = width / max(height, 1)
         fbo = self.wnd.fbo
         self.session.frame(fbo, dt)
-        self.session.draw_markers(fbo)
+        self.markers.draw(fbo, self.session.last.view, *self.session.markers())
         self.panel.record_frame(frame_time if frame_time > 0 else dt)
         self.imgui.new_frame()
         self.panel.draw()
@@ -153,11 +156,15 @@ class CrowdWindow(mglw.WindowConfig):
         return x * ratio, y * ratio
 
     def on_close(self) -> None:
+        self.release()
+
+    def release(self) -> None:
+        self.markers.release()
         self.session.release()
 
     def screenshot(self, path: Path) -> None:
+        from crowd.gl import read_image
         from crowd.images import write_png
-        from crowd.smoke import read_image
 
         write_png(path, read_image(self.wnd.fbo, self.wnd.buffer_size))
 
@@ -182,7 +189,7 @@ def run_window(scene: Scene, size: tuple[int, int], frames: int | None, screensh
                scene_path: Path | None) -> dict:
     """The interactive demo: until the window is closed, or for `frames` frames when given (scripts)."""
     from crowd.gl import describe
-    from crowd.smoke import collect_stats, write_stats
+    from crowd.stats import collect_stats, write_stats
 
     window = open_window(scene, size, scene_path)
     window.timer.start()
@@ -201,5 +208,5 @@ def run_window(scene: Scene, size: tuple[int, int], frames: int | None, screensh
         return stats
     finally:
         if not window.wnd.is_closing:
-            window.session.release()
+            window.release()
         window.wnd.destroy()

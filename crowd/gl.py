@@ -7,12 +7,44 @@ context and ``window_context()`` picks it up.
 
 from __future__ import annotations
 
+import functools
 import os
 from pathlib import Path
 
 import moderngl
 
 SHADER_DIR = Path(__file__).resolve().parent.parent / "shaders"
+
+
+class GLStage:
+    """A stage that owns GL objects. ``with Stage(...) as stage:`` releases them when the block ends,
+    however it ends; a constructor that fails half-way releases what it had made before the error
+    goes on. ``release()`` may be called any number of times, and on a half-built stage."""
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        init = cls.__dict__.get("__init__")
+        if init is None:
+            return
+
+        @functools.wraps(init)
+        def guarded(self, *args, **kw):
+            try:
+                init(self, *args, **kw)
+            except BaseException:
+                self.release()
+                raise
+
+        cls.__init__ = guarded
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+    def release(self) -> None:
+        raise NotImplementedError
 
 
 class GLUnavailable(RuntimeError):
@@ -170,3 +202,36 @@ class Fence:
         if self._sync:
             self._api["glDeleteSync"](self._sync)
             self._sync = None
+
+
+class Offscreen(GLStage):
+    """A colour and depth framebuffer of one size: where headless frames, benchmarks and tests draw."""
+
+    def __init__(self, ctx: moderngl.Context, size: tuple[int, int]):
+        self.size = (int(size[0]), int(size[1]))
+        self._objects: list = []
+        self.framebuffer = None
+        color = self._own(ctx.renderbuffer(self.size, 4))
+        depth = self._own(ctx.depth_renderbuffer(self.size))
+        self.framebuffer = self._own(ctx.framebuffer(color_attachments=[color], depth_attachment=depth))
+
+    def _own(self, obj):
+        self._objects.append(obj)
+        return obj
+
+    def image(self):
+        """The colour buffer as (height, width, 3) uint8, top row first."""
+        return read_image(self.framebuffer, self.size)
+
+    def release(self) -> None:
+        for obj in reversed(self._objects):
+            obj.release()
+        self._objects = []
+        self.framebuffer = None
+
+
+def read_image(framebuffer: moderngl.Framebuffer, size: tuple[int, int]):
+    import numpy as np
+
+    data = framebuffer.read(components=3, alignment=1)
+    return np.frombuffer(data, np.uint8).reshape(size[1], size[0], 3)[::-1].copy()

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .gltf_write import atomic_write_bytes
+from .files import atomic_write_bytes
 
 
 def png_bytes(image: np.ndarray) -> bytes:

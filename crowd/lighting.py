@@ -1,5 +1,5 @@
 """The values of shaders/lighting.glsl's uniforms: one sun, sky and ground ambient, fog. A module of its
-own so the Panda3D peer (crowd/peers_panda.py) lights its actors the same way without importing the
+own so the Panda3D peer (bench/peers_panda.py) lights its actors the same way without importing the
 renderer (and pyglm, which the peer's GPU machine does not get)."""
 
 import math

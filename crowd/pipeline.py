@@ -23,17 +23,20 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
-from .gltf import load_character
-from .ai import LAYERS, AIConfig, CrowdAI, PlayerScript, motion_for, upper_body_mask
-from .bake import DEFAULT_FPS
-from .processor import DEFAULT_INTERPOLATION, AnimationProcessor, palette_joint_positions
-from .readback import RING, SocketReadback
-from .render import DEFAULT_LOD_DISTANCES, Camera, CrowdRenderer
-from .roles import bake_roles, match_roles
+from .anim.processor import AnimationProcessor, palette_joint_positions
+from .anim.roles import bake_roles, match_roles
+from .asset.gltf import load_character
+from .draw.readback import RING, SocketRead, SocketReadback
+from .draw.render import CrowdRenderer, FrameView, view_proj
+from .draw.sync import PaletteSync
+from .draw.weapons import AgentFrames, WeaponRenderer
+from .frame import Camera, LayerOverrides
+from .settings import DEFAULTS, SETTINGS
+from .sim.ai import LAYERS, AIConfig, CrowdAI, PlayerScript, motion_for, upper_body_mask
+from .stages import StageSpec, Stages, build_processor, build_readback, build_renderer, build_weapons
 from .timing import PassTimer
-from .weapons import AgentFrames, WeaponRenderer
 
-MAX_AGENTS = 1_000_000
+MAX_AGENTS = SETTINGS["agents"].high
 
 
 class PipelineError(ValueError):
@@ -42,63 +45,80 @@ class PipelineError(ValueError):
 
 @dataclass
 class PipelineConfig:
-    agents: int = 200
-    seed: int = 1
+    agents: int = DEFAULTS["agents"]
+    seed: int = DEFAULTS["seed"]
     model: Path | None = None
     roles: dict = field(default_factory=dict)
-    bake_fps: float | str = DEFAULT_FPS  # or "source": each clip at its own key rate
-    precision: str = "f32"
-    interpolation: str = DEFAULT_INTERPOLATION
-    processor_path: str = "auto"
-    shadows: bool = True
-    culling: bool = True
-    lod_distances: tuple = DEFAULT_LOD_DISTANCES
+    bake_fps: float | str = DEFAULTS["bake_fps"]  # or "source": each clip at its own key rate
+    precision: str = DEFAULTS["precision"]
+    interpolation: str = DEFAULTS["interpolation"]
+    processor_path: str = DEFAULTS["processor"]
+    shadows: bool = DEFAULTS["shadows"]
+    culling: bool = DEFAULTS["culling"]
+    lod_distances: tuple = DEFAULTS["lod_distances"]
     ai: AIConfig = field(default_factory=AIConfig)
     origin: tuple = (0.0, 0.0)  # world centre (x, z) in metres; float64 all the way to the camera subtraction
     scripted_player: bool = True  # headless: the player walks a circle and strikes; the window moves it instead
-    weapons: bool = True  # armed agents carry weapons (AIConfig.armed_share says how many)
-    readback_latency: int = 2  # frames between gathering a socket and the CPU reading it (1 to 3)
+    weapons: bool = DEFAULTS["weapons"]  # armed agents carry weapons (AIConfig.armed_share says how many)
+    readback_latency: int = DEFAULTS["readback_latency"]  # frames between gathering a socket and the CPU reading it
+
+
+@dataclass
+class FrameState:
+    """What the last frame decided, kept until the next one replaces it whole."""
+
+    index: int = -1  # the frame number (-1: none yet)
+    view: FrameView | None = None  # the camera, view and light matrices and visible set every pass got
+    read: SocketRead | None = None  # the socket read-back that arrived in this frame (from frame index - N)
+    row_offset: int | np.ndarray = 0  # the first palette row each agent was drawn from
+    agent_frames: AgentFrames | None = None  # where each agent stood, for the weapons
 
 
 class CrowdPipeline:
     def __init__(self, ctx: moderngl.Context, config: PipelineConfig):
-        if not isinstance(config.agents, int) or not 0 <= config.agents <= MAX_AGENTS:
-            raise PipelineError(f"agent count must be 0 to {MAX_AGENTS}, got {config.agents!r}")
+        SETTINGS["agents"].check(config.agents, PipelineError)
         self.ctx = ctx
         self.config = config
         self.character = load_character(config.model)
         self.roles, self.role_notes = match_roles(self.character.clips, config.roles)
         # Leave out what the scene does not need: only the clips the roles play are baked.
         self.bake = bake_roles(self.character, self.roles, config.bake_fps, config.precision)
-        masks = upper_body_mask(self.character.skeleton)
-        self.latency = _check_latency(config.readback_latency)
-        # Leave out what the scene does not need: no weapons, no socket, or nobody armed → no read-back
-        # stage, no gather pass, no weapon meshes, and one palette instead of a ring.
-        armed = self._armed(config)
-        self._masks = masks
+        self.latency = SETTINGS["readback_latency"].check(config.readback_latency, PipelineError)
         self.clip_speed: dict[str, float] = {}  # clip name → playback speed (time scale), where not 1
-        self.layer_override = None  # callable(layers) applied after the AI wrote them (the panel's force clip and weights)
-        self.processor = AnimationProcessor(ctx, self.bake, LAYERS, masks=masks, path=config.processor_path,
-                                            history=self.latency + 1 if armed else 1, interpolation=config.interpolation)
-        self.renderer = self._make_renderer()
         self.motion = motion_for(self.character, self.bake, self.roles)
         self.ai = CrowdAI(config.agents, config.seed, self.motion, config.ai, config.origin)
         self.player_script = PlayerScript(self.ai.half_extent * 0.5) if config.scripted_player else None
-        self._layers = np.empty((config.agents, LAYERS, 4), np.float32)
-        self.processor.resize(config.agents)
-        self.readback = SocketReadback(ctx, self.bake.joint_count, self.processor.agents_per_row) if armed else None
-        self.weapons = WeaponRenderer(ctx, self.character, config.shadows) if armed else None
-        self._palette_frames: deque = deque(maxlen=self.processor.history)  # the frame of each kept palette, oldest first
-        self._born = np.zeros(config.agents, np.int64)  # frame in which each agent (re)spawned
-        self._read = None  # this frame's read-back (frame F - N), or None
-        self._row_offset = 0  # palette rows each agent was drawn from
+        self.layers = np.empty((config.agents, LAYERS, 4), np.float32)  # this frame's layers, as processed
+        # Leave out what the scene does not need: no weapons, no socket, or nobody armed → no read-back
+        # stage, no gather pass, no weapon meshes, and one palette instead of a ring.
+        self.stages = Stages.build(ctx, self.character, self.bake, self._spec(), config.agents)
+        self.sync = PaletteSync(self.processor.history, config.agents)
         self.readback_waits: list[float] = []
         self.readback_stalls = 0
         self._pose_lag: deque = deque(maxlen=RING + 1)  # simulated seconds of the last frames
         self.timer = PassTimer(ctx)
         self.frames = 0
         self.passes_run: list[str] = []
+        self.last = FrameState()
         self.camera = self.default_camera(16 / 9)
+
+    # -- the stages, built by crowd.stages and owned here
+
+    @property
+    def processor(self) -> AnimationProcessor:
+        return self.stages.processor
+
+    @property
+    def renderer(self) -> CrowdRenderer:
+        return self.stages.renderer
+
+    @property
+    def readback(self) -> SocketReadback | None:
+        return self.stages.readback
+
+    @property
+    def weapons(self) -> WeaponRenderer | None:
+        return self.stages.weapons
 
     @property
     def agents(self) -> int:
@@ -107,17 +127,18 @@ class CrowdPipeline:
     def _armed(self, config: PipelineConfig) -> bool:
         return config.weapons and config.ai.armed_share > 0 and bool(self.character.props) and bool(self.character.sockets)
 
-    # -- run-time settings: the panel and the command line both come through these
-
-    def _make_renderer(self) -> CrowdRenderer:
+    def _spec(self) -> StageSpec:
         c = self.config
-        return CrowdRenderer(self.ctx, self.character, self.bake.joint_count, self.processor.agents_per_row,
-                             lod_distances=c.lod_distances, shadows=c.shadows, culling=c.culling)
+        return StageSpec(layers=LAYERS, masks=upper_body_mask(self.character.skeleton), processor_path=c.processor_path,
+                         interpolation=c.interpolation, lod_distances=c.lod_distances, shadows=c.shadows, culling=c.culling,
+                         armed=self._armed(c), readback_latency=self.latency)
+
+    # -- run-time settings: the panel and the command line both come through these
 
     def _set_palette_history(self, history: int) -> None:
         """A new palette ring: the frames kept and the read-backs queued against the old one are gone."""
         self.processor.set_history(history)
-        self._palette_frames = deque(maxlen=self.processor.history)
+        self.sync.reset(self.processor.history)
         if self.readback is not None:
             self.readback.reset()
 
@@ -127,37 +148,31 @@ class CrowdPipeline:
         if bool(on) == self.renderer.shadows:
             return
         self.config = dataclasses.replace(self.config, shadows=bool(on))
-        old, self.renderer = self.renderer, self._make_renderer()
-        old.release()
+        spec = self._spec()
+        self.stages.replace("renderer", build_renderer(self.ctx, self.character, self.processor, spec))
         if self.weapons is not None:
-            self.weapons.release()
-            self.weapons = WeaponRenderer(self.ctx, self.character, self.config.shadows)
+            self.stages.replace("weapons", build_weapons(self.ctx, self.character, spec))
 
     def set_culling(self, on: bool) -> None:
         self.config = dataclasses.replace(self.config, culling=bool(on))
         self.renderer.culling = bool(on)
 
     def set_lod_distances(self, near: float, far: float) -> None:
-        if not (np.isfinite(near) and np.isfinite(far) and 0 < near <= far):
-            raise PipelineError(f"LOD distances must be two increasing positive numbers, got {near!r}, {far!r}")
-        self.config = dataclasses.replace(self.config, lod_distances=(float(near), float(far)))
-        self.renderer.lod_distances = (float(near), float(far))
+        distances = SETTINGS["lod_distances"].check((near, far), PipelineError)
+        self.config = dataclasses.replace(self.config, lod_distances=distances)
+        self.renderer.lod_distances = distances
 
     def set_weapons(self, on: bool) -> None:
         """Weapons on: the read-back stage, weapon meshes and a palette ring appear; off: all of them go."""
         self.config = dataclasses.replace(self.config, weapons=bool(on))
-        armed = self._armed(self.config)
-        if armed == (self.readback is not None):
+        spec = self._spec()
+        if spec.armed == (self.readback is not None):
             return
-        if armed:
-            self.readback = SocketReadback(self.ctx, self.bake.joint_count, self.processor.agents_per_row)
-            self.weapons = WeaponRenderer(self.ctx, self.character, self.config.shadows)
-        else:
-            self.readback.release()
-            self.weapons.release()
-            self.readback = self.weapons = None
-            self._read = None
-        self._set_palette_history(self.latency + 1 if armed else 1)
+        self.stages.replace("readback", build_readback(self.ctx, self.processor, spec))
+        self.stages.replace("weapons", build_weapons(self.ctx, self.character, spec))
+        if not spec.armed:
+            self.last.read = None
+        self._set_palette_history(spec.history)
 
     def set_ai_config(self, config: AIConfig) -> None:
         self.ai.set_config(config)
@@ -173,17 +188,24 @@ class CrowdPipeline:
             old = next((c for c in self.bake.clips if c.name == clip.name), None)
             if old is not None:
                 bake.clips[i] = dataclasses.replace(clip, loop=old.loop)
-        processor = AnimationProcessor(self.ctx, bake, LAYERS, masks=self._masks, path=self.config.processor_path,
-                                       history=self.processor.history, interpolation=interpolation)
-        processor.resize(self.agents)
-        self.processor.release()
-        self.processor, self.bake = processor, bake
+        spec = dataclasses.replace(self._spec(), interpolation=interpolation)
+        self.stages.replace("processor", build_processor(self.ctx, bake, spec, self.agents))
+        self.bake = bake
         self.config = dataclasses.replace(self.config, bake_fps=bake.fps, precision=precision, interpolation=interpolation)
-        self._palette_frames.clear()
+        self.sync.reset()
         if self.readback is not None:
             self.readback.reset()
         self.ai.set_motion(motion_for(self.character, self.bake, self.roles, self.clip_speed))
         self.motion = self.ai.motion
+
+    def set_processor_path(self, path: str) -> None:
+        """Run the same bake on another processor path (compute, fragment or auto), live."""
+        path = SETTINGS["processor"].check(path, PipelineError)
+        self.config = dataclasses.replace(self.config, processor_path=path)
+        self.stages.replace("processor", build_processor(self.ctx, self.bake, self._spec(), self.agents))
+        self.sync.reset()
+        if self.readback is not None:
+            self.readback.reset()
 
     def set_clip_speed(self, name: str, speed: float) -> None:
         """A clip's playback speed (three.js's timeScale). Locomotion clips move the zombie faster too, so
@@ -199,28 +221,25 @@ class CrowdPipeline:
         self.processor.set_clip_loop(self.bake.clip_index(name), loop)
 
     def set_agent_count(self, agents: int) -> None:
-        if not isinstance(agents, (int, np.integer)) or not 0 <= agents <= MAX_AGENTS:
-            raise PipelineError(f"agent count must be 0 to {MAX_AGENTS}, got {agents!r}")
-        old = self.ai.n
-        self.ai.resize(int(agents))
-        self.processor.resize(int(agents))
-        self._layers = np.empty((int(agents), LAYERS, 4), np.float32)
-        born = np.full(int(agents), self.frames, np.int64)
-        born[: min(old, int(agents))] = self._born[: min(old, int(agents))]
-        self._born = born
-        self.config = dataclasses.replace(self.config, agents=int(agents))
+        agents = SETTINGS["agents"].check(agents, PipelineError)
+        self.ai.resize(agents)
+        self.processor.resize(agents)
+        self.layers = np.empty((agents, LAYERS, 4), np.float32)
+        self.sync.resize(agents, self.frames)
+        self.config = dataclasses.replace(self.config, agents=agents)
 
     def set_seed(self, seed: int) -> None:
         """A new crowd from another seed (same count, settings and clips); every agent starts anew."""
-        self.config = dataclasses.replace(self.config, seed=int(seed))
-        self.ai = CrowdAI(self.agents, int(seed), self.motion, self.ai.config, self.config.origin)
-        self._born[:] = self.frames
+        seed = SETTINGS["seed"].check(seed, PipelineError)
+        self.config = dataclasses.replace(self.config, seed=seed)
+        self.ai = CrowdAI(self.agents, seed, self.motion, self.ai.config, self.config.origin)
+        self.sync.spawned(slice(None), self.frames)
 
     def set_readback_latency(self, latency: int) -> None:
         """1 to 3 frames. The palette ring is reallocated, so weapons are hidden for `latency` frames."""
-        self.latency = _check_latency(latency)
+        self.latency = SETTINGS["readback_latency"].check(latency, PipelineError)
         if self.readback is not None:
-            self._set_palette_history(self.latency + 1)
+            self._set_palette_history(self._spec().history)
 
     def default_camera(self, aspect: float) -> Camera:
         """A three-quarter view that frames the whole crowd (or one agent up close)."""
@@ -234,91 +253,91 @@ class CrowdPipeline:
         if name not in self.passes_run:
             self.passes_run.append(name)
 
-    def frame(self, framebuffer: moderngl.Framebuffer, dt: float) -> None:
+    def _forced_clip(self, overrides: LayerOverrides) -> tuple[float, float, bool]:
+        """(duration, playback speed, loop) of the clip `overrides` forces, for LayerOverrides.apply."""
+        if overrides.forced is None:
+            return 1.0, 1.0, True
+        info = self.bake.clips[overrides.forced.clip]
+        return info.duration, self.clip_speed.get(info.name, 1.0), info.loop
+
+    def frame(self, framebuffer: moderngl.Framebuffer, dt: float, overrides: LayerOverrides | None = None) -> FrameState:
+        """Run one frame into `framebuffer`, the simulation advancing `dt` seconds; `overrides` (the
+        panel's forced clips and held weights) go on top of the AI's layers. Returns the frame's state."""
         t = self.timer
         f = self.frames
+        if overrides:
+            overrides.validate(len(self.bake.clips), LAYERS)
         with t.cpu("ai"):
             if self.player_script is not None:
                 self.player_script.update(self.ai)
             steps_before = self.ai.steps
             self.ai.step(dt)
             instances = self.ai.instances()
-            layers = self.ai.write_layers(self._layers)
-            if self.layer_override is not None:
-                self.layer_override(layers)
+            layers = self.ai.write_layers(self.layers)
+            if overrides:
+                overrides.apply(layers, self.ai.time, *self._forced_clip(overrides))
         self._run("ai")
-        self._born[self.ai.spawned_step >= steps_before] = f  # respawned (or added) in this frame's step
+        self.sync.spawned(self.ai.spawned_step >= steps_before, f)  # respawned (or added) in this frame's step
         self._pose_lag.append(float(min(dt, self.ai.config.max_dt)))
+        read = None
         if self.readback is not None:
             # Before this frame's gather: with N = 3 the slot read now is the one written next.
             with t.cpu("readback"):
-                self._read = self.readback.fetch(f - self.latency)
+                read = self.readback.fetch(f - self.latency)
             self._run("readback")
-            if self._read is not None:
-                self.readback_waits.append(self._read.wait_ms)
-                self.readback_stalls += int(self._read.stalled)
+            if read is not None:
+                self.readback_waits.append(read.wait_ms)
+                self.readback_stalls += int(read.stalled)
         with t.cpu("upload"):
             self.processor.upload(layers)
         if self.agents:
             with t.gpu("process"):
                 self.processor.run()
             self._run("process")
-            if self.processor.runs == 1:  # a new palette: the frames kept before it are gone
-                self._palette_frames.clear()
-            self._palette_frames.append(f)
+            self.sync.processed(f, fresh=self.processor.runs == 1)  # a new palette: the frames kept before it are gone
         if self.readback is not None and self.agents:
             armed = np.flatnonzero(self.ai.armed())
             if self.readback.gather(f, self.processor, armed, np.full(armed.size, self.weapons.socket_joint), t):
                 self._run("gather")
                 self._run("transfer")
         # Each body's palette: frame F - N where the weapon read-back is from that frame, else this one.
-        self._row_offset = 0
-        if self.agents:
-            self._row_offset = self.processor.row_offset(0)
-            if self._read is not None and self._read.frame in self._palette_frames:
-                age = len(self._palette_frames) - 1 - list(self._palette_frames).index(self._read.frame)
-                old = self.processor.row_offset(age)
-                self._row_offset = np.where(self._born <= self._read.frame, old, self._row_offset).astype(np.uint32)
+        row_offset = self.sync.row_offsets(None if read is None else read.frame, self.processor.row_offset) if self.agents else 0
         with t.cpu("cull_lod"):
-            view_proj = self.renderer.prepare(self.camera, instances, self._row_offset)
+            view = self.renderer.prepare(self.camera, instances, row_offset)
         self._run("cull_lod")
+        agent_frames = None
         if self.weapons is not None:
             with t.cpu("attach"):
-                read = self._synced_read()
-                self._frames = AgentFrames(instances.position, instances.yaw, instances.scale, self.camera.eye)
-                self.weapons.attach(read, self._frames, self.ai.weapon, self.renderer.visible)
+                agent_frames = AgentFrames(instances.position, instances.yaw, instances.scale, self.camera.eye)
+                self.weapons.attach(self.sync.synced(read, self.agents), agent_frames, self.ai.weapon, view.visible)
             self._run("attach")
+        self.last = FrameState(f, view, read, row_offset, agent_frames)
         framebuffer.use()
         framebuffer.clear(*self.renderer.clear_color(), 1.0, depth=1.0)
         if self.renderer.shadows:
             with t.gpu("shadow"):
-                self.renderer.shadow_pass(self.camera, self.processor)
+                self.renderer.shadow_pass(view, self.processor)
                 if self.weapons is not None and self.weapons.last["weapons"]:
-                    self.weapons.depth_pass(self.renderer.light)
+                    self.weapons.depth_pass(view.light_view_proj)
             self._run("shadow")
         if self.renderer.last["instances"]:
             with t.gpu("draw"):
-                self.renderer.color_pass(framebuffer, view_proj, self.processor)
+                self.renderer.color_pass(framebuffer, view, self.processor)
             self._run("draw")
         if self.weapons is not None and self.weapons.last["weapons"]:
             with t.gpu("weapons"):
-                self.weapons.color_pass(framebuffer, view_proj, self.renderer)
+                self.weapons.color_pass(framebuffer, view, self.renderer)
             self._run("weapons")
         with t.gpu("ground"):
-            self.renderer.ground_pass(framebuffer, self.camera, view_proj)
+            self.renderer.ground_pass(framebuffer, view)
         self._run("ground")
         t.end_frame()
         self.frames += 1
+        return self.last
 
-    def _synced_read(self):
-        """This frame's read-back, limited to agents whose body is drawn with the palette of its frame
-        (those that existed then); None when that palette is gone."""
-        read = self._read
-        if read is None or read.frame not in self._palette_frames:
-            return None
-        keep = read.agents < self.agents
-        keep[keep] = self._born[read.agents[keep]] <= read.frame
-        return dataclasses.replace(read, agents=read.agents[keep], joints=read.joints[keep], rows=read.rows[keep])
+    def pose_lag_ms(self) -> float:
+        """Simulated time the drawn pose trails the simulation by: the last `latency` frames' steps."""
+        return round(sum(list(self._pose_lag)[-self.latency:]) * 1e3, 3)
 
     def weapon_error_mm(self, body: str = "drawn") -> float | None:
         """Largest distance (mm) between a drawn weapon's grip point and its agent's socket point on the
@@ -329,18 +348,18 @@ class CrowdPipeline:
             return None
         agents, weapon, _ = self.weapons.drawn
         if body == "drawn":
-            offsets = np.broadcast_to(np.asarray(self._row_offset, np.int64), (self.agents,))[agents]
+            offsets = np.broadcast_to(np.asarray(self.last.row_offset, np.int64), (self.agents,))[agents]
         else:
             offsets = np.full(len(agents), self.processor.row_offset(0), np.int64)
         rows = self.processor.read_rows(agents, self.weapons.socket_joint, offsets).astype(np.float64)
         socket_model = np.einsum("kij,j->ki", rows, self.weapons.socket_bind[:, 3])
-        hand = self._frames.points(agents, socket_model)
+        hand = self.last.agent_frames.points(agents, socket_model)
         return float(np.max(np.linalg.norm(hand - self.weapons.grip_points(), axis=1)) * 1e3)
 
     def project(self, world: np.ndarray, size: tuple[int, int]) -> np.ndarray:
         """Pixel (x, y from the top-left) of world points (P, 3) in this frame's camera."""
         rel = np.asarray(world, np.float64) - np.asarray(self.camera.eye, np.float64)
-        clip = np.c_[rel, np.ones(len(rel))] @ self.camera.view_proj().astype(np.float64).T
+        clip = np.c_[rel, np.ones(len(rel))] @ view_proj(self.camera).astype(np.float64).T
         ndc = clip[:, :3] / clip[:, 3:4]
         return np.stack([(ndc[:, 0] * 0.5 + 0.5) * size[0], (0.5 - ndc[:, 1] * 0.5) * size[1]], axis=1)
 
@@ -363,76 +382,12 @@ class CrowdPipeline:
             out["weapons"] = self.weapons.gpu_bytes()
         return out
 
-    def stats(self) -> dict:
-        return {
-            "agents": self.agents,
-            "processor_path": self.processor.path,
-            "layers": self.processor.layer_count,
-            "bake": {"fps": self.bake.fps, "precision": self.bake.precision, "interpolation": self.processor.interpolation,
-                     "clips": [c.name for c in self.bake.clips],
-                     "rows": self.bake.rows, "bytes": self.bake.nbytes},
-            "roles": self.roles,
-            "ai": {"states": self.ai.counts(), "player_hits_taken": self.ai.player_hits_taken, "faults": self.ai.check(),
-                   "notes": list(self.motion.notes)},
-            "passes_ms": self.timer.medians(),
-            "passes_clock": {k: self.timer.clock[k] for k in self.timer.order},
-            "passes_run": list(self.passes_run),
-            "gpu_bytes": self.gpu_bytes(),
-            "last_frame": dict(self.renderer.last),
-            "weapons": self.weapon_stats(),
-            "weapon_error_mm": None if self.weapons is None else _round(self.weapon_error_mm()),
-            "readback_wait_ms": self.readback_wait(),
-        }
-
-    def readback_wait(self) -> dict | None:
-        if self.readback is None:
-            return None
-        waits = np.asarray(self.readback_waits or [0.0])
-        return {"max": round(float(waits.max()), 4), "median": round(float(np.median(waits)), 4)}
-
-    def weapon_stats(self) -> dict:
-        if self.weapons is None:
-            return {"enabled": False}
-        return {"enabled": True, "latency_frames": self.latency,
-                "pose_lag_ms": round(sum(list(self._pose_lag)[-self.latency:]) * 1e3, 3),  # simulated time the pose trails by
-                "armed": int(np.count_nonzero(self.ai.armed())), "drawn": self.weapons.last["weapons"],
-                "triangles": self.weapons.last["triangles"],
-                "gathered": self.readback.last_count, "stalls": self.readback_stalls, "reads": len(self.readback_waits)}
-
     def release(self) -> None:
         self.timer.release()
-        if self.weapons is not None:
-            self.weapons.release()
-        if self.readback is not None:
-            self.readback.release()
-        self.renderer.release()
-        self.processor.release()
+        self.stages.release()
 
+    def __enter__(self) -> "CrowdPipeline":
+        return self
 
-def smoke_size(text: str) -> tuple[int, int]:
-    w, sep, h = text.lower().partition("x")
-    try:
-        size = (int(w), int(h))
-    except ValueError:
-        raise PipelineError(f"size must look like 1280x720, got {text!r}") from None
-    if not sep or not (16 <= size[0] <= 8192 and 16 <= size[1] <= 8192):
-        raise PipelineError(f"size must be WxH with each side 16 to 8192, got {text!r}")
-    return size
-
-
-def _check_latency(latency) -> int:
-    if isinstance(latency, bool) or latency not in range(1, RING + 1):
-        raise PipelineError(f"readback latency must be 1 to {RING} frames, got {latency!r}")
-    return int(latency)
-
-
-def _round(value, digits: int = 5):
-    return None if value is None else round(float(value), digits)
-
-
-def percentiles(values) -> dict:
-    a = np.asarray(values, np.float64)
-    if a.size == 0:
-        return {"p50": None, "p95": None, "max": None}
-    return {"p50": round(float(np.percentile(a, 50)), 4), "p95": round(float(np.percentile(a, 95)), 4), "max": round(float(a.max()), 4)}
-
+    def __exit__(self, *exc) -> None:
+        self.release()

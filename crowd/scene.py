@@ -4,14 +4,17 @@ A scene names the model, the agent count and seed, the clips it plays (role → 
 baked), the AI's settings, the features it switches on (weapons, shadows, LOD, culling) and the camera:
 
     [scene]        name, model ("" = the built-in zombie; relative paths are from the scene's folder),
-                   agents, seed
-    [clips]        bake_fps (1-240 or "source"), precision ("f32" | "f16"),
-                   interpolation ("qt_lerp" | "dq_lerp" | "qt_cubic"), roles = { walk = "shamble", ... },
-                   speed = { shamble = 1.2, ... } (playback speed), loop = { attack = true, ... }
-    [ai]           any AIConfig field (crowd/ai.py), e.g. runner_share = 0.3
-    [features]     weapons, readback_latency (1-3), shadows, culling, lod_distances = [near, far],
-                   processor ("auto" | "compute" | "fragment")
+                   and the ``scene`` settings (agents, seed)
+    [clips]        the ``clips`` settings (bake_fps, precision, interpolation), and
+                   roles = { walk = "shamble", ... }, speed = { shamble = 1.2, ... } (playback speed),
+                   loop = { attack = true, ... }
+    [features]     the ``features`` settings (weapons, readback_latency, shadows, culling,
+                   lod_distances = [near, far], processor)
+    [ai]           the ``ai`` settings (crowd.sim.ai.AIConfig), e.g. runner_share = 0.3
     [camera]       eye = [x, y, z], target = [x, y, z], fov_y (degrees); absent: the default view
+
+The settings, their bounds and defaults are crowd.settings' (declared once, for the command line and
+the panel too); this module adds the tables that are not single values (roles, speeds, loops, camera).
 
 Every key is optional; a key this module does not know is an error, not something silently ignored.
 ``load_scene`` raises SceneError with the file, and the line for TOML syntax errors; callers keep the
@@ -20,7 +23,6 @@ defaults when it does. ``save_scene`` writes atomically and keeps the previous f
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -29,15 +31,14 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
-from .ai import AIConfig, AIError
-from .bake import DEFAULT_FPS, SOURCE_RATE
-from .gltf_write import atomic_write_bytes
-from .pipeline import MAX_AGENTS, PipelineConfig
-from .processor import DEFAULT_INTERPOLATION, INTERPOLATIONS
-from .render import DEFAULT_LOD_DISTANCES
+from .anim.roles import ROLES
+from .files import atomic_write_bytes
+from .frame import Camera
+from .pipeline import PipelineConfig
+from .settings import DEFAULTS, SCENE_GROUPS, SETTINGS, group
+from .sim.ai import AIConfig, AIError
 
 SCENE_DIR = Path(__file__).resolve().parent.parent / "scenes"
-ROLES = ("idle", "walk", "run", "attack", "hit", "death")
 
 
 class SceneError(ValueError):
@@ -55,54 +56,46 @@ class CameraSetting:
 class Scene:
     name: str = "horde"
     model: Path | None = None
-    agents: int = 200
-    seed: int = 1
-    bake_fps: float | str = DEFAULT_FPS  # or "source"
-    precision: str = "f32"
-    interpolation: str = DEFAULT_INTERPOLATION
+    agents: int = DEFAULTS["agents"]
+    seed: int = DEFAULTS["seed"]
+    bake_fps: float | str = DEFAULTS["bake_fps"]  # or "source"
+    precision: str = DEFAULTS["precision"]
+    interpolation: str = DEFAULTS["interpolation"]
     roles: dict = field(default_factory=dict)
     clip_speed: dict = field(default_factory=dict)  # clip name → playback speed
     clip_loop: dict = field(default_factory=dict)  # clip name → loop (true) or play once (false), where set
     ai: AIConfig = field(default_factory=AIConfig)
-    weapons: bool = True
-    readback_latency: int = 2
-    shadows: bool = True
-    culling: bool = True
-    lod_distances: tuple = DEFAULT_LOD_DISTANCES
-    processor: str = "auto"
+    weapons: bool = DEFAULTS["weapons"]
+    readback_latency: int = DEFAULTS["readback_latency"]
+    shadows: bool = DEFAULTS["shadows"]
+    culling: bool = DEFAULTS["culling"]
+    lod_distances: tuple = DEFAULTS["lod_distances"]
+    processor: str = DEFAULTS["processor"]
     camera: CameraSetting | None = None
 
     def with_overrides(self, source: str = "command line", **values) -> "Scene":
-        """A copy with the given settings replaced (None leaves one as it is), validated the same way as
-        a file: names are the TOML keys (agents, seed, model, roles, bake_fps, precision, processor,
-        shadows, culling, weapons, readback_latency). Roles are merged into the scene's."""
+        """A copy with the given settings replaced (None leaves one as it is), each checked as a file's
+        would be, an error naming its command-line flag ("--agents: ..."): names are the TOML keys (agents, seed, model,
+        roles, bake_fps, precision, processor, shadows, culling, weapons, readback_latency, lod_distances,
+        and the AI's). Roles are merged into the scene's."""
         data = scene_to_dict(self)
-        tables = {key: table for table, keys in _SCHEMA.items() for key in keys}
         for key, value in values.items():
             if value is None:
                 continue
-            if key not in tables:
+            table = _TABLE_OF.get(key)
+            if table is None:
                 raise SceneError(f"{source}: unknown scene setting {key!r}")
             if key == "model":
                 value = str(Path(value).resolve())
             elif key == "roles":
                 value = {**data["clips"]["roles"], **value}
-            elif key == "lod_distances":
-                value = list(value)
-            data[tables[key]][key] = value
-        try:
-            return scene_from_dict(data, None, source)
-        except SceneError as exc:
-            # Name the flag the user typed: "command line: scene.agents must ..." → "--agents must ...".
-            message = str(exc)
-            for key, table in tables.items():
-                message = message.replace(f"{source}: {table}.{key}", "--" + key.replace("_", "-"))
-            raise SceneError(message) from None
+            elif key in SETTINGS:
+                value = _toml_value(SETTINGS[key].check(value, SceneError, SETTINGS[key].flag))
+            data.setdefault(table, {})[key] = value
+        return scene_from_dict(data, None, source)
 
-    def camera_for(self, aspect: float):
-        """The scene's camera as a render Camera, or None for the pipeline's default view."""
-        from .render import Camera
-
+    def camera_for(self, aspect: float) -> Camera | None:
+        """The scene's camera, or None for the pipeline's default view."""
         if self.camera is None:
             return None
         return Camera(eye=np.array(self.camera.eye, np.float64), target=np.array(self.camera.target, np.float64),
@@ -115,148 +108,96 @@ class Scene:
                               readback_latency=self.readback_latency)
 
 
-# table → key → kind (int, float, bool, str, roles, pair, vec3, path); [ai] takes the AIConfig fields
-_SCHEMA = {
-    "scene": {"name": "str", "model": "path", "agents": "int", "seed": "int"},
-    "clips": {"bake_fps": "rate", "precision": "str", "interpolation": "str", "roles": "roles", "speed": "speeds", "loop": "loops"},
-    "features": {"weapons": "bool", "readback_latency": "int", "shadows": "bool", "culling": "bool", "lod_distances": "pair",
-                 "processor": "str"},
-    "camera": {"eye": "vec3", "target": "vec3", "fov_y": "float"},
-}
+# The keys of each table: the settings of its group, and the few structured keys only scenes have.
+_EXTRA_KEYS = {"scene": ("name", "model"), "clips": ("roles", "speed", "loop"), "features": (), "ai": ()}
+_KEYS = {table: (*_EXTRA_KEYS[table], *group(table)) for table in SCENE_GROUPS}
+_KEYS["camera"] = ("eye", "target", "fov_y")
+_TABLE_OF = {key: table for table, keys in _KEYS.items() if table != "camera" for key in keys}
 
 
-def _typed(where: str, kind: str, value):
-    """The value as `kind`, or SceneError naming `where`."""
-    def bad(what):
-        return SceneError(f"{where} must be {what}, got {value!r}")
+def _toml_value(value):
+    return list(value) if isinstance(value, tuple) else value
 
-    if kind == "bool":
-        if not isinstance(value, bool):
-            raise bad("true or false")
-        return value
-    if kind == "int":
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise bad("a whole number")
-        return value
-    if kind == "float":
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise bad("a finite number")
-        return float(value)
-    if kind == "rate":  # a bake rate
-        if value == SOURCE_RATE:
-            return value
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 1.0 <= value <= 240.0:
-            raise bad(f"1 to 240 (fps) or \"{SOURCE_RATE}\"")
-        return float(value)
-    if kind in ("str", "path"):
-        if not isinstance(value, str):
-            raise bad("a string")
-        return value
-    if kind in ("pair", "vec3"):
-        n = 2 if kind == "pair" else 3
-        if not isinstance(value, list) or len(value) != n:
-            raise bad(f"a list of {n} numbers")
-        return tuple(_typed(where, "float", v) for v in value)
-    if kind in ("speeds", "loops"):
-        if not isinstance(value, dict):
-            raise bad("a table of clip name = value")
-        for clip, v in value.items():
-            if kind == "loops" and not isinstance(v, bool):
-                raise SceneError(f"{where}.{clip} must be true or false, got {v!r}")
-            if kind == "speeds" and (isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.05 <= v <= 20.0):
-                raise SceneError(f"{where}.{clip} must be a playback speed of 0.05 to 20, got {v!r}")
-        return {k: (float(v) if kind == "speeds" else v) for k, v in value.items()}
-    if kind == "roles":
-        if not isinstance(value, dict):
-            raise bad("a table of role = clip name")
-        for role, clip in value.items():
-            if role not in ROLES:
-                raise SceneError(f"{where}: unknown role {role!r} (roles are {', '.join(ROLES)})")
-            if not isinstance(clip, str) or not clip:
-                raise SceneError(f"{where}.{role} must be a clip name, got {clip!r}")
-        return dict(value)
-    raise AssertionError(kind)
+
+def _string(where: str, value) -> str:
+    if not isinstance(value, str):
+        raise SceneError(f"{where} must be a string, got {value!r}")
+    return value
+
+
+def _vec3(where: str, value) -> tuple[float, float, float]:
+    if not isinstance(value, list) or len(value) != 3 or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value):
+        raise SceneError(f"{where} must be a list of 3 finite numbers, got {value!r}")
+    return tuple(float(v) for v in value)
+
+
+def _clip_table(where: str, value, setting) -> dict:
+    """A table of clip name = value, each checked by `setting` (playback speed, or loop on/off)."""
+    if not isinstance(value, dict):
+        raise SceneError(f"{where} must be a table of clip name = value, got {value!r}")
+    return {clip: setting.check(v, SceneError, f"{where}.{clip}") for clip, v in value.items()}
+
+
+def _roles(where: str, value) -> dict:
+    if not isinstance(value, dict):
+        raise SceneError(f"{where} must be a table of role = clip name, got {value!r}")
+    for role, clip in value.items():
+        if role not in ROLES:
+            raise SceneError(f"{where}: unknown role {role!r} (roles are {', '.join(ROLES)})")
+        if not isinstance(clip, str) or not clip:
+            raise SceneError(f"{where}.{role} must be a clip name, got {clip!r}")
+    return dict(value)
 
 
 def scene_from_dict(data: dict, base: Path | None = None, source: str = "scene") -> Scene:
     """A validated Scene from parsed TOML. Relative model paths are resolved against `base`."""
     scene = Scene()
-    ai_fields = {f.name: f for f in dataclasses.fields(AIConfig)}
     for table, values in data.items():
-        if table != "ai" and table not in _SCHEMA:
-            raise SceneError(f"{source}: unknown table [{table}] (tables are {', '.join(['ai', *_SCHEMA])})")
+        if table not in _KEYS:
+            raise SceneError(f"{source}: unknown table [{table}] (tables are {', '.join(_KEYS)})")
         if not isinstance(values, dict):
             raise SceneError(f"{source}: {table} must be a table")
-        known = ai_fields if table == "ai" else _SCHEMA[table]
         for key in values:
-            if key not in known:
-                raise SceneError(f"{source}: unknown key {key!r} in [{table}] (known: {', '.join(known)})")
-    s = data.get("scene", {})
+            if key not in _KEYS[table]:
+                raise SceneError(f"{source}: unknown key {key!r} in [{table}] (known: {', '.join(_KEYS[table])})")
     where = lambda table, key: f"{source}: {table}.{key}"
+    ai = {}
+    for table in SCENE_GROUPS:
+        for key, setting in group(table).items():
+            if key in data.get(table, {}):
+                value = setting.check(data[table][key], SceneError, where(table, key))
+                if table == "ai":
+                    ai[key] = value
+                else:
+                    setattr(scene, key, value)
+    s, c = data.get("scene", {}), data.get("clips", {})
     if "name" in s:
-        scene.name = _typed(where("scene", "name"), "str", s["name"])
+        scene.name = _string(where("scene", "name"), s["name"])
     if s.get("model"):
-        model = Path(_typed(where("scene", "model"), "path", s["model"]))
+        model = Path(_string(where("scene", "model"), s["model"]))
         scene.model = model if model.is_absolute() or base is None else (base / model)
-    if "agents" in s:
-        scene.agents = _typed(where("scene", "agents"), "int", s["agents"])
-        if not 0 <= scene.agents <= MAX_AGENTS:
-            raise SceneError(f"{where('scene', 'agents')} must be 0 to {MAX_AGENTS}, got {scene.agents}")
-    if "seed" in s:
-        scene.seed = _typed(where("scene", "seed"), "int", s["seed"])
-    c = data.get("clips", {})
-    if "bake_fps" in c:
-        scene.bake_fps = _typed(where("clips", "bake_fps"), "rate", c["bake_fps"])
-    if "precision" in c:
-        scene.precision = _typed(where("clips", "precision"), "str", c["precision"])
-        if scene.precision not in ("f32", "f16"):
-            raise SceneError(f"{where('clips', 'precision')} must be \"f32\" or \"f16\", got {scene.precision!r}")
-    if "interpolation" in c:
-        scene.interpolation = _typed(where("clips", "interpolation"), "str", c["interpolation"])
-        if scene.interpolation not in INTERPOLATIONS:
-            raise SceneError(f"{where('clips', 'interpolation')} must be one of {', '.join(INTERPOLATIONS)}, got {scene.interpolation!r}")
     if "roles" in c:
-        scene.roles = _typed(where("clips", "roles"), "roles", c["roles"])
+        scene.roles = _roles(where("clips", "roles"), c["roles"])
     if "speed" in c:
-        scene.clip_speed = _typed(where("clips", "speed"), "speeds", c["speed"])
+        scene.clip_speed = _clip_table(where("clips", "speed"), c["speed"], SETTINGS["clip_speed"])
     if "loop" in c:
-        scene.clip_loop = _typed(where("clips", "loop"), "loops", c["loop"])
-    f = data.get("features", {})
-    for key in ("weapons", "shadows", "culling"):
-        if key in f:
-            setattr(scene, key, _typed(where("features", key), "bool", f[key]))
-    if "readback_latency" in f:
-        scene.readback_latency = _typed(where("features", "readback_latency"), "int", f["readback_latency"])
-        if not 1 <= scene.readback_latency <= 3:
-            raise SceneError(f"{where('features', 'readback_latency')} must be 1 to 3, got {scene.readback_latency}")
-    if "lod_distances" in f:
-        near, far = _typed(where("features", "lod_distances"), "pair", f["lod_distances"])
-        if not 0 < near <= far:
-            raise SceneError(f"{where('features', 'lod_distances')} must be two increasing positive distances")
-        scene.lod_distances = (near, far)
-    if "processor" in f:
-        scene.processor = _typed(where("features", "processor"), "str", f["processor"])
-        if scene.processor not in ("auto", "compute", "fragment"):
-            raise SceneError(f"{where('features', 'processor')} must be auto, compute or fragment, got {scene.processor!r}")
-    if "ai" in data:
-        values = {}
-        for key, value in data["ai"].items():
-            kind = "int" if key == "health" else "float"
-            values[key] = _typed(where("ai", key), kind, value)
+        scene.clip_loop = _clip_table(where("clips", "loop"), c["loop"], SETTINGS["clip_loop"])
+    if ai:
         try:
-            scene.ai = AIConfig(**values).validate()
+            scene.ai = AIConfig(**ai).validate()  # the relations between AI settings (min <= max, ...)
         except AIError as exc:
             raise SceneError(f"{source}: [ai] {exc}") from None
     if "camera" in data:
         cam = data["camera"]
         if "eye" not in cam or "target" not in cam:
             raise SceneError(f"{source}: [camera] needs both eye and target")
-        eye = _typed(where("camera", "eye"), "vec3", cam["eye"])
-        target = _typed(where("camera", "target"), "vec3", cam["target"])
-        fov = _typed(where("camera", "fov_y"), "float", cam.get("fov_y", 45.0))
-        if math.dist(eye, target) < 1e-6 or not 1.0 <= fov <= 170.0:
+        eye = _vec3(where("camera", "eye"), cam["eye"])
+        target = _vec3(where("camera", "target"), cam["target"])
+        fov = cam.get("fov_y", 45.0)
+        if isinstance(fov, bool) or not isinstance(fov, (int, float)) or math.dist(eye, target) < 1e-6 or not 1.0 <= fov <= 170.0:
             raise SceneError(f"{source}: [camera] needs eye apart from target and fov_y of 1 to 170 degrees")
-        scene.camera = CameraSetting(eye, target, fov)
+        scene.camera = CameraSetting(eye, target, float(fov))
     return scene
 
 
@@ -284,16 +225,10 @@ def scene_to_dict(scene: Scene, base: Path | None = None) -> dict:
                 model = str(Path(scene.model).resolve().relative_to(base.resolve()))
             except ValueError:
                 model = str(Path(scene.model).resolve())
-    default_ai = AIConfig()
-    out = {
-        "scene": {"name": scene.name, "model": model, "agents": scene.agents, "seed": scene.seed},
-        "clips": {"bake_fps": scene.bake_fps, "precision": scene.precision, "interpolation": scene.interpolation, "roles": dict(scene.roles),
-                  "speed": dict(scene.clip_speed), "loop": dict(scene.clip_loop)},
-        "features": {"weapons": scene.weapons, "readback_latency": scene.readback_latency, "shadows": scene.shadows,
-                     "culling": scene.culling, "lod_distances": list(scene.lod_distances), "processor": scene.processor},
-        "ai": {f.name: getattr(scene.ai, f.name) for f in dataclasses.fields(AIConfig)
-               if getattr(scene.ai, f.name) != getattr(default_ai, f.name)},
-    }
+    out = {table: {key: _toml_value(getattr(scene, key)) for key in group(table)} for table in ("scene", "clips", "features")}
+    out["scene"] = {"name": scene.name, "model": model, **out["scene"]}
+    out["clips"].update(roles=dict(scene.roles), speed=dict(scene.clip_speed), loop=dict(scene.clip_loop))
+    out["ai"] = {key: getattr(scene.ai, key) for key, setting in group("ai").items() if getattr(scene.ai, key) != setting.default}
     if scene.camera is not None:
         out["camera"] = {"eye": list(scene.camera.eye), "target": list(scene.camera.target), "fov_y": scene.camera.fov_y}
     return out

@@ -16,14 +16,16 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
-from .ai import STATE_NAMES, AIError
-from .bake import SOURCE_RATE, BakeError
-from .pipeline import CrowdPipeline, PipelineError
-from .processor import CLIP, INTERPOLATIONS, MASK, PHASE, WEIGHT
-from .render import Camera
+from .anim.bake import BakeError
+from .anim.processor import ProcessorError
+from .draw.render import view_proj
+from .frame import CLIP, MASK, PHASE, WEIGHT, ForcedClip, LayerOverrides
+from .pipeline import CrowdPipeline
 from .scene import CameraSetting, Scene, SceneError, save_scene
+from .settings import SETTINGS, group
+from .sim.ai import LAYERS, STATE_NAMES, AIError
 
-MAX_TIME_SCALE = 10.0
+AI_SETTINGS = group("ai")
 STRIKE_REACH = 2.0  # metres from the player
 PICK_RADIUS = 0.4  # metres: an agent is a vertical cylinder this wide and 1.9 m tall (times its scale)
 PICK_HEIGHT = 1.9
@@ -31,41 +33,6 @@ PICK_HEIGHT = 1.9
 
 class SessionError(ValueError):
     """A control given a value it cannot take; the message is one line."""
-
-
-class OrbitControl:
-    """Orbit, pan and zoom around a target point, the way editors do: drag to orbit, drag with the
-    middle button (or shift) to pan along the ground, scroll to zoom. Writes a render Camera."""
-
-    def __init__(self, camera: Camera):
-        eye, target = np.asarray(camera.eye, np.float64), np.asarray(camera.target, np.float64)
-        offset = eye - target
-        self.target = target.copy()
-        self.distance = float(np.linalg.norm(offset))
-        self.yaw = math.atan2(offset[0], offset[2])
-        self.pitch = math.asin(max(-1.0, min(1.0, offset[1] / max(self.distance, 1e-9))))
-
-    def orbit(self, dx: float, dy: float) -> None:
-        """Pixels dragged: 0.3 degrees per pixel; the pitch stays between 3 and 89 degrees."""
-        self.yaw -= math.radians(0.3 * dx)
-        self.pitch = min(math.radians(89.0), max(math.radians(3.0), self.pitch + math.radians(0.3 * dy)))
-
-    def pan(self, dx: float, dy: float) -> None:
-        """Move the target along the ground, a distance proportional to how far the camera is."""
-        k = 0.0015 * self.distance
-        right = np.array([math.cos(self.yaw), 0.0, -math.sin(self.yaw)])
-        forward = np.array([-math.sin(self.yaw), 0.0, -math.cos(self.yaw)])
-        self.target += (-dx * right + dy * forward) * k
-
-    def zoom(self, steps: float) -> None:
-        self.distance = min(5000.0, max(1.5, self.distance * (0.88 ** steps)))
-
-    def apply(self, camera: Camera) -> None:
-        cp = math.cos(self.pitch)
-        offset = self.distance * np.array([cp * math.sin(self.yaw), math.sin(self.pitch), cp * math.cos(self.yaw)])
-        camera.target = self.target.copy()
-        camera.eye = self.target + offset
-        camera.far = max(400.0, self.distance * 4.0)
 
 
 class CrowdSession:
@@ -86,11 +53,10 @@ class CrowdSession:
         self.paused = False
         self.time_scale = 1.0
         self.selected = -1
-        self.forced: dict | None = None  # {"clip": index, "agents": None (all) or array, "start": time}
-        self.held_weights: dict = {}  # layer → (weight, agents or None)
+        self.overrides = LayerOverrides()  # clips forced and layer weights held: the frame applies them
         self.bake_error: dict | None = None  # the last measure_error(), until the next re-bake
+        self.last = self.pipeline.last  # the last frame's state (its view: where the window draws markers)
         self._pending_steps = 0
-        self.pipeline.layer_override = self._override_layers
 
     # -- time
 
@@ -103,7 +69,7 @@ class CrowdSession:
         if self.paused and self._pending_steps:
             sim = 1.0 / 60.0
             self._pending_steps -= 1
-        self.pipeline.frame(framebuffer, sim)
+        self.last = self.pipeline.frame(framebuffer, sim, self.overrides)
         return sim
 
     def set_paused(self, paused: bool) -> None:
@@ -115,31 +81,32 @@ class CrowdSession:
         self._pending_steps += 1
 
     def set_time_scale(self, scale: float) -> None:
-        if not math.isfinite(scale) or not 0.0 <= scale <= MAX_TIME_SCALE:
-            raise SessionError(f"time scale must be 0 to {MAX_TIME_SCALE:g}, got {scale!r}")
-        self.time_scale = float(scale)
+        self.time_scale = SETTINGS["time_scale"].check(scale, SessionError)
 
     # -- crowd
 
     def set_agent_count(self, agents: int) -> None:
-        try:
-            self.pipeline.set_agent_count(int(agents))
-        except (PipelineError, ValueError) as exc:
-            raise SessionError(str(exc)) from None
+        self.pipeline.set_agent_count(SETTINGS["agents"].check(agents, SessionError))
         if self.selected >= self.pipeline.agents:
             self.selected = -1
 
     def set_seed(self, seed: int) -> None:
-        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
-            raise SessionError(f"seed must be a whole number, got {seed!r}")
-        self.pipeline.set_seed(int(seed))
+        self.pipeline.set_seed(SETTINGS["seed"].check(seed, SessionError))
 
     def set_ai(self, **settings) -> None:
         """AI settings by name (cross-fade length: crossfade=0.4)."""
+        for name, value in settings.items():
+            if name not in AI_SETTINGS:
+                raise SessionError(f"unknown AI setting {name!r}")
+            AI_SETTINGS[name].check(value, SessionError)
         try:
-            self.pipeline.set_ai_config(dataclasses.replace(self.pipeline.ai.config, **settings))
-        except (AIError, TypeError) as exc:
-            raise SessionError(str(exc).splitlines()[0]) from None
+            self.pipeline.set_ai_config(dataclasses.replace(self.pipeline.config.ai, **settings))
+        except AIError as exc:
+            raise SessionError(str(exc)) from None
+
+    def ai_setting(self, name: str):
+        """The current value of one AI setting (the panel's sliders start from it)."""
+        return getattr(self.pipeline.config.ai, name)
 
     def set_crossfade(self, seconds: float) -> None:
         self.set_ai(crossfade=float(seconds))
@@ -156,12 +123,14 @@ class CrowdSession:
             raise SessionError(str(exc)) from None
 
     def set_clip_speed(self, name: str, speed: float) -> None:
+        speed = SETTINGS["clip_speed"].check(speed, SessionError)
         try:
             self.pipeline.set_clip_speed(name, speed)
         except (AIError, BakeError) as exc:
             raise SessionError(str(exc)) from None
 
     def set_clip_loop(self, name: str, loop: bool) -> None:
+        loop = SETTINGS["clip_loop"].check(loop, SessionError)
         try:
             self.pipeline.set_clip_loop(name, loop)
         except BakeError as exc:
@@ -171,63 +140,52 @@ class CrowdSession:
         """Force a clip, from its start, on the selected agent (or on every agent); None gives control
         back to the AI."""
         if name is None:
-            self.forced = None
+            self.overrides = dataclasses.replace(self.overrides, forced=None)
             return
         if selected_only and self.selected < 0:
             raise SessionError("no agent selected: click one, or play the clip on all agents")
-        self.forced = {"clip": self._clip(name), "agents": np.array([self.selected]) if selected_only else None,
-                       "start": self.pipeline.ai.time}
+        forced = ForcedClip(self._clip(name), self.pipeline.ai.time, np.array([self.selected]) if selected_only else None)
+        self.overrides = dataclasses.replace(self.overrides, forced=forced)
+
+    @property
+    def forced(self) -> ForcedClip | None:
+        """The clip forced by ``play``, or None while the AI chooses."""
+        return self.overrides.forced
 
     def set_weight(self, layer: int, weight: float | None, selected_only: bool = False) -> None:
         """Hold a layer's weight at a value (None: the AI decides again). Layers: 0 idle, 1 walk, 2 run, 3 action."""
-        if not 0 <= layer < 4:
-            raise SessionError(f"layer must be 0 to 3, got {layer!r}")
+        if not 0 <= layer < LAYERS:
+            raise SessionError(f"layer must be 0 to {LAYERS - 1}, got {layer!r}")
+        held = dict(self.overrides.held)
         if weight is None:
-            self.held_weights.pop(layer, None)
-            return
-        if not math.isfinite(weight) or not 0.0 <= weight <= 1000.0:
-            raise SessionError(f"weight must be 0 to 1000, got {weight!r}")
-        if selected_only and self.selected < 0:
-            raise SessionError("no agent selected")
-        self.held_weights[layer] = (float(weight), np.array([self.selected]) if selected_only else None)
-
-    def _override_layers(self, layers: np.ndarray) -> None:
-        n = len(layers)
-        if self.forced is not None:
-            agents = self.forced["agents"]
-            agents = slice(None) if agents is None else agents[agents < n]
-            clip = self.forced["clip"]
-            info = self.pipeline.bake.clips[clip]
-            speed = self.pipeline.clip_speed.get(info.name, 1.0)
-            phase = (self.pipeline.ai.time - self.forced["start"]) * speed / max(info.duration, 1e-6)
-            layers[agents] = (0.0, 0.0, 0.0, -1.0)
-            layers[agents, 0, CLIP] = clip
-            layers[agents, 0, PHASE] = phase if info.loop else min(phase, 1.0)
-            layers[agents, 0, WEIGHT] = 1.0
-        for layer, (weight, agents) in self.held_weights.items():
-            agents = slice(None) if agents is None else agents[agents < n]
-            layers[agents, layer, WEIGHT] = weight
+            held.pop(layer, None)
+        else:
+            weight = SETTINGS["layer_weight"].check(weight, SessionError)
+            if selected_only and self.selected < 0:
+                raise SessionError("no agent selected")
+            held[layer] = (weight, np.array([self.selected]) if selected_only else None)
+        self.overrides = dataclasses.replace(self.overrides, held=held)
 
     # -- rendering features
 
     def rebake(self, fps: float | str, precision: str, interpolation: str | None = None) -> None:
         """Bake again at another rate ("source": each clip at its own key rate) or precision, or process
         with another interpolation."""
-        rate_ok = fps == SOURCE_RATE or (isinstance(fps, (int, float)) and math.isfinite(fps) and 1.0 <= fps <= 240.0)
-        if not rate_ok or precision not in ("f32", "f16") or interpolation not in (None, *INTERPOLATIONS):
-            raise SessionError(f"bake rate must be 1 to 240 fps or {SOURCE_RATE!r}, precision f32 or f16 and interpolation one of "
-                               f"{', '.join(INTERPOLATIONS)}; got {fps!r}, {precision!r}, {interpolation!r}")
+        fps = SETTINGS["bake_fps"].check(fps, SessionError)
+        SETTINGS["precision"].check(precision, SessionError)
+        if interpolation is not None:
+            SETTINGS["interpolation"].check(interpolation, SessionError)
         try:
-            self.pipeline.rebake(fps if fps == SOURCE_RATE else float(fps), precision, interpolation)
+            self.pipeline.rebake(fps, precision, interpolation)
         except BakeError as exc:
             raise SessionError(str(exc)) from None
         self.bake_error = None
 
     def measure_error(self, per_clip: int = 24, blends: int = 240) -> dict:
         """The shell error of the current bake and interpolation on this GPU against the float64
-        reference (crowd.accuracy), over the scene's clips alone and in random blends: what the panel
+        reference (crowd.anim.accuracy), over the scene's clips alone and in random blends: what the panel
         shows next to the bake settings. A few hundred poses: tens of milliseconds on llvmpipe."""
-        from . import accuracy
+        from .anim import accuracy
 
         p = self.pipeline
         # The reference plays each clip as the bake does (loop settings changed in the panel included).
@@ -239,32 +197,55 @@ class CrowdSession:
         return self.bake_error
 
     def set_lod_distances(self, near: float, far: float) -> None:
-        try:
-            self.pipeline.set_lod_distances(near, far)
-        except PipelineError as exc:
-            raise SessionError(str(exc)) from None
+        self.pipeline.set_lod_distances(*SETTINGS["lod_distances"].check((near, far), SessionError))
 
     def set_culling(self, on: bool) -> None:
-        self.pipeline.set_culling(on)
+        self.pipeline.set_culling(SETTINGS["culling"].check(on, SessionError))
 
     def set_shadows(self, on: bool) -> None:
-        self.pipeline.set_shadows(on)
+        self.pipeline.set_shadows(SETTINGS["shadows"].check(on, SessionError))
 
     def set_weapons(self, on: bool) -> None:
-        self.pipeline.set_weapons(on)
+        self.pipeline.set_weapons(SETTINGS["weapons"].check(on, SessionError))
 
     def set_readback_latency(self, frames: int) -> None:
+        self.pipeline.set_readback_latency(SETTINGS["readback_latency"].check(frames, SessionError))
+
+    def set_processor_path(self, path: str) -> None:
+        """Run the animation on another processor path (compute or the GL 3.3 fragment pass), live."""
         try:
-            self.pipeline.set_readback_latency(int(frames))
-        except PipelineError as exc:
+            self.pipeline.set_processor_path(SETTINGS["processor"].check(path, SessionError))
+        except ProcessorError as exc:
             raise SessionError(str(exc)) from None
+
+    # -- every setting by name: what the schema test and scripted controls use
+
+    def apply_setting(self, name: str, value) -> None:
+        """Set one setting of crowd.settings by its name, through the control that owns it. Per-clip and
+        per-layer ones (playback speed: use
+        set_clip_speed; held weights: set_weight) are refused with a line saying so."""
+        bake = self.pipeline.bake
+        controls = {
+            "agents": self.set_agent_count, "seed": self.set_seed, "time_scale": self.set_time_scale,
+            "bake_fps": lambda v: self.rebake(v, bake.precision), "precision": lambda v: self.rebake(bake.fps, v),
+            "interpolation": lambda v: self.rebake(bake.fps, bake.precision, v), "processor": self.set_processor_path,
+            "shadows": self.set_shadows, "culling": self.set_culling, "weapons": self.set_weapons,
+            "lod_distances": lambda v: self.set_lod_distances(*SETTINGS["lod_distances"].check(v, SessionError)),
+            "readback_latency": self.set_readback_latency,
+        }
+        if name in AI_SETTINGS:
+            self.set_ai(**{name: value})
+        elif name in controls:
+            controls[name](value)
+        else:
+            raise SessionError(f"{name!r} is not a setting a running crowd takes")
 
     # -- the player and picking
 
     def ray(self, x: float, y: float, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         """(origin, unit direction) in world space (float64) through pixel (x, y) from the top-left."""
         camera = self.pipeline.camera
-        inv = np.linalg.inv(camera.view_proj().astype(np.float64))
+        inv = np.linalg.inv(view_proj(camera).astype(np.float64))
         ndc = np.array([2.0 * x / size[0] - 1.0, 1.0 - 2.0 * y / size[1]])
         near = inv @ np.array([ndc[0], ndc[1], -1.0, 1.0])
         far = inv @ np.array([ndc[0], ndc[1], 1.0, 1.0])
@@ -320,10 +301,10 @@ class CrowdSession:
             ai.hit([target])
         return target
 
-    def draw_markers(self, framebuffer) -> None:
-        """The player (red ring) and the selected agent (yellow ring) on the ground."""
-        p = self.pipeline
-        ai = p.ai
+    def markers(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The rings the window draws on the ground: the player (red) and the selected agent (yellow).
+        Returns world points (M, 3) float64, radii (M,) and linear RGBA colours (M, 4)."""
+        ai = self.pipeline.ai
         points = [(ai.player[0], 0.0, ai.player[1])]
         radii = [0.6]
         colors = [(0.9, 0.15, 0.1, 1.0)]
@@ -331,7 +312,7 @@ class CrowdSession:
             points.append((ai.x[self.selected], 0.0, ai.z[self.selected]))
             radii.append(0.55 * float(ai.scale[self.selected]))
             colors.append((1.0, 0.85, 0.2, 1.0))
-        p.renderer.marker_pass(framebuffer, p.camera, p.camera.view_proj(), np.array(points), np.array(radii), np.array(colors))
+        return np.array(points), np.array(radii), np.array(colors)
 
     # -- what the panel shows
 
@@ -341,7 +322,7 @@ class CrowdSession:
         ai = self.pipeline.ai
         if not 0 <= a < ai.n:
             return None
-        layers = self.pipeline._layers[a]
+        layers = self.pipeline.layers[a]
         names = self.clip_names()
         weapon = int(ai.weapon[a])
         return {

@@ -2,7 +2,7 @@
 // processor.frag.glsl (GL 3.3 fragment path), so both paths compute the same floats.
 // Its float64 twin is crowd.processor.reference_palette: change one, change the other.
 //
-// Defines set by crowd/processor.py: LAYERS (1..4), REST_THRESHOLD, HAS_SCALE (joint scale texture
+// Defines set by crowd/anim/processor.py: LAYERS (1..4), REST_THRESHOLD, HAS_SCALE (joint scale texture
 // exists), HAS_MASKS (joint mask texture exists), MAX_JOINTS, and the interpolation:
 // none (dq_lerp), INTERPOLATION_QT (qt_lerp) or INTERPOLATION_QT with INTERPOLATION_CUBIC (qt_cubic).
 

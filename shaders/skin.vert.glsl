@@ -7,7 +7,7 @@
 // on the H100 the draw is bound by how many vertex attributes the shader reads, not by the bone
 // fetches or the skinning maths. Reading joints and weights as two more attributes made even an
 // unskinned draw as slow as the skinned one; with two attributes per vertex, skinning costs about 2 %
-// (docs/BENCHMARKS.md, "Vertex layout"). The bit layouts are written by crowd/render.py: pack_vertices
+// (docs/BENCHMARKS.md, "Vertex layout"). The bit layouts are written by crowd/draw/render.py: pack_vertices
 // and CrowdRenderer.prepare.
 //
 // Defines: DEPTH_ONLY (shadow pass: position only), UNSKINNED (the benchmark's ceiling: the same

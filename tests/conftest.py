@@ -22,7 +22,7 @@ def shared(name: str) -> Path:
 
 @pytest.fixture(scope="session")
 def zombie():
-    from crowd.gltf import load_character
+    from crowd.asset.gltf import load_character
 
     return load_character()
 

@@ -8,11 +8,13 @@ import json
 import numpy as np
 import pytest
 
-from crowd import accuracy, reference, stability
-from crowd.bake import bake
-from crowd.bench import main as bench_main
-from crowd.error_report import pareto_front, rank_candidates
-from crowd.processor import CLIP, WEIGHT, empty_layers
+from bench import stability
+from crowd.anim import accuracy, reference
+from crowd.transforms import trs_to_mat4
+from crowd.anim.bake import bake
+from bench.cli import main as bench_main
+from bench.error_report import pareto_front, rank_candidates
+from crowd.frame import CLIP, WEIGHT, empty_layers
 
 
 def test_shell_error_of_a_known_rotation_and_translation(zombie):
@@ -30,7 +32,7 @@ def test_shell_error_of_a_known_rotation_and_translation(zombie):
     np.testing.assert_allclose(accuracy.shell_error(moved, truth, points), 0.002, rtol=1e-9)
     j = sk.index("head")
     turn = np.eye(4)
-    turn[:3, :3] = reference.trs_to_mat4(np.zeros(3), np.array([np.sin(5e-4), 0, 0, np.cos(5e-4)]), np.ones(3))[:3, :3]
+    turn[:3, :3] = trs_to_mat4(np.zeros(3), np.array([np.sin(5e-4), 0, 0, np.cos(5e-4)]), np.ones(3))[:3, :3]
     pivot = (truth[0, j] @ bind[j])[:3, 3]  # where the joint is in this pose
     about_joint = np.eye(4)
     about_joint[:3, 3] = pivot

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from crowd.ai import (
+from crowd.sim.ai import (
     ATTACK,
     CHASE,
     DEAD,
@@ -25,8 +25,8 @@ from crowd.ai import (
     PlayerScript,
     motion_for,
 )
-from crowd.processor import CLIP, MASK, PHASE, WEIGHT, validate_layers
-from crowd.roles import bake_roles, match_roles
+from crowd.frame import CLIP, MASK, PHASE, WEIGHT, validate_layers
+from crowd.anim.roles import bake_roles, match_roles
 
 STEP = 1.0 / 60.0
 

@@ -2,11 +2,11 @@ import numpy as np
 import pytest
 
 from conftest import shared, shared_files
-from crowd import reference
+from crowd.anim import reference
 from crowd import transforms as tf
-from crowd.bake import BakeError, bake, joint_position_error
-from crowd.gltf import load_character
-from crowd.model import Channel, Clip, Skeleton
+from crowd.anim.bake import BakeError, bake, joint_position_error
+from crowd.asset.gltf import load_character
+from crowd.asset.model import Channel, Clip, Skeleton
 
 KEY_BOUND_M = {"f32": 2e-6, "f16": 3e-3}  # at the bake keys: storage rounding only
 

@@ -11,7 +11,7 @@ def test_headless_egl_context_has_gl33_or_better(gl_context):
 
 
 def test_preview_draws_the_zombie(tmp_path, zombie):
-    from crowd.preview import render_sheet
+    from bench.preview import render_sheet
 
     out = render_sheet(zombie, ["shamble"], 2, 96, tmp_path / "sheet.png")
     img = np.asarray(Image.open(out).convert("RGB")).astype(int)

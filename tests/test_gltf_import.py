@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from conftest import shared, shared_files
-from crowd import reference
-from crowd.gltf import GltfImportError, load_character
+from crowd.anim import reference
+from crowd.asset.gltf import GltfImportError, load_character
 from gltf_factory import KEY_TIMES, expected_skinning, make_gltf
 
 

@@ -8,8 +8,8 @@ import sys
 import numpy as np
 import pytest
 
-from crowd import peers
-from crowd.bench import main as bench_main
+from bench import peer_work, peers
+from bench.cli import main as bench_main
 
 
 def _result(system, mode, points):
@@ -37,13 +37,13 @@ def test_sustained_counts_and_ratios_take_the_faster_peer():
 
 
 def test_layout_is_the_same_for_both_sides_and_every_count():
-    a = peers.agent_layout(100, seed=3)
-    b = peers.agent_layout(100, seed=3)
+    a = peer_work.agent_layout(100, seed=3)
+    b = peer_work.agent_layout(100, seed=3)
     for x, y in zip(a[:4], b[:4]):
         assert np.array_equal(x, y)
     pos, yaw, phase, weight, (eye, target, far) = a
     assert pos.shape == (100, 3) and np.all((phase >= 0) & (phase < 1))
-    assert np.all((weight >= peers.WEIGHT_RANGE[0]) & (weight <= peers.WEIGHT_RANGE[1]))
+    assert np.all((weight >= peer_work.WEIGHT_RANGE[0]) & (weight <= peer_work.WEIGHT_RANGE[1]))
     assert far > np.linalg.norm(eye - target)
 
 
@@ -52,8 +52,8 @@ def test_panda_ready_gltf_anchors_the_skin_at_the_root_joints_parent(tmp_path):
     (so panda3d-gltf puts the Character there) with its inverse world matrix; nothing else changes."""
     import pygltflib
 
-    from crowd.peers_panda import panda_ready_gltf
-    from crowd.zombie import ASSET_PATH
+    from bench.peers_panda import panda_ready_gltf
+    from crowd.asset.zombie import ASSET_PATH
 
     target = tmp_path / "ready.glb"
     panda_ready_gltf(ASSET_PATH, target)
@@ -79,8 +79,8 @@ def test_panda_ready_gltf_anchors_the_skin_at_the_root_joints_parent(tmp_path):
 def test_panda_ready_gltf_shows_the_asked_lod_in_place_of_lod0(tmp_path):
     import pygltflib
 
-    from crowd.peers_panda import lod_levels, panda_ready_gltf
-    from crowd.zombie import ASSET_PATH
+    from bench.peers_panda import lod_levels, panda_ready_gltf
+    from crowd.asset.zombie import ASSET_PATH
 
     assert lod_levels(ASSET_PATH) == [0, 1, 2]
     panda_ready_gltf(ASSET_PATH, tmp_path / "lod1.glb", lod=1)
@@ -156,8 +156,8 @@ def test_panda3d_actors_are_measured_and_pass_the_pose_check(tmp_path):
 
 
 def test_every_panda3d_mode_has_a_pose_reference_a_plot_style_and_a_peer_setting():
-    from crowd.peers_panda import HARDWARE
-    from crowd.plots import PEER_STYLE
+    from bench.peers_panda import HARDWARE
+    from bench.plots import PEER_STYLE
 
     panda_modes = {mode for system, mode in peers.MODES if system == "panda3d"}
     assert panda_modes == set(peers.POSE_REFERENCE) == set(HARDWARE)
@@ -174,7 +174,7 @@ def test_panda3d_lod_actor_shows_the_level_the_crowd_would_at_each_distance(tmp_
     without a current one."""
     if peers.panda3d_missing():
         pytest.skip(f"the Panda3D side needs the optional extra: {peers.panda3d_missing()}")
-    from crowd.gltf import load_character
+    from crowd.asset.gltf import load_character
 
     character = load_character(None)
     heads = sorted({m.piece for m in character.meshes if m.group == "head"})
@@ -194,9 +194,9 @@ def test_panda3d_lod_actor_shows_the_level_the_crowd_would_at_each_distance(tmp_
 _LOD_PROBE = """
 import json, sys
 from pathlib import Path
-from crowd import peers
-from crowd.peers_panda import PandaSide
-from crowd.zombie import ASSET_PATH
+from bench import peers
+from bench.peers_panda import PandaSide
+from crowd.asset.zombie import ASSET_PATH
 
 out = Path(sys.argv[1])
 spec = {"system": "panda3d", "mode": "gpu_walk_lod", "model": str(ASSET_PATH), "clips": ["shamble", "run"],

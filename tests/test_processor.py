@@ -14,22 +14,18 @@ import dataclasses
 import numpy as np
 import pytest
 
-from crowd import reference
-from crowd.bake import ClipInfo, bake
-from crowd.processor import (
-    CLIP,
-    MASK,
-    PHASE,
-    WEIGHT,
+from crowd.anim import reference
+from crowd.anim.bake import ClipInfo, bake
+from crowd.frame import CLIP, MASK, PHASE, WEIGHT, FrameError, empty_layers
+from crowd.anim.processor import (
     DEFAULT_INTERPOLATION,
     INTERPOLATIONS,
     AnimationProcessor,
     ProcessorError,
-    empty_layers,
     palette_joint_positions,
     reference_palette,
 )
-from crowd.stability import chain_character
+from bench.stability import chain_character
 
 PATHS = ("compute", "fragment")
 ZOMBIE_TOL_M = 1e-5
@@ -201,9 +197,9 @@ def test_bad_layers_get_one_line_errors(gl_context, zombie_bake):
         for words, (col, value) in cases.items():
             bad = good.copy()
             bad[2, 1, col] = value
-            with pytest.raises(ProcessorError, match=words):
+            with pytest.raises(FrameError, match=words):
                 proc.process(bad)
-        with pytest.raises(ProcessorError, match="shape"):
+        with pytest.raises(FrameError, match="shape"):
             proc.process(np.zeros((4, 3, 4), np.float32))
         with pytest.raises(ProcessorError, match="for 3 agents"):
             proc.process(empty_layers(3, 2))

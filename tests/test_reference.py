@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from crowd import reference
+from crowd.anim import reference
 from crowd import transforms as tf
-from crowd.model import ModelError
+from crowd.asset.model import ModelError
 
 
 def test_negative_weights_count_as_zero_and_zero_total_falls_back_to_rest(zombie):

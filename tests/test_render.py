@@ -11,10 +11,11 @@ from __future__ import annotations
 import moderngl
 import numpy as np
 
-from crowd.bake import bake
+from crowd.anim.bake import bake
 from crowd.gl import load_shader
-from crowd.processor import CLIP, PHASE, WEIGHT, AnimationProcessor, empty_layers, reference_palette
-from crowd.render import (
+from crowd.frame import CLIP, PHASE, WEIGHT, empty_layers
+from crowd.anim.processor import AnimationProcessor, reference_palette
+from crowd.draw.render import (
     INSTANCE_FORMAT,
     VERTEX_DTYPE,
     VERTEX_FORMAT,

@@ -66,17 +66,17 @@ def test_a_failed_save_leaves_the_old_file_whole(tmp_path, monkeypatch):
     ("[scene\nagents = 3", "not valid TOML"),
     ("[scene]\nagents = 3\nspeed = 2", "unknown key 'speed' in [scene]"),
     ("[lights]\nsun = 1", "unknown table [lights]"),
-    ("[scene]\nagents = -1", "scene.agents must be 0 to"),
-    ("[scene]\nagents = 2.5", "scene.agents must be a whole number"),
+    ("[scene]\nagents = -1", "scene.agents: agent count must be a whole number from 0 to 1000000, got -1"),
+    ("[scene]\nagents = 2.5", "scene.agents: agent count must be a whole number"),
     ("[clips]\nprecision = 'f8'", "clips.precision"),
-    ("[clips]\nbake_fps = 0", "clips.bake_fps must be 1 to 240 (fps) or \"source\""),
-    ("[clips]\nbake_fps = 'sauce'", "clips.bake_fps must be 1 to 240"),
-    ("[clips]\ninterpolation = 'slerp'", "clips.interpolation must be one of dq_lerp, qt_lerp, qt_cubic"),
+    ("[clips]\nbake_fps = 0", "clips.bake_fps: bake rate must be 1 to 240 fps or 'source'"),
+    ("[clips]\nbake_fps = 'sauce'", "clips.bake_fps: bake rate must be 1 to 240"),
+    ("[clips]\ninterpolation = 'slerp'", "clips.interpolation: interpolation must be one of dq_lerp, qt_lerp, qt_cubic"),
     ("[clips]\nroles = { jump = 'run' }", "unknown role 'jump'"),
     ("[features]\nlod_distances = [40.0, 14.0]", "two increasing"),
-    ("[features]\nreadback_latency = 0", "readback_latency must be 1 to 3"),
-    ("[features]\nshadows = 'yes'", "features.shadows must be true or false"),
-    ("[ai]\nsubstep = -1.0", "[ai] AI setting substep must be > 0"),
+    ("[features]\nreadback_latency = 0", "features.readback_latency: readback latency must be a whole number from 1 to 3"),
+    ("[features]\nshadows = 'yes'", "features.shadows: shadows must be true or false"),
+    ("[ai]\nsubstep = -1.0", "ai.substep: AI setting substep must be a number above 0"),
     ("[ai]\nwings = 2", "unknown key 'wings' in [ai]"),
     ("[camera]\neye = [1.0, 2.0]", "needs both eye and target"),
     ("[camera]\neye = [1, 2, 3]\ntarget = [1, 2, 3]", "eye apart from target"),
@@ -108,9 +108,9 @@ def test_overrides_name_the_flag_and_merge_roles():
     scene = Scene(roles={"walk": "shamble"})
     merged = scene.with_overrides(roles={"run": "crawl"}, agents=7, shadows=False)
     assert merged.roles == {"walk": "shamble", "run": "crawl"} and merged.agents == 7 and not merged.shadows
-    with pytest.raises(SceneError, match="^--agents must be 0 to"):
+    with pytest.raises(SceneError, match="^--agents: agent count must be a whole number from 0 to"):
         scene.with_overrides(agents=-3)
-    with pytest.raises(SceneError, match="^--bake-fps must be 1 to 240"):
+    with pytest.raises(SceneError, match="^--bake-fps: bake rate must be 1 to 240"):
         scene.with_overrides(bake_fps=1000.0)
     with pytest.raises(SceneError, match="unknown scene setting"):
         scene.with_overrides(wings=2)
@@ -122,5 +122,5 @@ def test_cli_keeps_the_defaults_when_the_scene_file_is_broken(tmp_path):
     out = subprocess.run([sys.executable, "-m", "app.demo", "--headless", "--scene", str(bad), "--frames", "1", "--size", "64x36",
                           "--agents", "2", "--screenshot", str(tmp_path / "x.png")], cwd=ROOT, capture_output=True, text=True, timeout=180)
     assert out.returncode == 0, out.stderr
-    assert "scene.agents must be a whole number" in out.stderr and "running the default scene instead" in out.stderr
+    assert "scene.agents: agent count must be a whole number" in out.stderr and "running the default scene instead" in out.stderr
     assert "Traceback" not in out.stderr and (tmp_path / "x.png").exists()

@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from crowd.ai import HIT, AIConfig
-from crowd.processor import CLIP, PHASE, WEIGHT
+from crowd.sim.ai import HIT, AIConfig
+from crowd.frame import CLIP, PHASE, WEIGHT
 from crowd.scene import Scene, load_scene
 from crowd.session import CrowdSession, SessionError
-from crowd.smoke import offscreen_framebuffer
+from crowd.gl import Offscreen
 
 SIZE = (192, 108)
 DT = 1.0 / 60.0
@@ -22,16 +22,15 @@ def session(gl_context):
 
     def make(**scene):
         s = CrowdSession(gl_context, Scene(**{"agents": 30, "shadows": False, "ai": AIConfig(half_extent=8.0), **scene}), SIZE[0] / SIZE[1])
-        fb, attachments = offscreen_framebuffer(gl_context, SIZE)
-        made.append((s, fb, attachments))
+        target = Offscreen(gl_context, SIZE)
+        fb = target.framebuffer
+        made.append((s, target))
         return s, fb
 
     yield make
-    for s, fb, attachments in made:
+    for s, target in made:
         s.release()
-        fb.release()
-        for a in attachments:
-            a.release()
+        target.release()
 
 
 def test_pause_single_step_and_time_scale(session):
@@ -76,14 +75,14 @@ def test_play_a_clip_on_all_then_give_control_back(session):
     s.play("attack", selected_only=False)
     for _ in range(6):
         s.frame(fb, DT)
-    layers = s.pipeline._layers
+    layers = s.pipeline.layers
     attack = s.clip_names().index("attack")
     assert np.all(layers[:, 0, CLIP] == attack) and np.all(layers[:, 0, WEIGHT] == 1.0) and np.all(layers[:, 1:, WEIGHT] == 0.0)
     duration = s.pipeline.bake.clips[attack].duration
     assert layers[0, 0, PHASE] == pytest.approx(6 * DT * 2.0 / duration, rel=1e-4)  # time x speed / duration
     s.play(None)
     s.frame(fb, DT)
-    assert set(s.pipeline._layers[:, 0, CLIP].tolist()) == {s.clip_names().index("idle")}  # the AI's idle layer again
+    assert set(s.pipeline.layers[:, 0, CLIP].tolist()) == {s.clip_names().index("idle")}  # the AI's idle layer again
     with pytest.raises(SessionError, match="no agent selected"):
         s.play("attack")
     with pytest.raises(SessionError, match="was not baked"):
@@ -95,7 +94,7 @@ def test_held_weight_on_the_selected_agent_only(session):
     s.selected = 4
     s.set_weight(2, 0.75, selected_only=True)
     s.frame(fb, DT)
-    assert s.pipeline._layers[4, 2, WEIGHT] == 0.75
+    assert s.pipeline.layers[4, 2, WEIGHT] == 0.75
     assert s.inspect()["layers"][2]["weight"] == 0.75
     s.set_weight(2, None)
     with pytest.raises(SessionError, match="weight"):
@@ -141,7 +140,7 @@ def test_rebake_and_features_live(session):
     assert s.pipeline.weapons.last["weapons"] > 0 and s.pipeline.weapon_error_mm() <= 0.1
     with pytest.raises(SessionError, match="bake rate"):
         s.rebake(0.0, "f32")
-    with pytest.raises(SessionError, match="interpolation one of"):
+    with pytest.raises(SessionError, match="interpolation must be one of"):
         s.rebake(30.0, "f32", "slerp")
 
 

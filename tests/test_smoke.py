@@ -9,10 +9,13 @@ import sys
 import numpy as np
 import pytest
 
-from crowd.pipeline import CrowdPipeline, PipelineConfig, PipelineError, smoke_size
-from crowd.render import Camera, CrowdRenderer, Instances, RenderError, frustum_planes, sphere_visible
-from crowd.roles import RoleError, clips_used, match_roles, parse_overrides
-from crowd.smoke import FIXED_DT, offscreen_framebuffer, read_image, run_headless
+from crowd.pipeline import CrowdPipeline, PipelineConfig, PipelineError
+from crowd.settings import SettingError, parse
+from crowd.frame import Camera, FrameError, Instances
+from crowd.draw.render import CrowdRenderer, frustum_planes, sphere_visible, view_proj
+from crowd.anim.roles import RoleError, clips_used, match_roles, parse_overrides
+from crowd.gl import Offscreen
+from crowd.smoke import FIXED_DT, run_headless
 from conftest import ROOT, shared
 
 SIZE = (320, 180)
@@ -20,22 +23,21 @@ SIZE = (320, 180)
 
 def test_smoke_frame_shows_zombies_where_they_stand(gl_context):
     pipeline = CrowdPipeline(gl_context, PipelineConfig(agents=40, seed=3))
-    fb, attachments = offscreen_framebuffer(gl_context, SIZE)
+    target = Offscreen(gl_context, SIZE)
+    fb = target.framebuffer
     try:
         pipeline.camera = pipeline.default_camera(SIZE[0] / SIZE[1])
         for _ in range(3):
             pipeline.frame(fb, FIXED_DT)
-        crowd = read_image(fb, SIZE).astype(int)
+        crowd = target.image().astype(int)
         hips = pipeline.project(pipeline.joint_world_positions(0), SIZE)
         pipeline.set_agent_count(0)  # same camera, same ground, no zombies
         pipeline.frame(fb, FIXED_DT)
-        empty = read_image(fb, SIZE).astype(int)
+        empty = target.image().astype(int)
         assert "process" in pipeline.passes_run and "draw" in pipeline.passes_run
     finally:
         pipeline.release()
-        fb.release()
-        for a in attachments:
-            a.release()
+        target.release()
     changed = np.any(np.abs(crowd - empty) > 12, axis=2)
     assert changed.mean() > 0.02  # zombies (and their shadows) cover a visible share of the frame
     inside = [(x, y) for x, y in hips if 1 <= x < SIZE[0] - 1 and 1 <= y < SIZE[1] - 1]
@@ -141,7 +143,7 @@ def test_roles_match_by_name_and_can_be_overridden(zombie):
 
 def test_frustum_culling_and_render_input_checks(gl_context, zombie):
     cam = Camera(eye=np.array([0.0, 2.0, 10.0]), target=np.array([0.0, 1.0, 0.0]))
-    planes = frustum_planes(cam.view_proj())
+    planes = frustum_planes(view_proj(cam))
     centers = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 20.0], [100.0, 1.0, 0.0], [0.0, 1.0, -300.0]]) - cam.eye
     assert sphere_visible(planes, centers, np.ones(4)).tolist() == [True, False, False, True]
     renderer = CrowdRenderer(gl_context, zombie, zombie.skeleton.joint_count, 100, shadows=False)
@@ -151,11 +153,11 @@ def test_frustum_culling_and_render_input_checks(gl_context, zombie):
         renderer.prepare(cam, good)
         assert renderer.last["instances"] == 6
         bad = Instances(np.full((n, 3), np.nan), good.yaw, good.scale, good.tint)
-        with pytest.raises(RenderError, match="finite"):
+        with pytest.raises(FrameError, match="finite"):
             renderer.prepare(cam, bad)
-        with pytest.raises(RenderError, match="variant"):
+        with pytest.raises(FrameError, match="variant"):
             renderer.prepare(cam, Instances(good.position, good.yaw, good.scale, good.tint, {"head": np.array([0, 5])}))
-        with pytest.raises(RenderError, match="coincide"):
+        with pytest.raises(FrameError, match="coincide"):
             renderer.prepare(Camera(eye=np.zeros(3), target=np.zeros(3)), good)
     finally:
         renderer.release()
@@ -166,16 +168,15 @@ def test_far_from_origin_agents_render_like_near_ones(gl_context):
     images = []
     for offset in (0.0, 1.0e5):
         pipeline = CrowdPipeline(gl_context, PipelineConfig(agents=9, seed=2, origin=(offset, -offset)))
-        fb, attachments = offscreen_framebuffer(gl_context, SIZE)
+        target = Offscreen(gl_context, SIZE)
+        fb = target.framebuffer
         try:
             pipeline.camera = pipeline.default_camera(SIZE[0] / SIZE[1])
             pipeline.frame(fb, 0.0)
-            images.append(read_image(fb, SIZE).astype(int))
+            images.append(target.image().astype(int))
         finally:
             pipeline.release()
-            fb.release()
-            for a in attachments:
-                a.release()
+            target.release()
     # The ground grid is anchored to the world, so it may shift; the zombies must not.
     diff = np.abs(images[0] - images[1]).max(axis=2)
     assert np.mean(diff > 40) < 0.01
@@ -184,12 +185,12 @@ def test_far_from_origin_agents_render_like_near_ones(gl_context):
 def test_pipeline_config_errors(gl_context):
     with pytest.raises(PipelineError, match="agent count"):
         CrowdPipeline(gl_context, PipelineConfig(agents=-1))
-    with pytest.raises(PipelineError):
-        smoke_size("0x0")
+    with pytest.raises(SettingError):
+        parse("size", "0x0")
 
 
 def test_triangle_reorder_keeps_the_mesh_and_shades_fewer_vertices(zombie):
-    from crowd.vertex_cache import optimize_triangle_order, shaded_vertices_per_triangle
+    from crowd.asset.vertex_cache import optimize_triangle_order, shaded_vertices_per_triangle
 
     body = next(m for m in zombie.meshes if m.piece == "body" and m.lod == 0)
     order = optimize_triangle_order(body.indices, len(body.positions))

@@ -12,13 +12,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from crowd.ai import DYING, AIConfig
-from crowd.bench import random_layers
+from crowd.sim.ai import DYING, AIConfig
+from bench.common import random_layers
 from crowd.pipeline import CrowdPipeline, PipelineConfig, PipelineError
-from crowd.processor import AnimationProcessor, reference_palette
-from crowd.readback import ENTRIES_PER_ROW, ReadbackError, SocketReadback
-from crowd.roles import bake_roles, match_roles
-from crowd.smoke import FIXED_DT, offscreen_framebuffer
+from crowd.anim.processor import AnimationProcessor, reference_palette
+from crowd.draw.readback import ENTRIES_PER_ROW, ReadbackError, SocketReadback
+from crowd.anim.roles import bake_roles, match_roles
+from crowd.gl import Offscreen
+from crowd.smoke import FIXED_DT
+from crowd.stats import pipeline_stats
 from test_processor import released
 
 SIZE = (192, 108)
@@ -31,22 +33,21 @@ class Harness:
     def __init__(self, ctx, **config):
         ai = config.pop("ai", AIConfig(half_extent=9.0, armed_share=0.7))
         self.pipeline = CrowdPipeline(ctx, PipelineConfig(ai=ai, **{"agents": 40, "seed": 5, "shadows": False, **config}))
-        self.fb, self.attachments = offscreen_framebuffer(ctx, SIZE)
+        self.target = Offscreen(ctx, SIZE)
+        self.fb = self.target.framebuffer
         self.pipeline.camera = self.pipeline.default_camera(SIZE[0] / SIZE[1])
         self.layers = []  # per frame: the layers the processor got
 
     def frame(self, dt=FIXED_DT):
         self.pipeline.frame(self.fb, dt)
-        self.layers.append(self.pipeline._layers.copy())
+        self.layers.append(self.pipeline.layers.copy())
 
     def release(self):
         if self.pipeline is None:
             return
         self.pipeline.release()
         self.pipeline = None
-        self.fb.release()
-        for a in self.attachments:
-            a.release()
+        self.target.release()
 
 
 @pytest.fixture
@@ -91,7 +92,7 @@ def test_weapon_stays_in_the_hand_for_100_frames_while_clips_change(harness):
             assert p.weapons.last["weapons"] == 0  # the ring has not reached back N frames yet
             continue
         # Exactly the agents armed and alive N frames ago that are still there, all in view here.
-        read = p._read
+        read = p.last.read
         assert read is not None and read.frame == f - p.latency
         assert drawn_agents(p) == set(read.agents.tolist()) and p.weapons.last["weapons"] == len(read.agents)
         if p.weapons.last["weapons"]:
@@ -113,18 +114,18 @@ def test_each_latency_reads_and_draws_frame_f_minus_n(harness, latency):
     for f in range(latency + 6):
         h.frame()
         if f < latency:
-            assert p._read is None and p.weapons.last["weapons"] == 0
+            assert p.last.read is None and p.weapons.last["weapons"] == 0
             continue
-        read = p._read
+        read = p.last.read
         assert read.frame == f - latency
         # The socket rows read back are the processor's output for the layers of frame F - N ...
         ref = reference_palette(p.bake, h.layers[f - latency])[read.agents, socket]
         assert np.max(np.abs(read.rows - ref)) < 1e-5
         # ... and every body is drawn from that frame's palette, bit for bit the rows that were read.
-        drawn_rows = p.processor.read_rows(read.agents, socket, np.broadcast_to(p._row_offset, (p.agents,))[read.agents])
+        drawn_rows = p.processor.read_rows(read.agents, socket, np.broadcast_to(p.last.row_offset, (p.agents,))[read.agents])
         assert np.array_equal(drawn_rows, read.rows)
         assert p.weapon_error_mm() <= ERROR_MM
-    stats = p.stats()
+    stats = pipeline_stats(p)
     assert stats["weapons"]["latency_frames"] == latency
     assert stats["weapons"]["pose_lag_ms"] == pytest.approx(latency * FIXED_DT * 1e3, abs=1e-3)
     assert p.processor.history == latency + 1
@@ -194,7 +195,7 @@ def test_no_armed_agent_means_no_gather_pass_and_no_readback_buffers(harness, co
     for _ in range(3):
         armed.frame()
         unarmed.frame()
-    a, u = armed.pipeline.stats(), unarmed.pipeline.stats()
+    a, u = pipeline_stats(armed.pipeline), pipeline_stats(unarmed.pipeline)
     for name in ("readback", "gather", "transfer", "attach", "weapons"):
         assert name not in u["passes_run"]
     assert "gather" in a["passes_run"] and "transfer" in a["passes_run"]

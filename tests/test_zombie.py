@@ -7,9 +7,9 @@ import pygltflib
 import pytest
 
 from conftest import ROOT
-from crowd import reference
-from crowd.gltf_write import glb_bytes
-from crowd.zombie import ASSET_PATH, SOCKET_JOINT, build_character
+from crowd.anim import reference
+from crowd.asset.gltf_write import glb_bytes
+from crowd.asset.zombie import ASSET_PATH, SOCKET_JOINT, build_character
 
 REQUIRED_JOINTS = {"hips", "spine", "chest", "neck", "head"} | {
     f"{p}_{s}" for p in ("upper_arm", "forearm", "hand", "thigh", "shin", "foot") for s in "lr"}
@@ -21,7 +21,7 @@ def generated():
 
 
 def test_committed_glb_is_what_the_generator_writes(generated):
-    assert ASSET_PATH.read_bytes() == glb_bytes(generated), "assets/zombie.glb is stale: run python -m crowd.zombie"
+    assert ASSET_PATH.read_bytes() == glb_bytes(generated), "assets/zombie.glb is stale: run python -m crowd.asset.zombie"
 
 
 def test_skeleton(zombie):

@@ -1,0 +1,339 @@
+"""``crowd-bench``: reproducible measurements. Each subcommand prints a table and can write JSON.
+
+- ``bake``: the bake's size and its joint-position error against the float64 reference, per clip and
+  bake rate (CPU only: this is about the data, not the GPU).
+- ``ai``: CPU ms per crowd-AI step (one 1/60 s substep plus writing the processor's layers) against
+  agent count, on one core.
+- ``scale``: GPU ms of the animation processor and of the skinned instanced draw against agent count,
+  with the unskinned instanced draw of the same meshes measured in the same run as the ceiling.
+- ``error``: the processor's error against its run time for every bake rate, storage and
+  interpolation, with the Pareto front, the default it picks and the stiff and extreme cases
+  (bench/error_report.py); ``plot-error`` redraws its plot from the JSON.
+- ``readback``: the weapons' socket gather and GPU→CPU transfer against the number of armed agents,
+  the CPU's wait on it, and the weapon-to-hand error with the body drawn in step with the read-back
+  (sync) and from the newest palette (unsync), side by side in one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .common import device_cpu, grid_crowd, random_layers
+
+
+def bench_bake(args) -> int:
+    from crowd.anim.bake import bake, joint_position_error
+    from crowd.asset.gltf import load_character
+
+    character = load_character(args.model)
+    rates = [int(r) for r in args.rates.split(",")]
+    phases = np.linspace(0.0, 1.0, args.samples)
+    rows = []
+    for precision in ("f32", "f16"):
+        for fps in rates:
+            t0 = time.perf_counter()
+            b = bake(character.skeleton, character.clips, fps, precision)
+            bake_ms = (time.perf_counter() - t0) * 1e3
+            for clip in character.clips:
+                err = joint_position_error(b, character.skeleton, clip, phases)
+                rows.append({"clip": clip.name, "duration_s": round(clip.duration, 4), "loop": clip.loop, "bake_fps": fps,
+                             "precision": precision, "frames": b.clips[b.clip_index(clip.name)].frame_count,
+                             "max_joint_error_mm": round(float(err.max()) * 1e3, 4), "bytes_all_clips": b.nbytes,
+                             "bake_ms_all_clips": round(bake_ms, 2)})
+    print(f"{character.name}: {character.skeleton.joint_count} joints, {len(character.clips)} clips; "
+          f"max joint position error over {args.samples} phases per clip, against the float64 reference")
+    print(f"{'clip':<14}{'len s':>7}  " + "  ".join(f"{p} {r:>2}fps".rjust(12) for p in ("f32", "f16") for r in rates))
+    for clip in character.clips:
+        cells = [next(x for x in rows if x["clip"] == clip.name and x["bake_fps"] == r and x["precision"] == p)["max_joint_error_mm"]
+                 for p in ("f32", "f16") for r in rates]
+        print(f"{clip.name:<14}{clip.duration:>7.3f}  " + "  ".join(f"{c:>9.3f} mm" for c in cells))
+    for p in ("f32", "f16"):
+        print(f"bytes ({p}): " + ", ".join(f"{r} fps {next(x for x in rows if x['bake_fps'] == r and x['precision'] == p)['bytes_all_clips']}" for r in rates))
+    if args.json:
+        from crowd.files import atomic_write_bytes
+
+        atomic_write_bytes(Path(args.json), json.dumps({"device": device_cpu(), "model": str(args.model or "built-in zombie"),
+                                                        "rows": rows}, indent=1).encode())
+    return 0
+
+
+def bench_scale(args) -> int:
+    """Every agent at LOD0, no culling, no shadows: the draw is geometry-bound, so the unskinned draw of
+    the same meshes and instances is the ceiling the skinned draw is compared with."""
+    import moderngl
+
+    from crowd.anim.roles import bake_roles, match_roles
+    from crowd.asset.gltf import load_character
+    from crowd.frame import Instances
+    from crowd.gl import Offscreen, describe, headless_context
+    from crowd.settings import parse
+    from crowd.stages import StageSpec, Stages, build_processor
+
+    size = parse("size", args.size)
+    counts = [int(x) for x in args.agents.split(",")]
+    ctx = headless_context()
+    info = describe(ctx)
+    character = load_character(args.model)
+    roles, _ = match_roles(character.clips)
+    baked = bake_roles(character, roles)
+    compute = ctx.version_code >= 430
+    spec = StageSpec(layers=args.layers, processor_path="compute" if compute else "fragment", lod_distances=(1e9, 1e9),
+                     shadows=False, culling=False)
+    rng = np.random.default_rng(1)
+    rows = []
+    print(f"{info['gl_renderer']} | {info['gl_version']} | {size[0]}x{size[1]} | {args.layers} layers | median of {args.frames} frames")
+    print(f"{'agents':>8} {'proc ms':>8} {'frag ms':>8} {'draw ms':>8} {'frame ms':>9} {'Mtri/s':>8} {'ceil Mtri/s':>11} {'ratio':>6}")
+    with Stages.build(ctx, character, baked, spec) as stages, Offscreen(ctx, size) as target:
+        renderer, main_proc = stages.renderer, stages.processor
+        # The fragment path beside the compute path, measured in the same run (without GL 4.3 it is the main one).
+        fragment = Stages(processor=build_processor(ctx, baked, dataclasses.replace(spec, processor_path="fragment"))) if compute else Stages()
+        with fragment:
+            processors = {"compute": main_proc, "fragment": fragment.processor} if compute else {"fragment": main_proc}
+            fb = target.framebuffer
+            query = ctx.query(time=True)
+
+            def gpu_ms(fn):
+                with query:
+                    fn()
+                return query.elapsed / 1e6
+
+            for n in counts:
+                pos, camera = grid_crowd(n, size[0] / size[1])
+                heads = renderer.groups.get("head", [])
+                inst = Instances(pos, rng.uniform(-3, 3, n).astype(np.float32), np.ones(n, np.float32), np.full((n, 4), 200, np.uint8),
+                                 {"head": rng.integers(0, len(heads), n)} if heads else {})
+                layers = random_layers(n, args.layers, len(baked.clips), rng)
+                for proc in processors.values():
+                    proc.resize(n)
+                    proc.upload(layers)
+                view = renderer.prepare(camera, inst)
+                tris = renderer.last["triangles"]
+                samples = {"proc": [], "frag": [], "draw": [], "ceil": [], "frame": []}
+                for frame in range(args.frames + 2):
+                    t0 = time.perf_counter()
+                    main_proc.upload(layers)
+                    renderer.prepare(camera, inst)
+                    fb.use()
+                    fb.clear(0.1, 0.1, 0.1, 1.0, depth=1.0)
+                    p_ms = gpu_ms(main_proc.run)
+                    d_ms = gpu_ms(lambda: renderer.color_pass(fb, view, main_proc, skinned=True))
+                    ctx.finish()
+                    f_ms = (time.perf_counter() - t0) * 1e3
+                    fb.clear(0.1, 0.1, 0.1, 1.0, depth=1.0)
+                    c_ms = gpu_ms(lambda: renderer.color_pass(fb, view, main_proc, skinned=False))
+                    fr_ms = gpu_ms(processors["fragment"].run) if compute else p_ms
+                    if frame >= 2:  # the first frames compile and upload
+                        for k, v in (("proc", p_ms), ("frag", fr_ms), ("draw", d_ms), ("ceil", c_ms), ("frame", f_ms)):
+                            samples[k].append(v)
+                med = {k: float(np.median(v)) for k, v in samples.items()}
+                row = {"agents": n, "triangles": tris, "processor_ms": round(med["proc"], 4), "processor_fragment_ms": round(med["frag"], 4),
+                       "draw_ms": round(med["draw"], 4), "frame_ms": round(med["frame"], 3),
+                       "tris_per_s": round(tris / (med["draw"] / 1e3)), "ceiling_ms": round(med["ceil"], 4),
+                       "ceiling_tris_per_s": round(tris / (med["ceil"] / 1e3))}
+                row["ratio"] = round(row["tris_per_s"] / row["ceiling_tris_per_s"], 3)
+                rows.append(row)
+                print(f"{n:>8} {row['processor_ms']:>8.3f} {row['processor_fragment_ms']:>8.3f} {row['draw_ms']:>8.3f} {row['frame_ms']:>9.2f} "
+                      f"{row['tris_per_s'] / 1e6:>8.0f} {row['ceiling_tris_per_s'] / 1e6:>11.0f} {row['ratio']:>6.3f}")
+    if args.json:
+        from crowd.files import atomic_write_bytes
+
+        device = f"{info['gl_renderer']}, {info['gl_version']}; {device_cpu()}; moderngl {moderngl.__version__}"
+        atomic_write_bytes(Path(args.json), json.dumps({"device": device, "size": list(size), "layers": args.layers,
+                                                        "model": str(args.model or "built-in zombie"), "rows": rows}, indent=1).encode())
+    ctx.release()
+    return 0
+
+
+def bench_ai(args) -> int:
+    """Steps a crowd around a scripted player for a warm-up, then times steps. The separation's share is
+    timed by wrapping that method, so the table says what bounds a step."""
+    from crowd.sim.ai import CrowdAI, PlayerScript, motion_for
+    from crowd.asset.gltf import load_character
+    from crowd.anim.roles import bake_roles, match_roles
+
+    character = load_character(args.model)
+    roles, _ = match_roles(character.clips)
+    baked = bake_roles(character, roles)
+    motion = motion_for(character, baked, roles)
+    device = device_cpu()
+    print(f"{device} | one core | median of {args.steps} steps after {args.warmup} warm-up steps of 1/60 s")
+    print(f"{'agents':>8} {'ms/step':>9} {'mean':>7} {'p95 ms':>8} {'separation':>11} {'list builds':>12} {'chasing':>8}")
+    rows = []
+    for n in [int(x) for x in args.agents.split(",")]:
+        ai = CrowdAI(n, args.seed, motion)
+        script = PlayerScript(ai.half_extent * 0.5)
+        layers = np.empty((n, 4, 4), np.float32)
+        separate = ai._separate
+        spent = []
+
+        def timed_separate(h, separate=separate, spent=spent):
+            t = time.perf_counter()
+            separate(h)
+            spent.append(time.perf_counter() - t)
+
+        ai._separate = timed_separate
+        for _ in range(args.warmup):
+            script.update(ai)
+            ai.step(1 / 60)
+        spent.clear()
+        builds = ai.pair_builds
+        times = []
+        for _ in range(args.steps):
+            script.update(ai)
+            t = time.perf_counter()
+            ai.step(1 / 60)
+            ai.write_layers(layers)
+            times.append(time.perf_counter() - t)
+        faults = ai.check()
+        if faults:
+            print(f"crowd-bench: the AI broke an invariant at {n} agents: {'; '.join(faults)}", file=sys.stderr)
+            return 1
+        # The median step reuses the separation's neighbour list; the mean and p95 include its rebuilds.
+        row = {"agents": n, "ms_per_step": round(float(np.median(times)) * 1e3, 4), "mean_ms": round(float(np.mean(times)) * 1e3, 4),
+               "p95_ms": round(float(np.percentile(times, 95)) * 1e3, 4), "separation_ms": round(float(np.median(spent)) * 1e3, 4),
+               "separation_mean_ms": round(float(np.mean(spent)) * 1e3, 4),
+               "list_builds_per_step": round((ai.pair_builds - builds) / args.steps, 4), "states": ai.counts()}
+        rows.append(row)
+        print(f"{n:>8} {row['ms_per_step']:>9.3f} {row['mean_ms']:>7.3f} {row['p95_ms']:>8.3f} {row['separation_ms']:>11.3f} "
+              f"{row['list_builds_per_step']:>12.3f} {row['states']['chase']:>8}")
+    if args.json:
+        from crowd.files import atomic_write_bytes
+
+        atomic_write_bytes(Path(args.json), json.dumps({"device": device, "rows": rows}, indent=1).encode())
+    return 0
+
+
+def bench_readback(args) -> int:
+    """A 10,000-agent crowd (the AI running, the scripted player striking) in which the first k agents
+    are armed. Frames are submitted back to back without glFinish, as a window would, so the read of
+    frame F - N overlaps the GPU's work; then a few frames measure the errors (their synchronous
+    palette reads would disturb the timing)."""
+    from crowd.gl import Offscreen, describe, headless_context
+    from crowd.pipeline import CrowdPipeline, PipelineConfig
+    from crowd.settings import parse
+
+    size = parse("size", args.size)
+    ctx = headless_context()
+    info = describe(ctx)
+    device = f"{info['gl_renderer']}, {info['gl_version']}; {device_cpu()}"
+    print(f"{device} | {args.agents} agents, {size[0]}x{size[1]}, latency {args.latency} | medians of {args.frames} frames")
+    print(f"{'armed':>7} {'gathered':>8} {'gather ms':>10} {'transfer ms':>12} {'wait ms':>8} {'wait max':>9} {'read cpu':>9} "
+          f"{'attach':>7} {'sync mm':>9} {'unsync mm':>10}")
+    rows = []
+    with Offscreen(ctx, size) as target:
+        fb = target.framebuffer
+        for armed in [int(x) for x in args.armed.split(",")]:
+            with CrowdPipeline(ctx, PipelineConfig(agents=args.agents, seed=args.seed, readback_latency=args.latency)) as pipeline:
+                pipeline.camera = pipeline.default_camera(size[0] / size[1])
+                weapons = pipeline.ai.weapon
+                weapons[:] = np.where(np.arange(weapons.size) < armed, np.arange(weapons.size) % 2, -1)
+                for _ in range(args.warmup):
+                    pipeline.frame(fb, 1 / 60)
+                ctx.finish()
+                pipeline.timer.end_frame(drain=True)
+                pipeline.timer.samples.clear()
+                pipeline.readback_waits.clear()
+                pipeline.readback_stalls = 0
+                for _ in range(args.frames):
+                    pipeline.frame(fb, 1 / 60)
+                ctx.finish()
+                pipeline.timer.end_frame(drain=True)
+                samples = pipeline.timer.samples
+                waits = np.asarray(pipeline.readback_waits or [0.0])
+                gathered = pipeline.readback.last_count
+                sync = unsync = 0.0
+                for _ in range(args.error_frames):
+                    pipeline.frame(fb, 1 / 60)
+                    sync = max(sync, pipeline.weapon_error_mm() or 0.0)
+                    unsync = max(unsync, pipeline.weapon_error_mm(body="latest") or 0.0)
+
+                def med(name):
+                    return round(float(np.median(samples[name])), 4) if samples.get(name) else 0.0
+
+                row = {"armed": armed, "gathered": gathered, "gather_ms": med("gather"), "transfer_ms": med("transfer"),
+                       "wait_ms": round(float(np.median(waits)), 4), "wait_max_ms": round(float(waits.max()), 4),
+                       "stalls": pipeline.readback_stalls, "readback_cpu_ms": med("readback"), "attach_ms": med("attach"),
+                       "sync_error_mm": round(sync, 5), "unsync_error_mm": round(unsync, 3)}
+                rows.append(row)
+                print(f"{armed:>7} {gathered:>8} {row['gather_ms']:>10.4f} {row['transfer_ms']:>12.4f} {row['wait_ms']:>8.4f} "
+                      f"{row['wait_max_ms']:>9.4f} {row['readback_cpu_ms']:>9.4f} {row['attach_ms']:>7.3f} {row['sync_error_mm']:>9.5f} "
+                      f"{row['unsync_error_mm']:>10.3f}")
+    if args.json:
+        from crowd.files import atomic_write_bytes
+
+        atomic_write_bytes(Path(args.json), json.dumps({"device": device, "agents": args.agents, "latency": args.latency,
+                                                        "size": list(size), "rows": rows}, indent=1).encode())
+    ctx.release()
+    return 0
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="crowd-bench", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("bake", help="bake size and error against the float64 reference")
+    p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
+    p.add_argument("--rates", default="15,30,60")
+    p.add_argument("--samples", type=int, default=1201, help="phases per clip at which the error is measured")
+    p.add_argument("--json", type=Path)
+    p.set_defaults(run=bench_bake)
+    p = sub.add_parser("scale", help="processor and skinned draw GPU ms against agent count, with the unskinned ceiling")
+    p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
+    p.add_argument("--agents", default="256,1024,4096,16384,65536,131072")
+    p.add_argument("--size", default="1920x1080")
+    p.add_argument("--frames", type=int, default=10)
+    p.add_argument("--layers", type=int, default=4)
+    p.add_argument("--json", type=Path)
+    p.set_defaults(run=bench_scale)
+    p = sub.add_parser("ai", help="CPU ms per crowd-AI step against agent count")
+    p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
+    p.add_argument("--agents", default="200,1000,10000,100000")
+    p.add_argument("--steps", type=int, default=600)
+    p.add_argument("--warmup", type=int, default=120)
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--json", type=Path)
+    p.set_defaults(run=bench_ai)
+    p = sub.add_parser("readback", help="weapon socket gather, transfer and wait against armed agents; sync vs unsync error")
+    p.add_argument("--agents", type=int, default=10000)
+    p.add_argument("--armed", default="0,100,1000,10000")
+    p.add_argument("--latency", type=int, default=2)
+    p.add_argument("--size", default="1920x1080")
+    p.add_argument("--frames", type=int, default=120)
+    p.add_argument("--warmup", type=int, default=30)
+    p.add_argument("--error-frames", type=int, default=10)
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--json", type=Path)
+    p.set_defaults(run=bench_readback)
+    from .error_report import add_parsers
+    from .peers import add_parsers as add_peers_parsers
+
+    add_parsers(sub)
+    add_peers_parsers(sub)
+    args = parser.parse_args(argv)
+    from crowd.sim.ai import AIError
+    from crowd.anim.bake import BakeError
+    from crowd.gl import GLUnavailable
+    from crowd.asset.gltf import GltfImportError
+    from crowd.pipeline import PipelineError
+    from crowd.anim.processor import ProcessorError
+    from crowd.draw.readback import ReadbackError
+    from crowd.draw.weapons import WeaponError
+    from crowd.frame import FrameError
+    from crowd.settings import SettingError
+
+    try:
+        return args.run(args)
+    except (GltfImportError, BakeError, GLUnavailable, PipelineError, ProcessorError, AIError, ReadbackError, WeaponError,
+            FrameError, SettingError) as exc:
+        print(f"crowd-bench: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,258 @@
+"""``crowd-bench error``: the animation pipeline's error against its run time, and its stiff and
+extreme cases, measured on the GPU against the float64 reference.
+
+Each configuration is a bake rate (10, 15, 30, 60 fps or each clip's source rate), a storage (f32,
+f16) and an interpolation (crowd.anim.processor.INTERPOLATIONS). For each one:
+
+- error: crowd.anim.accuracy's 3 cm shell error of the GPU processor's palette against the float64
+  reference, over every clip of the built-in zombie and of each ``--model``: every clip alone at
+  random phases, and random blends of 2 to 4 layers of random clips at random phases;
+- cost: the processor's GPU ms (timer query around the dispatch, median) for two crowd sizes of the
+  same kind of blends, in two passes over all configurations (the second in reverse order), and the
+  bytes of animation data on the GPU.
+
+The Pareto front and the default: configuration X beats Y when it is no less accurate, no slower
+(run times within TIE of each other count as equal; the pass-to-pass spread on the H100 is 10x smaller)
+and no larger, and better in one of them. The default is the cheapest configuration on that front
+(fastest, then smallest) whose max error on the built-in zombie is within TARGET_MM and whose stiff
+and extreme cases (bench.stability) all pass; the report lists the cheaper ones that failed them.
+
+Rates are measured on the model's clips, so "source" is each clip's own key rate; the cost is the
+built-in zombie's.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+TARGET_MM = 1.0
+TIE = 0.01  # 1 %: ten times the pass-to-pass spread measured on the H100 (0.1 % at most)
+
+
+def _rate_label(rate) -> str:
+    return "source" if rate == "source" else f"{rate:g} fps"
+
+
+def pareto_front(rows: list[dict], tie: float = TIE) -> list[int]:
+    """Indices of rows no other row beats (see the module docstring)."""
+    def beats(a, b):
+        no_worse = (a["max_error_mm"] <= b["max_error_mm"] and a["gpu_ms_100k"] <= b["gpu_ms_100k"] * (1 + tie)
+                    and a["bytes"] <= b["bytes"])
+        better = (a["max_error_mm"] < b["max_error_mm"] or a["gpu_ms_100k"] < b["gpu_ms_100k"] * (1 - tie) or a["bytes"] < b["bytes"])
+        return no_worse and better
+
+    return [i for i, r in enumerate(rows) if not any(beats(o, r) for j, o in enumerate(rows) if j != i)]
+
+
+def rank_candidates(rows: list[dict], front: list[int], tie: float = TIE) -> list[int]:
+    """Front rows whose zombie error meets the target, cheapest first: the fastest, and among rows
+    within `tie` of the fastest the smallest; then a fixed rate before "source"; then the more accurate."""
+    left = [i for i in front if rows[i]["zombie_max_error_mm"] <= TARGET_MM]
+    ranked = []
+    while left:
+        fastest = min(rows[i]["gpu_ms_100k"] for i in left)
+        tied = [i for i in left if rows[i]["gpu_ms_100k"] <= fastest * (1 + tie)]
+        best = min(tied, key=lambda i: (rows[i]["bytes"], rows[i]["bake_fps"] == "source", rows[i]["max_error_mm"]))
+        ranked.append(best)
+        left.remove(best)
+    return ranked
+
+
+class _Model:
+    """One model's clips, its samples and their float64 truth (computed once for every configuration)."""
+
+    def __init__(self, name, character, per_clip, blends, rng):
+        from crowd.anim import accuracy
+
+        self.name = name
+        self.character = character
+        self.clips = list(character.clips)
+        self.samples = accuracy.draw_samples(self.clips, rng, per_clip, blends)
+        self.truth = accuracy.truth(character.skeleton, self.clips, self.samples.layers)
+
+
+def _time_processor(query, proc, layers, repeats: int) -> float:
+    """Median GPU ms of the processor's dispatch (or draw) for these layers."""
+    proc.resize(layers.shape[0])
+    proc.upload(layers)
+    times = []
+    for k in range(repeats + 3):
+        with query:
+            proc.run()
+        if k >= 3:  # the first runs compile, allocate and warm the caches
+            times.append(query.elapsed / 1e6)
+    return float(np.median(times))
+
+
+def run(args) -> int:
+    import moderngl
+
+    from crowd.anim import accuracy
+    from crowd.anim.bake import SOURCE_RATE, BakeError, bake
+    from crowd.gl import describe, headless_context
+    from crowd.asset.gltf import load_character
+    from crowd.frame import MAX_LAYERS
+    from crowd.anim.processor import INTERPOLATIONS, AnimationProcessor
+    from .stability import run_cases
+
+    rates = [SOURCE_RATE if r.strip() == SOURCE_RATE else float(r) for r in args.rates.split(",")]
+    storages = args.storage.split(",")
+    interpolations = args.interpolations.split(",")
+    for i in interpolations:
+        if i not in INTERPOLATIONS:
+            raise SystemExit(f"crowd-bench error: unknown interpolation {i!r}; choose from {', '.join(INTERPOLATIONS)}")
+    cost_agents = [int(x) for x in args.cost_agents.split(",")]
+    if len(cost_agents) != 2:
+        raise SystemExit("crowd-bench error: --cost-agents takes two counts (the JSON's gpu_ms_10k and gpu_ms_100k)")
+    ctx = headless_context()
+    info = describe(ctx)
+    device = (f"{info['gl_renderer']}, {info['gl_version']}; {platform.processor() or platform.machine()}, Python "
+              f"{platform.python_version()}, numpy {np.__version__}, moderngl {moderngl.__version__}")
+    rng = np.random.default_rng(args.seed)
+    t0 = time.perf_counter()
+    zombie = load_character(None)
+    models = [_Model("zombie", zombie, args.per_clip, args.blends, rng)]
+    for path in args.model or []:
+        models.append(_Model(Path(path).name, load_character(path), args.per_clip, args.blends, rng))
+    cost_layers = [accuracy.draw_samples(zombie.clips, np.random.default_rng(args.seed + 1), 0, n).layers for n in cost_agents]
+    print(f"{info['gl_renderer']} | {info['gl_version']} | truth for {sum(len(m.samples.layers) for m in models)} poses "
+          f"in {time.perf_counter() - t0:.1f} s")
+
+    configs = [(r, s, i) for r in rates for s in storages for i in interpolations]
+    bakes: dict = {}  # (model, rate, storage) → the bake, or the BakeError it raised: the same for every interpolation
+
+    def baked_for(m, rate, storage):
+        key = (m.name, rate, storage)
+        if key not in bakes:
+            try:
+                bakes[key] = bake(m.character.skeleton, m.clips, rate, storage)
+            except BakeError as exc:
+                bakes[key] = exc
+        return bakes[key]
+
+    rows, timings = [], {}
+    for rate, storage, interp in configs:
+        row = {"bake_fps": rate, "storage": storage, "interpolation": interp}
+        errors, per_model, skipped = [], {}, []
+        for m in models:
+            baked = baked_for(m, rate, storage)
+            if isinstance(baked, BakeError):  # e.g. a long clip at 60 fps does not fit the texture: say so, measure the rest
+                skipped.append(f"{m.name}: {baked}")
+                continue
+            e = accuracy.measure_gpu(ctx, m.character.skeleton, baked, m.samples.layers, m.truth, interp)
+            errors.append(e.ravel())
+            single = np.max(e[m.samples.single], axis=(1, 2))
+            clip_of = m.samples.layers[m.samples.single, 0, 0].astype(int)
+            per_model[m.name] = {**accuracy.summarise(e), "blend_max_error_mm": float(np.max(e[~m.samples.single], initial=0.0) * 1e3),
+                                 "per_clip_max_mm": {c.name: round(float(single[clip_of == k].max()) * 1e3, 4) for k, c in enumerate(m.clips)},
+                                 "bytes": baked.nbytes}
+        row.update(accuracy.summarise(np.concatenate(errors)))
+        row["zombie_max_error_mm"] = per_model["zombie"]["max_error_mm"]
+        row["bytes"] = per_model["zombie"]["bytes"]
+        row["models"] = per_model
+        if skipped:
+            row["skipped"] = skipped
+        rows.append(row)
+        timings[len(rows) - 1] = []
+        print(f"{_rate_label(rate):>10} {storage} {interp:<9} max {row['max_error_mm']:9.4f} mm  p99 {row['p99_error_mm']:8.4f} mm  "
+              f"<1mm {row['share_under_1mm']:.4f}  {row['bytes']:>9,} B")
+
+    # Cost: two passes, the second in reverse order, so drift on the machine shows as spread.
+    query = ctx.query(time=True)
+    for order in (range(len(configs)), reversed(range(len(configs)))):
+        for k in order:
+            rate, storage, interp = configs[k]
+            proc = AnimationProcessor(ctx, baked_for(models[0], rate, storage), MAX_LAYERS, interpolation=interp)
+            try:
+                timings[k].append([_time_processor(query, proc, layers, args.repeats) for layers in cost_layers])
+            finally:
+                proc.release()
+    for k, row in enumerate(rows):
+        t = np.array(timings[k])  # (passes, 2)
+        row["gpu_ms_10k"], row["gpu_ms_100k"] = (float(np.mean(t[:, i])) for i in range(2))
+        row["gpu_ms_spread"] = float(np.max(np.abs(t[:, 1] - t[:, 1].mean())) / t[:, 1].mean()) if t[:, 1].mean() > 0 else 0.0
+    front = pareto_front(rows)
+    # The default: the cheapest candidate whose stiff and extreme cases all pass as well.
+    default, stability, rejected = None, [], []
+    for k in rank_candidates(rows, front):
+        if args.no_stability:
+            default = k
+            break
+        r = rows[k]
+        cases = run_cases(ctx, zombie, r["interpolation"], r["bake_fps"], r["storage"], hours=args.hours)
+        if all(c["passed"] for c in cases):
+            default, stability = k, cases
+            break
+        rejected.append({"bake_fps": r["bake_fps"], "storage": r["storage"], "interpolation": r["interpolation"],
+                         "failed": [f"{c['case']}: {c['max_error_mm']:.3g} mm (bound {c['bound_mm']:g} mm)" for c in cases if not c["passed"]]})
+    for k, row in enumerate(rows):
+        row["pareto"] = k in front
+        row["default"] = k == default
+    print(f"\n{'rate':>10} {'stor':>4} {'interp':<9} {'max mm':>9} {'p99 mm':>9} {'<1mm':>7} {'ms ' + str(cost_agents[0]):>10} "
+          f"{'ms ' + str(cost_agents[1]):>11} {'spread':>7} {'bytes':>9}")
+    for row in rows:
+        mark = " default" if row["default"] else (" front" if row["pareto"] else "")
+        print(f"{_rate_label(row['bake_fps']):>10} {row['storage']:>4} {row['interpolation']:<9} {row['max_error_mm']:9.4f} "
+              f"{row['p99_error_mm']:9.4f} {row['share_under_1mm']:7.4f} {row['gpu_ms_10k']:10.4f} {row['gpu_ms_100k']:11.4f} "
+              f"{row['gpu_ms_spread']:7.1%} {row['bytes']:>9,}{mark}")
+    for r in rejected:
+        print(f"not the default: {_rate_label(r['bake_fps'])} {r['storage']} {r['interpolation']} fails {'; '.join(r['failed'])}")
+    if default is None:
+        print(f"no configuration on the front keeps the zombie's max error within {TARGET_MM} mm and passes the stability cases")
+    elif stability:
+        r = rows[default]
+        print(f"\nstability, with the default ({_rate_label(r['bake_fps'])}, {r['storage']}, {r['interpolation']}):")
+        for case in stability:
+            print(f"  {'pass' if case['passed'] else 'FAIL'} {case['case']:<34} max {case['max_error_mm']:.3g} mm "
+                  f"(bound {case['bound_mm']:g} mm): {case['detail']}")
+    report = {"device": device, "gl": info, "models": [m.name for m in models], "cost_agents": cost_agents,
+              "samples_per_model": {m.name: int(len(m.samples.layers)) for m in models}, "repeats": args.repeats,
+              "target_mm": TARGET_MM, "tie": TIE, "rows": rows, "stability": stability, "rejected_defaults": rejected}
+    if args.json:
+        from crowd.files import atomic_write_bytes
+
+        atomic_write_bytes(Path(args.json), json.dumps(report, indent=1).encode())
+    ctx.release()
+    if args.plot:
+        from .plots import error_plot
+
+        error_plot(report, Path(args.plot))
+        print(f"plot: {args.plot}")
+    return 0 if default is not None else 1
+
+
+def replot(args) -> int:
+    """Draw the plot of a JSON report written elsewhere (the H100 machine has no imgui-bundle)."""
+    from .plots import error_plot
+
+    report = json.loads(Path(args.report).read_text())
+    error_plot(report, Path(args.plot))
+    print(f"plot: {args.plot}")
+    return 0
+
+
+def add_parsers(sub) -> None:
+    p = sub.add_parser("error", help="error against run time of every bake rate, storage and interpolation; stiff and extreme cases")
+    p.add_argument("--model", type=Path, action="append", help="also measure this .glb/.gltf's clips (repeatable)")
+    p.add_argument("--rates", default="10,15,30,60,source", help='bake rates: numbers, or "source" (each clip\'s own key rate)')
+    p.add_argument("--storage", default="f32,f16")
+    p.add_argument("--interpolations", default="dq_lerp,qt_lerp,qt_cubic")
+    p.add_argument("--per-clip", type=int, default=200, help="random phases of each clip alone")
+    p.add_argument("--blends", type=int, default=2000, help="random blends of 2 to 4 layers")
+    p.add_argument("--cost-agents", default="10000,100000", help="the two crowd sizes timed")
+    p.add_argument("--repeats", type=int, default=30, help="timed runs per size and pass")
+    p.add_argument("--hours", type=float, default=10.0, help="play time of the long-play stability case")
+    p.add_argument("--no-stability", action="store_true")
+    p.add_argument("--seed", type=int, default=7)
+    p.add_argument("--json", type=Path)
+    p.add_argument("--plot", type=Path, help="PNG of error against GPU ms, drawn with implot (needs imgui-bundle)")
+    p.set_defaults(run=run)
+    p = sub.add_parser("plot-error", help="draw the plot of a crowd-bench error JSON report")
+    p.add_argument("report", type=Path)
+    p.add_argument("plot", type=Path)
+    p.set_defaults(run=replot)

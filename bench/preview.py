@@ -1,0 +1,101 @@
+"""A contact sheet of a character's clips, skinned on the CPU by the float64 reference.
+
+It is a debugging and documentation view (``python -m bench.preview out.png``), independent of the
+GPU processor, so it can show whether a clip or an import is right before anything else is built.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from pyglm import glm
+import numpy as np
+
+from crowd.anim import reference
+from crowd.gl import headless_context, load_shader
+from crowd.asset.model import Character
+
+
+def _view_proj(aspect: float, target, distance: float, yaw: float, pitch: float) -> bytes:
+    eye = glm.vec3(*target) + distance * glm.vec3(np.sin(yaw) * np.cos(pitch), np.sin(pitch), np.cos(yaw) * np.cos(pitch))
+    proj = glm.perspective(glm.radians(35.0), aspect, 0.05, 100.0)
+    view = glm.lookAt(eye, glm.vec3(*target), glm.vec3(0, 1, 0))
+    return (proj * view).to_bytes()  # column-major, as GLSL expects
+
+
+def render_sheet(character: Character, clip_names: list[str], columns: int, cell: int, out: Path, yaw: float = 0.6,
+                 pieces: tuple[str, ...] = ("body", "head_a", "shirt_torn")) -> Path:
+    from PIL import Image
+
+    ctx = headless_context(330)
+    prog = ctx.program(vertex_shader=load_shader("bench/preview.vert.glsl"), fragment_shader=load_shader("bench/preview.frag.glsl"))
+    rows = len(clip_names)
+    width, height = columns * cell, rows * cell
+    fbo = ctx.simple_framebuffer((width, height), samples=0)
+    fbo.use()
+    ctx.enable(ctx.DEPTH_TEST)
+    fbo.clear(0.16, 0.18, 0.22, 1.0)
+    meshes = [m for m in character.meshes if m.lod == 0 and (m.piece in pieces or not pieces)]
+    if not meshes:
+        meshes = [m for m in character.meshes if m.lod == 0]
+    sk = character.skeleton
+    bind_min = np.min([m.positions.min(axis=0) for m in meshes], axis=0)
+    bind_max = np.max([m.positions.max(axis=0) for m in meshes], axis=0)
+    size = float(np.max(bind_max - bind_min))
+    centre = (bind_min + bind_max) / 2.0
+    ground = np.array([[-1, 0, -1], [1, 0, -1], [1, 0, 1], [-1, 0, -1], [1, 0, 1], [-1, 0, 1]], dtype=np.float64) * size
+    ground[:, 1] = bind_min[1]
+    prog["u_light_dir"].value = tuple(glm.normalize(glm.vec3(-0.4, -1.0, -0.5)))
+    prog["u_view_proj"].write(_view_proj(1.0, centre, 2.2 * size, yaw, 0.25))
+    for r, name in enumerate(clip_names):
+        clip = character.clip(name)
+        phases = np.linspace(0.0, 1.0, columns, endpoint=not clip.loop)
+        pose = reference.sample_clip(sk, clip, phases)
+        skin = reference.skinning_matrices(sk, pose)
+        for c in range(columns):
+            ctx.viewport = (c * cell, (rows - 1 - r) * cell, cell, cell)
+            parts = []
+            for m in meshes:
+                p = reference.skin_points(skin[c : c + 1], m.positions, m.joints, m.weights)[0]
+                nrm = reference.skin_points(skin[c : c + 1] * np.array([1, 1, 1, 0]), m.normals, m.joints, m.weights)[0]
+                col = m.colors if m.colors is not None else np.ones((p.shape[0], 4))
+                parts.append(np.concatenate([p, nrm, col], axis=1)[m.indices])
+            parts.append(np.concatenate([ground, np.tile([0, 1, 0], (6, 1)), np.tile([0.3, 0.32, 0.3, 1], (6, 1))], axis=1))
+            data = np.concatenate(parts).astype(np.float32)
+            vbo = ctx.buffer(data.tobytes())
+            vao = ctx.vertex_array(prog, [(vbo, "3f 3f 4f", "in_position", "in_normal", "in_color")])
+            vao.render()
+            vao.release()
+            vbo.release()
+    img = Image.frombytes("RGB", (width, height), fbo.read(components=3)).transpose(Image.Transpose.FLIP_TOP_BOTTOM)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    img.save(out)
+    fbo.release()
+    prog.release()
+    ctx.release()
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description="Render a contact sheet of a character's clips (CPU-skinned, float64).")
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
+    parser.add_argument("--clips", nargs="*", help="clip names (default: all)")
+    parser.add_argument("--columns", type=int, default=6)
+    parser.add_argument("--cell", type=int, default=200)
+    parser.add_argument("--yaw", type=float, default=0.6, help="camera yaw in radians (0 = front)")
+    args = parser.parse_args(argv)
+    from crowd.asset.gltf import load_character
+
+    character = load_character(args.model)
+    names = args.clips or [c.name for c in character.clips]
+    pieces = ("body", "head_a", "shirt_torn") if args.model is None else ()
+    render_sheet(character, names, args.columns, args.cell, args.out, args.yaw, pieces)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,254 @@
+"""Bake stage: clips → the AnimationTexture of local joint transforms as dual quaternions.
+
+Contract: ``bake(skeleton, clips, fps=30, precision="f32")`` → ``AnimationBake``; ``fps`` may also be
+``"source"``: each clip at its own key rate.
+
+Layout of ``texels`` (rows, 2 * J, 4), one texture row per baked frame:
+- row 0 holds each joint's inverse bind transform;
+- each clip owns ``frame_count`` consecutive rows from ``first_row``, sampled at ``fps`` (the clip's
+  duration divided into whole intervals: the nearest whole number when within 1e-5 of it, else the
+  next, so the actual rate is at least the asked one and frames stay on evenly spaced source keys);
+- texel 2j is joint j's real part (x, y, z, w) and texel 2j+1 its dual part;
+- looping clips store a closing frame equal to their first pose, so frame i and i+1 always exist and
+  the shader never wraps inside the texture: ``f = phase * (frame_count - 1)``, lerp frames floor(f) and
+  floor(f) + 1, the same for looping and one-shot clips;
+- keys are sign-aligned along each joint's track, closing frame included, so neighbours lerp blindly.
+  (A joint that spins a full turn over a loop closes on -q: the extra frame makes that work too.)
+- the last row (``rest_row``) holds the skeleton's rest pose as local DQs: the processor's fallback for
+  a joint whose layer weights add up to about 0 (ozz-animation's blending job does the same).
+
+Dual quaternions carry no scale. A character with joint scale (static or animated, such as
+Quaternius' hedgehog) gets ``scale``: (rows, J) uniform scale per joint and frame; characters without
+it get ``scale = None``, and no scale texture exists. Non-uniform joint scale is approximated by its
+geometric mean, and the bake says so in ``warnings``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import reference
+from .. import transforms as tf
+from ..asset.model import Clip, ModelError, Skeleton
+from ..settings import DEFAULTS, SETTINGS, SOURCE_RATE
+
+PRECISIONS = dict(zip(SETTINGS["precision"].choices, (np.float32, np.float16)))
+# The default rate, chosen by `crowd-bench error` (docs/BENCHMARKS.md) with the processor's default
+# interpolation: the cheapest configuration that keeps the built-in zombie within 1 mm. Its clips have
+# 30 keys per second; at 15 fps the attack swing is 97 mm off.
+DEFAULT_FPS = DEFAULTS["bake_fps"]
+MAX_ROWS = 16384  # GL_MAX_TEXTURE_SIZE guaranteed by every GL 4.x driver we target
+# Joint scale within this of 1 is treated as 1 (exporters leave 0.99996 and the like); at 1 m from the
+# joint that is 0.1 mm. Anything dropped this way is reported in the bake's warnings.
+SCALE_EPS = 1e-4
+
+
+class BakeError(ValueError):
+    """Bad bake input; the message is one line."""
+
+
+@dataclass(frozen=True)
+class ClipInfo:
+    name: str
+    first_row: int
+    frame_count: int  # keys stored, closing key included (>= 2)
+    fps: float  # actual key rate: (frame_count - 1) / duration
+    loop: bool
+    duration: float
+
+
+@dataclass
+class AnimationBake:
+    joint_names: tuple[str, ...]
+    parents: np.ndarray  # int32 (J,): the hierarchy texture
+    texels: np.ndarray  # (rows, 2J, 4) float32 or float16
+    scale: np.ndarray | None  # (rows, J) same dtype, or None when every joint keeps scale 1
+    clips: list[ClipInfo]
+    fps: float | str  # the asked rate, or SOURCE_RATE (each ClipInfo has the actual rate)
+    precision: str
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def joint_count(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def rows(self) -> int:
+        return self.texels.shape[0]
+
+    @property
+    def rest_row(self) -> int:
+        return self.texels.shape[0] - 1
+
+    @property
+    def clip_table(self) -> np.ndarray:
+        """float32 (C, 4): first row, frame count, fps, loop flag, as the processor reads it."""
+        return np.array([[c.first_row, c.frame_count, c.fps, float(c.loop)] for c in self.clips], dtype=np.float32).reshape(-1, 4)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of animation data on the GPU: DQ texture, scale texture if any, hierarchy, clip table."""
+        return int(self.texels.nbytes + (0 if self.scale is None else self.scale.nbytes) + self.parents.astype(np.int32).nbytes + self.clip_table.nbytes)
+
+    def clip_index(self, name: str) -> int:
+        for i, c in enumerate(self.clips):
+            if c.name == name:
+                return i
+        raise BakeError(f"clip {name!r} was not baked; baked clips are {', '.join(c.name for c in self.clips)}")
+
+    # -- A float64 model of what the processor does with this data (used by tests and error reports).
+
+    def frame_position(self, clip: int, phases) -> tuple[np.ndarray, np.ndarray]:
+        """Row index i0 and lerp factor for each phase, exactly as the shaders compute them."""
+        info = self.clips[clip]
+        p = np.asarray(phases, dtype=np.float64)
+        p = np.mod(p, 1.0) if info.loop else np.clip(p, 0.0, 1.0)
+        f = p * (info.frame_count - 1)
+        i0 = np.clip(np.floor(f), 0, info.frame_count - 2).astype(np.int64)
+        return info.first_row + i0, f - i0
+
+    def sample_local(self, clip: int, phases):
+        """Lerped, normalised local (real, dual, scale) per joint: (P, J, 4), (P, J, 4), (P, J)."""
+        row, u = self.frame_position(clip, phases)
+        t = self.texels.astype(np.float64)
+        a, b = t[row], t[row + 1]
+        lerp = a + (b - a) * u[:, None, None]
+        real, dual = tf.dq_normalize(lerp[:, 0::2], lerp[:, 1::2])
+        if self.scale is None:
+            scale = np.ones(real.shape[:2])
+        else:
+            s = self.scale.astype(np.float64)
+            scale = s[row] + (s[row + 1] - s[row]) * u[:, None]
+        return real, dual, scale
+
+    def inverse_bind(self) -> np.ndarray:
+        t = self.texels[0].astype(np.float64)
+        s = None if self.scale is None else self.scale[0].astype(np.float64)
+        return tf.dq_to_mat4(t[0::2], t[1::2], s)
+
+    def skinning_matrices(self, clip: int, phases) -> np.ndarray:
+        real, dual, scale = self.sample_local(clip, phases)
+        local = tf.dq_to_mat4(real, dual, scale)
+        glob = np.empty_like(local)
+        for j, p in enumerate(self.parents):
+            glob[:, j] = local[:, j] if p < 0 else glob[:, p] @ local[:, j]
+        return glob @ self.inverse_bind()[None]
+
+
+def _uniform_scale(s: np.ndarray, where: str, warnings: list[str]) -> np.ndarray:
+    """(…, 3) scale → (…,) uniform scale; non-uniform scale becomes its geometric mean, with a warning."""
+    mean = np.cbrt(np.prod(s, axis=-1))
+    spread = float(np.max(np.abs(s - mean[..., None]))) if s.size else 0.0
+    if spread > 1e-4:
+        warnings.append(f"{where}: non-uniform scale (spread {spread:.3g}) approximated by its geometric mean")
+    return mean
+
+
+def _intervals(exact: float) -> int:
+    """Whole key intervals for a clip of `exact` intervals at the asked rate. glTF stores key times as
+    float32, so a 1.2 s clip lasts 1.2000000477 s: a plain ceil would bake 73 intervals at 60 fps
+    instead of 72, and the bake's keys would drift off the source keys (issue 7 measured 21 mm)."""
+    nearest = round(exact)
+    if abs(exact - nearest) <= 1e-5 * max(1.0, exact):
+        return max(1, int(nearest))
+    return max(1, math.ceil(exact))
+
+
+def _source_intervals(clip: Clip) -> int:
+    """Intervals that put the bake's frames on the clip's own keys: the clip's duration over the
+    shortest median key interval of its channels (exact for evenly keyed clips)."""
+    steps = [float(np.median(np.diff(c.times))) for c in clip.channels if c.times.shape[0] > 1]
+    steps = [h for h in steps if h > 0]
+    if not steps or clip.duration <= 0:
+        return 1
+    return _intervals(clip.duration / min(steps))
+
+
+def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, precision: str = "f32", max_rows: int = MAX_ROWS) -> AnimationBake:
+    """Bake the given clips (only those: pass the scene's clips, not every clip of the file)."""
+    skeleton.validate()
+    SETTINGS["bake_fps"].check(fps, BakeError)
+    SETTINGS["precision"].check(precision, BakeError)
+    names = [c.name for c in clips]
+    if len(set(names)) != len(names):
+        raise BakeError("the same clip is listed twice")
+    for c in clips:
+        try:
+            c.validate(skeleton)
+        except ModelError as exc:
+            raise BakeError(str(exc)) from None
+    warnings: list[str] = []
+    jc = skeleton.joint_count
+
+    # Row 0: inverse bind pose.
+    t, q, s, shear = tf.mat4_decompose(skeleton.inverse_bind)
+    if float(np.max(shear)) > 1e-4:
+        raise BakeError(f"inverse bind matrices have shear {float(np.max(shear)):.3g}; a dual quaternion cannot hold it")
+    if np.any(np.linalg.det(skeleton.inverse_bind[:, :3, :3]) <= 0):
+        raise BakeError("an inverse bind matrix mirrors; a dual quaternion cannot hold it")
+    real_rows = [q[None]]
+    dual_rows = [tf.dq_from_rt(q, t)[1][None]]
+    scale_rows = [_uniform_scale(s, "inverse bind", warnings)[None]]
+
+    infos = []
+    row = 1
+    for clip in clips:
+        n = _source_intervals(clip) if fps == SOURCE_RATE else _intervals(clip.duration * fps)
+        phases = np.arange(n + 1, dtype=np.float64) / n
+        if clip.loop:
+            phases[-1] = 0.0  # the closing frame repeats the first pose (then aligned to its predecessor)
+        pose = reference.sample_clip(skeleton, clip, phases)
+        qr = tf.align_quat_track(pose.rotation, axis=0)
+        _, qd = tf.dq_from_rt(qr, pose.translation)
+        real_rows.append(qr)
+        dual_rows.append(qd)
+        scale_rows.append(_uniform_scale(pose.scale, f"clip {clip.name!r}", warnings))
+        actual = n / clip.duration if clip.duration > 0 else (1.0 if fps == SOURCE_RATE else float(fps))
+        infos.append(ClipInfo(clip.name, row, n + 1, actual, clip.loop, clip.duration))
+        row += n + 1
+    rest_q = skeleton.rest_rotation
+    real_rows.append(rest_q[None])
+    dual_rows.append(tf.dq_from_rt(rest_q, skeleton.rest_translation)[1][None])
+    scale_rows.append(_uniform_scale(skeleton.rest_scale, "rest pose", warnings)[None])
+    row += 1
+    if row > max_rows:
+        raise BakeError(f"{row} frames do not fit a {max_rows}-row texture: bake fewer clips or at a lower rate than {fps} fps")
+    if 2 * jc > max_rows:
+        raise BakeError(f"{jc} joints need {2 * jc} texels per row, more than {max_rows}")
+
+    real = np.concatenate(real_rows)
+    dual = np.concatenate(dual_rows)
+    texels = np.empty((row, 2 * jc, 4), dtype=np.float64)
+    texels[:, 0::2] = real
+    texels[:, 1::2] = dual
+    scale = np.concatenate(scale_rows)
+    dtype = PRECISIONS[precision]
+    if not np.all(np.isfinite(texels)) or not np.all(np.isfinite(scale)):
+        raise BakeError("baked transforms hold NaN or Inf")
+    if precision == "f16" and (np.max(np.abs(texels)) > 60000.0 or np.max(np.abs(scale)) > 60000.0):
+        raise BakeError("values exceed the half-float range; bake with precision f32")
+    deviation = float(np.max(np.abs(scale - 1.0)))
+    needs_scale = deviation > SCALE_EPS
+    if 1e-6 < deviation <= SCALE_EPS:
+        warnings.append(f"joint scale deviates from 1 by at most {deviation:.2g}; treated as 1 (no scale texture)")
+    return AnimationBake(
+        joint_names=skeleton.names,
+        parents=skeleton.parents.astype(np.int32).copy(),
+        texels=texels.astype(dtype),
+        scale=scale.astype(dtype) if needs_scale else None,
+        clips=infos,
+        fps=fps if fps == SOURCE_RATE else float(fps),
+        precision=precision,
+        warnings=warnings,
+    )
+
+
+def joint_position_error(bake_: AnimationBake, skeleton: Skeleton, clip: Clip, phases) -> np.ndarray:
+    """Per-phase max distance (metres) between baked and reference model-space joint positions."""
+    ci = bake_.clip_index(clip.name)
+    baked = bake_.skinning_matrices(ci, phases) @ np.linalg.inv(skeleton.inverse_bind)[None]
+    ref = reference.global_matrices(skeleton, reference.sample_clip(skeleton, clip, phases))
+    return np.max(np.linalg.norm(baked[..., :3, 3] - ref[..., :3, 3], axis=-1), axis=-1)

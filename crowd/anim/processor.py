@@ -1,0 +1,469 @@
+"""Process stage: per-agent animation layers → the FinalAnimationTexture of skinning matrices, on the GPU.
+
+Contract (the shape of an ozz-animation job: validated inputs, documented edge cases):
+
+input ``layers``: float32 (N, L, 4) with L = the processor's layer count (1..4); per layer
+  ``[clip, phase, weight, mask]`` (column constants CLIP, PHASE, WEIGHT, MASK):
+  - clip: index into the bake's clips (integer valued);
+  - phase: any finite value; looping clips wrap it into [0, 1), one-shot clips clamp it to [0, 1];
+  - weight: finite, at most MAX_WEIGHT; negative weights count as 0; weights need not sum to 1;
+  - mask: -1 for the whole body, else a row of the processor's joint masks (factor per joint in [0, 1]).
+  Per joint: weights are multiplied by the mask; each layer samples its keys as the interpolation
+  says (INTERPOLATIONS below: by default rotation nlerp and translation lerp); rotations are sign-aligned
+  to the heaviest layer and their weighted sum normalised, translations and scales are weighted means
+  (dq_lerp instead sums the dual quaternions); a joint whose weights add up to less than REST_THRESHOLD
+  takes the rest pose. Then the hierarchy is concatenated and multiplied by the inverse bind.
+
+output: the palette, three RGBA32F textures ("planes") holding rows 0, 1 and 2 of each 3x4 skinning
+  matrix. Agent a, joint j lives at texel ((a % agents_per_row) * J + j, a // agents_per_row) of each
+  plane: one palette row per agent, several agents side by side in a texture row so that 65,536 agents
+  fit a texture no GPU refuses. The GL 3.3 path needs the planes: multiple render targets write the
+  same pixel of several attachments, so the three texels of a joint sit at one coordinate of three
+  textures. The compute path writes the same planes, so the renderers do not care which path ran.
+
+history: with ``history`` = H > 1 the planes hold H palettes stacked vertically (a ring): each run
+  writes the next slot, and the palettes of the H - 1 runs before stay readable. The weapons' readback
+  uses it to draw each body with the palette of the frame whose sockets the CPU has read
+  (``row_offset(age)`` is where the palette of `age` runs ago starts). H = 1 (no weapons) keeps one.
+
+Paths: "compute" (GL 4.3, one dispatch) and "fragment" (GL 3.3, one draw); "auto" takes compute where
+the context has GL 4.3. Both run the same GLSL (shaders/processor_common.glsl).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import moderngl
+import numpy as np
+
+from .. import transforms as tf
+from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, validate_layers, validate_masks
+from .bake import AnimationBake
+from ..gl import GLStage, gpu_bytes, load_shader
+from ..settings import DEFAULTS, SETTINGS
+from .reference import REST_THRESHOLD
+
+MAX_JOINTS = 256  # one compute work group of 256 invocations holds at least one whole agent
+GROUP_SIZE = 256
+PATHS = SETTINGS["processor"].choices
+# How one layer turns its two (or four) neighbouring baked keys into a local transform, and how layers
+# blend (crowd-bench error measures each; docs/BENCHMARKS.md says why the default is the default):
+# - dq_lerp: the DQ keys lerped blindly and normalised; layers blended as dual quaternions (DLB);
+# - qt_lerp: each key split into rotation and translation; rotations nlerped, translations lerped;
+#   layers blended the same way (ozz-animation's blending job, and the float64 reference's semantics);
+# - qt_cubic: as qt_lerp, with Catmull-Rom through four keys instead of the lerp between two.
+INTERPOLATIONS = SETTINGS["interpolation"].choices
+DEFAULT_INTERPOLATION = DEFAULTS["interpolation"]  # chosen by crowd-bench error: see docs/BENCHMARKS.md
+# Agents side by side in one palette texture row: keeps textures under 4096 texels wide, a size every
+# GL 3.3+ driver we target accepts (GL_MAX_TEXTURE_SIZE is 16384 on llvmpipe, 32768 on NVIDIA).
+MAX_TEXTURE_WIDTH = 4096
+MAX_HISTORY = SETTINGS["readback_latency"].high + 1  # palettes kept: the latest and one per frame of read-back latency
+
+
+class ProcessorError(ValueError):
+    """Bad processor input; the message is one line."""
+
+
+def palette_texel(agents, joints, row_offset, agents_per_row: int, joint_count: int) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) int64 texel of joint(s) `joints` of `agents` in a palette plane, in the ring slot that
+    starts at row `row_offset` (an int, or one per agent). The one statement of the palette layout."""
+    agents = np.asarray(agents, np.int64)
+    return (agents % agents_per_row) * joint_count + np.asarray(joints, np.int64), agents // agents_per_row + np.asarray(row_offset, np.int64)
+
+
+def check_interpolation(interpolation) -> str:
+    return SETTINGS["interpolation"].check(interpolation, ProcessorError)
+
+
+def _check_history(history) -> int:
+    if isinstance(history, bool) or not isinstance(history, (int, np.integer)) or not 1 <= history <= MAX_HISTORY:
+        raise ProcessorError(f"palette history must be a whole number from 1 to {MAX_HISTORY}, got {history!r}")
+    return int(history)
+
+
+def _translation(real: np.ndarray, dual: np.ndarray) -> np.ndarray:
+    """Translation of stored DQ keys (f16 keys are not exactly unit: dq_to_rt normalises first)."""
+    return tf.dq_to_rt(real, dual)[1]
+
+
+def _catmull_rom(p0, p1, p2, p3, u):
+    """Uniform Catmull-Rom between p1 and p2; u broadcasts against the keys' leading axes."""
+    return p1 + u * (0.5 * (p2 - p0) + u * ((p0 - 2.5 * p1 + 2.0 * p2 - 0.5 * p3) + u * (0.5 * (p3 - p0) + 1.5 * (p1 - p2))))
+
+
+def _sample_keys(texels, scales, table, clip, phase, interpolation):
+    """One layer's local transform of every joint, float64, as the shader samples it. Returns
+    (rotation or DQ real (N, J, 4), translation (N, J, 3) or DQ dual (N, J, 4), scale (N, J))."""
+    first, count, _, loop = table[clip].T
+    looping = loop > 0.5
+    phase = np.where(looping, phase - np.floor(phase), np.clip(phase, 0.0, 1.0))
+    f = phase * (count - 1.0)
+    i0 = np.clip(np.floor(f), 0.0, count - 2.0)
+    u = (f - i0)[:, None, None]
+    row = (first + i0).astype(np.int64)
+
+    def key(r):
+        s = np.ones(texels.shape[1] // 2) if scales is None else scales[r]
+        return texels[r, 0::2], texels[r, 1::2], s
+
+    (r1, d1, s1), (r2, d2, s2) = key(row), key(row + 1)
+    if interpolation == "dq_lerp":
+        r = r1 + (r2 - r1) * u
+        d = d1 + (d2 - d1) * u
+        inv = 1.0 / np.linalg.norm(r, axis=-1, keepdims=True)
+        return r * inv, d * inv, s1 + (s2 - s1) * u[..., 0]
+    t1, t2 = _translation(r1, d1), _translation(r2, d2)
+    if interpolation == "qt_lerp":
+        q = r1 + (r2 - r1) * u
+        return q / np.linalg.norm(q, axis=-1, keepdims=True), t1 + (t2 - t1) * u, s1 + (s2 - s1) * u[..., 0]
+    # qt_cubic: the outer keys wrap around a loop (its closing frame repeats frame 0, so frame 0's
+    # predecessor is frame count - 2 and the closing frame's successor is frame 1) and are extrapolated
+    # linearly at the ends of a one-shot clip.
+    first_row = first.astype(np.int64)
+    last = count.astype(np.int64) - 1
+    at_start, at_end = row == first_row, row + 1 == first_row + last
+    prev_row = np.where(at_start & looping, first_row + last - 1, np.maximum(row - 1, first_row))
+    next_row = np.where(at_end & looping, first_row + 1, np.minimum(row + 2, first_row + last))
+    r0, d0, s0 = key(prev_row)
+    r3, d3, s3 = key(next_row)
+    t0, t3 = _translation(r0, d0), _translation(r3, d3)
+    r0 = np.where(np.sum(r0 * r1, axis=-1, keepdims=True) < 0.0, -r0, r0)
+    r3 = np.where(np.sum(r3 * r2, axis=-1, keepdims=True) < 0.0, -r3, r3)
+    ext_start = (at_start & ~looping)[:, None, None]
+    ext_end = (at_end & ~looping)[:, None, None]
+    r0, t0 = np.where(ext_start, 2.0 * r1 - r2, r0), np.where(ext_start, 2.0 * t1 - t2, t0)
+    r3, t3 = np.where(ext_end, 2.0 * r2 - r1, r3), np.where(ext_end, 2.0 * t2 - t1, t3)
+    s0 = np.where(ext_start[..., 0], 2.0 * s1 - s2, s0)
+    s3 = np.where(ext_end[..., 0], 2.0 * s2 - s1, s3)
+    q = _catmull_rom(r0, r1, r2, r3, u)
+    return q / np.linalg.norm(q, axis=-1, keepdims=True), _catmull_rom(t0, t1, t2, t3, u), _catmull_rom(s0, s1, s2, s3, u[..., 0])
+
+
+def reference_palette(bake: AnimationBake, layers, masks=None, interpolation: str = DEFAULT_INTERPOLATION) -> np.ndarray:
+    """Float64 model of the processor on the same baked keys: (N, J, 3, 4) skinning matrix rows.
+
+    The bake's own error against the source clips is measured elsewhere (crowd.anim.accuracy, issue 7's
+    report); this function isolates what the GPU adds: float32 arithmetic.
+    """
+    interpolation = check_interpolation(interpolation)
+    masks = validate_masks(masks, bake.joint_count)
+    layers = validate_layers(layers, len(bake.clips), 0 if masks is None else masks.shape[0], np.shape(layers)[1]).astype(np.float64)
+    n, lcount, _ = layers.shape
+    jc = bake.joint_count
+    texels = bake.texels.astype(np.float64)
+    scales = None if bake.scale is None else bake.scale.astype(np.float64)
+    table = bake.clip_table.astype(np.float64)
+    qt = interpolation != "dq_lerp"
+    real = np.zeros((lcount, n, jc, 4))
+    second = np.zeros((lcount, n, jc, 3 if qt else 4))  # translation (QT) or dual part (DQ)
+    scale = np.zeros((lcount, n, jc))
+    weight = np.zeros((lcount, n, jc))
+    for l in range(lcount):
+        clip = layers[:, l, CLIP].astype(np.int64)
+        real[l], second[l], scale[l] = _sample_keys(texels, scales, table, clip, layers[:, l, PHASE], interpolation)
+        w = np.repeat(np.maximum(layers[:, l, WEIGHT], 0.0)[:, None], jc, axis=1)
+        mask = layers[:, l, MASK].astype(np.int64)
+        if masks is not None:
+            w = np.where(mask[:, None] >= 0, w * masks[np.maximum(mask, 0)].astype(np.float64), w)
+        weight[l] = w
+    real = np.where(weight[..., None] > 0, real, 0.0)
+    second = np.where(weight[..., None] > 0, second, 0.0)
+    scale = np.where(weight > 0, scale, 0.0)
+    # First maximum, as the shader's strict '>' scan finds it.
+    heaviest = np.argmax(weight, axis=0)
+    ref = np.take_along_axis(real, heaviest[None, ..., None], axis=0)[0]
+    signed = np.where(np.sum(real * ref[None], axis=-1) < 0.0, -weight, weight)
+    r = np.sum(signed[..., None] * real, axis=0)
+    total = weight.sum(axis=0)
+    safe = np.where(total < REST_THRESHOLD, 1.0, total)
+    s = np.sum(weight * scale, axis=0) / safe
+    low = total < REST_THRESHOLD
+    rest_r = texels[bake.rest_row, 0::2]
+    rest_d = texels[bake.rest_row, 1::2]
+    rest_s = np.ones(jc) if scales is None else scales[bake.rest_row]
+    r = np.where(low[..., None], rest_r[None], r)
+    s = np.where(low, rest_s[None], s)
+    if qt:
+        t = np.sum(weight[..., None] * second, axis=0) / safe[..., None]
+        t = np.where(low[..., None], _translation(rest_r, rest_d)[None], t)
+        r = r / np.linalg.norm(r, axis=-1, keepdims=True)
+        local = tf.trs_to_mat4(t, r, np.repeat(s[..., None], 3, -1))
+    else:
+        d = np.sum(signed[..., None] * second, axis=0)
+        d = np.where(low[..., None], rest_d[None], d)
+        local = tf.dq_to_mat4(r, d, s)
+    glob = np.empty_like(local)
+    for j, p in enumerate(bake.parents):
+        glob[:, j] = local[:, j] if p < 0 else glob[:, p] @ local[:, j]
+    return (glob @ bake.inverse_bind()[None])[:, :, :3, :]
+
+
+def palette_joint_positions(palette_rows: np.ndarray, inverse_bind: np.ndarray) -> np.ndarray:
+    """Model-space joint positions from skinning matrix rows (N, J, 3, 4): skin × bind, translation."""
+    bind = np.linalg.inv(np.asarray(inverse_bind, dtype=np.float64))
+    rows = np.asarray(palette_rows, dtype=np.float64)
+    return np.einsum("njrc,jc->njr", rows, bind[:, :, 3])
+
+
+class AnimationProcessor(GLStage):
+    """Owns the bake's GPU textures, the layers texture and the palette planes, and releases them."""
+
+    def __init__(self, ctx: moderngl.Context, bake: AnimationBake, layer_count: int = MAX_LAYERS, masks=None, path: str = "auto",
+                 history: int = 1, interpolation: str = DEFAULT_INTERPOLATION):
+        self._own: dict[str, list] = {"animation": [], "palette": [], "layers": [], "processor_quad": []}
+        self.program = None
+        SETTINGS["processor"].check(path, ProcessorError)
+        if not 1 <= layer_count <= MAX_LAYERS:
+            raise ProcessorError(f"layer count must be 1 to {MAX_LAYERS}, got {layer_count}")
+        jc = bake.joint_count
+        if not 1 <= jc <= MAX_JOINTS:
+            raise ProcessorError(f"the processor handles 1 to {MAX_JOINTS} joints, this skeleton has {jc}")
+        if np.any(bake.parents >= np.arange(jc)):
+            raise ProcessorError("the hierarchy must list parents before their children")
+        if path == "auto":
+            path = "compute" if ctx.version_code >= 430 else "fragment"
+        if path == "compute" and ctx.version_code < 430:
+            raise ProcessorError(f"the compute path needs GL 4.3, this context has {ctx.version_code}")
+        self.ctx = ctx
+        self.bake = bake
+        self.path = path
+        self.layer_count = layer_count
+        self.joint_count = jc
+        self.masks = validate_masks(masks, jc)
+        self.interpolation = check_interpolation(interpolation)
+        self.agents_per_row = max(1, MAX_TEXTURE_WIDTH // max(jc, layer_count))
+        self.agents_per_group = GROUP_SIZE // jc
+        self.agents = 0
+        self.history = _check_history(history)
+        self.runs = 0  # runs since the palette was last (re)allocated: slots older than this hold nothing
+
+        dtype = "f4" if bake.precision == "f32" else "f2"
+        self.anim_texture = self._texture("animation", (2 * jc, bake.rows), 4, bake.texels, dtype)
+        self.scale_texture = None if bake.scale is None else self._texture("animation", (jc, bake.rows), 1, bake.scale, dtype)
+        self.parents_texture = self._texture("animation", (jc, 1), 1, bake.parents.astype(np.int32), "i4")
+        self.clips_texture = self._texture("animation", (len(bake.clips), 1), 4, bake.clip_table, "f4")
+        self.masks_texture = None if self.masks is None else self._texture("animation", (jc, self.masks.shape[0]), 1, self.masks, "f4")
+        defines = {"LAYERS": layer_count, "REST_THRESHOLD": f"{REST_THRESHOLD:.1e}", "MAX_JOINTS": MAX_JOINTS}
+        if self.scale_texture is not None:
+            defines["HAS_SCALE"] = 1
+        if self.masks_texture is not None:
+            defines["HAS_MASKS"] = 1
+        if interpolation != "dq_lerp":
+            defines["INTERPOLATION_QT"] = 1
+        if interpolation == "qt_cubic":
+            defines["INTERPOLATION_CUBIC"] = 1
+        if path == "compute":
+            self.program = ctx.compute_shader(load_shader("processor.comp.glsl", defines))
+        else:
+            self.program = ctx.program(vertex_shader=load_shader("processor.vert.glsl"), fragment_shader=load_shader("processor.frag.glsl", defines))
+        samplers = {"u_anim": 0, "u_parents": 1, "u_clips": 2, "u_layers": 3, "u_anim_scale": 4, "u_masks": 5}
+        for name, unit in samplers.items():
+            if name in self.program:
+                self.program[name] = unit
+        self._set("u_joints", jc)
+        self._set("u_agents_per_row", self.agents_per_row)
+        self._set("u_agents_per_group", self.agents_per_group)
+        self._set("u_rest_row", bake.rest_row)
+        self._set("u_row_offset", 0)
+        self.layers_texture = None
+        self.planes: tuple = ()
+        self._framebuffer = None
+        self._quad = None
+        self._quad_vao = None
+
+    # -- resources
+
+    def _texture(self, group, size, components, data, dtype):
+        tex = self.ctx.texture(size, components, np.ascontiguousarray(data).tobytes(), dtype=dtype)
+        tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        self._own[group].append(tex)
+        return tex
+
+    def _set(self, name, value):
+        if name in self.program:
+            self.program[name] = value
+
+    def _release_group(self, group):
+        for obj in self._own[group]:
+            obj.release()
+        self._own[group] = []
+
+    def palette_rows(self, agents: int | None = None) -> int:
+        n = self.agents if agents is None else agents
+        return math.ceil(n / self.agents_per_row)
+
+    def palette_size(self) -> tuple[int, int]:
+        """(width, height) of one palette; the planes are `history` palettes high."""
+        return (self.agents_per_row * self.joint_count, self.palette_rows())
+
+    def row_offset(self, age: int = 0) -> int:
+        """First texture row of the palette written `age` runs ago (0: the latest run)."""
+        if not 0 <= age < min(self.history, max(self.runs, 1)):
+            raise ProcessorError(f"no palette from {age} runs ago (history {self.history}, {self.runs} runs since allocation)")
+        return ((self.runs - 1 - age) % self.history) * self.palette_rows()
+
+    def set_history(self, history: int) -> None:
+        """Keep `history` palettes (1 to MAX_HISTORY); the planes are reallocated, so older runs are lost."""
+        history = _check_history(history)
+        if history != self.history:
+            self.history = history
+            self._allocate(self.agents)
+
+    def resize(self, agents: int) -> None:
+        """Make room for exactly `agents` agents; everything for agents no longer there is released."""
+        if not isinstance(agents, (int, np.integer)) or agents < 0:
+            raise ProcessorError(f"agent count must be a whole number >= 0, got {agents!r}")
+        agents = int(agents)
+        if self.palette_rows(agents) == self.palette_rows() and self.planes and agents:
+            self.agents = agents  # the same texture rows: the agents kept keep their palette history
+            self._update_quad()
+            return
+        self._allocate(agents)
+
+    def _allocate(self, agents: int) -> None:
+        rows = self.palette_rows(agents)
+        height = rows * self.history
+        # The driver's texture size (16,384 on llvmpipe, 32,768 on NVIDIA), and instance records address
+        # palette rows in 16 bits.
+        limit = min(int(self.ctx.info.get("GL_MAX_TEXTURE_SIZE", 16384)), 1 << 16)
+        if height > limit:
+            raise ProcessorError(f"{agents} agents with a palette history of {self.history} need {height} texture rows, more than {limit}")
+        self._release_group("palette")
+        self._release_group("layers")
+        self.planes, self.layers_texture, self._framebuffer = (), None, None
+        self.agents = agents
+        self.runs = 0
+        if agents == 0:
+            return  # no agents: no palette, no layer texture, no pass
+        width = self.agents_per_row * self.joint_count
+        self.planes = tuple(self._texture("palette", (width, height), 4, np.zeros((height, width, 4), np.float32), "f4") for _ in range(3))
+        self.layers_texture = self._texture("layers", (self.agents_per_row * self.layer_count, rows), 4, np.zeros((rows, self.agents_per_row * self.layer_count, 4), np.float32), "f4")
+        if self.path == "fragment":
+            fb = self.ctx.framebuffer(color_attachments=list(self.planes))
+            self._own["palette"].append(fb)
+            self._framebuffer = fb
+        self._update_quad()
+
+    def _update_quad(self):
+        """Fragment path: the quad over full palette rows plus the partial last row, in one buffer."""
+        if self.path != "fragment":
+            return
+        if self._quad is None:
+            self._quad = self.ctx.buffer(reserve=12 * 2 * 4)
+            self._quad_vao = self.ctx.vertex_array(self.program, [(self._quad, "2f", "in_position")])
+            self._own["processor_quad"] += [self._quad_vao, self._quad]
+        width, height = self.palette_size()
+        full, partial = divmod(self.agents, self.agents_per_row)
+        rects = []
+        if full:
+            rects.append((0, 0, width, full))
+        if partial:
+            rects.append((0, full, partial * self.joint_count, full + 1))
+        verts = []
+        for x0, y0, x1, y1 in rects:
+            a, b = 2.0 * x0 / width - 1.0, 2.0 * x1 / width - 1.0
+            c, d = 2.0 * y0 / height - 1.0, 2.0 * y1 / height - 1.0
+            verts += [(a, c), (b, c), (b, d), (a, c), (b, d), (a, d)]
+        self._quad_vertices = len(verts)
+        if verts:
+            self._quad.write(np.asarray(verts, dtype=np.float32).tobytes())
+
+    # -- the pass
+
+    def upload(self, layers) -> None:
+        """Validate and upload this frame's layers (N, L, 4); N must equal the agent count."""
+        a = validate_layers(layers, len(self.bake.clips), 0 if self.masks is None else self.masks.shape[0], self.layer_count)
+        if a.shape[0] != self.agents:
+            raise ProcessorError(f"layers are for {a.shape[0]} agents, the processor holds {self.agents}")
+        if self.agents == 0:
+            return
+        rows = self.palette_rows()
+        padded = np.zeros((rows * self.agents_per_row, self.layer_count, 4), np.float32)
+        padded[: self.agents] = a
+        self.layers_texture.write(padded.reshape(rows, self.agents_per_row * self.layer_count, 4).tobytes())
+
+    def run(self) -> bool:
+        """Write every agent's palette row in one dispatch or one draw. Returns False when nothing ran."""
+        if self.agents == 0:
+            return False
+        self.anim_texture.use(0)
+        self.parents_texture.use(1)
+        self.clips_texture.use(2)
+        self.layers_texture.use(3)
+        offset = (self.runs % self.history) * self.palette_rows()  # the ring slot this run writes
+        self._set("u_row_offset", offset)
+        if self.scale_texture is not None:
+            self.scale_texture.use(4)
+        if self.masks_texture is not None:
+            self.masks_texture.use(5)
+        self._set("u_agents", self.agents)
+        if self.path == "compute":
+            for unit, plane in enumerate(self.planes):
+                plane.bind_to_image(unit, read=False, write=True)
+            groups = math.ceil(self.agents / self.agents_per_group)
+            gx = min(groups, 32768)
+            self.program.run(gx, math.ceil(groups / gx), 1)
+            # Later passes read the palette through texelFetch (and the readback through pack buffers).
+            self.ctx.memory_barrier(moderngl.TEXTURE_FETCH_BARRIER_BIT | moderngl.PIXEL_BUFFER_BARRIER_BIT | moderngl.TEXTURE_UPDATE_BARRIER_BIT)
+        else:
+            self._framebuffer.viewport = (0, offset, *self.palette_size())  # this run's slot of the ring
+            self._framebuffer.use()
+            self.ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND | moderngl.CULL_FACE)
+            self._quad_vao.render(moderngl.TRIANGLES, vertices=self._quad_vertices)
+        self.runs += 1
+        return True
+
+    def process(self, layers) -> bool:
+        self.upload(layers)
+        return self.run()
+
+    def set_clip_loop(self, clip: int, loop: bool) -> None:
+        """Loop a clip (its phase wraps) or play it once (its phase clamps): the clip table is rewritten."""
+        if not 0 <= clip < len(self.bake.clips):
+            raise ProcessorError(f"no clip {clip}; the bake has {len(self.bake.clips)}")
+        self.bake.clips[clip] = dataclasses.replace(self.bake.clips[clip], loop=bool(loop))
+        self.clips_texture.write(np.ascontiguousarray(self.bake.clip_table).tobytes())
+
+    def bind_palette(self, first_unit: int) -> None:
+        """Bind the three planes (every palette of the history; instance records say which rows)."""
+        for i, plane in enumerate(self.planes):
+            plane.use(first_unit + i)
+
+    def read_palette(self, age: int = 0) -> np.ndarray:
+        """(N, J, 3, 4) float32 skinning matrix rows of the palette written `age` runs ago, read back
+        synchronously (tests and stats only)."""
+        n, jc, k = self.agents, self.joint_count, self.agents_per_row
+        if n == 0:
+            return np.zeros((0, jc, 3, 4), np.float32)
+        rows = self.palette_rows()
+        first = self.row_offset(age) if self.runs else 0
+        planes = [plane[first : first + rows].reshape(rows * k, jc, 4)[:n] for plane in self._read_planes()]
+        return np.stack(planes, axis=2)
+
+    def _read_planes(self) -> list[np.ndarray]:
+        """The three planes, every palette of the history, as (height, width, 4) float32 (synchronous)."""
+        return [np.frombuffer(p.read(), np.float32).reshape(p.height, p.width, 4) for p in self.planes]
+
+    def read_rows(self, agents: np.ndarray, joint: int, row_offsets: np.ndarray) -> np.ndarray:
+        """(K, 3, 4) float32 skinning matrix rows of one joint of some agents, each from the palette
+        starting at its row offset (synchronous: tests and stats only)."""
+        x, y = palette_texel(agents, joint, row_offsets, self.agents_per_row, self.joint_count)
+        return np.stack([plane[y, x] for plane in self._read_planes()], axis=1)
+
+    def nan_rows(self) -> int:
+        """Agents whose palette row holds NaN or Inf."""
+        pal = self.read_palette()
+        return int(np.count_nonzero(~np.all(np.isfinite(pal), axis=(1, 2, 3)))) if len(pal) else 0
+
+    def gpu_bytes(self) -> dict[str, int]:
+        return {group: gpu_bytes(objs) for group, objs in self._own.items()}
+
+    def release(self) -> None:
+        for group in list(self._own):
+            self._release_group(group)
+        self.planes, self.layers_texture, self._framebuffer = (), None, None
+        if self.program is not None:
+            self.program.release()
+            self.program = None

@@ -1,0 +1,847 @@
+"""The built-in zombie, generated entirely by this module: ``python -m crowd.asset.zombie`` writes assets/zombie.glb.
+
+Why generate it rather than ship an artist's file: the project must run with nothing downloaded, and
+every vertex, weight and key here is reproducible from code a reader can change. The output is
+byte-for-byte deterministic (all floats are quantised before they are packed), so a test can
+regenerate the file and compare it with the committed one.
+
+Conventions: metres, +Y up, the character faces +Z, its left side is +X. The rest pose is a T-pose
+with every joint's local rotation at identity, so joint axes are world-aligned at rest.
+
+Weapon socket ("weapon_r", joint ``hand_r_socket``): origin at the centre of the closed right fist,
+8 cm past the wrist; +Y runs along the held handle towards the weapon's head (out of the thumb side
+of the fist), +Z points out of the palm, +X points back towards the wrist. Weapons are modelled with
+the handle along +Y; each has a ``*_grip`` node whose frame is placed onto the socket frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .. import transforms as tf
+from .pose import LocalPose, global_matrices, rest_pose
+from .model import Channel, Character, Clip, Prop, RigidMesh, Skeleton, SkinnedMesh, vertex_normals
+
+ASSET_PATH = Path(__file__).resolve().parents[2] / "assets" / "zombie.glb"
+SOURCE_FPS = 30  # clips are authored as keys at this rate; the bake resamples them
+LOD_DIVISORS = (1, 2, 4)  # rings and segments divided by this per LOD: ~1, 1/4, 1/16 of the triangles
+
+# ------------------------------------------------------------------------------------------------
+# Skeleton: (name, parent, rest position in model space)
+
+_JOINTS = [
+    ("hips", None, (0.0, 0.98, 0.0)),
+    ("spine", "hips", (0.0, 1.10, -0.01)),
+    ("chest", "spine", (0.0, 1.28, -0.015)),
+    ("neck", "chest", (0.0, 1.50, -0.01)),
+    ("head", "neck", (0.0, 1.60, 0.0)),
+    ("jaw", "head", (0.0, 1.63, 0.035)),
+    ("shoulder_l", "chest", (0.03, 1.44, -0.01)),
+    ("upper_arm_l", "shoulder_l", (0.18, 1.44, -0.01)),
+    ("forearm_l", "upper_arm_l", (0.46, 1.44, -0.01)),
+    ("hand_l", "forearm_l", (0.71, 1.44, -0.01)),
+    ("shoulder_r", "chest", (-0.03, 1.44, -0.01)),
+    ("upper_arm_r", "shoulder_r", (-0.18, 1.44, -0.01)),
+    ("forearm_r", "upper_arm_r", (-0.46, 1.44, -0.01)),
+    ("hand_r", "forearm_r", (-0.71, 1.44, -0.01)),
+    ("hand_r_socket", "hand_r", (-0.79, 1.435, -0.01)),
+    ("thigh_l", "hips", (0.10, 0.93, 0.0)),
+    ("shin_l", "thigh_l", (0.10, 0.51, 0.005)),
+    ("foot_l", "shin_l", (0.10, 0.09, -0.01)),
+    ("toe_l", "foot_l", (0.10, 0.025, 0.125)),
+    ("thigh_r", "hips", (-0.10, 0.93, 0.0)),
+    ("shin_r", "thigh_r", (-0.10, 0.51, 0.005)),
+    ("foot_r", "shin_r", (-0.10, 0.09, -0.01)),
+    ("toe_r", "foot_r", (-0.10, 0.025, 0.125)),
+]
+JOINT_NAMES = tuple(j[0] for j in _JOINTS)
+SOCKET_JOINT = "hand_r_socket"
+# Socket frame relative to the hand: +Y (handle) -> model +Z, +Z (out of the palm) -> model -Y.
+SOCKET_ROTATION = tf.quat_from_axis_angle([1.0, 0.0, 0.0], math.pi / 2)
+
+
+def _joint_positions() -> np.ndarray:
+    return np.array([j[2] for j in _JOINTS], dtype=np.float64)
+
+
+def build_skeleton() -> Skeleton:
+    names = JOINT_NAMES
+    parents = np.array([-1 if p is None else names.index(p) for _, p, _ in _JOINTS], dtype=np.int32)
+    pos = _joint_positions()
+    local_t = np.array([pos[i] - (pos[p] if p >= 0 else 0.0) for i, p in enumerate(parents)])
+    rot = tf.quat_identity((len(names),))
+    rot[names.index(SOCKET_JOINT)] = SOCKET_ROTATION
+    skel = Skeleton(names, parents, local_t, rot, np.ones((len(names), 3)), np.tile(np.eye(4), (len(names), 1, 1)))
+
+    bind = global_matrices(skel, rest_pose(skel))[0]
+    skel.inverse_bind = np.linalg.inv(bind)
+    return skel.validate()
+
+
+# ------------------------------------------------------------------------------------------------
+# Mesh building: generalised cylinders ("tubes") along joint chains, weighted by arc length.
+
+
+class _MeshBuilder:
+    def __init__(self):
+        self.pos: list[np.ndarray] = []
+        self.jnt: list[np.ndarray] = []
+        self.wgt: list[np.ndarray] = []
+        self.col: list[np.ndarray] = []
+        self.idx: list[np.ndarray] = []
+        self.count = 0
+
+    def add(self, pos, jnt, wgt, col, tris):
+        self.pos.append(pos)
+        self.jnt.append(jnt)
+        self.wgt.append(wgt)
+        self.col.append(col)
+        self.idx.append(np.asarray(tris, dtype=np.int64) + self.count)
+        self.count += pos.shape[0]
+
+    def build(self, name, piece, lod, base_color, group="") -> SkinnedMesh:
+        pos = np.concatenate(self.pos)
+        idx = np.concatenate(self.idx).reshape(-1)
+        jnt = np.concatenate(self.jnt)
+        wgt = np.concatenate(self.wgt)
+        col = np.concatenate(self.col)
+        pos = _quantise(pos, 1e-6)
+        normals = _quantise(vertex_normals(pos, idx), 1e-6)
+        jnt, wgt = _top4(jnt, wgt)
+        return SkinnedMesh(
+            name=name,
+            piece=piece,
+            lod=lod,
+            positions=pos.astype(np.float32),
+            normals=normals.astype(np.float32),
+            joints=jnt.astype(np.uint16),
+            weights=wgt.astype(np.float32),
+            indices=idx.astype(np.uint32),
+            colors=np.round(np.clip(col, 0.0, 1.0) * 255.0).astype(np.float32) / 255.0,
+            base_color=base_color,
+            group=group,
+        )
+
+
+def _quantise(a: np.ndarray, step: float) -> np.ndarray:
+    """Round to a grid so that last-bit differences between numpy builds cannot change the file."""
+    return np.round(np.asarray(a, dtype=np.float64) / step) * step
+
+
+def _top4(jnt: np.ndarray, wgt: np.ndarray):
+    """Keep the 4 largest influences per vertex, quantise them to 1/65535 steps and renormalise exactly."""
+    order = np.argsort(-wgt, axis=1, kind="stable")[:, :4]
+    j = np.take_along_axis(jnt, order, axis=1)
+    w = np.take_along_axis(wgt, order, axis=1)
+    w = np.where(w < 1e-3, 0.0, w)
+    w = w / w.sum(axis=1, keepdims=True)
+    w = _quantise(w, 1.0 / 65535.0)
+    w[:, 0] = 1.0 - w[:, 1:].sum(axis=1)  # the residue goes to the heaviest influence
+    j = np.where(w > 0.0, j, 0)
+    return j, w
+
+
+def _frames_along(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rotation-minimising frames (tangent, normal, binormal) along a polyline."""
+    d = np.gradient(points, axis=0)
+    t = d / np.linalg.norm(d, axis=1, keepdims=True)
+    up = np.array([0.0, 0.0, 1.0]) if abs(t[0, 2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    n = np.cross(up, t[0])
+    n /= np.linalg.norm(n)
+    ns = [n]
+    for k in range(1, len(t)):
+        v = ns[-1] - t[k] * np.dot(ns[-1], t[k])
+        ns.append(v / np.linalg.norm(v))
+    n = np.array(ns)
+    b = np.cross(t, n)
+    return t, n, b
+
+
+def _chain_weights(s: np.ndarray, breaks: list[float], bones: list[int], blend: list[float], joint_count: int) -> np.ndarray:
+    """Dense (N, J) weights along a chain: bone k owns [breaks[k], breaks[k+1]], smoothstep blends around each break."""
+    w = np.zeros((s.shape[0], joint_count))
+    own = np.zeros((s.shape[0], len(bones)))
+    for k in range(len(bones)):
+        lo = 1.0 if k == 0 else _smoothstep((s - (breaks[k] - blend[k])) / (2.0 * blend[k]))
+        hi = 1.0 if k == len(bones) - 1 else 1.0 - _smoothstep((s - (breaks[k + 1] - blend[k + 1])) / (2.0 * blend[k + 1]))
+        own[:, k] = lo * hi
+    own /= np.maximum(own.sum(axis=1, keepdims=True), 1e-9)
+    for k, b in enumerate(bones):
+        w[:, b] += own[:, k]
+    return w
+
+
+def _smoothstep(x):
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def _tube(
+    builder: _MeshBuilder,
+    spine_pts: np.ndarray,
+    radius_x,
+    radius_y,
+    rings: int,
+    segments: int,
+    bones: list[int],
+    breaks: list[float],
+    blend: list[float],
+    color_fn,
+    joint_count: int,
+    cap_start=True,
+    cap_end=True,
+    displace=None,
+    keep_quad=None,
+):
+    """A closed tube along a polyline. radius_x/radius_y are functions of u in [0, 1] (elliptic sections)."""
+    seg_len = np.linalg.norm(np.diff(spine_pts, axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(seg_len)])
+    u = np.linspace(0.0, 1.0, rings + 1)
+    s = u * arc[-1]
+    centre = np.stack([np.interp(s, arc, spine_pts[:, i]) for i in range(3)], axis=1)
+    t, n, b = _frames_along(centre)
+    ang = np.linspace(0.0, 2.0 * math.pi, segments, endpoint=False)
+    rx = np.array([radius_x(x) for x in u])[:, None]
+    ry = np.array([radius_y(x) for x in u])[:, None]
+    offs = (rx * np.cos(ang))[..., None] * n[:, None, :] + (ry * np.sin(ang))[..., None] * b[:, None, :]
+    if displace is not None:
+        offs = offs * displace(u[:, None], ang[None, :])[..., None]
+    ring_pos = centre[:, None, :] + offs  # (R+1, S, 3)
+    pos = ring_pos.reshape(-1, 3)
+    w_ring = _chain_weights(u, breaks, bones, blend, joint_count)  # breaks and blends are arc-length fractions
+    w = np.repeat(w_ring, segments, axis=0)
+    col = color_fn(pos, np.repeat(u, segments))
+    tris = []
+    for r in range(rings):
+        for k in range(segments):
+            if keep_quad is not None and not keep_quad(r, k, rings, segments):
+                continue
+            a = r * segments + k
+            bq = r * segments + (k + 1) % segments
+            c = (r + 1) * segments + k
+            d = (r + 1) * segments + (k + 1) % segments
+            tris += [(a, c, bq), (bq, c, d)]
+    extra_pos, extra_w, extra_c = [], [], []
+    base = pos.shape[0]
+    for end, cap in ((0, cap_start), (rings, cap_end)):
+        if not cap:
+            continue
+        tip = centre[end] + t[end] * (-0.35 if end == 0 else 0.35) * float(min(rx[end, 0], ry[end, 0]))
+        extra_pos.append(tip)
+        extra_w.append(w_ring[end])
+        extra_c.append(color_fn(tip[None], np.array([u[end]]))[0])
+        ci = base + len(extra_pos) - 1
+        for k in range(segments):
+            a = end * segments + k
+            bq = end * segments + (k + 1) % segments
+            tris.append((ci, bq, a) if end == 0 else (ci, a, bq))
+    if extra_pos:
+        pos = np.concatenate([pos, np.array(extra_pos)])
+        w = np.concatenate([w, np.array(extra_w)])
+        col = np.concatenate([col, np.array(extra_c)])
+    jnt = np.tile(np.arange(joint_count), (pos.shape[0], 1))
+    builder.add(pos, jnt, w, col, tris)
+
+
+def _noise(seed: int, *coords) -> np.ndarray:
+    """Cheap deterministic value noise from hashed sines: enough for skin blotches and wounds."""
+    acc = 0.0
+    for i, c in enumerate(coords):
+        acc = acc + np.asarray(c, dtype=np.float64) * (12.9898 + 7.233 * i + seed * 1.618)
+    return np.mod(np.sin(acc) * 43758.5453, 1.0)
+
+
+SKIN = np.array([0.46, 0.55, 0.40])  # sickly grey-green
+PANTS = np.array([0.22, 0.20, 0.24])
+SHOES = np.array([0.12, 0.10, 0.09])
+SHIRT = np.array([0.55, 0.50, 0.40])
+BLOOD = np.array([0.35, 0.05, 0.04])
+
+
+def _skin_color(pos, u, seed=0):
+    blotch = _smoothstep((np.sin(pos[:, 0] * 41.0 + 1.3) * np.sin(pos[:, 1] * 37.0) * np.sin(pos[:, 2] * 53.0 + 0.7) - 0.55) * 4.0)
+    c = SKIN[None] * (0.92 + 0.08 * np.sin(pos[:, 1] * 23.0))[:, None]
+    c = c * (1.0 - 0.45 * blotch[:, None]) + BLOOD[None] * 0.45 * blotch[:, None]
+    return np.concatenate([c, np.ones((pos.shape[0], 1))], axis=1)
+
+
+def _leg_color(pos, u):
+    c = np.where((pos[:, 1] > 0.22)[:, None], PANTS[None], _skin_color(pos, u)[:, :3])
+    torn = (pos[:, 1] > 0.22) & (pos[:, 1] < 0.36)  # ragged trouser hems above bare shins
+    ragged = np.sin(np.arctan2(pos[:, 2], pos[:, 0] - np.sign(pos[:, 0]) * 0.1) * 7.0) * 0.05 + 0.29
+    c = np.where((torn & (pos[:, 1] < ragged))[:, None], _skin_color(pos, u)[:, :3], c)
+    return np.concatenate([c, np.ones((pos.shape[0], 1))], axis=1)
+
+
+def _foot_color(pos, u):
+    return np.concatenate([np.repeat(SHOES[None], pos.shape[0], 0), np.ones((pos.shape[0], 1))], axis=1)
+
+
+def _torso_color(pos, u):
+    c = np.where((pos[:, 1] < 1.0)[:, None], PANTS[None], _skin_color(pos, u)[:, :3])
+    return np.concatenate([c, np.ones((pos.shape[0], 1))], axis=1)
+
+
+def _shirt_color(pos, u):
+    stain = _smoothstep((np.sin(pos[:, 0] * 17.0) * np.sin(pos[:, 1] * 13.0 + 1.0) - 0.3) * 3.0)
+    c = SHIRT[None] * (1.0 - 0.5 * stain[:, None]) + BLOOD[None] * 0.5 * stain[:, None]
+    return np.concatenate([c, np.ones((pos.shape[0], 1))], axis=1)
+
+
+def _build_body(div: int) -> SkinnedMesh:
+    jc = len(JOINT_NAMES)
+    J = JOINT_NAMES.index
+    p = _joint_positions()
+    m = _MeshBuilder()
+
+    # Torso: pelvis to the base of the neck, elliptic, thin at the waist, ribs showing.
+    pts = np.array([[0.0, 0.84, 0.0], [0.0, 0.98, 0.0], [0.0, 1.10, -0.01], [0.0, 1.28, -0.015], [0.0, 1.49, -0.02]])
+    width = lambda u: float(np.interp(u, [0, 0.2, 0.45, 0.7, 0.9, 1.0], [0.13, 0.165, 0.13, 0.165, 0.175, 0.09]))
+    depth = lambda u: float(np.interp(u, [0, 0.2, 0.45, 0.7, 0.9, 1.0], [0.10, 0.11, 0.09, 0.11, 0.10, 0.07]))
+
+    def ribs(u, a):
+        front = np.clip(np.sin(a), 0.0, 1.0) ** 2  # the normal axis is +X, binormal is +Z: front is sin > 0
+        band = (u > 0.5) & (u < 0.85)
+        return 1.0 + np.where(band, 0.035 * front * np.sin(u * 70.0), 0.0) + 0.02 * (_noise(1, u * 31.0, a * 5.0) - 0.5)
+
+    _tube(m, pts, width, depth, 20 // div, 24 // div, [J("hips"), J("spine"), J("chest")],
+          [0.0, 0.14 / 0.65, 0.44 / 0.65, 1.0], [0.0, 0.06, 0.07], _torso_color, jc, displace=ribs)
+
+    # Neck.
+    pts = np.array([[0.0, 1.45, -0.015], [0.0, 1.55, -0.005], [0.0, 1.64, 0.0]])
+    _tube(m, pts, lambda u: 0.052, lambda u: 0.05, max(8 // div, 2), max(12 // div, 4), [J("chest"), J("neck"), J("head")],
+          [0.0, 0.05 / 0.19, 0.15 / 0.19, 1.0], [0.0, 0.15, 0.15], _skin_color, jc, cap_start=False, cap_end=False)
+
+    for side, sx in (("l", 1.0), ("r", -1.0)):
+        # Arm: from inside the shoulder to the fingertips. Gaunt: thin upper arm, knobbly elbow.
+        a = np.array([[0.10 * sx, 1.445, -0.01], [0.18 * sx, 1.44, -0.01], [0.46 * sx, 1.44, -0.01], [0.71 * sx, 1.44, -0.01], [0.89 * sx, 1.43, -0.005]])
+        length = float(np.sum(np.linalg.norm(np.diff(a, axis=0), axis=1)))
+        brk = np.array([0.10, 0.18, 0.46, 0.71, 0.89]) - 0.10
+        r_arm = lambda u: float(np.interp(u, [0, 0.1, 0.3, 0.45, 0.47, 0.55, 0.75, 0.78, 0.86, 1.0], [0.062, 0.055, 0.042, 0.036, 0.038, 0.04, 0.028, 0.03, 0.04, 0.014]))
+        r_arm_v = lambda u: float(np.interp(u, [0, 0.1, 0.3, 0.45, 0.55, 0.75, 0.78, 0.86, 1.0], [0.06, 0.05, 0.04, 0.035, 0.036, 0.026, 0.018, 0.016, 0.008]))
+        _tube(m, a, r_arm_v, r_arm, 22 // div, 12 // div,
+              [J(f"shoulder_{side}"), J(f"upper_arm_{side}"), J(f"forearm_{side}"), J(f"hand_{side}")],
+              list(brk / length), [0.0, 0.05 / length, 0.07 / length, 0.04 / length], _skin_color, jc, cap_start=False)
+        # Leg: hip to ankle.
+        lg = np.array([[0.10 * sx, 0.99, 0.0], [0.10 * sx, 0.93, 0.0], [0.10 * sx, 0.51, 0.005], [0.10 * sx, 0.07, -0.01]])
+        r_leg = lambda u: float(np.interp(u, [0, 0.1, 0.45, 0.5, 0.55, 0.7, 0.95, 1.0], [0.08, 0.078, 0.052, 0.05, 0.052, 0.05, 0.035, 0.035]))
+        _tube(m, lg, r_leg, r_leg, 24 // div, 12 // div, [J("hips"), J(f"thigh_{side}"), J(f"shin_{side}")],
+              [0.0, 0.06 / 0.92, 0.48 / 0.92, 1.0], [0.0, 0.06 / 0.92, 0.1 / 0.92], _leg_color, jc, cap_start=False, cap_end=False)
+        # Foot: heel to toe, a flattened tube (a worn shoe).
+        ft = np.array([[0.10 * sx, 0.055, -0.065], [0.10 * sx, 0.05, 0.02], [0.10 * sx, 0.035, 0.125], [0.10 * sx, 0.03, 0.19]])
+        r_fw = lambda u: float(np.interp(u, [0, 0.15, 0.6, 1.0], [0.035, 0.045, 0.05, 0.03]))
+        r_fh = lambda u: float(np.interp(u, [0, 0.15, 0.6, 1.0], [0.035, 0.045, 0.03, 0.02]))
+        _tube(m, ft, r_fw, r_fh, max(8 // div, 2), max(12 // div, 4), [J(f"foot_{side}"), J(f"toe_{side}")],
+              [0.0, 0.19 / 0.256, 1.0], [0.0, 0.03 / 0.256], _foot_color, jc)
+    return m.build("zombie_body", "body", 0, (1.0, 1.0, 1.0, 1.0))
+
+
+def _build_head(div: int, variant: str) -> SkinnedMesh:
+    jc = len(JOINT_NAMES)
+    J = JOINT_NAMES.index
+    m = _MeshBuilder()
+    rings, segs = 18 // div, 20 // div
+    # A deformed sphere; u runs from the chin (0) to the crown (1).
+    lat = np.linspace(-math.pi / 2, math.pi / 2, rings + 1)[1:-1]
+    lon = np.linspace(0.0, 2.0 * math.pi, segs, endpoint=False)
+    la, lo = np.meshgrid(lat, lon, indexing="ij")
+    x = np.cos(la) * np.sin(lo)
+    y = np.sin(la)
+    z = np.cos(la) * np.cos(lo)
+    if variant == "head_a":
+        rx, ry, rz, cy = 0.085, 0.115, 0.10, 1.71
+        sock = 0.03  # deep eye sockets
+    else:
+        rx, ry, rz, cy = 0.09, 0.13, 0.095, 1.72
+        sock = 0.02
+    r = np.ones_like(x)
+    # Brow ridge, sunken eyes, a nose bump, a jutting jaw, hollow cheeks.
+    for ex in (-0.35, 0.35):
+        r -= sock / 0.1 * np.exp(-(((x - ex) / 0.18) ** 2 + ((y - 0.12) / 0.13) ** 2)) * (z > 0)
+    r += 0.10 * np.exp(-((x / 0.12) ** 2 + ((y - 0.3) / 0.08) ** 2)) * (z > 0)
+    r += 0.12 * np.exp(-((x / 0.1) ** 2 + ((y + 0.05) / 0.12) ** 2)) * (z > 0)
+    r -= 0.08 * np.exp(-(((np.abs(x) - 0.6) / 0.2) ** 2 + ((y + 0.25) / 0.2) ** 2)) * (z > 0)
+    r += 0.06 * np.exp(-((x / 0.5) ** 2 + ((y + 0.65) / 0.2) ** 2)) * (z > -0.2)
+    if variant == "head_b":
+        # A cracked, lopsided skull with a bulge on one side.
+        r += 0.12 * np.exp(-(((x - 0.6) / 0.35) ** 2 + ((y - 0.55) / 0.35) ** 2))
+        r -= 0.05 * np.exp(-(((x + 0.5) / 0.2) ** 2 + ((y - 0.6) / 0.4) ** 2))
+    r += 0.03 * (_noise(3 if variant == "head_a" else 4, la * 7.0, lo * 3.0) - 0.5)
+    pos = np.stack([x * rx * r, cy + y * ry * r, 0.005 + z * rz * r], axis=-1).reshape(-1, 3)
+    bottom = np.array([[0.0, cy - ry * 1.02, 0.005]])
+    top = np.array([[0.0, cy + ry * (1.1 if variant == "head_b" else 1.0), 0.005]])
+    pos = np.concatenate([pos, bottom, top])
+    # Weights: the lower front (jaw) follows the jaw joint, the lowest ring blends into the neck.
+    jaw = _smoothstep((-(pos[:, 1] - (cy - 0.035)) / 0.04)) * _smoothstep((pos[:, 2] - 0.0) / 0.04)
+    neck = _smoothstep((-(pos[:, 1] - (cy - 0.095)) / 0.03)) * (1.0 - jaw)
+    w = np.zeros((pos.shape[0], jc))
+    w[:, J("jaw")] = jaw * (1.0 - neck)
+    w[:, J("neck")] = neck
+    w[:, J("head")] = 1.0 - w[:, J("jaw")] - neck
+    col = _skin_color(pos, None)
+    eye = (np.abs(np.abs(pos[:, 0]) - 0.03) < 0.018) & (np.abs(pos[:, 1] - (cy + 0.015)) < 0.014) & (pos[:, 2] > 0.05)
+    col[eye, :3] = np.array([0.9, 0.85, 0.55])  # milky eyes
+    mouth = (np.abs(pos[:, 0]) < 0.035) & (np.abs(pos[:, 1] - (cy - 0.05)) < 0.008) & (pos[:, 2] > 0.05)
+    col[mouth, :3] = np.array([0.15, 0.03, 0.03])
+    if variant == "head_b":
+        crack = (np.abs(pos[:, 0] - 0.04 - 0.02 * np.sin(pos[:, 1] * 90.0)) < 0.012) & (pos[:, 1] > cy + 0.05)
+        col[crack, :3] = BLOOD * 0.8
+    nr, ns = rings - 1, segs
+    tris = []
+    for i in range(nr - 1):
+        for k in range(ns):
+            a, b = i * ns + k, i * ns + (k + 1) % ns
+            c, d = (i + 1) * ns + k, (i + 1) * ns + (k + 1) % ns
+            tris += [(a, b, c), (b, d, c)]
+    bi, ti = nr * ns, nr * ns + 1
+    for k in range(ns):
+        tris.append((bi, (k + 1) % ns, k))
+        tris.append((ti, (nr - 1) * ns + k, (nr - 1) * ns + (k + 1) % ns))
+    m.add(pos, np.tile(np.arange(jc), (pos.shape[0], 1)), w, col, tris)
+    return m.build(f"zombie_{variant}", variant, 0, (1.0, 1.0, 1.0, 1.0), group="head")
+
+
+def _build_shirt(div: int) -> SkinnedMesh:
+    """A torn shirt: a loose tube over the torso with a ragged hem and holes, plus ripped short sleeves."""
+    jc = len(JOINT_NAMES)
+    J = JOINT_NAMES.index
+    m = _MeshBuilder()
+    pts = np.array([[0.0, 0.97, 0.0], [0.0, 1.10, -0.01], [0.0, 1.28, -0.015], [0.0, 1.50, -0.02]])
+    width = lambda u: float(np.interp(u, [0, 0.3, 0.6, 0.85, 1.0], [0.185, 0.16, 0.185, 0.195, 0.11]))
+    depth = lambda u: float(np.interp(u, [0, 0.3, 0.6, 0.85, 1.0], [0.125, 0.115, 0.13, 0.12, 0.085]))
+    rings, segs = 14 // div, 24 // div
+
+    def keep(r, k, rings_, segs_):
+        if r == 0:
+            return bool(_noise(7, k * 1.0) > 0.35)  # torn hem
+        return not (r in (rings_ // 2, rings_ // 2 + 1) and _noise(8, k * 1.0, r * 1.0) > 0.8)  # holes
+
+    _tube(m, pts, width, depth, rings, segs, [J("hips"), J("spine"), J("chest")], [0.0, 0.13 / 0.53, 0.31 / 0.53, 1.0],
+          [0.0, 0.06, 0.07], _shirt_color, jc, cap_start=False, cap_end=False, keep_quad=keep)
+    for side, sx in (("l", 1.0), ("r", -1.0)):
+        a = np.array([[0.12 * sx, 1.445, -0.01], [0.18 * sx, 1.44, -0.01], [0.30 * sx, 1.44, -0.01]])
+        _tube(m, a, lambda u: 0.072 - 0.02 * u, lambda u: 0.068 - 0.02 * u, max(4 // div, 1), max(12 // div, 4),
+              [J(f"shoulder_{side}"), J(f"upper_arm_{side}")], [0.0, 0.06 / 0.18, 1.0], [0.0, 0.04 / 0.18], _shirt_color,
+              jc, cap_start=False, cap_end=False)
+    return m.build("zombie_shirt_torn", "shirt_torn", 0, (1.0, 1.0, 1.0, 1.0))
+
+
+def build_meshes() -> list[SkinnedMesh]:
+    meshes = []
+    for lod, div in enumerate(LOD_DIVISORS):
+        for build in (_build_body, lambda d: _build_head(d, "head_a"), lambda d: _build_head(d, "head_b"), _build_shirt):
+            mesh = build(div)
+            mesh.lod = lod
+            mesh.name = f"{mesh.name}_lod{lod}"
+            meshes.append(mesh)
+    return meshes
+
+
+# ------------------------------------------------------------------------------------------------
+# Weapons: handle along +Y, grip at the origin.
+
+
+def _rigid_from_builder(m: _MeshBuilder, name: str, color) -> RigidMesh:
+    sk = m.build(name, name, 0, color)
+    return RigidMesh(name, sk.positions, sk.normals, sk.indices, sk.colors, color)
+
+
+def build_props() -> dict[str, Prop]:
+    jc = 1
+    one = lambda pos, u: np.concatenate([np.repeat(np.array([[0.35, 0.22, 0.15]]), pos.shape[0], 0), np.ones((pos.shape[0], 1))], 1)
+    m = _MeshBuilder()
+    pipe = np.array([[0.0, -0.10, 0.0], [0.0, 0.80, 0.0]])
+    rust = lambda pos, u: np.concatenate([(np.array([0.42, 0.25, 0.16]) * (0.75 + 0.25 * _noise(9, pos[:, 1] * 40.0))[:, None]), np.ones((pos.shape[0], 1))], 1)
+    _tube(m, pipe, lambda u: 0.017, lambda u: 0.017, 8, 12, [0], [0.0, 1.0], [0.0], rust, jc)
+    elbow = np.array([[0.0, 0.78, 0.0], [0.0, 0.80, 0.02], [0.0, 0.80, 0.10]])
+    _tube(m, elbow, lambda u: 0.02, lambda u: 0.02, 4, 12, [0], [0.0, 1.0], [0.0], rust, jc)
+    pipe_mesh = _rigid_from_builder(m, "weapon_pipe", (1.0, 1.0, 1.0, 1.0))
+
+    m = _MeshBuilder()
+    handle = np.array([[0.0, -0.12, 0.0], [0.0, 0.62, 0.0]])
+    _tube(m, handle, lambda u: 0.018 + 0.004 * u, lambda u: 0.015 + 0.003 * u, 8, 10, [0], [0.0, 1.0], [0.0], one, jc)
+    # The head: a wedge blade pointing +Z (the blade faces where the palm's thumb side points).
+    steel = lambda pos, u: np.concatenate([np.repeat(np.array([[0.55, 0.57, 0.6]]), pos.shape[0], 0), np.ones((pos.shape[0], 1))], 1)
+    blade = np.array([[0.0, 0.56, -0.04], [0.0, 0.58, 0.06], [0.0, 0.56, 0.16]])
+    _tube(m, blade, lambda u: 0.012 - 0.009 * u, lambda u: 0.06 + 0.06 * u, 6, 8, [0], [0.0, 1.0], [0.0], steel, jc)
+    axe_mesh = _rigid_from_builder(m, "weapon_axe", (1.0, 1.0, 1.0, 1.0))
+    # Grip frames: where the fist closes on the handle, in the prop's own space.
+    pipe_grip = np.eye(4)
+    pipe_grip[1, 3] = 0.02
+    axe_grip = np.eye(4)
+    axe_grip[1, 3] = 0.0
+    return {"pipe": Prop(pipe_mesh, pipe_grip), "axe": Prop(axe_mesh, axe_grip)}
+
+
+# ------------------------------------------------------------------------------------------------
+# Clips. A pose is a handful of named angles (radians) and a hips offset (metres); clips are functions
+# of phase p in [0, 1) that return those parameters, turned into joint rotations by _pose_to_joints.
+# Conventions at rest (world-aligned joint axes): a positive *_pitch leans forward, thigh_flex swings
+# the leg forward, knee bends the shin back, ankle points the toes down, arm_down lowers the arm from
+# the T-pose, arm_fwd swings it forward, elbow bends the forearm, wrist droops the hand.
+
+_PARAMS = (
+    "hips_x hips_y hips_z hips_pitch hips_yaw hips_roll spine_pitch spine_yaw chest_pitch chest_yaw chest_roll "
+    "neck_pitch head_pitch head_roll head_yaw jaw"
+).split()
+_SIDE_PARAMS = "shrug arm_down arm_fwd arm_twist elbow wrist thigh_flex thigh_abd knee ankle toe".split()
+TAU = 2.0 * math.pi
+
+
+def _neutral(n: int) -> dict[str, np.ndarray]:
+    p = {k: np.zeros(n) for k in _PARAMS}
+    for s in "lr":
+        for k in _SIDE_PARAMS:
+            p[f"{k}_{s}"] = np.zeros(n)
+        p[f"arm_down_{s}"] = np.full(n, 1.3)  # arms hang by default
+        p[f"elbow_{s}"] = np.full(n, 0.25)
+    return p
+
+
+def _q(x=0.0, y=0.0, z=0.0, order="xyz") -> np.ndarray:
+    qx = tf.quat_from_axis_angle([1.0, 0.0, 0.0], np.asarray(x, dtype=np.float64))
+    qy = tf.quat_from_axis_angle([0.0, 1.0, 0.0], np.asarray(y, dtype=np.float64))
+    qz = tf.quat_from_axis_angle([0.0, 0.0, 1.0], np.asarray(z, dtype=np.float64))
+    if order == "xyz":  # apply x, then y, then z
+        return tf.quat_mul(qz, tf.quat_mul(qy, qx))
+    if order == "xzy":  # apply x, then z, then y
+        return tf.quat_mul(qy, tf.quat_mul(qz, qx))
+    raise ValueError(order)
+
+
+def _mirror(q: np.ndarray) -> np.ndarray:
+    """Mirror a left-side rotation to the right side (reflection through the YZ plane)."""
+    q = q.copy()
+    q[..., 1] *= -1.0
+    q[..., 2] *= -1.0
+    return q
+
+
+def _pose_to_joints(p: dict[str, np.ndarray], n: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    p = {k: np.broadcast_to(np.asarray(v, dtype=np.float64), (n,)).copy() for k, v in p.items()}
+    out = {
+        "hips": _q(p["hips_pitch"], p["hips_yaw"], p["hips_roll"], "xzy"),
+        "spine": _q(p["spine_pitch"], p["spine_yaw"], 0.0),
+        "chest": _q(p["chest_pitch"], p["chest_yaw"], p["chest_roll"]),
+        "neck": _q(p["neck_pitch"], 0.5 * p["head_yaw"], 0.0),
+        "head": _q(p["head_pitch"], 0.5 * p["head_yaw"], p["head_roll"]),
+        "jaw": _q(p["jaw"], 0.0, 0.0),
+    }
+    for s in "lr":
+        g = lambda k: p[f"{k}_{s}"]
+        shoulder = _q(0.0, -0.3 * g("arm_fwd") * 0.3, 0.4 * g("shrug"))
+        # Twist about the bone, then lower, then swing forward (in the shoulder's frame).
+        arm = _q(g("arm_twist"), -g("arm_fwd"), -g("arm_down"), "xzy")
+        forearm = _q(0.0, -g("elbow"), 0.0)
+        hand = _q(0.0, 0.0, -g("wrist"))
+        thigh = _q(-g("thigh_flex"), 0.0, g("thigh_abd"))
+        shin = _q(g("knee"), 0.0, 0.0)
+        foot = _q(g("ankle"), 0.0, 0.0)
+        toe = _q(g("toe"), 0.0, 0.0)
+        for name, q in (("shoulder", shoulder), ("upper_arm", arm), ("forearm", forearm), ("hand", hand),
+                        ("thigh", thigh), ("shin", shin), ("foot", foot), ("toe", toe)):
+            out[f"{name}_{s}"] = q if s == "l" else _mirror(q)
+    hips_t = np.stack([p["hips_x"], p["hips_y"], p["hips_z"]], axis=1) + _joint_positions()[0]
+    return out, hips_t
+
+
+def _bump(p, centre, width):
+    """A smooth periodic bump in phase, peaking at `centre`."""
+    d = np.mod(p - centre + 0.5, 1.0) - 0.5
+    return np.exp(-((d / width) ** 2))
+
+
+def _ease_keys(p, times, values):
+    """Piecewise ease-in-out between key poses (times in [0, 1], values per key)."""
+    p = np.asarray(p, dtype=np.float64)
+    out = np.empty_like(p)
+    for i, x in enumerate(p):
+        k = int(np.clip(np.searchsorted(times, x, side="right") - 1, 0, len(times) - 2))
+        u = (x - times[k]) / (times[k + 1] - times[k])
+        u = float(np.clip(u, 0.0, 1.0))
+        u = u * u * (3 - 2 * u)
+        out[i] = values[k] + (values[k + 1] - values[k]) * u
+    return out
+
+
+def _keyed(p, keys: list[tuple[float, dict[str, float]]], base: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Override parameters with eased key poses; a key lists only the parameters it changes."""
+    names = set().union(*(k[1].keys() for k in keys))
+    for name in names:
+        times, vals, last = [], [], None
+        for t, pose in keys:
+            last = pose.get(name, last if last is not None else float(np.ravel(base[name])[0]))
+            times.append(t)
+            vals.append(last)
+        base[name] = _ease_keys(p, np.array(times), np.array(vals))
+    return base
+
+
+def _shamble(p):
+    a = _neutral(p.shape[0])
+    c, s = np.cos(TAU * p), np.sin(TAU * p)
+    a["hips_x"] = 0.035 * s
+    a["hips_pitch"] = 0.12 + 0.02 * np.cos(2 * TAU * p)
+    a["hips_yaw"] = 0.14 * c
+    a["hips_roll"] = -0.07 * s
+    a["spine_pitch"] = 0.12
+    a["chest_pitch"] = 0.22 + 0.03 * np.cos(2 * TAU * p)
+    a["chest_yaw"] = -0.12 * c
+    a["chest_roll"] = 0.08 + 0.04 * s  # lopsided
+    a["neck_pitch"] = -0.25
+    a["head_pitch"] = -0.05 + 0.06 * np.cos(2 * TAU * p + 0.6)
+    a["head_roll"] = 0.3 + 0.05 * s
+    a["jaw"] = 0.18 + 0.08 * np.sin(2 * TAU * p)
+    # The left arm reaches forward, the right one hangs and swings: zombies are not symmetric.
+    a["arm_down_l"] = -0.35 + 0.06 * np.sin(2 * TAU * p)  # raised against the forward lean: level and reaching
+    a["arm_fwd_l"] = 1.3 + 0.05 * c
+    a["arm_twist_l"] = -0.6
+    a["elbow_l"] = 0.2 + 0.05 * s
+    a["wrist_l"] = 0.5
+    a["arm_down_r"] = 0.35 + 0.1 * c
+    a["arm_fwd_r"] = 1.0 - 0.2 * c
+    a["arm_twist_r"] = -0.4
+    a["elbow_r"] = 0.4 + 0.1 * s
+    a["wrist_r"] = 0.35
+    # Left leg steps cleanly (heel strike at p = 0); the right one drags (heel strike at p = 0.5).
+    a["thigh_flex_l"] = 0.05 + 0.3 * c
+    a["knee_l"] = 0.12 + 0.85 * _bump(p, 0.75, 0.13)
+    a["ankle_l"] = -0.2 * c + 0.45 * _bump(p, 0.58, 0.07)
+    a["thigh_flex_r"] = 0.05 - 0.24 * c
+    a["knee_r"] = 0.15 + 0.45 * _bump(p, 0.25, 0.13)
+    a["ankle_r"] = 0.2 + 0.15 * c + 0.3 * _bump(p, 0.08, 0.07)  # toes dragging
+    a["thigh_abd_r"] = 0.06
+    return a
+
+
+def _run(p):
+    a = _neutral(p.shape[0])
+    c, s = np.cos(TAU * p), np.sin(TAU * p)
+    a["hips_x"] = 0.025 * s
+    a["hips_pitch"] = 0.25
+    a["hips_yaw"] = 0.2 * c
+    a["spine_pitch"] = 0.15
+    a["chest_pitch"] = 0.35
+    a["chest_yaw"] = -0.25 * c
+    a["neck_pitch"] = -0.45
+    a["head_pitch"] = -0.1 + 0.08 * np.cos(2 * TAU * p)
+    a["head_roll"] = 0.15 * s
+    a["jaw"] = 0.45
+    # Arms flail forward, clawing.
+    a["arm_down_l"] = 0.55 - 0.35 * c
+    a["arm_fwd_l"] = 1.0 - 0.5 * c
+    a["elbow_l"] = 0.9 + 0.4 * c
+    a["wrist_l"] = 0.4
+    a["arm_down_r"] = 0.55 + 0.35 * c
+    a["arm_fwd_r"] = 1.0 + 0.5 * c
+    a["elbow_r"] = 0.9 - 0.4 * c
+    a["wrist_r"] = 0.4
+    a["thigh_flex_l"] = 0.25 + 0.6 * c
+    a["knee_l"] = 0.35 + 1.35 * _bump(p, 0.7, 0.15)
+    a["ankle_l"] = -0.25 * c + 0.5 * _bump(p, 0.45, 0.08)
+    a["thigh_flex_r"] = 0.25 - 0.6 * c
+    a["knee_r"] = 0.35 + 1.35 * _bump(p, 0.2, 0.15)
+    a["ankle_r"] = 0.25 * c + 0.5 * _bump(p, 0.95, 0.08)
+    return a
+
+
+def _idle(p):
+    a = _neutral(p.shape[0])
+    s = np.sin(TAU * p)
+    a["hips_x"] = 0.02 * s
+    a["hips_roll"] = -0.04 * s
+    a["spine_pitch"] = 0.1
+    a["chest_pitch"] = 0.18 + 0.03 * np.sin(2 * TAU * p)  # laboured breathing
+    a["chest_roll"] = 0.06
+    a["neck_pitch"] = -0.05
+    a["head_pitch"] = 0.25 + 0.1 * np.sin(TAU * p + 1.0)
+    a["head_roll"] = 0.35 + 0.15 * s
+    a["head_yaw"] = 0.15 * np.sin(TAU * p + 0.5)
+    a["jaw"] = 0.25 + 0.15 * np.sin(3 * TAU * p)
+    for side, ph in (("l", 0.0), ("r", 0.9)):
+        a[f"arm_down_{side}"] = 1.3 + 0.05 * np.sin(TAU * p + ph)
+        a[f"arm_fwd_{side}"] = 0.25 + 0.08 * np.sin(TAU * p + ph)
+        a[f"elbow_{side}"] = 0.3 + 0.05 * np.sin(TAU * p + ph + 0.5)
+        a[f"wrist_{side}"] = 0.3
+        a[f"thigh_flex_{side}"] = 0.1
+        a[f"knee_{side}"] = 0.2
+        a[f"thigh_abd_{side}"] = 0.05
+    a["ankle_l"] = 0.1
+    a["ankle_r"] = 0.1
+    return a
+
+
+def _attack(p):
+    """Overhead swing with the right (weapon) hand: wind up, strike down, recover."""
+    a = _idle(np.zeros_like(p))
+    keys = [
+        (0.0, {}),
+        (0.3, dict(arm_down_r=-1.4, arm_fwd_r=0.7, arm_twist_r=-0.6, elbow_r=1.1, wrist_r=-0.3, chest_yaw=0.45, chest_pitch=-0.05,
+                   spine_yaw=0.2, head_pitch=0.0, jaw=0.6, thigh_flex_r=-0.15, knee_r=0.3, thigh_flex_l=0.25)),
+        (0.48, dict(arm_down_r=0.9, arm_fwd_r=1.5, arm_twist_r=0.2, elbow_r=0.15, wrist_r=0.3, chest_yaw=-0.5, chest_pitch=0.45,
+                    spine_yaw=-0.2, spine_pitch=0.2, head_pitch=0.2, jaw=0.7, arm_down_l=1.0, arm_fwd_l=0.2, thigh_flex_l=0.45, knee_l=0.35,
+                    hips_pitch=0.15)),
+        (0.62, dict(arm_down_r=1.15, arm_fwd_r=1.0, elbow_r=0.3, chest_yaw=-0.35, chest_pitch=0.38)),
+        (1.0, {}),
+    ]
+    # The last key returns to the idle pose at p = 0 so that cross-fades in and out are clean.
+    return _keyed(p, keys, a)
+
+
+def _hit(p):
+    a = _idle(np.zeros_like(p))
+    keys = [
+        (0.0, {}),
+        (0.18, dict(chest_pitch=-0.3, spine_pitch=-0.15, head_pitch=-0.55, head_roll=0.6, hips_z=-0.06, hips_pitch=-0.1, jaw=0.6,
+                    arm_down_l=0.4, arm_fwd_l=-0.3, elbow_l=0.6, arm_down_r=0.5, arm_fwd_r=-0.2, elbow_r=0.7, knee_l=0.35, knee_r=0.3,
+                    thigh_flex_l=0.25)),
+        (0.45, dict(chest_pitch=0.3, head_pitch=0.35, head_roll=0.2, hips_z=-0.04, arm_down_l=1.1, arm_down_r=1.2, elbow_l=0.4)),
+        (1.0, {}),
+    ]
+    return _keyed(p, keys, a)
+
+
+def _death(p):
+    """Knees buckle, the body topples backwards and lies still on its back."""
+    a = _idle(np.zeros_like(p))
+    keys = [
+        (0.0, {}),
+        (0.15, dict(chest_pitch=-0.35, head_pitch=-0.6, head_roll=0.5, hips_z=-0.05, jaw=0.8, arm_down_l=0.5, arm_down_r=0.6,
+                    arm_fwd_l=-0.2, arm_fwd_r=-0.1, elbow_l=0.8, elbow_r=0.6)),
+        (0.35, dict(hips_y=-0.38, hips_pitch=0.15, chest_pitch=0.25, head_pitch=0.5, knee_l=1.9, knee_r=1.7, thigh_flex_l=1.1,
+                    thigh_flex_r=1.0, ankle_l=-0.55, ankle_r=-0.5, arm_down_l=1.2, arm_down_r=1.3, arm_fwd_l=0.3, arm_fwd_r=0.2)),
+        (0.62, dict(hips_y=-0.84, hips_z=-0.55, hips_pitch=-1.5, chest_pitch=-0.05, spine_pitch=0.0, head_pitch=-0.3, head_roll=0.6,
+                    knee_l=0.5, knee_r=0.7, thigh_flex_l=0.4, thigh_flex_r=0.6, ankle_l=0.3, ankle_r=0.4, arm_down_l=0.1,
+                    arm_down_r=-0.1, arm_fwd_l=-0.6, arm_fwd_r=-0.5, elbow_l=0.3, elbow_r=0.5, jaw=0.5)),
+        (0.72, dict(hips_y=-0.80, head_pitch=-0.2)),
+        (0.85, dict(hips_y=-0.85, head_pitch=-0.35, knee_l=0.35, knee_r=0.5, thigh_flex_l=0.3, thigh_flex_r=0.45, ankle_l=0.5,
+                    ankle_r=0.6, arm_down_l=0.05, arm_down_r=-0.15, wrist_l=0.0, wrist_r=0.0)),
+        (1.0, dict()),
+    ]
+    return _keyed(p, keys, a)
+
+
+def _crawl(p):
+    """Legs useless, pulling itself along with alternating arms (left hand plants at p = 0)."""
+    a = _neutral(p.shape[0])
+    c, s = np.cos(TAU * p), np.sin(TAU * p)
+    a["hips_y"] = -0.73 + 0.015 * np.cos(2 * TAU * p)
+    a["hips_pitch"] = 1.42
+    a["hips_roll"] = 0.08 * s
+    a["spine_pitch"] = -0.1 - 0.05 * np.cos(2 * TAU * p)
+    a["chest_pitch"] = -0.2
+    a["chest_roll"] = -0.12 * s
+    a["chest_yaw"] = 0.1 * c
+    a["neck_pitch"] = -0.5
+    a["head_pitch"] = -0.35
+    a["head_roll"] = 0.2
+    a["jaw"] = 0.4 + 0.2 * np.sin(2 * TAU * p)
+    for side, ph in (("l", 0.0), ("r", 0.5)):
+        cc = np.cos(TAU * (p - ph))
+        reach = 0.5 + 0.5 * cc  # 1 when the hand plants far forward
+        a[f"arm_down_{side}"] = 0.6 - 1.9 * reach
+        a[f"arm_fwd_{side}"] = 0.9 + 0.2 * np.sin(TAU * (p - ph))
+        a[f"elbow_{side}"] = 0.25 + 1.0 * (1.0 - reach)
+        a[f"wrist_{side}"] = 0.2
+        a[f"thigh_flex_{side}"] = -0.1 + 0.08 * cc
+        a[f"thigh_abd_{side}"] = 0.12
+        a[f"knee_{side}"] = 0.25 + 0.15 * _bump(p, ph + 0.5, 0.15)
+        a[f"ankle_{side}"] = 0.9
+    return a
+
+
+
+# name, authoring function, duration (s), loop, phase markers, stride (m per cycle), keep feet grounded
+CLIP_SPECS = [
+    ("idle", _idle, 3.0, True, {}, None, True),
+    ("shamble", _shamble, 1.6, True, {"left_foot_down": 0.0, "right_foot_down": 0.5}, 0.9, True),
+    ("run", _run, 0.7, True, {"left_foot_down": 0.0, "right_foot_down": 0.5}, 2.3, False),
+    ("attack", _attack, 1.2, False, {"impact": 0.48}, None, True),
+    ("hit", _hit, 0.6, False, {}, None, True),
+    ("death", _death, 2.2, False, {}, None, False),
+    ("crawl", _crawl, 2.4, True, {"left_hand_down": 0.0, "right_hand_down": 0.5}, 0.55, False),
+]
+
+
+def _ground(skeleton: Skeleton, joints: dict[str, np.ndarray], hips_t: np.ndarray) -> np.ndarray:
+    """Lift or drop the hips so the lowest foot point rests on the ground at every key (no floating, no sinking)."""
+
+    n = hips_t.shape[0]
+    rot = np.broadcast_to(skeleton.rest_rotation, (n,) + skeleton.rest_rotation.shape).copy()
+    for name, q in joints.items():
+        rot[:, skeleton.index(name)] = q
+    tr = np.broadcast_to(skeleton.rest_translation, (n,) + skeleton.rest_translation.shape).copy()
+    tr[:, 0] = hips_t
+    g = global_matrices(skeleton, LocalPose(tr, rot, np.ones(tr.shape)))
+    # Sole points under the heel and the toe of each foot, in the foot/toe joints' frames.
+    lows = []
+    for side in "lr":
+        heel = g[:, skeleton.index(f"foot_{side}")] @ np.array([0.0, -0.055, -0.06, 1.0])
+        tip = g[:, skeleton.index(f"toe_{side}")] @ np.array([0.0, -0.02, 0.06, 1.0])
+        lows += [heel[:, 1], tip[:, 1]]
+    low = np.min(np.stack(lows), axis=0)
+    out = hips_t.copy()
+    out[:, 1] -= low
+    return out
+
+
+def build_clips(skeleton: Skeleton) -> list[Clip]:
+    clips = []
+    socket = skeleton.index(SOCKET_JOINT)
+    for name, fn, duration, loop, markers, stride, grounded in CLIP_SPECS:
+        count = int(round(duration * SOURCE_FPS)) + 1
+        times = np.arange(count) / SOURCE_FPS
+        joints, hips_t = _pose_to_joints(fn(times / duration), count)
+        if grounded:
+            hips_t = _ground(skeleton, joints, hips_t)
+        if loop:  # close the loop exactly: the last key repeats the first
+            hips_t[-1] = hips_t[0]
+            for q in joints.values():
+                q[-1] = q[0]
+        channels = [Channel(0, "translation", "LINEAR", times.copy(), _quantise(hips_t, 1e-6))]
+        for jname, q in joints.items():
+            j = skeleton.index(jname)
+            if j == socket:
+                continue
+            q = tf.align_quat_track(tf.quat_normalize(q))
+            channels.append(Channel(j, "rotation", "LINEAR", times.copy(), _quantise(q, 1e-7)))
+        channels.sort(key=lambda c: (c.joint, c.path))
+        clips.append(Clip(name, channels, 0.0, float(times[-1]), loop, dict(markers), stride))
+    return clips
+
+
+def build_character() -> Character:
+    skeleton = build_skeleton()
+    return Character(
+        name="zombie",
+        skeleton=skeleton,
+        meshes=build_meshes(),
+        clips=build_clips(skeleton),
+        props=build_props(),
+        sockets={"weapon_r": skeleton.index(SOCKET_JOINT)},
+    ).validate()
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description="Generate the built-in zombie and write it as a binary glTF.")
+    parser.add_argument("--out", type=Path, default=ASSET_PATH, help=f"output .glb (default {ASSET_PATH})")
+    args = parser.parse_args(argv)
+    from .gltf_write import write_glb
+
+    character = build_character()
+    size = write_glb(character, args.out)
+    lod_tris = {}
+    for m in character.meshes:
+        lod_tris.setdefault(m.lod, {})[m.piece] = m.triangle_count
+    print(f"wrote {args.out} ({size} bytes): {character.skeleton.joint_count} joints, "
+          f"{len(character.clips)} clips, triangles per LOD {json.dumps(lod_tris)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,400 @@
+"""Render stage: skinned instanced draws of the crowd, its shadow pass, and the ground.
+
+Contract: ``CrowdRenderer.prepare(camera, instances, row_offset) -> FrameView``, then the passes, each given that view.
+- ``instances`` (``Instances``): per agent a float64 world position, heading, scale, tint and, for
+  each variation group ("head"), which piece it wears. Agent i's palette row is row i.
+- The processor must have written this frame's palette; every pass here only reads it.
+- One instanced draw per (mesh piece, LOD) with agents in it: visible agents are sorted into draws by
+  the LOD their distance picks and the pieces they wear. Culling is a vectorised sphere-frustum test
+  on the CPU.
+- Positions are camera-relative: the CPU subtracts the camera in float64 and the GPU only sees small
+  float32 numbers, so agents 1e5 m from the origin do not jitter.
+- With shadows on, a depth pass from the sun reuses the same instance buffers and palette rows
+  (process once, use in every pass). With shadows off, the shadow map does not exist.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import moderngl
+import numpy as np
+from pyglm import glm
+
+from ..frame import Camera, Instances
+from ..gl import GLStage, gpu_bytes, load_shader
+from ..settings import DEFAULTS, SETTINGS
+from ..lighting import FOG_COLOR, LIGHTING, SUN_DIR
+from ..asset.model import Character, SkinnedMesh
+from ..anim.processor import palette_texel
+from ..asset.vertex_cache import optimize_triangle_order
+
+# Per-vertex record, 28 bytes: the position and one uvec4 (see shaders/skin.vert.glsl for why two
+# attributes). packed[0]: normal as three snorm10; packed[1]: joints, 4 x u8 by descending weight;
+# packed[2]: weights 1-3 as unorm10 of 2w (each is at most 1/2 once sorted; weight 0 is 1 minus the rest,
+# so the four sum to 1 exactly); packed[3]: colour, RGBA8.
+VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("packed", "<u4", 4)])
+VERTEX_FORMAT = ("3f 4u", "in_position", "in_packed")
+WEIGHT_STEP = 1.0 / 2046.0  # a stored weight is within half of this of the float weight
+# Per-instance record, 28 bytes: position relative to the camera and scale; palette texel of the agent's
+# joint 0 (x | y << 16), tint RGBA8, cos and sin of the heading as snorm16.
+INSTANCE_DTYPE = np.dtype([("position_scale", "<f4", 4), ("packed", "<u4", 3)])
+INSTANCE_FORMAT = ("4f 3u/i", "i_position_scale", "i_packed")
+DEFAULT_LOD_DISTANCES = DEFAULTS["lod_distances"]  # metres: LOD0 closer than the first, LOD1 to the second, LOD2 beyond
+
+
+class RenderError(ValueError):
+    """Bad render input; the message is one line."""
+
+
+def view_proj(camera: Camera) -> np.ndarray:
+    """Camera-relative view-projection (the eye at the origin): float32 4x4, rows as in the maths
+    (numpy's view of a pyglm matrix); upload it with ``gl_bytes``."""
+    forward = np.asarray(camera.target, np.float64) - np.asarray(camera.eye, np.float64)
+    view = glm.lookAt(glm.vec3(0.0), glm.vec3(*forward.astype(np.float32)), glm.vec3(0.0, 1.0, 0.0))
+    proj = glm.perspective(math.radians(camera.fov_y), camera.aspect, camera.near, camera.far)
+    return np.array(proj * view, dtype=np.float32).reshape(4, 4)
+
+
+@dataclass(frozen=True)
+class FrameView:
+    """What ``CrowdRenderer.prepare`` decided for one frame, handed to every pass after it."""
+
+    camera: Camera
+    view_proj: np.ndarray  # float32 4x4, camera-relative
+    light_view_proj: np.ndarray | None  # float32 4x4 of the sun's shadow map; None without shadows
+    visible: np.ndarray  # bool (N,): agents that survived culling
+
+
+def frustum_planes(view_proj: np.ndarray) -> np.ndarray:
+    """(6, 4) normalised planes (inside: dot(n, p) + d >= 0) of a view-projection (rows as in the maths)."""
+    m = np.asarray(view_proj, np.float64)
+    planes = np.stack([m[3] + m[0], m[3] - m[0], m[3] + m[1], m[3] - m[1], m[3] + m[2], m[3] - m[2]])
+    return planes / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+
+
+def gl_bytes(matrix: np.ndarray) -> bytes:
+    """A 4x4 matrix (rows as in the maths) in the column-major order GLSL's mat4 expects."""
+    return np.ascontiguousarray(np.asarray(matrix, np.float32).T).tobytes()
+
+
+def sphere_visible(planes: np.ndarray, centers: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    dist = centers @ planes[:, :3].T + planes[:, 3]
+    return np.all(dist >= -radii[:, None], axis=1)
+
+
+def _rgba8(values: np.ndarray) -> np.ndarray:
+    """(N, 4) integers 0-255 → (N,) uint32, R in the low byte."""
+    v = np.asarray(values, np.uint32)
+    return v[:, 0] | (v[:, 1] << 8) | (v[:, 2] << 16) | (v[:, 3] << 24)
+
+
+def _snorm(values: np.ndarray, bits: int) -> np.ndarray:
+    """Floats in [-1, 1] → two's-complement fields of `bits` bits (as uint32)."""
+    scale = (1 << (bits - 1)) - 1
+    q = np.rint(np.clip(values, -1.0, 1.0) * scale).astype(np.int32)
+    return (q & ((1 << bits) - 1)).astype(np.uint32)
+
+
+def pack_normals(normals: np.ndarray) -> np.ndarray:
+    """(V, 3) unit normals → (V,) uint32 of three snorm10 fields (the skin and weapon shaders decode them)."""
+    n = _snorm(np.asarray(normals, np.float64), 10)
+    return n[:, 0] | (n[:, 1] << 10) | (n[:, 2] << 20)
+
+
+def pack_colors(colors: np.ndarray | None, base_color, count: int) -> np.ndarray:
+    """Vertex colours (white when None) times the material's base colour → (V,) RGBA8 uint32."""
+    colors = colors if colors is not None else np.ones((count, 4), np.float32)
+    return _rgba8(np.round(np.clip(colors * np.asarray(base_color, np.float32), 0.0, 1.0) * 255.0))
+
+
+def heading_snorm16(yaw: np.ndarray) -> np.ndarray:
+    """(N,) headings → (N, 2) uint32 snorm16 fields of cos and sin, as instance records carry them."""
+    return np.stack([_snorm(np.cos(yaw), 16), _snorm(np.sin(yaw), 16)], axis=1)
+
+
+def pack_vertices(mesh: SkinnedMesh) -> np.ndarray:
+    """Vertex records with each vertex's influences sorted by descending weight, so the shader can
+    skip the third and fourth bones where their weight is zero."""
+    v = np.zeros(mesh.positions.shape[0], VERTEX_DTYPE)
+    v["position"] = mesh.positions
+    v["packed"][:, 0] = pack_normals(mesh.normals)
+    order = np.argsort(-mesh.weights, axis=1, kind="stable")
+    w = np.take_along_axis(np.asarray(mesh.weights, np.float64), order, axis=1)
+    w = w / w.sum(axis=1, keepdims=True)
+    v["packed"][:, 1] = _rgba8(np.take_along_axis(mesh.joints, order, axis=1))
+    q = np.round(w[:, 1:] / WEIGHT_STEP).astype(np.uint32)  # unorm10 of 2w: w is at most 1/2 here
+    v["packed"][:, 2] = q[:, 0] | (q[:, 1] << 10) | (q[:, 2] << 20)
+    v["packed"][:, 3] = pack_colors(mesh.colors, mesh.base_color, len(v))
+    return v
+
+
+def unpack_weights(packed: np.ndarray) -> np.ndarray:
+    """The four weights the shader decodes from packed[:, 2] (the numpy twin of skin.vert.glsl)."""
+    q = (packed[:, None].astype(np.uint32) >> np.array([0, 10, 20], np.uint32)) & 0x3FF
+    w123 = q.astype(np.float64) * WEIGHT_STEP
+    return np.concatenate([1.0 - w123.sum(axis=1, keepdims=True), w123], axis=1)
+
+
+@dataclass
+class _Draw:
+    piece: str
+    lod: int
+    triangles: int
+    vbo: moderngl.Buffer
+    ibo: moderngl.Buffer
+    instances: moderngl.Buffer
+    vaos: dict = field(default_factory=dict)  # program key → VertexArray
+    count: int = 0
+
+
+class CrowdRenderer(GLStage):
+    """Owns the meshes, instance buffers, programs, shadow map and ground of the crowd view."""
+
+    def __init__(self, ctx: moderngl.Context, character: Character, joint_count: int, agents_per_row: int,
+                 pieces: tuple[str, ...] | None = None, lod_distances=DEFAULT_LOD_DISTANCES, shadows: bool = True,
+                 shadow_size: int = 2048, culling: bool = True):
+        self._objects: dict[str, list] = {"meshes": [], "instances": [], "programs": [], "shadow_map": [], "ground": []}
+        self._programs: dict[tuple, moderngl.Program] = {}
+        self.draws: list[_Draw] = []
+        self.ctx = ctx
+        self.joint_count = joint_count
+        self.agents_per_row = agents_per_row
+        self.culling = culling
+        self.lod_distances = SETTINGS["lod_distances"].check(tuple(lod_distances), RenderError)
+        meshes = [m for m in character.meshes if pieces is None or m.piece in pieces]
+        if not meshes:
+            raise RenderError("the character has no skinned mesh to draw")
+        self.lod_count = max(m.lod for m in meshes) + 1
+        self.groups: dict[str, list[str]] = {}
+        for m in meshes:
+            if m.group and m.piece not in self.groups.setdefault(m.group, []):
+                self.groups[m.group].append(m.piece)
+        self._piece_group = {m.piece: m.group for m in meshes}
+        for m in sorted(meshes, key=lambda m: (m.lod, m.piece)):
+            vbo = self._own("meshes", ctx.buffer(pack_vertices(m).tobytes()))
+            ibo = self._own("meshes", ctx.buffer(optimize_triangle_order(m.indices, len(m.positions)).tobytes()))
+            inst = self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
+            self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, vbo, ibo, inst))
+        # A sphere around the bind pose, widened for poses that reach out or lie down (death).
+        allpos = np.concatenate([m.positions for m in meshes]).astype(np.float64)
+        lo, hi = allpos.min(axis=0), allpos.max(axis=0)
+        self.bound_center = (lo + hi) / 2.0
+        self.bound_radius = float(np.linalg.norm(hi - lo) * 0.5 * 1.3)
+        self.shadows = shadows
+        self.shadow_size = int(shadow_size)
+        self.shadow_map = None
+        self._shadow_fbo = None
+        if shadows:
+            self.shadow_map = self._own("shadow_map", ctx.depth_texture((self.shadow_size, self.shadow_size)))
+            self.shadow_map.compare_func = "<="
+            self.shadow_map.filter = (moderngl.LINEAR, moderngl.LINEAR)
+            self.shadow_map.repeat_x = self.shadow_map.repeat_y = False
+            self._shadow_fbo = self._own("shadow_map", ctx.framebuffer(depth_attachment=self.shadow_map))
+        ground_prog = self._program("ground", False)
+        extent = 1000.0
+        quad = np.array([[-extent, -extent], [extent, -extent], [extent, extent], [-extent, -extent], [extent, extent], [-extent, extent]], np.float32)
+        self._ground_vbo = self._own("ground", ctx.buffer(quad.tobytes()))
+        self._ground_vao = self._own("ground", ctx.vertex_array(ground_prog, [(self._ground_vbo, "2f", "in_position")]))
+        self.sun_dir = np.array(SUN_DIR)
+        self.last = {"triangles": 0, "instances": 0, "visible": 0, "draws": 0, "lod_counts": [0] * self.lod_count}
+
+    # -- resources
+
+    def _own(self, group, obj):
+        self._objects[group].append(obj)
+        return obj
+
+    def _program(self, kind: str, skinned: bool | str) -> moderngl.Program:
+        """kind: color, depth or ground; skinned: True, or False for the benchmark's unskinned ceiling."""
+        key = (kind, skinned)
+        if key in self._programs:
+            return self._programs[key]
+        defines = {}
+        if self.shadows:
+            defines["SHADOWS"] = 1
+        if kind == "ground":
+            prog = self.ctx.program(vertex_shader=load_shader("ground.vert.glsl"), fragment_shader=load_shader("ground.frag.glsl", defines))
+        else:
+            vdefs = {} if skinned else {"UNSKINNED": 1}
+            if kind == "depth":
+                vdefs["DEPTH_ONLY"] = 1
+                frag = load_shader("depth.frag.glsl")
+            else:
+                frag = load_shader("skin.frag.glsl", defines)
+            prog = self.ctx.program(vertex_shader=load_shader("skin.vert.glsl", vdefs), fragment_shader=frag)
+            for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
+                if name in prog:
+                    prog[name] = unit
+        if "u_shadow_map" in prog:
+            prog["u_shadow_map"] = 3
+        self._programs[key] = self._own("programs", prog)
+        return prog
+
+    def _vao(self, draw: _Draw, kind: str, skinned: bool) -> moderngl.VertexArray:
+        key = (kind, skinned)
+        if key not in draw.vaos:
+            prog = self._program(kind, skinned)
+            content = [(draw.vbo, *_read_by(prog, VERTEX_FORMAT)), (draw.instances, *_read_by(prog, INSTANCE_FORMAT))]
+            draw.vaos[key] = self._own("programs", self.ctx.vertex_array(prog, content, index_buffer=draw.ibo, index_element_size=4))
+        return draw.vaos[key]
+
+    def gpu_bytes(self) -> dict[str, int]:
+        return {group: gpu_bytes(objs) for group, objs in self._objects.items() if group != "programs"}
+
+    def release(self) -> None:
+        for objs in self._objects.values():
+            for obj in reversed(objs):
+                obj.release()
+        self._objects = {k: [] for k in self._objects}
+        self._programs.clear()
+        self.draws = []
+
+    # -- per frame
+
+    @staticmethod
+    def clear_color() -> tuple[float, float, float]:
+        return tuple(c ** (1 / 2.2) for c in FOG_COLOR)
+
+    def prepare(self, camera: Camera, instances: Instances, row_offset=0) -> "FrameView":
+        """Cull, pick LODs, sort agents into draws and upload their records. Returns what every later
+        pass of this frame receives (the view and light matrices and the visible set).
+        `row_offset` (an int, or one per agent) is the first palette row of the ring slot each agent's
+        palette is read from (see AnimationProcessor.row_offset)."""
+        camera.validate()
+        instances.validate(self.groups)
+        matrix = view_proj(camera)
+        n = len(instances)
+        eye = np.asarray(camera.eye, np.float64)
+        rel = instances.position - eye[None]
+        scale = instances.scale.astype(np.float64)
+        centers = rel + self.bound_center[None] * scale[:, None]
+        radii = self.bound_radius * scale
+        if self.culling and n:
+            # Agents just outside the view may still cast shadows into it: widen their sphere.
+            margin = 3.0 if self.shadows else 0.0
+            visible = sphere_visible(frustum_planes(matrix), centers, radii + margin)
+        else:
+            visible = np.ones(n, bool)
+        dist = np.linalg.norm(centers, axis=1)
+        lod = np.searchsorted(np.asarray(self.lod_distances), dist, side="right")
+        lod = np.minimum(lod, self.lod_count - 1)
+        # Records for the visible agents only, sorted once per variation group so that each draw's
+        # instances are one contiguous slice (a boolean mask per draw cost 12 passes over the crowd).
+        shown = np.flatnonzero(visible).astype(np.uint32)
+        lod = lod[shown]
+        records = np.empty(len(shown), INSTANCE_DTYPE)
+        records["position_scale"][:, :3] = rel[shown]
+        records["position_scale"][:, 3] = instances.scale[shown]
+        # Both fit 16 bits: x < 4096 (the palette width), and the processor keeps its rows under 65,536.
+        x, y = palette_texel(shown, 0, row_offset[shown] if np.ndim(row_offset) else row_offset, self.agents_per_row, self.joint_count)
+        records["packed"][:, 0] = x.astype(np.uint32) | (y.astype(np.uint32) << 16)
+        records["packed"][:, 1] = _rgba8(instances.tint[shown])
+        yaw = instances.yaw[shown]
+        heading = heading_snorm16(yaw)
+        records["packed"][:, 2] = heading[:, 0] | (heading[:, 1] << 16)
+        slices = {}  # group ("" for pieces every agent wears) → (records sorted by draw key, start offsets per key)
+        for group in ["", *self.groups]:
+            choices = len(self.groups[group]) if group else 1
+            variant = instances.variant.get(group) if group else None
+            key = (lod * choices + (variant[shown] if variant is not None else 0)).astype(np.uint16)
+            order = np.argsort(key, kind="stable")  # a radix sort for 16-bit keys
+            starts = np.concatenate([[0], np.cumsum(np.bincount(key, minlength=self.lod_count * choices))])
+            slices[group] = (records[order], starts, choices)
+        triangles = 0
+        instances_total = 0
+        draws = 0
+        for draw in self.draws:
+            group = self._piece_group[draw.piece]
+            sorted_records, starts, choices = slices[group]
+            k = draw.lod * choices + (self.groups[group].index(draw.piece) if group else 0)
+            chosen = sorted_records[starts[k]:starts[k + 1]]
+            draw.count = len(chosen)
+            if draw.count:
+                data = chosen.tobytes()
+                if draw.instances.size != len(data):
+                    draw.instances.orphan(len(data))  # exact size: a smaller crowd frees what it no longer needs
+                draw.instances.write(data)
+                triangles += draw.count * draw.triangles
+                instances_total += draw.count
+                draws += 1
+            elif draw.instances.size != INSTANCE_DTYPE.itemsize:
+                draw.instances.orphan(INSTANCE_DTYPE.itemsize)
+        self.last = {"triangles": triangles, "instances": instances_total, "visible": len(shown), "draws": draws,
+                     "lod_counts": np.bincount(lod, minlength=self.lod_count).tolist()}
+        return FrameView(camera, matrix, self.light_view_proj(camera) if self.shadows else None, visible)
+
+    def light_view_proj(self, camera: Camera) -> np.ndarray:
+        """Orthographic sun view over the area around the camera's target (camera-relative)."""
+        target = np.asarray(camera.target, np.float64) - np.asarray(camera.eye, np.float64)
+        reach = float(np.clip(np.linalg.norm(target) * 1.2, 12.0, 60.0))
+        center = glm.vec3(*target.astype(np.float32))
+        sun = glm.vec3(*self.sun_dir.astype(np.float32))
+        view = glm.lookAt(center + sun * (reach * 2.0), center, glm.vec3(0.0, 1.0, 0.0))
+        proj = glm.ortho(-reach, reach, -reach, reach, 0.1, reach * 4.0)
+        return np.array(proj * view, dtype=np.float32).reshape(4, 4)
+
+    def shadow_pass(self, view: "FrameView", processor) -> bool:
+        if not self.shadows:
+            return False
+        self._shadow_fbo.use()
+        self._shadow_fbo.clear(depth=1.0)
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.disable(moderngl.CULL_FACE)
+        processor.bind_palette(0)
+        prog = self._program("depth", True)
+        prog["u_view_proj"].write(gl_bytes(view.light_view_proj))
+        for draw in self.draws:
+            if draw.count:
+                self._vao(draw, "depth", True).render(moderngl.TRIANGLES, instances=draw.count)
+        return True
+
+    def set_lighting(self, prog, view: "FrameView"):
+        for name, value in LIGHTING.items():
+            if name in prog:
+                prog[name] = value
+        if self.shadows and "u_light_view_proj" in prog:
+            prog["u_light_view_proj"].write(gl_bytes(view.light_view_proj))
+            self.shadow_map.use(3)
+
+    def color_pass(self, framebuffer, view: "FrameView", processor, skinned: bool = True) -> None:
+        framebuffer.use()
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.disable(moderngl.CULL_FACE)
+        if skinned:
+            processor.bind_palette(0)
+        prog = self._program("color", skinned)
+        prog["u_view_proj"].write(gl_bytes(view.view_proj))
+        self.set_lighting(prog, view)
+        for draw in self.draws:
+            if draw.count:
+                self._vao(draw, "color", skinned).render(moderngl.TRIANGLES, instances=draw.count)
+
+    def ground_pass(self, framebuffer, view: "FrameView") -> None:
+        framebuffer.use()
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        prog = self._program("ground", False)
+        prog["u_view_proj"].write(gl_bytes(view.view_proj))
+        eye = np.asarray(view.camera.eye, np.float64)
+        prog["u_eye"] = (float(np.mod(eye[0], 1000.0)), float(eye[1]), float(np.mod(eye[2], 1000.0)))
+        self.set_lighting(prog, view)
+        self._ground_vao.render(moderngl.TRIANGLES)
+
+
+def _read_by(prog: moderngl.Program, layout: tuple) -> tuple:
+    """(format, *names) of a buffer layout for one program: attributes the program does not read (the
+    depth pass has no colour) become padding, so every variant shares the buffer's stride."""
+    fmt, *names = layout
+    per_instance = fmt.endswith("/i")
+    items = fmt.removesuffix("/i").split()
+    spec = " ".join(f if n in prog else _padding(f) for f, n in zip(items, names)) + ("/i" if per_instance else "")
+    return (spec, *[n for n in names if n in prog])
+
+
+def _padding(fmt: str) -> str:
+    """A format item's bytes as padding, for attributes a program variant does not read."""
+    count = int(fmt[0]) if fmt[0].isdigit() else 1
+    kind = fmt[1:] if fmt[0].isdigit() else fmt
+    size = {"f": 4, "u": 4, "i": 4, "f1": 1, "u1": 1, "f2": 2, "u2": 2, "f4": 4, "u4": 4}[kind]
+    return f"{count * size}x"

@@ -1,0 +1,203 @@
+"""Attach stage: weapons placed on the CPU from read-back socket matrices, drawn one instanced draw per
+weapon mesh.
+
+Contract: ``attach(read, agents_frame, weapon_of_agent)``:
+- ``read`` (readback.SocketRead): socket skinning-matrix rows of some frame's armed agents;
+- ``agents_frame`` (AgentFrames): each agent's transform exactly as the crowd's vertex shader applies
+  it this frame: camera-relative position, uniform scale, and the heading's cos and sin as the snorm16
+  values the instance record carries, so weapon and hand go through the same numbers;
+- ``weapon_of_agent``: (N,) weapon index per agent (-1: unarmed).
+
+Per entry: weapon model = agent x (socket skinning matrix x socket bind) x inverse(grip), in float64,
+vectorised; uploaded as float32 camera-relative 3x4 rows. An entry whose agent is unarmed now, or
+out of range, is dropped without touching the others. ``drawn`` keeps what was uploaded (agents,
+weapon indices, rows) so that the error of the frame as drawn can be measured.
+"""
+
+from __future__ import annotations
+
+import moderngl
+import numpy as np
+
+from ..gl import GLStage, gpu_bytes, load_shader
+from ..asset.model import Character, RigidMesh
+from .render import gl_bytes, heading_snorm16, pack_colors, pack_normals
+
+VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("packed", "<u4", 2)])
+INSTANCE_DTYPE = np.dtype([("rows", "<f4", (3, 4))])
+
+
+class WeaponError(ValueError):
+    """Bad weapon input; the message is one line."""
+
+
+class AgentFrames:
+    """Agent transforms as the crowd's vertex shader applies them (see skin.vert.glsl): the position
+    relative to the camera in float32, the float32 scale, and the heading's cos and sin as the snorm16
+    values of the instance record. Computed only for the agents asked about, so unarmed agents cost
+    nothing here."""
+
+    def __init__(self, positions: np.ndarray, yaw: np.ndarray, scale: np.ndarray, eye):
+        self._position = np.asarray(positions, np.float64)
+        self._yaw = np.asarray(yaw, np.float32)
+        self._scale = np.asarray(scale, np.float32)
+        self._eye = np.asarray(eye, np.float64)
+
+    def of(self, agents: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(position float32 (M, 3), scale float64 (M,), cos_sin float64 (M, 2)) of those agents."""
+        rel = (self._position[agents] - self._eye[None]).astype(np.float32)
+        yaw = self._yaw[agents]
+        cs = heading_snorm16(yaw).astype(np.uint16).view(np.int16)
+        return rel, self._scale[agents].astype(np.float64), cs.astype(np.float64) / 32767.0
+
+    def points(self, agents: np.ndarray, model_points: np.ndarray) -> np.ndarray:
+        """(M, 3) float64: model-space points of those agents placed as the shader places them:
+        x' = position + scale * heading(x), the heading turning +Z toward (sin, cos)."""
+        rel, k, cs = self.of(agents)
+        p = np.asarray(model_points, np.float64)
+        c, s = cs[:, 0], cs[:, 1]
+        return rel + k[:, None] * np.stack([c * p[:, 0] + s * p[:, 2], p[:, 1], c * p[:, 2] - s * p[:, 0]], axis=1)
+
+
+def pack_rigid(mesh: RigidMesh) -> np.ndarray:
+    v = np.zeros(len(mesh.positions), VERTEX_DTYPE)
+    v["position"] = mesh.positions
+    v["packed"][:, 0] = pack_normals(mesh.normals)
+    v["packed"][:, 1] = pack_colors(mesh.colors, mesh.base_color, len(v))
+    return v
+
+
+class WeaponRenderer(GLStage):
+    """Owns the weapon meshes, their instance buffers and programs."""
+
+    def __init__(self, ctx: moderngl.Context, character: Character, shadows: bool):
+        self._objects: list = []
+        self._meshes = []
+        if not character.props or not character.sockets:
+            raise WeaponError(f"character {character.name!r} has no weapons to hold (props and a socket joint are both needed)")
+        self.ctx = ctx
+        self.names = list(character.props)
+        self.socket_joint = int(next(iter(character.sockets.values())))
+        bind = np.linalg.inv(np.asarray(character.skeleton.inverse_bind, np.float64))
+        self.socket_bind = bind[self.socket_joint]  # the socket joint's model matrix at bind
+        self.inverse_grip = np.stack([np.linalg.inv(np.asarray(p.grip, np.float64)) for p in character.props.values()])
+        # Per weapon mesh: the socket's skinning matrix times this gives the weapon in model space.
+        self._socket_to_weapon = np.stack([self.socket_bind @ g for g in self.inverse_grip])
+        self.grip_origin = np.stack([np.asarray(p.grip, np.float64)[:, 3] for p in character.props.values()])  # (W, 4)
+        for prop in character.props.values():
+            vbo = self._own(ctx.buffer(pack_rigid(prop.mesh).tobytes()))
+            ibo = self._own(ctx.buffer(np.asarray(prop.mesh.indices, np.uint32).tobytes()))
+            inst = self._own(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
+            self._meshes.append({"vbo": vbo, "ibo": ibo, "instances": inst, "count": 0, "vaos": {}, "triangles": prop.mesh.triangle_count})
+        defines = {"SHADOWS": 1} if shadows else {}
+        self._programs = {
+            "color": self._own(ctx.program(vertex_shader=load_shader("weapon.vert.glsl"), fragment_shader=load_shader("skin.frag.glsl", defines))),
+            "depth": self._own(ctx.program(vertex_shader=load_shader("weapon.vert.glsl", {"DEPTH_ONLY": 1}), fragment_shader=load_shader("depth.frag.glsl"))),
+        }
+        if "u_shadow_map" in self._programs["color"]:
+            self._programs["color"]["u_shadow_map"] = 3
+        self.drawn = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 4), np.float32))
+        self.last = {"weapons": 0, "draws": 0, "triangles": 0}
+
+    def _own(self, obj):
+        self._objects.append(obj)
+        return obj
+
+    def _vao(self, mesh: dict, kind: str) -> moderngl.VertexArray:
+        if kind not in mesh["vaos"]:
+            prog = self._programs[kind]
+            vertex = ("3f 2u", "in_position", "in_packed") if kind == "color" else ("3f 8x", "in_position")
+            mesh["vaos"][kind] = self._own(self.ctx.vertex_array(prog, [(mesh["vbo"], *vertex), (mesh["instances"], "4f 4f 4f/i", "i_row0", "i_row1", "i_row2")],
+                                                                 index_buffer=mesh["ibo"], index_element_size=4))
+        return mesh["vaos"][kind]
+
+    def matrices(self, read, frames: AgentFrames, weapon_of_agent: np.ndarray):
+        """(agents, weapon indices, (K, 3, 4) float32 camera-relative weapon model rows, as uploaded)
+        for the entries of `read` whose agent exists and is armed now, sorted by weapon.
+
+        Float64 and vectorised, in planes (one (K, 4) array per matrix row, so every operation runs over
+        contiguous memory): per weapon mesh one (K, 4) @ (4, 4) product per row for socket x bind x
+        inverse grip, then the agent's heading, scale and position element-wise. numpy's batched 4x4
+        matmul took 7 ms for 10,000 weapons on the dev container; this takes about 1.5 ms."""
+        agents, rows = read.agents, read.rows
+        keep = (agents < len(weapon_of_agent)) & (read.joints == self.socket_joint)
+        agents, rows = agents[keep], rows[keep]
+        weapon = weapon_of_agent[agents].astype(np.int16)
+        armed = (weapon >= 0) & (weapon < len(self.names))
+        agents, rows, weapon = agents[armed], rows[armed], weapon[armed]
+        if not np.all(np.isfinite(rows)):
+            raise WeaponError("a read-back socket matrix holds NaN or Inf")
+        order = np.argsort(weapon, kind="stable")  # 16-bit keys: a radix sort
+        agents, weapon = agents[order], weapon[order].astype(np.int64)
+        socket = np.ascontiguousarray(rows[order].transpose(1, 0, 2), dtype=np.float64)  # (3, K, 4)
+        starts = np.searchsorted(weapon, np.arange(len(self.names) + 1))
+        local = np.empty(socket.shape)  # the weapon in the agent's model space
+        for w in range(len(self.names)):
+            a, b = starts[w], starts[w + 1]
+            local[:, a:b] = socket[:, a:b] @ self._socket_to_weapon[w]
+        position, scale, cs = frames.of(agents)
+        k = scale[:, None]
+        kc, ks = k * cs[:, 0:1], k * cs[:, 1:2]
+        out = np.empty(local.shape)
+        np.multiply(kc, local[0], out=out[0])
+        out[0] += ks * local[2]
+        np.multiply(k, local[1], out=out[1])
+        np.multiply(kc, local[2], out=out[2])
+        out[2] -= ks * local[0]
+        out[:, :, 3] += position.T
+        return agents, weapon, out.transpose(1, 0, 2).astype(np.float32)
+
+    def attach(self, read, frames: AgentFrames, weapon_of_agent: np.ndarray, visible: np.ndarray | None = None) -> int:
+        """Place and upload this frame's weapons (none when `read` is None). Returns how many."""
+        if read is None:
+            agents, weapon, rows = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 4), np.float32)
+        else:
+            agents, weapon, rows = self.matrices(read, frames, np.asarray(weapon_of_agent))
+            if visible is not None:
+                shown = visible[agents]
+                agents, weapon, rows = agents[shown], weapon[shown], rows[shown]
+        starts = np.searchsorted(weapon, np.arange(len(self.names) + 1))
+        for w, mesh in enumerate(self._meshes):
+            chosen = rows[starts[w]:starts[w + 1]]
+            mesh["count"] = len(chosen)
+            size = max(chosen.nbytes, INSTANCE_DTYPE.itemsize)
+            if mesh["instances"].size != size:
+                mesh["instances"].orphan(size)
+            if len(chosen):
+                mesh["instances"].write(chosen.tobytes())
+        self.drawn = (agents, weapon, rows)
+        self.last = {"weapons": int(len(agents)), "draws": sum(1 for m in self._meshes if m["count"]),
+                     "triangles": sum(m["count"] * m["triangles"] for m in self._meshes)}
+        return len(agents)
+
+    def grip_points(self) -> np.ndarray:
+        """(K, 3) float64: the grip point of each drawn weapon, through the float32 rows the GPU got."""
+        agents, weapon, rows = self.drawn
+        return np.einsum("kij,kj->ki", rows.astype(np.float64), self.grip_origin[weapon])
+
+    def depth_pass(self, light_view_proj: np.ndarray) -> None:
+        prog = self._programs["depth"]
+        prog["u_view_proj"].write(gl_bytes(light_view_proj))
+        for mesh in self._meshes:
+            if mesh["count"]:
+                self._vao(mesh, "depth").render(moderngl.TRIANGLES, instances=mesh["count"])
+
+    def color_pass(self, framebuffer, view, renderer) -> None:
+        """`view`: this frame's ``FrameView``; `renderer` lights the weapons as it lights the crowd."""
+        framebuffer.use()
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        prog = self._programs["color"]
+        prog["u_view_proj"].write(gl_bytes(view.view_proj))
+        renderer.set_lighting(prog, view)
+        for mesh in self._meshes:
+            if mesh["count"]:
+                self._vao(mesh, "color").render(moderngl.TRIANGLES, instances=mesh["count"])
+
+    def gpu_bytes(self) -> int:
+        return gpu_bytes(self._objects)
+
+    def release(self) -> None:
+        for obj in reversed(self._objects):
+            obj.release()
+        self._objects = []
+        self._meshes = []

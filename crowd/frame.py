@@ -1,0 +1,180 @@
+"""The contracts one frame passes between stages: plain numpy values, each with a ``validate()``.
+
+In the spirit of ozz-animation's jobs, a stage takes these as inputs and writes them as outputs, and
+checks them at its door; none of them owns GL objects or imports a stage, so every stage can use them
+(the AI writes layers and instances without knowing that a GPU exists).
+
+- **Layers** (``empty_layers``, ``validate_layers``): float32 (agents, layers, 4), one row per layer of
+  (clip index, phase, weight, joint mask index). The AI writes them, the animation processor reads them.
+- **Joint masks** (``validate_masks``): float32 (masks, joints) factors in [0, 1].
+- **Layer overrides** (``LayerOverrides``): what a person forces on top of the AI (a clip played from
+  its start, layer weights held at a value), applied by the frame after the AI has written its layers.
+- **Instances** (``Instances``): per agent a float64 world position, heading, scale, tint and variation
+  pieces. The AI writes them, the renderer reads them.
+- **Camera** (``Camera``): where the frame is seen from. Its projection is the draw stage's
+  (``crowd.draw.render.view_proj``), which matches GL's clip conventions.
+
+Every check raises ``FrameError`` with a one-line message.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+CLIP, PHASE, WEIGHT, MASK = range(4)  # the columns of one layer
+LAYER_COLUMNS = ("clip", "phase", "weight", "mask")
+MAX_LAYERS = 4
+MAX_WEIGHT = 1.0e6  # larger weights would overflow the float32 sum long before they mean anything
+
+
+class FrameError(ValueError):
+    """A frame contract broken by its producer; the message is one line."""
+
+
+# -- layers
+
+
+def empty_layers(agents: int, layer_count: int = MAX_LAYERS) -> np.ndarray:
+    """Layers that contribute nothing (weight 0, whole-body mask): every joint falls back to rest."""
+    layers = np.zeros((agents, layer_count, 4), dtype=np.float32)
+    layers[..., MASK] = -1.0
+    return layers
+
+
+def validate_layers(layers, clip_count: int, mask_count: int, layer_count: int) -> np.ndarray:
+    """Check the layers contract; returns a C-contiguous float32 (N, L, 4) array."""
+    a = np.asarray(layers)
+    if a.ndim != 3 or a.shape[1] != layer_count or a.shape[2] != 4:
+        raise FrameError(f"layers must have shape (agents, {layer_count}, 4), got {a.shape}")
+    if not np.issubdtype(a.dtype, np.floating) and not np.issubdtype(a.dtype, np.integer):
+        raise FrameError(f"layers must be numeric, got {a.dtype}")
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    if a.size == 0:
+        return a
+    if not np.all(np.isfinite(a)):
+        bad = np.argwhere(~np.isfinite(a))[0]
+        raise FrameError(f"layers hold NaN or Inf (agent {bad[0]}, layer {bad[1]}, {LAYER_COLUMNS[bad[2]]})")
+    clip = a[..., CLIP]
+    if np.any(clip != np.round(clip)) or np.any(clip < 0) or np.any(clip >= clip_count):
+        raise FrameError(f"layer clip indices must be whole numbers in [0, {clip_count})")
+    if float(np.max(a[..., WEIGHT])) > MAX_WEIGHT:
+        raise FrameError(f"a layer weight exceeds {MAX_WEIGHT:g} (largest {float(np.max(a[..., WEIGHT])):.3g}); weights are relative, scale them down")
+    mask = a[..., MASK]
+    if np.any(mask != np.round(mask)) or np.any(mask < -1) or np.any(mask >= mask_count):
+        raise FrameError(f"layer masks must be -1 (whole body) or whole numbers in [0, {mask_count})")
+    return a
+
+
+def validate_masks(masks, joint_count: int) -> np.ndarray | None:
+    if masks is None:
+        return None
+    m = np.asarray(masks, dtype=np.float32)
+    if m.ndim == 1:
+        m = m[None]
+    if m.ndim != 2 or m.shape[1] != joint_count or m.shape[0] == 0:
+        raise FrameError(f"joint masks must have shape (masks, {joint_count}), got {np.shape(masks)}")
+    if not np.all(np.isfinite(m)) or np.any(m < 0) or np.any(m > 1):
+        raise FrameError("joint mask factors must be finite and within [0, 1]")
+    return np.ascontiguousarray(m)
+
+
+@dataclass(frozen=True)
+class ForcedClip:
+    """A clip played from its start on some agents (None: all), ignoring the AI's choice for layer 0."""
+
+    clip: int  # index into the bake's clips
+    start: float  # simulated seconds (the AI's clock) at which it started
+    agents: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class LayerOverrides:
+    """What a person puts on top of the AI's layers for one frame: the panel's "play" and held weights.
+
+    The frame applies it after the AI has written its layers (``apply``), so the AI never knows, and
+    nothing below the session calls back up into it."""
+
+    forced: ForcedClip | None = None
+    held: dict = field(default_factory=dict)  # layer → (weight, agents or None for all)
+
+    def __bool__(self) -> bool:
+        return self.forced is not None or bool(self.held)
+
+    def validate(self, clip_count: int, layer_count: int = MAX_LAYERS) -> "LayerOverrides":
+        if self.forced is not None and not 0 <= self.forced.clip < clip_count:
+            raise FrameError(f"forced clip must be an index in [0, {clip_count}), got {self.forced.clip!r}")
+        for layer, (weight, _) in self.held.items():
+            if not 0 <= layer < layer_count:
+                raise FrameError(f"held layer must be 0 to {layer_count - 1}, got {layer!r}")
+            if not np.isfinite(weight) or not 0.0 <= weight <= MAX_WEIGHT:
+                raise FrameError(f"held weight must be 0 to {MAX_WEIGHT:g}, got {weight!r}")
+        return self
+
+    def apply(self, layers: np.ndarray, time: float, duration: float, speed: float, loop: bool) -> None:
+        """Write the overrides into `layers` in place. `time` is the AI's clock after this frame's step;
+        `duration`, `speed` and `loop` describe the forced clip (ignored without one)."""
+        n = len(layers)
+        if self.forced is not None:
+            agents = self.forced.agents
+            agents = slice(None) if agents is None else agents[agents < n]
+            phase = (time - self.forced.start) * speed / max(duration, 1e-6)
+            layers[agents] = (0.0, 0.0, 0.0, -1.0)
+            layers[agents, 0, CLIP] = self.forced.clip
+            layers[agents, 0, PHASE] = phase if loop else min(phase, 1.0)
+            layers[agents, 0, WEIGHT] = 1.0
+        for layer, (weight, agents) in self.held.items():
+            agents = slice(None) if agents is None else agents[agents < n]
+            layers[agents, layer, WEIGHT] = weight
+
+
+# -- instances and the camera
+
+
+@dataclass
+class Instances:
+    position: np.ndarray  # float64 (N, 3) world position of the agent's origin (on the ground)
+    yaw: np.ndarray  # float32 (N,) heading about +Y, radians
+    scale: np.ndarray  # float32 (N,)
+    tint: np.ndarray  # uint8 (N, 4)
+    variant: dict[str, np.ndarray] = field(default_factory=dict)  # group → (N,) index into the group's pieces
+
+    def __len__(self) -> int:
+        return int(self.position.shape[0])
+
+    def validate(self, groups: dict[str, list[str]]) -> "Instances":
+        n = len(self)
+        if self.position.shape != (n, 3) or self.yaw.shape != (n,) or self.scale.shape != (n,) or self.tint.shape != (n, 4):
+            raise FrameError("instances need position (N, 3), yaw (N,), scale (N,) and tint (N, 4)")
+        if not (np.all(np.isfinite(self.position)) and np.all(np.isfinite(self.yaw)) and np.all(np.isfinite(self.scale))):
+            raise FrameError("instance positions, headings and scales must be finite")
+        if n and (np.min(self.scale) <= 0 or np.max(self.scale) > 100):
+            raise FrameError("instance scales must be in (0, 100]")
+        for group, pieces in groups.items():
+            v = self.variant.get(group)
+            if v is None:
+                continue
+            if v.shape != (n,) or (n and (v.min() < 0 or v.max() >= len(pieces))):
+                raise FrameError(f"variant of group {group!r} must be (N,) indices below {len(pieces)}")
+        return self
+
+
+@dataclass
+class Camera:
+    eye: np.ndarray  # float64 (3,)
+    target: np.ndarray  # float64 (3,)
+    fov_y: float = 45.0  # degrees
+    near: float = 0.1
+    far: float = 400.0
+    aspect: float = 16 / 9
+
+    def validate(self) -> "Camera":
+        eye, target = np.asarray(self.eye, np.float64), np.asarray(self.target, np.float64)
+        if eye.shape != (3,) or target.shape != (3,) or not np.all(np.isfinite(eye)) or not np.all(np.isfinite(target)):
+            raise FrameError("camera eye and target must be finite 3-vectors")
+        if np.linalg.norm(target - eye) < 1e-6:
+            raise FrameError("camera eye and target coincide")
+        if not 0 < self.near < self.far or not 1.0 <= self.fov_y <= 170.0 or not self.aspect > 0:
+            raise FrameError("camera needs 0 < near < far, a field of view of 1 to 170 degrees and a positive aspect")
+        return self

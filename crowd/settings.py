@@ -1,0 +1,241 @@
+"""Every value a person can set, declared once: its type, bounds, default and one line of help.
+
+The command line (``crowd-demo``'s flags), the scene files (their TOML keys and checks), the panel
+(its widget ranges) and the stages (their own input checks) all read this table, so a bound is
+written here and nowhere else. A value is checked by ``SETTINGS[name].check(value, error, source)``,
+which raises ``error`` with the same one-line reason everywhere ("agent count must be a whole number
+from 0 to 1000000, got -1"), prefixed by where the value came from when the caller says.
+
+This module sits below every stage and imports none of them.
+
+Groups, which are also the scene file's tables: ``scene`` (what runs), ``clips`` (the bake),
+``features`` (what is drawn), ``ai`` (the crowd's behaviour, ``crowd.sim.ai.AIConfig``), ``session``
+(live controls of a running crowd: not in scene files) and ``run`` (command-line only: how long, how big).
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass
+
+SOURCE_RATE = "source"  # bake each clip at its own key rate
+INF = math.inf
+
+
+class SettingError(ValueError):
+    """A value a setting cannot take; the message is one line."""
+
+
+@dataclass(frozen=True)
+class Setting:
+    name: str  # the scene file's key and the command line's --flag (with dashes)
+    group: str
+    kind: str  # int, float, bool, choice, rate (fps or "source"), pair (two increasing numbers), size (WxH)
+    default: object
+    help: str
+    label: str = ""  # the words an error uses ("agent count"); the name when empty
+    low: float = -INF
+    high: float = INF
+    open_low: bool = False  # low itself is refused (> low, not >= low)
+    choices: tuple = ()
+    slider: tuple | None = None  # the panel's widget range, inside the bounds
+
+    @property
+    def words(self) -> str:
+        return self.label or self.name
+
+    @property
+    def flag(self) -> str:
+        return "--" + self.name.replace("_", "-")
+
+    def rule(self) -> str:
+        """What the setting accepts, in words."""
+        if self.kind == "bool":
+            return "true or false"
+        if self.kind == "choice":
+            return "one of " + ", ".join(self.choices)
+        if self.kind == "rate":
+            return f"{_num(self.low)} to {_num(self.high)} fps or {SOURCE_RATE!r}"
+        if self.kind == "pair":
+            return f"two increasing numbers above {_num(self.low)}"
+        if self.kind == "size":
+            return f"WxH with each side {_num(self.low)} to {_num(self.high)}"
+        noun = "a whole number" if self.kind == "int" else "a number"
+        lo, hi = self.low, self.high
+        if lo > -INF and hi < INF:
+            return f"{noun} from {_num(lo)} to {_num(hi)}" if not self.open_low else f"{noun} above {_num(lo)}, at most {_num(hi)}"
+        if lo > -INF:
+            return f"{noun} above {_num(lo)}" if self.open_low else f"{noun} of at least {_num(lo)}"
+        if hi < INF:
+            return f"{noun} of at most {_num(hi)}"
+        return "a whole number" if self.kind == "int" else "a finite number"
+
+    def reason(self, value) -> str:
+        return f"{self.words} must be {self.rule()}, got {value!r}"
+
+    def check(self, value, error: type[Exception] = SettingError, source: str | None = None):
+        """`value` as this setting's type (ints stay ints, floats become float, pairs tuples), or
+        `error` raised with the one-line reason, after "source: " when a source is given."""
+        ok = self._checked(value)
+        if ok is _BAD:
+            raise error(self.reason(value) if source is None else f"{source}: {self.reason(value)}")
+        return ok
+
+    def _checked(self, value):
+        k = self.kind
+        if k == "bool":
+            return value if isinstance(value, bool) else _BAD
+        if k == "choice":
+            return value if isinstance(value, str) and value in self.choices else _BAD
+        if k == "rate":
+            return value if value == SOURCE_RATE else self._number(value, float)
+        if k == "pair":
+            if not isinstance(value, (list, tuple)) or len(value) != 2:
+                return _BAD
+            pair = tuple(_real(v) for v in value)
+            if _BAD in pair or not self._above_low(pair[0]) or not pair[0] <= pair[1] or pair[1] > self.high:
+                return _BAD
+            return pair
+        if k == "size":
+            if not isinstance(value, (list, tuple)) or len(value) != 2 or not all(_whole(v) for v in value):
+                return _BAD
+            return tuple(int(v) for v in value) if all(self.low <= v <= self.high for v in value) else _BAD
+        return self._number(value, int if k == "int" else float)
+
+    def _above_low(self, v: float) -> bool:
+        return v > self.low if self.open_low else v >= self.low
+
+    def _number(self, value, cast):
+        if cast is int:
+            if not _whole(value):
+                return _BAD
+        else:
+            value = _real(value)
+            if value is _BAD:
+                return _BAD
+        if not self._above_low(value) or value > self.high:
+            return _BAD
+        return cast(value)
+
+    def from_text(self, text: str):
+        """A command-line string as this setting's type (unchecked), or the string itself when it is
+        not one, so that ``check`` names it in its reason."""
+        t = text.strip()
+        try:
+            if self.kind == "int":
+                return int(t)
+            if self.kind in ("float",):
+                return float(t)
+            if self.kind == "rate":
+                return t if t == SOURCE_RATE else float(t)
+            if self.kind == "bool":
+                return {"true": True, "on": True, "1": True, "false": False, "off": False, "0": False}.get(t.lower(), text)
+            if self.kind == "pair":
+                return tuple(float(v) for v in t.split(","))
+            if self.kind == "size":
+                w, sep, h = t.lower().partition("x")
+                return (int(w), int(h)) if sep else text
+        except ValueError:
+            return text
+        return t
+
+
+_BAD = object()
+
+
+def _whole(v) -> bool:
+    """An int (numpy's too), not a bool."""
+    return isinstance(v, numbers.Integral) and not isinstance(v, bool)
+
+
+def _real(v):
+    """A finite float, or _BAD for anything else (bools and strings included)."""
+    if isinstance(v, bool) or not isinstance(v, numbers.Real):
+        return _BAD
+    v = float(v)
+    return v if math.isfinite(v) else _BAD
+
+
+def _num(v: float) -> str:
+    return f"{v:g}" if isinstance(v, float) and v != int(v) else str(int(v))
+
+
+def _ai(name, default, help, kind="float", **bounds) -> Setting:
+    return Setting(name, "ai", kind, default, help, label=f"AI setting {name}", **bounds)
+
+
+_ALL = (
+    # what runs
+    Setting("agents", "scene", "int", 200, "number of zombies", label="agent count", low=0, high=1_000_000, slider=(0, 10_000)),
+    Setting("seed", "scene", "int", 1, "random seed of the crowd (the same seed gives the same crowd)", low=0, high=2**63 - 1),
+    # the bake
+    Setting("bake_fps", "clips", "rate", 30.0, f'bake rate in frames per second, or "{SOURCE_RATE}": each clip at its own key rate',
+            label="bake rate", low=1, high=240, slider=(5, 60)),
+    Setting("precision", "clips", "choice", "f32", "storage of the animation texture", choices=("f32", "f16")),
+    Setting("interpolation", "clips", "choice", "qt_lerp",
+            "how keys are sampled and layers blended (docs/BENCHMARKS.md says why the default is the default)",
+            choices=("dq_lerp", "qt_lerp", "qt_cubic")),
+    # what is drawn
+    Setting("processor", "features", "choice", "auto", "animation processor path: compute where GL 4.3 exists, else fragment",
+            label="processor path", choices=("auto", "compute", "fragment")),
+    Setting("shadows", "features", "bool", True, "sun shadows (the shadow map and pass exist only when on)"),
+    Setting("culling", "features", "bool", True, "frustum culling"),
+    Setting("lod_distances", "features", "pair", (14.0, 40.0), "metres from the camera where LOD1 and LOD2 start",
+            label="LOD distances", low=0, open_low=True, slider=(1, 500)),
+    Setting("weapons", "features", "bool", True, "armed zombies carry weapons (off: no socket read-back, no gather pass)"),
+    Setting("readback_latency", "features", "int", 2, "frames between gathering a weapon socket and the CPU reading it",
+            label="readback latency", low=1, high=3, slider=(1, 3)),
+    # the crowd's behaviour (crowd.sim.ai.AIConfig)
+    _ai("substep", 1 / 60, "seconds, the longest simulation substep", low=0, open_low=True),
+    _ai("max_dt", 0.25, "seconds: a longer frame is simulated as this long (the game slows, it does not explode)", low=0, high=10, open_low=True),
+    _ai("notice_radius", 14.0, "metres at which a zombie notices the player", low=0, open_low=True),
+    _ai("forget_radius", 24.0, "metres at which a chasing zombie gives up (at least notice_radius)", low=0, open_low=True),
+    _ai("reaction_min", 0.2, "seconds, shortest delay between noticing the player and chasing", low=0),
+    _ai("reaction_max", 1.2, "seconds, longest such delay (at least reaction_min)", low=0),
+    _ai("attack_reach", 1.2, "metres from the player at which a zombie attacks", low=0, open_low=True),
+    _ai("attack_cooldown", 0.6, "seconds between attacks", low=0),
+    _ai("separation_radius", 0.75, "metres between two zombies' centres that separation keeps", low=0, open_low=True),
+    _ai("separation_stiffness", 15.0, "1/s: share of an overlap removed per second (clamped at 1 per substep)", low=0),
+    _ai("max_accel", 6.0, "m/s^2, steering acceleration limit", low=0, open_low=True),
+    _ai("turn_rate", 5.0, "rad/s, heading turn limit", low=0, open_low=True),
+    _ai("arrive_distance", 1.5, "metres over which a zombie slows down as it arrives", low=0, open_low=True),
+    _ai("wander_radius", 6.0, "metres, how far a wandering zombie picks its next point", low=0, open_low=True),
+    _ai("wander_speed", 0.6, "share of the zombie's walk speed while wandering", low=0),
+    _ai("speed_min", 0.8, "smallest per-zombie speed factor", low=0, open_low=True),
+    _ai("speed_max", 1.2, "largest per-zombie speed factor (at least speed_min)", low=0, open_low=True),
+    _ai("runner_share", 0.3, "share of zombies that run instead of shambling", low=0, high=1),
+    _ai("armed_share", 0.5, "share of zombies that carry a weapon", low=0, high=1),
+    _ai("crossfade", 0.25, "seconds of cross-fade in and out of every action", low=0, slider=(0.0, 1.5)),
+    _ai("corpse_time", 6.0, "seconds a body lies still before the zombie respawns", low=0),
+    _ai("health", 3, "hits that kill a zombie", kind="int", low=1),
+    _ai("area_per_agent", 6.0, "m^2 of world per zombie (sets the world size when half_extent is 0)", low=0, open_low=True),
+    _ai("min_half_extent", 12.0, "metres, the smallest half width of the world", low=0, open_low=True),
+    _ai("half_extent", 0.0, "metres, the world's half width; 0: from the zombie count", low=0),
+    # live controls of a running crowd (the panel; not in scene files)
+    Setting("time_scale", "session", "float", 1.0, "simulated seconds per real second", label="time scale", low=0, high=10, slider=(0, 4)),
+    Setting("clip_speed", "session", "float", 1.0, "a clip's playback speed; a faster walk also moves faster",
+            label="playback speed", low=0.05, high=20, slider=(0.1, 3)),
+    Setting("clip_loop", "session", "bool", True, "a clip loops (true) or plays once (false)", label="loop"),
+    Setting("layer_weight", "session", "float", 1.0, "a layer's weight held at a value", label="weight", low=0, high=1000, slider=(0, 2)),
+    # how long and how big (command line only)
+    Setting("frames", "run", "int", 60, "frames to run (headless default 60; the window runs until closed)", low=1, high=100_000),
+    Setting("size", "run", "size", (1280, 720), "frame size WxH", low=16, high=8192),
+)
+
+SETTINGS: dict[str, Setting] = {s.name: s for s in _ALL}
+DEFAULTS: dict[str, object] = {s.name: s.default for s in _ALL}
+
+
+def group(name: str) -> dict[str, Setting]:
+    """The settings of one group, in declaration order."""
+    return {s.name: s for s in _ALL if s.group == name}
+
+
+SCENE_GROUPS = ("scene", "clips", "features", "ai")  # the groups a scene file holds, one TOML table each
+
+
+def parse(name: str, text: str, error: type[Exception] = SettingError, source: str | None = None):
+    """A command-line string for setting `name`, converted and checked (``Setting.check``)."""
+    setting = SETTINGS[name]
+    return setting.check(setting.from_text(text), error, source)

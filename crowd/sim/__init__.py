@@ -1,0 +1,1 @@
+"""Simulation: the crowd AI, plain numpy in and frame contracts (layers, instances) out. No GL."""

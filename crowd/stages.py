@@ -1,0 +1,118 @@
+"""The one place that builds the GL stages of a crowd frame: processor, renderer, read-back, weapons.
+
+``Stages.build(ctx, character, bake, spec)`` makes the stages a ``StageSpec`` asks for and nothing
+else: without armed agents there is no read-back stage, no weapon meshes, and one palette instead of a
+ring. The pipeline, the benchmarks and the peers' crowd side all build through here, so the numbers
+that tie one stage to another (the palette layout the renderer and read-back address, the history the
+read-back latency needs) are derived once.
+
+``Stages`` is a context manager: its GL objects are released when the block ends, however it ends, and
+a build that fails half-way releases what it had made. Replacing one stage (``replace``) releases the
+old one after the new one exists, so a failed rebuild keeps the working stage.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import moderngl
+
+from .anim.bake import AnimationBake
+from .anim.processor import AnimationProcessor
+from .asset.model import Character
+from .draw.readback import SocketReadback
+from .draw.render import CrowdRenderer
+from .draw.weapons import WeaponRenderer
+from .frame import MAX_LAYERS
+from .settings import DEFAULTS
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """What the stages are built for; every field has the settings schema's default."""
+
+    layers: int = MAX_LAYERS
+    masks: object = None  # joint masks (masks, joints) or None
+    processor_path: str = DEFAULTS["processor"]
+    interpolation: str = DEFAULTS["interpolation"]
+    lod_distances: tuple = DEFAULTS["lod_distances"]
+    shadows: bool = DEFAULTS["shadows"]
+    culling: bool = DEFAULTS["culling"]
+    armed: bool = False  # somebody carries a weapon: the read-back stage and weapon meshes exist
+    readback_latency: int = DEFAULTS["readback_latency"]
+    pieces: tuple | None = None  # the mesh pieces to draw (None: all)
+    extras: dict = field(default_factory=dict)  # CrowdRenderer keyword arguments the benchmarks set (shadow_size)
+
+    @property
+    def history(self) -> int:
+        """Palettes the processor keeps: the read-back's frame and every frame after it, or just one."""
+        return self.readback_latency + 1 if self.armed else 1
+
+
+def build_processor(ctx: moderngl.Context, bake: AnimationBake, spec: StageSpec, agents: int = 0) -> AnimationProcessor:
+    processor = AnimationProcessor(ctx, bake, spec.layers, masks=spec.masks, path=spec.processor_path,
+                                   history=spec.history, interpolation=spec.interpolation)
+    try:
+        processor.resize(agents)
+    except BaseException:
+        processor.release()
+        raise
+    return processor
+
+
+def build_renderer(ctx: moderngl.Context, character: Character, processor: AnimationProcessor, spec: StageSpec) -> CrowdRenderer:
+    return CrowdRenderer(ctx, character, processor.joint_count, processor.agents_per_row, pieces=spec.pieces,
+                         lod_distances=spec.lod_distances, shadows=spec.shadows, culling=spec.culling, **spec.extras)
+
+
+def build_readback(ctx: moderngl.Context, processor: AnimationProcessor, spec: StageSpec) -> SocketReadback | None:
+    return SocketReadback(ctx, processor.joint_count, processor.agents_per_row) if spec.armed else None
+
+
+def build_weapons(ctx: moderngl.Context, character: Character, spec: StageSpec) -> WeaponRenderer | None:
+    return WeaponRenderer(ctx, character, spec.shadows) if spec.armed else None
+
+
+@dataclass
+class Stages:
+    processor: AnimationProcessor | None = None
+    renderer: CrowdRenderer | None = None
+    readback: SocketReadback | None = None
+    weapons: WeaponRenderer | None = None
+
+    ORDER = ("processor", "renderer", "readback", "weapons")  # built in this order, released in reverse
+
+    @classmethod
+    def build(cls, ctx: moderngl.Context, character: Character, bake: AnimationBake, spec: StageSpec, agents: int = 0) -> "Stages":
+        stages = cls()
+        try:
+            stages.processor = build_processor(ctx, bake, spec, agents)
+            stages.renderer = build_renderer(ctx, character, stages.processor, spec)
+            stages.readback = build_readback(ctx, stages.processor, spec)
+            stages.weapons = build_weapons(ctx, character, spec)
+        except BaseException:
+            stages.release()
+            raise
+        return stages
+
+    def replace(self, name: str, stage) -> None:
+        """Put a new stage (or None) in place of one, releasing the old one."""
+        if name not in self.ORDER:
+            raise KeyError(name)
+        old = getattr(self, name)
+        setattr(self, name, stage)
+        if old is not None and old is not stage:
+            old.release()
+
+    def release(self) -> None:
+        for name in reversed(self.ORDER):
+            stage = getattr(self, name)
+            if stage is not None:
+                setattr(self, name, None)
+                stage.release()
+
+    def __enter__(self) -> "Stages":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()

@@ -1,0 +1,92 @@
+"""The stats of a run, headless or windowed: one JSON shape, read from the pipeline's public state.
+
+Collecting them is not the pipeline's job (it runs frames), so it lives here, beside the one writer.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+from pathlib import Path
+
+import moderngl
+import numpy as np
+
+from .files import atomic_write_bytes
+from .gl import describe
+
+
+def percentiles(values) -> dict:
+    a = np.asarray(values, np.float64)
+    if a.size == 0:
+        return {"p50": None, "p95": None, "max": None}
+    return {"p50": round(float(np.percentile(a, 50)), 4), "p95": round(float(np.percentile(a, 95)), 4), "max": round(float(a.max()), 4)}
+
+
+def _round(value, digits: int = 5):
+    return None if value is None else round(float(value), digits)
+
+
+def readback_wait(pipeline) -> dict | None:
+    """The CPU's wait on the socket read-back (ms): max and median over the reads so far."""
+    if pipeline.readback is None:
+        return None
+    waits = np.asarray(pipeline.readback_waits or [0.0])
+    return {"max": round(float(waits.max()), 4), "median": round(float(np.median(waits)), 4)}
+
+
+def weapon_stats(pipeline) -> dict:
+    if pipeline.weapons is None:
+        return {"enabled": False}
+    return {"enabled": True, "latency_frames": pipeline.latency,
+            "pose_lag_ms": pipeline.pose_lag_ms(),  # simulated time the pose trails by
+            "armed": int(np.count_nonzero(pipeline.ai.armed())), "drawn": pipeline.weapons.last["weapons"],
+            "triangles": pipeline.weapons.last["triangles"],
+            "gathered": pipeline.readback.last_count, "stalls": pipeline.readback_stalls, "reads": len(pipeline.readback_waits)}
+
+
+def pipeline_stats(pipeline) -> dict:
+    """What the pipeline did: its bake, the AI's states, pass timings, passes run, GPU bytes, weapons."""
+    p = pipeline
+    return {
+        "agents": p.agents,
+        "processor_path": p.processor.path,
+        "layers": p.processor.layer_count,
+        "bake": {"fps": p.bake.fps, "precision": p.bake.precision, "interpolation": p.processor.interpolation,
+                 "clips": [c.name for c in p.bake.clips],
+                 "rows": p.bake.rows, "bytes": p.bake.nbytes},
+        "roles": p.roles,
+        "ai": {"states": p.ai.counts(), "player_hits_taken": p.ai.player_hits_taken, "faults": p.ai.check(),
+               "notes": list(p.motion.notes)},
+        "passes_ms": p.timer.medians(),
+        "passes_clock": {k: p.timer.clock[k] for k in p.timer.order},
+        "passes_run": list(p.passes_run),
+        "gpu_bytes": p.gpu_bytes(),
+        "last_frame": dict(p.renderer.last),
+        "weapons": weapon_stats(p),
+        "weapon_error_mm": None if p.weapons is None else _round(p.weapon_error_mm()),
+        "readback_wait_ms": readback_wait(p),
+    }
+
+
+def collect_stats(ctx: moderngl.Context, pipeline, frame_ms: list, size, config) -> dict:
+    """The stats JSON of a run (headless or windowed): device, frame times, passes and the pipeline's own."""
+    stats = describe(ctx)
+    stats.update({
+        "agents": pipeline.agents,
+        "frames": len(frame_ms),
+        "size": list(size),
+        "seed": pipeline.config.seed,
+        "model": str(config.model) if config.model else "built-in zombie",
+        "frame_ms": percentiles(frame_ms[1:] if len(frame_ms) > 1 else frame_ms),  # frame 0 compiles shaders
+        "nan_count": pipeline.processor.nan_rows(),
+        "python": platform.python_version(),
+        "moderngl": moderngl.__version__,
+        "warnings": pipeline.character.warnings + pipeline.bake.warnings + pipeline.role_notes,
+    })
+    stats.update(pipeline_stats(pipeline))
+    return stats
+
+
+def write_stats(path: Path, stats: dict) -> None:
+    atomic_write_bytes(Path(path), (json.dumps(stats, indent=2) + "\n").encode())
