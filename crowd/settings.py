@@ -72,7 +72,8 @@ class Setting:
         return "a whole number" if self.kind == "int" else "a finite number"
 
     def reason(self, value) -> str:
-        return f"{self.words} must be {self.rule()}, got {value!r}"
+        shown = repr(list(value)) if isinstance(value, (list, tuple)) else repr(value)  # a TOML array and a flag's pair alike
+        return f"{self.words} must be {self.rule()}, got {shown}"
 
     def check(self, value, error: type[Exception] = SettingError, source: str | None = None):
         """`value` as this setting's type (ints stay ints, floats become float, pairs tuples), or
@@ -125,14 +126,14 @@ class Setting:
         try:
             if self.kind == "int":
                 return int(t)
-            if self.kind in ("float",):
-                return float(t)
+            if self.kind == "float":
+                return _number_text(t)
             if self.kind == "rate":
-                return t if t == SOURCE_RATE else float(t)
+                return t if t == SOURCE_RATE else _number_text(t)
             if self.kind == "bool":
                 return {"true": True, "on": True, "1": True, "false": False, "off": False, "0": False}.get(t.lower(), text)
             if self.kind == "pair":
-                return tuple(float(v) for v in t.split(","))
+                return tuple(_number_text(v) for v in t.split(","))
             if self.kind == "size":
                 w, sep, h = t.lower().partition("x")
                 return (int(w), int(h)) if sep else text
@@ -142,6 +143,14 @@ class Setting:
 
 
 _BAD = object()
+
+
+def _number_text(text: str) -> int | float:
+    """"3" as 3 and "3.0" as 3.0, as TOML reads them, so a flag and a file show a value the same way."""
+    try:
+        return int(text)
+    except ValueError:
+        return float(text)
 
 
 def _whole(v) -> bool:

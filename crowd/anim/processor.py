@@ -272,6 +272,7 @@ class AnimationProcessor(GLStage):
         self._framebuffer = None
         self._quad = None
         self._quad_vao = None
+        self._quad_vertices = 0
 
     # -- resources
 

@@ -61,7 +61,7 @@ class _Reader:
     def fail(self, msg: str):
         raise GltfImportError(f"{self.where}: {msg}")
 
-    def _get(self, seq, index, kind):
+    def get(self, seq, index, kind):
         if index is None or not isinstance(index, int) or not 0 <= index < len(seq or []):
             self.fail(f"{kind} index {index!r} is out of range")
         return seq[index]
@@ -69,7 +69,7 @@ class _Reader:
     def buffer(self, index: int) -> bytes:
         if index in self._buffers:
             return self._buffers[index]
-        buf = self._get(self.gltf.buffers, index, "buffer")
+        buf = self.get(self.gltf.buffers, index, "buffer")
         uri = buf.uri
         if uri is None:
             data = self.gltf.binary_blob()
@@ -97,7 +97,7 @@ class _Reader:
         return data
 
     def _view_array(self, view_index: int, offset: int, count: int, dtype, ncomp: int, what: str) -> np.ndarray:
-        view = self._get(self.gltf.bufferViews, view_index, "bufferView")
+        view = self.get(self.gltf.bufferViews, view_index, "bufferView")
         data = self.buffer(view.buffer)
         base = (view.byteOffset or 0)
         if base + view.byteLength > len(data):
@@ -120,7 +120,7 @@ class _Reader:
         """Accessor data as (count, ncomp); normalised integers become float64 per the spec."""
         if index in self._cache:
             return self._cache[index]
-        acc = self._get(self.gltf.accessors, index, "accessor")
+        acc = self.get(self.gltf.accessors, index, "accessor")
         what = f"{what} (accessor {index})"
         if acc.componentType not in _COMPONENT:
             self.fail(f"{what} has unknown componentType {acc.componentType}")
@@ -226,7 +226,7 @@ def load_character(path: str | Path | None = None, clips: list[str] | None = Non
         from .zombie import ASSET_PATH, build_character
 
         path = ASSET_PATH
-        if not path.exists():  # an installed copy without assets/: the generator is the source of truth
+        if not path.exists():  # a copy that lost the shipped file (wheels carry it): the generator is the source of truth
             return _select_clips(build_character(), clips, "built-in zombie")
     path = Path(path)
     if not path.is_file():
@@ -280,14 +280,14 @@ def _import(r: _Reader) -> Character:
     skin_index = max(skin_use, key=lambda k: (skin_use[k], -k))
     if len(skin_use) > 1:
         warn.append(f"file has {len(skin_use)} skins; kept skin {skin_index}, meshes on other skins left out")
-    skin = r._get(gl.skins, skin_index, "skin")
+    skin = r.get(gl.skins, skin_index, "skin")
     src_joints = list(skin.joints or [])
     if not src_joints:
         r.fail(f"skin {skin_index} has no joints")
     if len(set(src_joints)) != len(src_joints):
         r.fail(f"skin {skin_index} lists a joint twice")
     for j in src_joints:
-        r._get(nodes, j, "joint node")
+        r.get(nodes, j, "joint node")
     joint_set = set(src_joints)
 
     def joint_parent(node: int):
@@ -407,7 +407,7 @@ def _base_color(r: _Reader, prim) -> tuple[tuple[float, ...], bool]:
     """(base colour factor, whether a base colour texture was left out)."""
     if prim.material is None:
         return (1.0, 1.0, 1.0, 1.0), False
-    pbr = r._get(r.gltf.materials, prim.material, "material").pbrMetallicRoughness
+    pbr = r.get(r.gltf.materials, prim.material, "material").pbrMetallicRoughness
     if pbr is None:
         return (1.0, 1.0, 1.0, 1.0), False
     base = tuple(float(x) for x in pbr.baseColorFactor) if pbr.baseColorFactor is not None else (1.0, 1.0, 1.0, 1.0)
@@ -423,7 +423,7 @@ def _read_meshes(r: _Reader, nodes, skin_index: int, skin_to_new: np.ndarray, jc
         if node.mesh is None or node.skin != skin_index or node.mesh in seen_mesh:
             continue
         seen_mesh.add(node.mesh)
-        mesh = r._get(gl.meshes, node.mesh, "mesh")
+        mesh = r.get(gl.meshes, node.mesh, "mesh")
         extras = crowd_extras(mesh)
         for pi, prim in enumerate(mesh.primitives or []):
             label = mesh.name or f"mesh{node.mesh}"
@@ -502,7 +502,7 @@ def _colors(r: _Reader, prim, v: int, label: str) -> np.ndarray | None:
 
 
 def _rigid_mesh(r: _Reader, mesh_index: int, warn: list[str]) -> RigidMesh | None:
-    mesh = r._get(r.gltf.meshes, mesh_index, "mesh")
+    mesh = r.get(r.gltf.meshes, mesh_index, "mesh")
     parts_p, parts_n, parts_i, parts_c, base = [], [], [], [], (1.0, 1.0, 1.0, 1.0)
     count = 0
     for prim in mesh.primitives or []:
@@ -582,7 +582,7 @@ def _read_clips(r: _Reader, skeleton: Skeleton, new_index, folds, factor: float,
                 if ch.target.node not in joint_set:
                     warn.append(f"{where}: animates non-joint node {ch.target.node}; left out")
                     continue
-                sampler = r._get(anim.samplers, ch.sampler, f"{where} sampler")
+                sampler = r.get(anim.samplers, ch.sampler, f"{where} sampler")
                 interp = sampler.interpolation or "LINEAR"
                 if interp not in ("LINEAR", "STEP", "CUBICSPLINE"):
                     r.fail(f"{where}: unknown interpolation {interp!r}")

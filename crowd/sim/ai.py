@@ -28,6 +28,7 @@ camera before anything becomes float32.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -213,6 +214,7 @@ class CrowdAI:
         self.player_hits_taken = 0
         self.steps = 0  # step() calls so far; an agent's spawned_step is the step in which it (re)appeared
         self.pair_builds = 0  # how often the separation's neighbour list was rebuilt (benchmarks report it)
+        self.separation_seconds = 0.0  # CPU time spent in separation so far: what bounds a big crowd's step
         self._motion_tables(motion)
         self.n = 0
         self._allocate(0)
@@ -253,6 +255,7 @@ class CrowdAI:
             setattr(self, name, np.zeros(n, dtype))
         self.tint = np.zeros((n, 4), np.uint8)
         self._pairs = None  # the separation's neighbour list (see _neighbour_pairs)
+        self._pairs_x = self._pairs_z = None  # where the agents stood when that list was built
 
     def _names(self):
         return (*self._FLOAT, *self._OTHER, "tint")
@@ -443,7 +446,9 @@ class CrowdAI:
         self.vz[still] = 0.0
         self.x += self.vx * h
         self.z += self.vz * h
+        started = time.perf_counter()
         self._separate(h)
+        self.separation_seconds += time.perf_counter() - started
         self._bound()
 
         # Heading: a unit vector turned toward the motion (or toward the player while attacking) by at
