@@ -9,11 +9,10 @@ from __future__ import annotations
 
 import functools
 import os
-from pathlib import Path
 
 import moderngl
 
-SHADER_DIR = Path(__file__).resolve().parent.parent / "shaders"
+from .resources import SHADER_DIR
 
 
 class GLStage:

@@ -38,8 +38,6 @@ from .pipeline import PipelineConfig
 from .settings import DEFAULTS, SCENE_GROUPS, SETTINGS, group
 from .sim.ai import AIConfig, AIError
 
-SCENE_DIR = Path(__file__).resolve().parent.parent / "scenes"
-
 
 class SceneError(ValueError):
     """A scene file that cannot be used; the message is one line and names the file."""

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from bench import stability
-from crowd.anim import accuracy, reference
+from crowd.anim import accuracy
 from crowd.transforms import trs_to_mat4
 from crowd.anim.bake import bake
 from bench.cli import main as bench_main

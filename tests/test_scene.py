@@ -10,7 +10,8 @@ import sys
 import pytest
 
 from crowd.pipeline import PipelineConfig
-from crowd.scene import SCENE_DIR, Scene, SceneError, load_scene, save_scene
+from crowd.resources import SCENE_DIR
+from crowd.scene import Scene, SceneError, load_scene, save_scene
 from crowd.smoke import run_headless
 from conftest import ROOT
 

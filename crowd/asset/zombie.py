@@ -24,10 +24,11 @@ from pathlib import Path
 import numpy as np
 
 from .. import transforms as tf
+from ..resources import ASSET_DIR
 from .pose import LocalPose, global_matrices, rest_pose
 from .model import Channel, Character, Clip, Prop, RigidMesh, Skeleton, SkinnedMesh, vertex_normals
 
-ASSET_PATH = Path(__file__).resolve().parents[2] / "assets" / "zombie.glb"
+ASSET_PATH = ASSET_DIR / "zombie.glb"
 SOURCE_FPS = 30  # clips are authored as keys at this rate; the bake resamples them
 LOD_DIVISORS = (1, 2, 4)  # rings and segments divided by this per LOD: ~1, 1/4, 1/16 of the triangles
 
