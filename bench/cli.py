@@ -9,6 +9,8 @@
 - ``error``: the processor's error against its run time for every bake rate, storage and
   interpolation, with the Pareto front, the default it picks and the stiff and extreme cases
   (bench/error_report.py); ``plot-error`` redraws its plot from the JSON.
+- ``frame``: the whole headless frame's period (frames back to back, one finish at the end) and latency
+  (one finish per frame), with the pass medians, against agent count.
 - ``readback``: the weapons' socket gather and GPU→CPU transfer against the number of armed agents,
   the CPU's wait on it, and the weapon-to-hand error with the body drawn in step with the read-back
   (sync) and from the newest palette (unsync), side by side in one run.
@@ -204,6 +206,64 @@ def bench_ai(args) -> int:
     return 0
 
 
+def bench_frame(args) -> int:
+    """The whole headless frame (AI, processor, culling, shadows, draws, weapons) as a window runs it.
+    Period: `frames` frames issued back to back with one finish at the end, divided by `frames` (what a
+    window's frame rate is). Latency: one finish per frame. Both after a warm-up, `repeats` times; the
+    pass medians come from the same frames (GPU passes from timer queries)."""
+    import moderngl
+
+    from crowd.gl import Offscreen, describe, headless_context
+    from crowd.pipeline import CrowdPipeline
+    from crowd.scene import Scene, load_scene
+    from crowd.settings import parse
+    from crowd.smoke import FIXED_DT
+
+    size = parse("size", args.size)
+    scene = load_scene(args.scene) if args.scene else Scene()
+    ctx = headless_context()
+    info = describe(ctx)
+    device = f"{info['gl_renderer']}, {info['gl_version']}; {device_cpu()}; moderngl {moderngl.__version__}"
+    print(f"{device} | {size[0]}x{size[1]} | {args.frames} frames per period, {args.repeats} repeats")
+    print(f"{'agents':>8} {'period ms':>10} {'latency ms':>11} {'fps':>7}  biggest passes (median ms)")
+    rows = []
+    with Offscreen(ctx, size) as target:
+        for n in [int(x) for x in args.agents.split(",")]:
+            config = scene.with_overrides(agents=n).pipeline_config()
+            with CrowdPipeline(ctx, config) as pipeline:
+                pipeline.camera = scene.camera_for(size[0] / size[1]) or pipeline.default_camera(size[0] / size[1])
+                for _ in range(args.warmup):
+                    pipeline.frame(target.framebuffer, FIXED_DT)
+                ctx.finish()
+                periods, latencies = [], []
+                for _ in range(args.repeats):
+                    t0 = time.perf_counter()
+                    for _ in range(args.frames):
+                        pipeline.frame(target.framebuffer, FIXED_DT)
+                    ctx.finish()
+                    periods.append((time.perf_counter() - t0) * 1e3 / args.frames)
+                    for _ in range(max(1, args.frames // 2)):
+                        t0 = time.perf_counter()
+                        pipeline.frame(target.framebuffer, FIXED_DT)
+                        ctx.finish()
+                        latencies.append((time.perf_counter() - t0) * 1e3)
+                pipeline.timer.end_frame(drain=True)
+                passes = pipeline.timer.medians()
+            row = {"agents": n, "period_ms": round(float(np.median(periods)), 3), "periods_ms": [round(p, 3) for p in periods],
+                   "latency_ms": round(float(np.median(latencies)), 3), "passes_ms": passes}
+            rows.append(row)
+            top = sorted(passes.items(), key=lambda kv: -kv[1])[:4]
+            print(f"{n:>8} {row['period_ms']:>10.2f} {row['latency_ms']:>11.2f} {1e3 / row['period_ms']:>7.1f}  "
+                  + ", ".join(f"{k} {v:.2f}" for k, v in top))
+    if args.json:
+        from crowd.files import atomic_write_bytes
+
+        atomic_write_bytes(Path(args.json), json.dumps({"device": device, "size": list(size), "scene": str(args.scene or "default"),
+                                                        "rows": rows}, indent=1).encode())
+    ctx.release()
+    return 0
+
+
 def bench_readback(args) -> int:
     """A 10,000-agent crowd (the AI running, the scripted player striking) in which the first k agents
     are armed. Frames are submitted back to back without glFinish, as a window would, so the read of
@@ -293,6 +353,15 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--json", type=Path)
     p.set_defaults(run=bench_ai)
+    p = sub.add_parser("frame", help="the whole headless frame: period (frames back to back, one finish) and latency (a finish per frame)")
+    p.add_argument("--agents", default="200,10000", help="comma-separated agent counts")
+    p.add_argument("--scene", type=Path, help="a scene file (default: the default scene)")
+    p.add_argument("--size", default="1920x1080", help="frame size WxH")
+    p.add_argument("--frames", type=int, default=100, help="frames per period measurement")
+    p.add_argument("--repeats", type=int, default=3, help="period measurements per agent count (the median is reported)")
+    p.add_argument("--warmup", type=int, default=10, help="frames before measuring (shaders compile, buffers grow)")
+    p.add_argument("--json", type=Path, help="write the rows here")
+    p.set_defaults(run=bench_frame)
     p = sub.add_parser("readback", help="weapon socket gather, transfer and wait against armed agents; sync vs unsync error")
     p.add_argument("--agents", type=int, default=10000)
     p.add_argument("--armed", default="0,100,1000,10000")

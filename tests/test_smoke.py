@@ -197,3 +197,16 @@ def test_triangle_reorder_keeps_the_mesh_and_shades_fewer_vertices(zombie):
     canon = lambda idx: sorted(tuple(np.roll(t, -int(np.argmin(t)))) for t in idx.reshape(-1, 3))  # noqa: E731
     assert canon(order) == canon(body.indices)  # same triangles, same winding
     assert shaded_vertices_per_triangle(order) < 0.95 * shaded_vertices_per_triangle(body.indices)
+
+
+def test_crowd_bench_frame_reports_period_and_latency(tmp_path):
+    from bench.cli import main
+
+    out = tmp_path / "frame.json"
+    assert main(["frame", "--agents", "0,20", "--frames", "3", "--repeats", "2", "--warmup", "1", "--size", "64x36", "--json", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert [r["agents"] for r in report["rows"]] == [0, 20] and report["device"]
+    for row in report["rows"]:
+        assert len(row["periods_ms"]) == 2 and row["period_ms"] > 0 and row["latency_ms"] > 0
+    assert "draw" in report["rows"][1]["passes_ms"] and "draw" not in report["rows"][0]["passes_ms"]  # nobody to draw at 0
+    assert main(["frame", "--size", "1x1"]) == 2  # a bad size: one line, exit 2
