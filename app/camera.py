@@ -11,7 +11,7 @@ from crowd.frame import Camera
 
 class OrbitControl:
     """Orbit, pan and zoom around a target point, the way editors do: drag to orbit, drag with the
-    middle button (or shift) to pan along the ground, scroll to zoom. Writes a render Camera."""
+    middle button (or shift) to pan along the ground, scroll to zoom. Writes a frame Camera (crowd.frame)."""
 
     def __init__(self, camera: Camera):
         eye, target = np.asarray(camera.eye, np.float64), np.asarray(camera.target, np.float64)

@@ -81,8 +81,8 @@ def main(argv=None) -> int:
                 scene = load_scene(args.scene)
             except SceneError as exc:  # a broken scene file loses nothing: the run goes on with the defaults
                 print(f"crowd-demo: {exc}; running the default scene instead", file=sys.stderr)
-        # Every setting flag given: its text converted and checked by the schema, naming the flag.
-        given = {name: parse(name, text, SceneError, SETTINGS[name].flag) for table in SCENE_GROUPS
+        # Every setting flag given, its text as the setting's type; the scene checks it, naming the flag.
+        given = {name: SETTINGS[name].from_text(text) for table in SCENE_GROUPS
                  for name in group(table) if (text := getattr(args, name)) is not None}
         scene = scene.with_overrides(model=args.model, roles=parse_overrides(args.roles) or None, **given)
         size = SETTINGS["size"].default if args.size is None else parse("size", args.size, SceneError, "--size")

@@ -9,7 +9,7 @@ import moderngl
 import numpy as np
 
 from crowd.draw.render import FrameView, gl_bytes
-from crowd.gl import GLStage, load_shader
+from crowd.gl import GLStage, gpu_bytes, load_shader
 
 SEGMENTS = 48
 
@@ -47,6 +47,9 @@ class MarkerRings(GLStage):
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.program["u_view_proj"].write(gl_bytes(view.view_proj))
         self._vao.render(moderngl.TRIANGLE_STRIP, vertices=self._vertices, instances=len(points))
+
+    def gpu_bytes(self) -> int:
+        return gpu_bytes(self._objects)
 
     def release(self) -> None:
         for obj in reversed(self._objects):

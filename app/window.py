@@ -47,9 +47,13 @@ class CrowdWindow(mglw.WindowConfig):
         self.gui = ModernglWindowRenderer(self.wnd)
         width, height = self.wnd.buffer_size
         self.session = CrowdSession(self.ctx, self.launch["scene"], width / max(height, 1))
+        try:
+            self.markers = MarkerRings(self.ctx)
+        except BaseException:
+            self.session.release()
+            raise
         self.panel = Panel(self.session, self.launch.get("scene_path"))
         self.orbit = OrbitControl(self.session.pipeline.camera)
-        self.markers = MarkerRings(self.ctx)
         self.keys_down: set = set()
         self._press = None  # where a left press started, to tell a click from a drag
         self._dragged = 0.0
@@ -155,10 +159,9 @@ class CrowdWindow(mglw.WindowConfig):
         ratio = self.wnd.pixel_ratio
         return x * ratio, y * ratio
 
-    def on_close(self) -> None:
-        self.release()
-
     def release(self) -> None:
+        """Everything the window made on the GPU; run_window calls it once the last stats are taken,
+        however the window ended (closed by the user, or after --frames)."""
         self.markers.release()
         self.session.release()
 
@@ -202,11 +205,11 @@ def run_window(scene: Scene, size: tuple[int, int], frames: int | None, screensh
         if screenshot is not None:
             window.screenshot(screenshot)
         stats = collect_stats(window.ctx, window.session.pipeline, window.frame_ms, window.wnd.buffer_size, scene)
+        stats["gpu_bytes"]["markers"] = window.markers.gpu_bytes()
         stats["window"] = {"backend": "pyglet", "frames": count, **describe(window.ctx)}
         if stats_path is not None:
             write_stats(stats_path, stats)
         return stats
     finally:
-        if not window.wnd.is_closing:
-            window.release()
+        window.release()
         window.wnd.destroy()

@@ -27,7 +27,7 @@ def grid_layout(n: int):
 
 
 def grid_crowd(n: int, aspect: float):
-    """``grid_layout`` with the camera as a render.Camera. Returns (float64 positions (n, 3), Camera)."""
+    """``grid_layout`` with the camera as a crowd.frame.Camera. Returns (float64 positions (n, 3), Camera)."""
     from crowd.frame import Camera
 
     pos, eye, target, far = grid_layout(n)

@@ -1,7 +1,7 @@
 """``crowd-bench peers``: the crowd against what a Python developer would reach for instead, Panda3D's
 ``Actor``, on the same glTF character, at the same resolution, on the same machine, in one run.
 
-The work, the same on both sides: n agents on the benchmarks' square grid (``bench.grid_layout``, 1.5 m
+The work, the same on both sides: n agents on the benchmarks' square grid (``bench.common.grid_layout``, 1.5 m
 apart, a camera that sees all of them), each looping the walk clip from its own start phase and
 heading; in the blend modes each agent also plays the run clip and blends the two at its own weight.
 Both sides light the character with shaders/lighting.glsl and draw no ground, shadows or weapons, and

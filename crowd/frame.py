@@ -19,6 +19,7 @@ Every check raises ``FrameError`` with a one-line message.
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -106,7 +107,7 @@ class LayerOverrides:
         if self.forced is not None and not 0 <= self.forced.clip < clip_count:
             raise FrameError(f"forced clip must be an index in [0, {clip_count}), got {self.forced.clip!r}")
         for layer, (weight, _) in self.held.items():
-            if not 0 <= layer < layer_count:
+            if isinstance(layer, bool) or not isinstance(layer, numbers.Integral) or not 0 <= layer < layer_count:
                 raise FrameError(f"held layer must be 0 to {layer_count - 1}, got {layer!r}")
             if not np.isfinite(weight) or not 0.0 <= weight <= MAX_WEIGHT:
                 raise FrameError(f"held weight must be 0 to {MAX_WEIGHT:g}, got {weight!r}")

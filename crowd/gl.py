@@ -207,9 +207,9 @@ class Offscreen(GLStage):
     """A colour and depth framebuffer of one size: where headless frames, benchmarks and tests draw."""
 
     def __init__(self, ctx: moderngl.Context, size: tuple[int, int]):
-        self.size = (int(size[0]), int(size[1]))
         self._objects: list = []
         self.framebuffer = None
+        self.size = (int(size[0]), int(size[1]))
         color = self._own(ctx.renderbuffer(self.size, 4))
         depth = self._own(ctx.depth_renderbuffer(self.size))
         self.framebuffer = self._own(ctx.framebuffer(color_attachments=[color], depth_attachment=depth))

@@ -36,9 +36,6 @@ from .sim.ai import LAYERS, AIConfig, CrowdAI, PlayerScript, motion_for, upper_b
 from .stages import StageSpec, Stages, build_processor, build_readback, build_renderer, build_weapons
 from .timing import PassTimer
 
-MAX_AGENTS = SETTINGS["agents"].high
-
-
 class PipelineError(ValueError):
     """Bad pipeline configuration; the message is one line."""
 
@@ -91,7 +88,7 @@ class CrowdPipeline:
         self.layers = np.empty((config.agents, LAYERS, 4), np.float32)  # this frame's layers, as processed
         # Leave out what the scene does not need: no weapons, no socket, or nobody armed → no read-back
         # stage, no gather pass, no weapon meshes, and one palette instead of a ring.
-        self.stages = Stages.build(ctx, self.character, self.bake, self._spec(), config.agents)
+        self.stages = Stages.build(ctx, self.character, self.bake, self._spec(self._armed(config)), config.agents)
         self.sync = PaletteSync(self.processor.history, config.agents)
         self.readback_waits: list[float] = []
         self.readback_stalls = 0
@@ -125,13 +122,17 @@ class CrowdPipeline:
         return self.ai.n
 
     def _armed(self, config: PipelineConfig) -> bool:
+        """Whether a crowd built from `config` needs the weapon stages. Only building and switching weapons
+        ask this; once built, the stages that exist say it (an armed share set to 0 at run time keeps
+        them, with nobody to gather)."""
         return config.weapons and config.ai.armed_share > 0 and bool(self.character.props) and bool(self.character.sockets)
 
-    def _spec(self) -> StageSpec:
+    def _spec(self, armed: bool | None = None) -> StageSpec:
+        """The StageSpec of this pipeline now; `armed` defaults to whether the read-back stage exists."""
         c = self.config
         return StageSpec(layers=LAYERS, masks=upper_body_mask(self.character.skeleton), processor_path=c.processor_path,
                          interpolation=c.interpolation, lod_distances=c.lod_distances, shadows=c.shadows, culling=c.culling,
-                         armed=self._armed(c), readback_latency=self.latency)
+                         armed=self.readback is not None if armed is None else armed, readback_latency=self.latency)
 
     # -- run-time settings: the panel and the command line both come through these
 
@@ -164,15 +165,23 @@ class CrowdPipeline:
 
     def set_weapons(self, on: bool) -> None:
         """Weapons on: the read-back stage, weapon meshes and a palette ring appear; off: all of them go."""
-        self.config = dataclasses.replace(self.config, weapons=bool(on))
-        spec = self._spec()
-        if spec.armed == (self.readback is not None):
-            return
-        self.stages.replace("readback", build_readback(self.ctx, self.processor, spec))
-        self.stages.replace("weapons", build_weapons(self.ctx, self.character, spec))
-        if not spec.armed:
-            self.last.read = None
-        self._set_palette_history(spec.history)
+        config = dataclasses.replace(self.config, weapons=bool(on))
+        spec = self._spec(self._armed(config))
+        if spec.armed != (self.readback is not None):
+            # Both new stages exist before either old one goes, so a failed build keeps the running pair.
+            readback = build_readback(self.ctx, self.processor, spec)
+            try:
+                weapons = build_weapons(self.ctx, self.character, spec)
+            except BaseException:
+                if readback is not None:
+                    readback.release()
+                raise
+            self.stages.replace("readback", readback)
+            self.stages.replace("weapons", weapons)
+            if not spec.armed:
+                self.last.read = None
+            self._set_palette_history(spec.history)
+        self.config = config
 
     def set_ai_config(self, config: AIConfig) -> None:
         self.ai.set_config(config)
@@ -201,8 +210,9 @@ class CrowdPipeline:
     def set_processor_path(self, path: str) -> None:
         """Run the same bake on another processor path (compute, fragment or auto), live."""
         path = SETTINGS["processor"].check(path, PipelineError)
+        processor = build_processor(self.ctx, self.bake, dataclasses.replace(self._spec(), processor_path=path), self.agents)
+        self.stages.replace("processor", processor)
         self.config = dataclasses.replace(self.config, processor_path=path)
-        self.stages.replace("processor", build_processor(self.ctx, self.bake, self._spec(), self.agents))
         self.sync.reset()
         if self.readback is not None:
             self.readback.reset()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from pathlib import Path
 
 import moderngl
@@ -98,7 +99,7 @@ class CrowdSession:
         for name, value in settings.items():
             if name not in AI_SETTINGS:
                 raise SessionError(f"unknown AI setting {name!r}")
-            AI_SETTINGS[name].check(value, SessionError)
+            settings[name] = AI_SETTINGS[name].check(value, SessionError)  # as the schema's type (a numpy float becomes float)
         try:
             self.pipeline.set_ai_config(dataclasses.replace(self.pipeline.config.ai, **settings))
         except AIError as exc:
@@ -154,8 +155,9 @@ class CrowdSession:
 
     def set_weight(self, layer: int, weight: float | None, selected_only: bool = False) -> None:
         """Hold a layer's weight at a value (None: the AI decides again). Layers: 0 idle, 1 walk, 2 run, 3 action."""
-        if not 0 <= layer < LAYERS:
-            raise SessionError(f"layer must be 0 to {LAYERS - 1}, got {layer!r}")
+        if isinstance(layer, bool) or not isinstance(layer, numbers.Integral) or not 0 <= layer < LAYERS:
+            raise SessionError(f"layer must be a whole number from 0 to {LAYERS - 1}, got {layer!r}")
+        layer = int(layer)
         held = dict(self.overrides.held)
         if weight is None:
             held.pop(layer, None)

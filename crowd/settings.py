@@ -19,6 +19,8 @@ import math
 import numbers
 from dataclasses import dataclass
 
+import numpy as np
+
 SOURCE_RATE = "source"  # bake each clip at its own key rate
 INF = math.inf
 
@@ -58,7 +60,7 @@ class Setting:
         if self.kind == "rate":
             return f"{_num(self.low)} to {_num(self.high)} fps or {SOURCE_RATE!r}"
         if self.kind == "pair":
-            return f"two increasing numbers above {_num(self.low)}"
+            return f"two numbers above {_num(self.low)}, the first no larger than the second"
         if self.kind == "size":
             return f"WxH with each side {_num(self.low)} to {_num(self.high)}"
         noun = "a whole number" if self.kind == "int" else "a number"
@@ -73,20 +75,24 @@ class Setting:
 
     def reason(self, value) -> str:
         shown = repr(list(value)) if isinstance(value, (list, tuple)) else repr(value)  # a TOML array and a flag's pair alike
+        if len(shown) > 40:  # a 400-digit number stays a readable line
+            shown = f"{shown[:24]}... ({len(shown)} characters)"
         return f"{self.words} must be {self.rule()}, got {shown}"
 
-    def check(self, value, error: type[Exception] = SettingError, source: str | None = None):
+    def check(self, value, error: type[Exception] = SettingError, source: str | None = None, shown=None):
         """`value` as this setting's type (ints stay ints, floats become float, pairs tuples), or
-        `error` raised with the one-line reason, after "source: " when a source is given."""
+        `error` raised with the one-line reason, after "source: " when a source is given. The reason
+        names `shown` instead of the value when given (the text a person typed)."""
         ok = self._checked(value)
         if ok is _BAD:
-            raise error(self.reason(value) if source is None else f"{source}: {self.reason(value)}")
+            reason = self.reason(value if shown is None else shown)
+            raise error(reason if source is None else f"{source}: {reason}")
         return ok
 
     def _checked(self, value):
         k = self.kind
         if k == "bool":
-            return value if isinstance(value, bool) else _BAD
+            return bool(value) if isinstance(value, (bool, np.bool_)) else _BAD
         if k == "choice":
             return value if isinstance(value, str) and value in self.choices else _BAD
         if k == "rate":
@@ -162,7 +168,10 @@ def _real(v):
     """A finite float, or _BAD for anything else (bools and strings included)."""
     if isinstance(v, bool) or not isinstance(v, numbers.Real):
         return _BAD
-    v = float(v)
+    try:
+        v = float(v)
+    except OverflowError:  # an int past float's range (TOML and int() take any size)
+        return _BAD
     return v if math.isfinite(v) else _BAD
 
 
@@ -186,15 +195,15 @@ _ALL = (
             "how keys are sampled and layers blended (docs/BENCHMARKS.md says why the default is the default)",
             choices=("dq_lerp", "qt_lerp", "qt_cubic")),
     # what is drawn
-    Setting("processor", "features", "choice", "auto", "animation processor path: compute where GL 4.3 exists, else fragment",
-            label="processor path", choices=("auto", "compute", "fragment")),
+    Setting("weapons", "features", "bool", True, "armed zombies carry weapons (off: no socket read-back, no gather pass)"),
+    Setting("readback_latency", "features", "int", 2, "frames between gathering a weapon socket and the CPU reading it",
+            label="readback latency", low=1, high=3, slider=(1, 3)),
     Setting("shadows", "features", "bool", True, "sun shadows (the shadow map and pass exist only when on)"),
     Setting("culling", "features", "bool", True, "frustum culling"),
     Setting("lod_distances", "features", "pair", (14.0, 40.0), "metres from the camera where LOD1 and LOD2 start",
             label="LOD distances", low=0, open_low=True, slider=(1, 500)),
-    Setting("weapons", "features", "bool", True, "armed zombies carry weapons (off: no socket read-back, no gather pass)"),
-    Setting("readback_latency", "features", "int", 2, "frames between gathering a weapon socket and the CPU reading it",
-            label="readback latency", low=1, high=3, slider=(1, 3)),
+    Setting("processor", "features", "choice", "auto", "animation processor path: compute where GL 4.3 exists, else fragment",
+            label="processor path", choices=("auto", "compute", "fragment")),
     # the crowd's behaviour (crowd.sim.ai.AIConfig)
     _ai("substep", 1 / 60, "seconds, the longest simulation substep", low=0, open_low=True),
     _ai("max_dt", 0.25, "seconds: a longer frame is simulated as this long (the game slows, it does not explode)", low=0, high=10, open_low=True),
@@ -217,7 +226,7 @@ _ALL = (
     _ai("armed_share", 0.5, "share of zombies that carry a weapon", low=0, high=1),
     _ai("crossfade", 0.25, "seconds of cross-fade in and out of every action", low=0, slider=(0.0, 1.5)),
     _ai("corpse_time", 6.0, "seconds a body lies still before the zombie respawns", low=0),
-    _ai("health", 3, "hits that kill a zombie", kind="int", low=1),
+    _ai("health", 3, "hits that kill a zombie", kind="int", low=1, high=1000),
     _ai("area_per_agent", 6.0, "m^2 of world per zombie (sets the world size when half_extent is 0)", low=0, open_low=True),
     _ai("min_half_extent", 12.0, "metres, the smallest half width of the world", low=0, open_low=True),
     _ai("half_extent", 0.0, "metres, the world's half width; 0: from the zombie count", low=0),
@@ -247,4 +256,6 @@ SCENE_GROUPS = ("scene", "clips", "features", "ai")  # the groups a scene file h
 def parse(name: str, text: str, error: type[Exception] = SettingError, source: str | None = None):
     """A command-line string for setting `name`, converted and checked (``Setting.check``)."""
     setting = SETTINGS[name]
-    return setting.check(setting.from_text(text), error, source)
+    # A size is named as typed ("8x8", not [8, 8]); numbers as TOML would show them, so that a flag
+    # and a scene file give the same line.
+    return setting.check(setting.from_text(text), error, source, shown=text if setting.kind == "size" else None)

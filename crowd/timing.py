@@ -14,11 +14,13 @@ from contextlib import contextmanager
 import moderngl
 import numpy as np
 
+from .gl import GLStage
+
 RING = 3
 KEEP = 100_000  # samples kept per pass: a window left running for hours does not grow without bound
 
 
-class PassTimer:
+class PassTimer(GLStage):
     def __init__(self, ctx: moderngl.Context | None):
         self.ctx = ctx
         self.frame = 0

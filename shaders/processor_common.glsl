@@ -1,6 +1,6 @@
 // The animation processor's maths, shared word for word by processor.comp.glsl (GL 4.3 compute) and
 // processor.frag.glsl (GL 3.3 fragment path), so both paths compute the same floats.
-// Its float64 twin is crowd.processor.reference_palette: change one, change the other.
+// Its float64 twin is crowd.anim.processor.reference_palette: change one, change the other.
 //
 // Defines set by crowd/anim/processor.py: LAYERS (1..4), REST_THRESHOLD, HAS_SCALE (joint scale texture
 // exists), HAS_MASKS (joint mask texture exists), MAX_JOINTS, and the interpolation:
@@ -87,7 +87,7 @@ vec3 key_translation(vec4 r, vec4 d) {
 #endif
 
 #ifdef INTERPOLATION_CUBIC
-// Uniform Catmull-Rom between p1 and p2 (Horner form, the same as crowd.processor._catmull_rom).
+// Uniform Catmull-Rom between p1 and p2 (Horner form, the same as crowd.anim.processor._catmull_rom).
 vec4 catmull_rom(vec4 p0, vec4 p1, vec4 p2, vec4 p3, float u) {
     return p1 + u * (0.5 * (p2 - p0) + u * ((p0 - 2.5 * p1 + 2.0 * p2 - 0.5 * p3) + u * (0.5 * (p3 - p0) + 1.5 * (p1 - p2))));
 }

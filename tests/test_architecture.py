@@ -119,9 +119,9 @@ def test_cli_scene_file_and_session_refuse_the_same_value_with_the_same_line(tmp
     with pytest.raises(SceneError) as from_file:
         load_scene(path)
     assert _reason(str(from_file.value), f"{path}: {s.group}.{name}") == expected
-    # The command line: the flag's text through the schema, then into the scene.
+    # The command line: the flag's text as the setting's type, checked by the scene (as crowd-demo does).
     with pytest.raises(SceneError) as from_cli:
-        Scene().with_overrides(**{name: parse(name, _cli_text(bad), SceneError, s.flag)})
+        Scene().with_overrides(**{name: s.from_text(_cli_text(bad))})
     assert _reason(str(from_cli.value), s.flag) == expected
     # The running session (the panel's path).
     before = running.to_scene()
@@ -244,3 +244,55 @@ def test_resizing_from_0_to_a_crowd_and_back_leaks_nothing(gl_context):
         p.set_shadows(False)
         p.frame(target.framebuffer, FIXED_DT)
         assert {k: len(v) for k, v in gl_census().items()} == {k: len(v) for k, v in start.items()}
+
+
+# -- regressions found in review
+
+
+@pytest.mark.parametrize("change", ["shadows", "rebake", "latency", "processor"])
+def test_stages_follow_what_exists_after_the_armed_share_drops_to_zero(gl_context, change):
+    """Set at run time, armed_share 0 leaves the weapon stages in place (nobody to gather). A later
+    rebuild must size the palette ring and the weapons for the stages that exist, not for the settings."""
+    session = CrowdSession(gl_context, Scene(agents=40), scripted_player=True)
+    try:
+        with Offscreen(gl_context, SIZE) as target:
+            for _ in range(4):
+                session.frame(target.framebuffer, FIXED_DT)
+            session.set_ai(armed_share=0.0)
+            {"shadows": lambda: session.set_shadows(False), "rebake": lambda: session.rebake(20, "f32"),
+             "latency": lambda: session.set_readback_latency(3), "processor": lambda: session.set_processor_path("fragment")}[change]()
+            p = session.pipeline
+            assert p.readback is not None and p.weapons is not None and p.processor.history == p.latency + 1
+            for _ in range(5):
+                session.frame(target.framebuffer, FIXED_DT)
+    finally:
+        session.release()
+
+
+def test_numbers_past_float_range_and_past_storage_are_refused_in_one_line(tmp_path):
+    for table, key, value in (("clips", "bake_fps", "1" + "0" * 320), ("ai", "notice_radius", "1" + "0" * 320),
+                              ("ai", "health", "40000"), ("clips.speed", "shamble", "1" + "0" * 320)):
+        path = tmp_path / "huge.toml"
+        path.write_text(f"[{table}]\n{key} = {value}\n")
+        with pytest.raises(SceneError) as info:
+            load_scene(path)
+        message = str(info.value)
+        assert "\n" not in message and len(message) < 300 and f"{key}" in message
+    with pytest.raises(SceneError, match="AI setting health must be a whole number from 1 to 1000"):
+        Scene().with_overrides(health=SETTINGS["health"].from_text("40000"))
+    out = subprocess.run([sys.executable, "-m", "app.demo", "--headless", "--notice-radius", "1" + "0" * 320, "--size", "64x36"],
+                         capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert out.returncode == 2 and "Traceback" not in out.stderr and len(out.stderr.strip().splitlines()) == 1
+
+
+def test_session_stores_settings_as_the_schema_types_so_the_scene_saves(gl_context, tmp_path):
+    session = CrowdSession(gl_context, Scene(agents=3, shadows=False))
+    try:
+        session.set_ai(notice_radius=np.float32(20.0), health=np.int64(5))
+        assert type(session.ai_setting("notice_radius")) is float and type(session.ai_setting("health")) is int
+        session.save(tmp_path / "saved.toml")
+        assert load_scene(tmp_path / "saved.toml").ai.notice_radius == 20.0
+        with pytest.raises(SessionError, match="layer must be a whole number"):
+            session.set_weight(1.5, 0.5)
+    finally:
+        session.release()

@@ -74,7 +74,7 @@ def test_a_failed_save_leaves_the_old_file_whole(tmp_path, monkeypatch):
     ("[clips]\nbake_fps = 'sauce'", "clips.bake_fps: bake rate must be 1 to 240"),
     ("[clips]\ninterpolation = 'slerp'", "clips.interpolation: interpolation must be one of dq_lerp, qt_lerp, qt_cubic"),
     ("[clips]\nroles = { jump = 'run' }", "unknown role 'jump'"),
-    ("[features]\nlod_distances = [40.0, 14.0]", "two increasing"),
+    ("[features]\nlod_distances = [40.0, 14.0]", "features.lod_distances: LOD distances must be two numbers above 0, the first no larger than the second"),
     ("[features]\nreadback_latency = 0", "features.readback_latency: readback latency must be a whole number from 1 to 3"),
     ("[features]\nshadows = 'yes'", "features.shadows: shadows must be true or false"),
     ("[ai]\nsubstep = -1.0", "ai.substep: AI setting substep must be a number above 0"),

@@ -58,3 +58,15 @@ def test_window_renders_zombies_and_the_panel_and_takes_clip_settings(display, t
     # The zombies: outside the panel, the frame with 60 agents differs from the empty one.
     crowd_area = np.abs(without_panel[:, 420:] - empty[:, 420:]).max(axis=2) > 20
     assert crowd_area.mean() > 0.02
+
+
+def test_closing_the_window_ends_the_run_with_its_stats(display, tmp_path):
+    """The interactive loop, ended by the user closing the window: the stats are still taken and written,
+    then everything is released (no traceback)."""
+    env = {**os.environ, "DISPLAY": display}
+    out = subprocess.run([sys.executable, str(ROOT / "tests" / "window_close_script.py"), str(tmp_path)], cwd=ROOT, env=env,
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr[-2000:]
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["frames"] in (3, 4)  # pyglet sets is_closing at the next event poll
+    assert result["nan"] == 0 and result["written"] and result["markers_bytes"] > 0

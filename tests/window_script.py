@@ -55,6 +55,6 @@ result["selected"], result["nearest"] = session.selected, near
 window.on_key_event(wnd.keys.P, wnd.keys.ACTION_PRESS, KeyModifiers())
 result["paused"] = session.paused
 result["gl"] = window.ctx.info["GL_RENDERER"]
-window.session.release()
+window.release()
 window.wnd.destroy()
 print(json.dumps(result))

@@ -47,7 +47,6 @@ from .reference import REST_THRESHOLD
 
 MAX_JOINTS = 256  # one compute work group of 256 invocations holds at least one whole agent
 GROUP_SIZE = 256
-PATHS = SETTINGS["processor"].choices
 # How one layer turns its two (or four) neighbouring baked keys into a local transform, and how layers
 # blend (crowd-bench error measures each; docs/BENCHMARKS.md says why the default is the default):
 # - dq_lerp: the DQ keys lerped blindly and normalised; layers blended as dual quaternions (DLB);

@@ -66,17 +66,18 @@ class SocketReadback(GLStage):
     """Owns the gather program, the entry and gather textures and the ring of pixel-pack buffers."""
 
     def __init__(self, ctx: moderngl.Context, joint_count: int, agents_per_row: int):
-        self.ctx = ctx
-        self.joint_count = int(joint_count)
-        self.agents_per_row = int(agents_per_row)
+        # What release() walks, first: a constructor that fails later still releases cleanly.
         self.program = self._vao = None
-        self.capacity = 0
         self._entries = None  # R32UI texture of palette texels
         self._target = None  # RGBA32F gather texture
         self._fbo = None
         self._buffers: list[moderngl.Buffer] = []
         self._slots = [_Slot() for _ in range(RING)]
+        self.capacity = 0
         self.last_count = 0
+        self.ctx = ctx
+        self.joint_count = int(joint_count)
+        self.agents_per_row = int(agents_per_row)
         self.program = ctx.program(vertex_shader=load_shader("gather.vert.glsl"), fragment_shader=load_shader("gather.frag.glsl"))
         for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2), ("u_entries", 3)):
             self.program[name] = unit
