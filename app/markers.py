@@ -9,7 +9,7 @@ import moderngl
 import numpy as np
 
 from crowd.draw.render import FrameView, gl_bytes
-from crowd.gl import GLStage, gpu_bytes, load_shader
+from crowd.gl import GLObjects, GLStage, load_shader
 
 SEGMENTS = 48
 
@@ -17,19 +17,15 @@ SEGMENTS = 48
 class MarkerRings(GLStage):
     def __init__(self, ctx: moderngl.Context):
         self.ctx = ctx
-        self._objects: list = []
-        self.program = self._own(ctx.program(vertex_shader=load_shader("marker.vert.glsl"), fragment_shader=load_shader("marker.frag.glsl")))
+        self._objects = GLObjects()
+        self.program = self._objects.add(ctx.program(vertex_shader=load_shader("marker.vert.glsl"), fragment_shader=load_shader("marker.frag.glsl")))
         a = np.linspace(0.0, 2.0 * math.pi, SEGMENTS + 1)
         strip = np.stack([np.repeat(a, 2), np.tile([0.0, 1.0], SEGMENTS + 1)], axis=1).astype(np.float32)
-        ring = self._own(ctx.buffer(strip.tobytes()))
-        self._instances = self._own(ctx.buffer(reserve=32))
-        self._vao = self._own(ctx.vertex_array(self.program, [(ring, "2f", "in_ring"),
+        ring = self._objects.add(ctx.buffer(strip.tobytes()))
+        self._instances = self._objects.add(ctx.buffer(reserve=32))
+        self._vao = self._objects.add(ctx.vertex_array(self.program, [(ring, "2f", "in_ring"),
                                                               (self._instances, "4f 4f/i", "i_position_radius", "i_color")]))
         self._vertices = len(strip)
-
-    def _own(self, obj):
-        self._objects.append(obj)
-        return obj
 
     def draw(self, framebuffer, view: FrameView, points, radii, colors) -> None:
         """Rings at world points (M, 3), float64, with radii (M,) and linear RGBA colours (M, 4)."""
@@ -49,9 +45,7 @@ class MarkerRings(GLStage):
         self._vao.render(moderngl.TRIANGLE_STRIP, vertices=self._vertices, instances=len(points))
 
     def gpu_bytes(self) -> int:
-        return gpu_bytes(self._objects)
+        return self._objects.gpu_bytes()
 
     def release(self) -> None:
-        for obj in reversed(self._objects):
-            obj.release()
-        self._objects = []
+        self._objects.release()

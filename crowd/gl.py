@@ -46,6 +46,28 @@ class GLStage:
         raise NotImplementedError
 
 
+class GLObjects:
+    """The GL objects one stage made, in the order it made them: released together, newest first, as
+    many times as asked. ``add`` returns the object, so a stage writes ``self._objects.add(ctx.buffer(...))``."""
+
+    def __init__(self):
+        self._objects: list = []
+
+    def add(self, obj):
+        self._objects.append(obj)
+        return obj
+
+    def __iter__(self):
+        return iter(self._objects)
+
+    def gpu_bytes(self) -> int:
+        return gpu_bytes(self._objects)
+
+    def release(self) -> None:
+        while self._objects:
+            self._objects.pop().release()
+
+
 class GLUnavailable(RuntimeError):
     """No usable OpenGL context could be made; the message says why in one line."""
 
@@ -207,25 +229,19 @@ class Offscreen(GLStage):
     """A colour and depth framebuffer of one size: where headless frames, benchmarks and tests draw."""
 
     def __init__(self, ctx: moderngl.Context, size: tuple[int, int]):
-        self._objects: list = []
+        self._objects = GLObjects()
         self.framebuffer = None
         self.size = (int(size[0]), int(size[1]))
-        color = self._own(ctx.renderbuffer(self.size, 4))
-        depth = self._own(ctx.depth_renderbuffer(self.size))
-        self.framebuffer = self._own(ctx.framebuffer(color_attachments=[color], depth_attachment=depth))
-
-    def _own(self, obj):
-        self._objects.append(obj)
-        return obj
+        color = self._objects.add(ctx.renderbuffer(self.size, 4))
+        depth = self._objects.add(ctx.depth_renderbuffer(self.size))
+        self.framebuffer = self._objects.add(ctx.framebuffer(color_attachments=[color], depth_attachment=depth))
 
     def image(self):
         """The colour buffer as (height, width, 3) uint8, top row first."""
         return read_image(self.framebuffer, self.size)
 
     def release(self) -> None:
-        for obj in reversed(self._objects):
-            obj.release()
-        self._objects = []
+        self._objects.release()
         self.framebuffer = None
 
 

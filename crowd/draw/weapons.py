@@ -19,7 +19,7 @@ from __future__ import annotations
 import moderngl
 import numpy as np
 
-from ..gl import GLStage, gpu_bytes, load_shader
+from ..gl import GLObjects, GLStage, load_shader
 from ..asset.model import Character, RigidMesh
 from .render import gl_bytes, heading_snorm16, pack_colors, pack_normals
 
@@ -71,7 +71,7 @@ class WeaponRenderer(GLStage):
     """Owns the weapon meshes, their instance buffers and programs."""
 
     def __init__(self, ctx: moderngl.Context, character: Character, shadows: bool):
-        self._objects: list = []
+        self._objects = GLObjects()
         self._meshes = []
         if not character.props or not character.sockets:
             raise WeaponError(f"character {character.name!r} has no weapons to hold (props and a socket joint are both needed)")
@@ -85,29 +85,25 @@ class WeaponRenderer(GLStage):
         self._socket_to_weapon = np.stack([self.socket_bind @ g for g in self.inverse_grip])
         self.grip_origin = np.stack([np.asarray(p.grip, np.float64)[:, 3] for p in character.props.values()])  # (W, 4)
         for prop in character.props.values():
-            vbo = self._own(ctx.buffer(pack_rigid(prop.mesh).tobytes()))
-            ibo = self._own(ctx.buffer(np.asarray(prop.mesh.indices, np.uint32).tobytes()))
-            inst = self._own(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
+            vbo = self._objects.add(ctx.buffer(pack_rigid(prop.mesh).tobytes()))
+            ibo = self._objects.add(ctx.buffer(np.asarray(prop.mesh.indices, np.uint32).tobytes()))
+            inst = self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
             self._meshes.append({"vbo": vbo, "ibo": ibo, "instances": inst, "count": 0, "vaos": {}, "triangles": prop.mesh.triangle_count})
         defines = {"SHADOWS": 1} if shadows else {}
         self._programs = {
-            "color": self._own(ctx.program(vertex_shader=load_shader("weapon.vert.glsl"), fragment_shader=load_shader("skin.frag.glsl", defines))),
-            "depth": self._own(ctx.program(vertex_shader=load_shader("weapon.vert.glsl", {"DEPTH_ONLY": 1}), fragment_shader=load_shader("depth.frag.glsl"))),
+            "color": self._objects.add(ctx.program(vertex_shader=load_shader("weapon.vert.glsl"), fragment_shader=load_shader("skin.frag.glsl", defines))),
+            "depth": self._objects.add(ctx.program(vertex_shader=load_shader("weapon.vert.glsl", {"DEPTH_ONLY": 1}), fragment_shader=load_shader("depth.frag.glsl"))),
         }
         if "u_shadow_map" in self._programs["color"]:
             self._programs["color"]["u_shadow_map"] = 3
         self.drawn = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 4), np.float32))
         self.last = {"weapons": 0, "draws": 0, "triangles": 0}
 
-    def _own(self, obj):
-        self._objects.append(obj)
-        return obj
-
     def _vao(self, mesh: dict, kind: str) -> moderngl.VertexArray:
         if kind not in mesh["vaos"]:
             prog = self._programs[kind]
             vertex = ("3f 2u", "in_position", "in_packed") if kind == "color" else ("3f 8x", "in_position")
-            mesh["vaos"][kind] = self._own(self.ctx.vertex_array(prog, [(mesh["vbo"], *vertex), (mesh["instances"], "4f 4f 4f/i", "i_row0", "i_row1", "i_row2")],
+            mesh["vaos"][kind] = self._objects.add(self.ctx.vertex_array(prog, [(mesh["vbo"], *vertex), (mesh["instances"], "4f 4f 4f/i", "i_row0", "i_row1", "i_row2")],
                                                                  index_buffer=mesh["ibo"], index_element_size=4))
         return mesh["vaos"][kind]
 
@@ -194,10 +190,8 @@ class WeaponRenderer(GLStage):
                 self._vao(mesh, "color").render(moderngl.TRIANGLES, instances=mesh["count"])
 
     def gpu_bytes(self) -> int:
-        return gpu_bytes(self._objects)
+        return self._objects.gpu_bytes()
 
     def release(self) -> None:
-        for obj in reversed(self._objects):
-            obj.release()
-        self._objects = []
+        self._objects.release()
         self._meshes = []
