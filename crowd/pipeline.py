@@ -31,6 +31,7 @@ from .draw.render import CrowdRenderer, FrameView, view_proj
 from .draw.sync import PaletteSync
 from .draw.weapons import AgentFrames, WeaponRenderer
 from .frame import Camera, LayerOverrides
+from .gl import GLStage
 from .settings import DEFAULTS, SETTINGS
 from .sim.ai import LAYERS, AIConfig, CrowdAI, PlayerScript, motion_for, upper_body_mask
 from .stages import StageSpec, Stages, build_processor, build_readback, build_renderer, build_weapons
@@ -71,8 +72,10 @@ class FrameState:
     agent_frames: AgentFrames | None = None  # where each agent stood, for the weapons
 
 
-class CrowdPipeline:
+class CrowdPipeline(GLStage):
     def __init__(self, ctx: moderngl.Context, config: PipelineConfig):
+        self.stages = Stages()  # nothing yet: a failure before the build below releases nothing
+        self.timer = PassTimer(ctx)
         SETTINGS["agents"].check(config.agents, PipelineError)
         self.ctx = ctx
         self.config = config
@@ -93,7 +96,6 @@ class CrowdPipeline:
         self.readback_waits: list[float] = []
         self.readback_stalls = 0
         self._pose_lag: deque = deque(maxlen=RING + 1)  # simulated seconds of the last frames
-        self.timer = PassTimer(ctx)
         self.frames = 0
         self.passes_run: list[str] = []
         self.last = FrameState()
@@ -395,9 +397,3 @@ class CrowdPipeline:
     def release(self) -> None:
         self.timer.release()
         self.stages.release()
-
-    def __enter__(self) -> "CrowdPipeline":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.release()

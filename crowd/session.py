@@ -21,6 +21,7 @@ from .anim.bake import BakeError
 from .anim.processor import ProcessorError
 from .draw.render import view_proj
 from .frame import CLIP, MASK, PHASE, WEIGHT, ForcedClip, LayerOverrides
+from .gl import GLStage
 from .pipeline import CrowdPipeline
 from .scene import CameraSetting, Scene, SceneError, save_scene
 from .settings import SETTINGS, group
@@ -36,8 +37,9 @@ class SessionError(ValueError):
     """A control given a value it cannot take; the message is one line."""
 
 
-class CrowdSession:
+class CrowdSession(GLStage):
     def __init__(self, ctx: moderngl.Context, scene: Scene, aspect: float = 16 / 9, scripted_player: bool = False):
+        self.pipeline = None  # a failure before it exists releases nothing; after, GLStage releases it
         self.ctx = ctx
         self.scene = scene
         config = dataclasses.replace(scene.pipeline_config(), scripted_player=scripted_player)
@@ -48,7 +50,6 @@ class CrowdSession:
             for name, loop in scene.clip_loop.items():
                 self.pipeline.set_clip_loop(name, loop)
         except (BakeError, AIError) as exc:
-            self.pipeline.release()
             raise SceneError(f"scene {scene.name!r}: {exc}") from None
         self.pipeline.camera = scene.camera_for(aspect) or self.pipeline.default_camera(aspect)
         self.paused = False
@@ -359,4 +360,5 @@ class CrowdSession:
         return save_scene(self.to_scene(), path)
 
     def release(self) -> None:
-        self.pipeline.release()
+        if self.pipeline is not None:
+            self.pipeline.release()

@@ -13,7 +13,7 @@ old one after the new one exists, so a failed rebuild keeps the working stage.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import moderngl
 
@@ -40,8 +40,6 @@ class StageSpec:
     culling: bool = DEFAULTS["culling"]
     armed: bool = False  # somebody carries a weapon: the read-back stage and weapon meshes exist
     readback_latency: int = DEFAULTS["readback_latency"]
-    pieces: tuple | None = None  # the mesh pieces to draw (None: all)
-    extras: dict = field(default_factory=dict)  # CrowdRenderer keyword arguments the benchmarks set (shadow_size)
 
     @property
     def history(self) -> int:
@@ -61,8 +59,8 @@ def build_processor(ctx: moderngl.Context, bake: AnimationBake, spec: StageSpec,
 
 
 def build_renderer(ctx: moderngl.Context, character: Character, processor: AnimationProcessor, spec: StageSpec) -> CrowdRenderer:
-    return CrowdRenderer(ctx, character, processor.joint_count, processor.agents_per_row, pieces=spec.pieces,
-                         lod_distances=spec.lod_distances, shadows=spec.shadows, culling=spec.culling, **spec.extras)
+    return CrowdRenderer(ctx, character, processor.joint_count, processor.agents_per_row,
+                         lod_distances=spec.lod_distances, shadows=spec.shadows, culling=spec.culling)
 
 
 def build_readback(ctx: moderngl.Context, processor: AnimationProcessor, spec: StageSpec) -> SocketReadback | None:
