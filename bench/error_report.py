@@ -6,7 +6,12 @@ f16) and an interpolation (crowd.anim.processor.INTERPOLATIONS). For each one:
 
 - error: crowd.anim.accuracy's 3 cm shell error of the GPU processor's palette against the float64
   reference, over every clip of the built-in zombie and of each ``--model``: every clip alone at
-  random phases, and random blends of 2 to 4 layers of random clips at random phases;
+  random phases, and random blends of 2 to 4 layers of random clips at random phases; and each clip
+  alone at its worst phase, found by accuracy.ClipMaxima (240 seeds a second of clip and at least 4
+  between two of its keys, the highest refined until the maximum grows by less than 1 % a round), so
+  that the max error is the maximum and not the largest of some samples, reported with its clip, phase
+  and joint. p99 and the share under 1 mm are over the
+  random samples (a search for the maximum would bias them);
 - cost: the processor's GPU ms (timer query around the dispatch, median) for two crowd sizes of the
   same kind of blends, in two passes over all configurations (the second in reverse order), and the
   bytes of animation data on the GPU.
@@ -74,6 +79,51 @@ class _Model:
         self.clips = list(character.clips)
         self.samples = accuracy.draw_samples(self.clips, rng, per_clip, blends)
         self.truth = accuracy.truth(character.skeleton, self.clips, self.samples.layers)
+        self.maxima = accuracy.ClipMaxima(character.skeleton, self.clips)  # the seeds' truth, shared by every configuration
+
+
+def _where(worst: dict) -> str:
+    """Where a row's max error is, for the printed table."""
+    if worst.get("clip") is None:
+        return "-"
+    at = f"{worst['clip']} @ {worst['phase']:.5f}" if worst.get("phase") is not None else f"blend {worst['sample']}"
+    return f"{worst['model']}: {at}, {worst['joint']}"
+
+
+def _model_errors(ctx, m: _Model, baked, interp: str) -> tuple[np.ndarray, dict]:
+    """(the random samples' shell errors, the model's summary) of one configuration."""
+    from crowd.anim import accuracy
+
+    names = m.character.skeleton.names
+    e = accuracy.measure_gpu(ctx, m.character.skeleton, baked, m.samples.layers, m.truth, interp)
+    with accuracy.gpu_palettes(ctx, baked, 1, interp) as palette_of:
+        maxima = m.maxima.find(palette_of)
+    single = e[m.samples.single]
+    clip_of = m.samples.layers[m.samples.single, 0, 0].astype(int)
+    per_clip, worst_of_clip = {}, {}
+    for mx in maxima:
+        name = m.clips[mx.clip].name
+        found = {"model": m.name, "clip": name, "phase": mx.phase, "joint": names[mx.joint], "max_error_mm": mx.error_m * 1e3,
+                 "rounds": mx.rounds, "poses": mx.poses}
+        mine = np.flatnonzero(clip_of == mx.clip)
+        if mine.size:  # a random sample above the search's maximum would mean the search missed it: keep the larger
+            k = mine[np.argmax(single[mine].max(axis=(1, 2)))]
+            if single[k].max() > mx.error_m:
+                found.update(phase=float(m.samples.layers[np.flatnonzero(m.samples.single)[k], 0, 1]),
+                             joint=names[int(np.argmax(single[k].max(axis=1)))], max_error_mm=float(single[k].max()) * 1e3, rounds=0)
+        per_clip[name] = round(found["max_error_mm"], 4)
+        worst_of_clip[name] = found
+    blends = np.flatnonzero(~m.samples.single)
+    worst = max(worst_of_clip.values(), key=lambda w: w["max_error_mm"], default={"clip": None, "max_error_mm": 0.0})
+    blend_max = float(np.max(e[blends], initial=0.0)) * 1e3
+    if blends.size and blend_max > worst["max_error_mm"]:
+        k = blends[int(np.argmax(e[blends].max(axis=(1, 2))))]
+        worst = {"model": m.name, "clip": "blend", "phase": None, "sample": int(k), "joint": names[int(np.argmax(e[k].max(axis=1)))],
+                 "max_error_mm": blend_max, "layers": m.samples.layers[k].tolist()}
+    summary = {**accuracy.summarise(e), "max_error_mm": max(float(e.max(initial=0.0)) * 1e3, worst["max_error_mm"]),
+               "blend_max_error_mm": blend_max, "per_clip_max_mm": per_clip, "per_clip_worst": worst_of_clip, "worst": worst,
+               "bytes": baked.nbytes}
+    return e, summary
 
 
 def _time_processor(query, proc, layers, repeats: int) -> float:
@@ -144,14 +194,11 @@ def run(args) -> int:
             if isinstance(baked, BakeError):  # e.g. a long clip at 60 fps does not fit the texture: say so, measure the rest
                 skipped.append(f"{m.name}: {baked}")
                 continue
-            e = accuracy.measure_gpu(ctx, m.character.skeleton, baked, m.samples.layers, m.truth, interp)
+            e, per_model[m.name] = _model_errors(ctx, m, baked, interp)
             errors.append(e.ravel())
-            single = np.max(e[m.samples.single], axis=(1, 2))
-            clip_of = m.samples.layers[m.samples.single, 0, 0].astype(int)
-            per_model[m.name] = {**accuracy.summarise(e), "blend_max_error_mm": float(np.max(e[~m.samples.single], initial=0.0) * 1e3),
-                                 "per_clip_max_mm": {c.name: round(float(single[clip_of == k].max()) * 1e3, 4) for k, c in enumerate(m.clips)},
-                                 "bytes": baked.nbytes}
         row.update(accuracy.summarise(np.concatenate(errors)))
+        row["worst"] = max((s["worst"] for s in per_model.values()), key=lambda w: w["max_error_mm"])
+        row["max_error_mm"] = max(s["max_error_mm"] for s in per_model.values())
         row["zombie_max_error_mm"] = per_model["zombie"]["max_error_mm"]
         row["bytes"] = per_model["zombie"]["bytes"]
         row["models"] = per_model
@@ -160,7 +207,7 @@ def run(args) -> int:
         rows.append(row)
         timings[len(rows) - 1] = []
         print(f"{_rate_label(rate):>10} {storage} {interp:<9} max {row['max_error_mm']:9.4f} mm  p99 {row['p99_error_mm']:8.4f} mm  "
-              f"<1mm {row['share_under_1mm']:.4f}  {row['bytes']:>9,} B")
+              f"<1mm {row['share_under_1mm']:.4f}  {row['bytes']:>9,} B  max at {_where(row['worst'])}")
 
     # Cost: two passes, the second in reverse order, so drift on the machine shows as spread.
     query = ctx.query(time=True)
@@ -194,12 +241,12 @@ def run(args) -> int:
         row["pareto"] = k in front
         row["default"] = k == default
     print(f"\n{'rate':>10} {'stor':>4} {'interp':<9} {'max mm':>9} {'p99 mm':>9} {'<1mm':>7} {'ms ' + str(cost_agents[0]):>10} "
-          f"{'ms ' + str(cost_agents[1]):>11} {'spread':>7} {'bytes':>9}")
+          f"{'ms ' + str(cost_agents[1]):>11} {'spread':>7} {'bytes':>9} {'':8} max at")
     for row in rows:
-        mark = " default" if row["default"] else (" front" if row["pareto"] else "")
+        mark = "default" if row["default"] else ("front" if row["pareto"] else "")
         print(f"{_rate_label(row['bake_fps']):>10} {row['storage']:>4} {row['interpolation']:<9} {row['max_error_mm']:9.4f} "
               f"{row['p99_error_mm']:9.4f} {row['share_under_1mm']:7.4f} {row['gpu_ms_10k']:10.4f} {row['gpu_ms_100k']:11.4f} "
-              f"{row['gpu_ms_spread']:7.1%} {row['bytes']:>9,}{mark}")
+              f"{row['gpu_ms_spread']:7.1%} {row['bytes']:>9,} {mark:8} {_where(row['worst'])}")
     for r in rejected:
         print(f"not the default: {_rate_label(r['bake_fps'])} {r['storage']} {r['interpolation']} fails {'; '.join(r['failed'])}")
     if default is None:
@@ -212,6 +259,8 @@ def run(args) -> int:
                   f"(bound {case['bound_mm']:g} mm): {case['detail']}")
     report = {"device": device, "gl": info, "models": [m.name for m in models], "cost_agents": cost_agents,
               "samples_per_model": {m.name: int(len(m.samples.layers)) for m in models}, "repeats": args.repeats,
+              "max_search": {"seed_rate": accuracy.SEED_RATE, "candidates": accuracy.CANDIDATES, "grid": accuracy.REFINE_GRID,
+                             "tolerance": accuracy.REFINE_TOLERANCE},
               "target_mm": TARGET_MM, "tie": TIE, "rows": rows, "stability": stability, "rejected_defaults": rejected}
     if args.json:
         from crowd.files import atomic_write_bytes
@@ -226,12 +275,56 @@ def run(args) -> int:
     return 0 if default is not None else 1
 
 
+def check_report(report) -> str | None:
+    """What keeps a parsed JSON from being a ``crowd-bench error`` report the plot can draw, or None."""
+    if not isinstance(report, dict):
+        return f"a JSON {type(report).__name__}, not a crowd-bench error report (an object with rows)"
+    rows = report.get("rows")
+    if not isinstance(rows, list) or not rows:
+        return "no rows to plot (not a crowd-bench error report?)"
+    for k, row in enumerate(rows):
+        if not isinstance(row, dict):
+            return f"row {k} is not an object"
+        for key in ("max_error_mm", "gpu_ms_100k"):
+            v = row.get(key)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0 or v == float("inf"):
+                return f"row {k}: {key} must be a positive number, got {v!r}"
+        for key in ("interpolation", "storage"):
+            if not isinstance(row.get(key), str):
+                return f"row {k}: {key} must be a string, got {row.get(key)!r}"
+        rate = row.get("bake_fps")
+        if rate != "source" and (isinstance(rate, bool) or not isinstance(rate, (int, float))):
+            return f"row {k}: bake_fps must be a number or \"source\", got {rate!r}"
+    agents = report.get("cost_agents", [10000, 100000])
+    if not isinstance(agents, list) or len(agents) != 2 or not all(isinstance(a, int) and not isinstance(a, bool) for a in agents):
+        return f"cost_agents must be two whole numbers, got {agents!r}"
+    return None
+
+
 def replot(args) -> int:
-    """Draw the plot of a JSON report written elsewhere (the H100 machine has no imgui-bundle)."""
+    """Draw the plot of a JSON report written elsewhere (the H100 machine has no imgui-bundle). A file
+    that is missing, unreadable, not JSON or not such a report is one line on stderr and exit 2."""
+    import sys
+
     from .plots import error_plot
 
-    report = json.loads(Path(args.report).read_text())
-    error_plot(report, Path(args.plot))
+    path = Path(args.report)
+    try:
+        report = json.loads(path.read_bytes())
+    except OSError as exc:
+        problem = f"cannot read it ({exc.strerror or exc})"
+    except (UnicodeDecodeError, ValueError) as exc:  # json.JSONDecodeError is a ValueError
+        problem = f"not JSON ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})"
+    else:
+        problem = check_report(report)
+    if problem is not None:
+        print(f"crowd-bench plot-error: {path}: {problem}", file=sys.stderr)
+        return 2
+    try:
+        error_plot(report, Path(args.plot))
+    except OSError as exc:
+        print(f"crowd-bench plot-error: {args.plot}: cannot write the plot ({exc.strerror or exc})", file=sys.stderr)
+        return 2
     print(f"plot: {args.plot}")
     return 0
 

@@ -57,6 +57,21 @@ def validate_layers(layers, clip_count: int, mask_count: int, layer_count: int) 
     if not np.all(np.isfinite(a)):
         bad = np.argwhere(~np.isfinite(a))[0]
         raise FrameError(f"layers hold NaN or Inf (agent {bad[0]}, layer {bad[1]}, {LAYER_COLUMNS[bad[2]]})")
+    # Phases are refused, never rounded, where float32 cannot hold them to within 1e-6 cycles: from
+    # |phase| = 32 on, float32's step is 2^-18 cycles or more, so a phase is off by up to 1.9e-6 cycles
+    # (up to 0.004 cycles at 1e5 cycles: 24 mm on the run clip). Below 32 the step is at most 2^-19 and
+    # a float64 phase rounds to within 9.5e-7 cycles. Refusing rather than carrying a float64 phase: the layers
+    # are float32 by contract (the AI writes them in place, the layer texture is RGBA32F), so a producer
+    # that sends 1e5 cycles has already rounded them and nothing here could restore the lost digits;
+    # wrapping in float64 is the producer's job (crowd.sim.ai.advance_phase, LayerOverrides.apply). The
+    # limit holds for one-shot clips too: the loop flag can change at run time (set_clip_loop).
+    phase_limit = 32.0
+    far = np.abs(a[..., PHASE]) >= phase_limit
+    if np.any(far):
+        agent, layer = np.argwhere(far)[0]
+        raise FrameError(f"layer phase {float(a[agent, layer, PHASE]):.9g} (agent {agent}, layer {layer}) is not within ±{phase_limit:g} "
+                         f"cycles, where float32 holds a phase to 1e-6 cycles: wrap looping phases into [0, 1) (and clamp one-shot "
+                         f"ones to [0, 1]) in float64 before writing layers")
     clip = a[..., CLIP]
     if np.any(clip != np.round(clip)) or np.any(clip < 0) or np.any(clip >= clip_count):
         raise FrameError(f"layer clip indices must be whole numbers in [0, {clip_count})")
@@ -113,6 +128,20 @@ class LayerOverrides:
                 raise FrameError(f"held weight must be 0 to {MAX_WEIGHT:g}, got {weight!r}")
         return self
 
+    def forced_phase(self, time: float, duration: float, speed: float, loop: bool) -> float:
+        """The forced clip's phase at the AI's clock `time`, wrapped (looping) or clamped (one-shot) in
+        float64, as crowd.sim.ai.advance_phase keeps the AI's own phases. Unwrapped, the float32 layer
+        would round 10 hours of a 0.7 s run (51,429 cycles) to the nearest 2^-8 cycle, 4.4 mm off the
+        float64 pose (457 mm after 1000 hours, and refused by validate_layers from 32 cycles on);
+        wrapped first, the float32 phase is within 3e-8 cycles of the float64 one."""
+        if self.forced is None:
+            return 0.0
+        phase = (float(time) - float(self.forced.start)) * float(speed) / max(float(duration), 1e-6)
+        if not loop:
+            return min(max(phase, 0.0), 1.0)
+        phase -= float(np.floor(phase))
+        return 0.0 if phase >= 1.0 else phase  # -1e-20 wraps to 1.0 in float64; 1.0 and 0.0 are the same pose
+
     def apply(self, layers: np.ndarray, time: float, duration: float, speed: float, loop: bool) -> None:
         """Write the overrides into `layers` in place. `time` is the AI's clock after this frame's step;
         `duration`, `speed` and `loop` describe the forced clip (ignored without one)."""
@@ -120,10 +149,9 @@ class LayerOverrides:
         if self.forced is not None:
             agents = self.forced.agents
             agents = slice(None) if agents is None else agents[agents < n]
-            phase = (time - self.forced.start) * speed / max(duration, 1e-6)
             layers[agents] = (0.0, 0.0, 0.0, -1.0)
             layers[agents, 0, CLIP] = self.forced.clip
-            layers[agents, 0, PHASE] = phase if loop else min(phase, 1.0)
+            layers[agents, 0, PHASE] = self.forced_phase(time, duration, speed, loop)
             layers[agents, 0, WEIGHT] = 1.0
         for layer, (weight, agents) in self.held.items():
             agents = slice(None) if agents is None else agents[agents < n]

@@ -162,39 +162,78 @@ void sample_layer(vec4 layer, int joint, out vec4 real, out vec4 second, out flo
 #endif
 }
 
-// The blended local transform of one joint of one agent (ozz-animation's blending job semantics):
-// weight = max(weight, 0) * mask; signs aligned to the heaviest layer; weighted sum; normalised by the
-// real part's norm. A joint whose weights add up to less than REST_THRESHOLD takes the rest pose.
+// +1 or -1: the sign that puts q in the anchor's hemisphere. Exactly on its edge (dot 0, as for keys
+// (1, 0, 0, 0) against an anchor (0, 0, 0, 1)) the first non-zero of w, x, y, z decides, so that q and -q,
+// the same rotation, always get opposite signs and add up instead of cancelling: the signs of w, x, y
+// and z weigh 8, 4, 2 and 1, so the first non-zero one outweighs all after it, without a branch.
+float aligned_sign(vec4 q, vec4 anchor) {
+    float d = dot(q, anchor);
+    if (d == 0.0) d = dot(sign(q), vec4(4.0, 2.0, 1.0, 8.0));
+    return d < 0.0 ? -1.0 : 1.0;
+}
+
+// A power of two p with S * p in [1, 2) (S > 0 and normal; 0 gives 1). Weights are scaled by it so that
+// weights of 1e-30 cannot underflow the squared norm of their sum (normalising that gave NaN), and by a
+// power of two rather than 1 / S because multiplying by one is exact: the sums and ratios below round
+// as those of the unscaled weights do. (Dividing by S broke the bit-for-bit agreement of the compute and
+// fragment paths on an H200: 1.3e-6 apart.)
+float power_of_two_below(float s) {
+    uint biased = floatBitsToUint(s) >> 23;
+    return s > 0.0 ? uintBitsToFloat((254u - min(biased, 253u)) << 23) : 1.0;
+}
+
+// The blended local transform of one joint of one agent (crowd.anim.reference.blend's rules, whose
+// docstring says why): weight = max(weight, 0) * mask; signs aligned to the anchor, the first layer
+// with a weight above 0 at this joint (the heaviest layer made the blend jump where the heaviest
+// changed); weighted sum, normalised. A joint whose masked weights add up to less than REST_THRESHOLD
+// times S, the sum of every layer's max(weight, 0), takes the rest pose.
 Affine blended_local(int agent, int joint) {
     vec4 real[LAYERS];
     vec4 second[LAYERS];  // dual parts (dq_lerp) or translations (qt_*)
     float scale[LAYERS];
     float weight[LAYERS];
-    int heaviest = 0;
+    vec4 layer[LAYERS];
     int base_x = (agent % u_agents_per_row) * LAYERS;
     int y = agent / u_agents_per_row;
+    float layer_sum = 0.0;
     for (int l = 0; l < LAYERS; ++l) {
-        vec4 layer = texelFetch(u_layers, ivec2(base_x + l, y), 0);
-        float w = max(layer.z, 0.0);
+        layer[l] = texelFetch(u_layers, ivec2(base_x + l, y), 0);
+        layer_sum += max(layer[l].z, 0.0);
+    }
+    float unit = power_of_two_below(layer_sum);
+    layer_sum *= unit;
+    float total = 0.0;
+    for (int l = 0; l < LAYERS; ++l) {
+        float w = max(layer[l].z, 0.0) * unit;
 #ifdef HAS_MASKS
-        if (layer.w >= 0.0) w *= texelFetch(u_masks, ivec2(joint, int(layer.w)), 0).x;
+        if (layer[l].w >= 0.0) w *= texelFetch(u_masks, ivec2(joint, int(layer[l].w)), 0).x;
 #endif
         weight[l] = w;
+        total += w;
         if (w > 0.0) {
-            sample_layer(layer, joint, real[l], second[l], scale[l]);  // layers that do not count cost no fetches
+            sample_layer(layer[l], joint, real[l], second[l], scale[l]);  // layers that do not count cost no fetches
         } else {
             real[l] = vec4(0.0);
             second[l] = vec4(0.0);
             scale[l] = 0.0;
         }
-        if (w > weight[heaviest]) heaviest = l;
+    }
+    if (!(total > 0.0) || total < REST_THRESHOLD * layer_sum) return stored_affine(joint, u_rest_row);
+    // The anchor's parts, picked last to first with constant indices: no array is indexed by a value
+    // known only at run time, which would put the arrays in slow local memory.
+    vec4 anchor_real = real[LAYERS - 1];
+    vec4 anchor_second = second[LAYERS - 1];
+    for (int l = LAYERS - 2; l >= 0; --l) {
+        if (weight[l] > 0.0) {
+            anchor_real = real[l];
+            anchor_second = second[l];
+        }
     }
     vec4 r = vec4(0.0);
     vec4 d = vec4(0.0);
     float s = 0.0;
-    float total = 0.0;
     for (int l = 0; l < LAYERS; ++l) {
-        float signed_w = dot(real[l], real[heaviest]) < 0.0 ? -weight[l] : weight[l];
+        float signed_w = aligned_sign(real[l], anchor_real) * weight[l];
         r += signed_w * real[l];
 #ifdef INTERPOLATION_QT
         d += weight[l] * second[l];  // translations: a weighted mean
@@ -202,12 +241,20 @@ Affine blended_local(int agent, int joint) {
         d += signed_w * second[l];
 #endif
         s += weight[l] * scale[l];
-        total += weight[l];
     }
-    if (total < REST_THRESHOLD) return stored_affine(joint, u_rest_row);
-    // Every term has a non-negative dot product with the heaviest layer's unit real part, so
-    // |r| >= weight[heaviest] >= total / LAYERS: the division below never meets ~0.
-    float inv = 1.0 / length(r);
+    // Every aligned term has a non-negative dot product with the anchor's unit real part, so
+    // |r| >= weight[anchor] > 0. That can still be tiny (an anchor at 1e-30 of S, the other layers
+    // nearly opposite one another at 90° from it): below CANCELLED_NORM times S the sum is rounding
+    // noise and the blend takes the anchor's rotation, never an underflowed normalisation (NaN).
+    float norm = length(r);
+    if (norm < CANCELLED_NORM * layer_sum) {
+        r = anchor_real;
+#if !defined(INTERPOLATION_QT)
+        d = anchor_second;
+#endif
+        norm = 1.0;
+    }
+    float inv = 1.0 / norm;
     r *= inv;
 #ifdef INTERPOLATION_QT
     return qt_affine(r, d.xyz / total, s / total);

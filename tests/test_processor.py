@@ -111,14 +111,46 @@ def test_compute_and_fragment_paths_agree(gl_context, zombie_bake):
     assert np.max(np.abs(a - b)) <= 1e-6
 
 
-def test_zero_total_weight_gives_rest_pose(gl_context, zombie, zombie_bake):
-    layers = empty_layers(3, 2)
+@pytest.mark.parametrize("path", PATHS)
+def test_zero_total_weight_gives_rest_pose_and_the_threshold_is_relative(gl_context, zombie, zombie_bake, path):
+    """Weights of 0 and below give the rest pose. The threshold is relative to the summed layer weights
+    (issue 18): (5e-7, 4e-7) blends as (5, 4) does. (While it was an absolute 1e-6, (5e-7, 4e-7) gave
+    the rest pose: this test asserted that, and the first row of a joint matrix was 1.93 m off the blend.)"""
+    layers = empty_layers(5, 2)
     layers[1, :, WEIGHT] = [-2.0, 0.0]
-    layers[2, :, WEIGHT] = [5e-7, 4e-7]  # below the rest threshold of 1e-6 in total
-    gpu = run_processor(gl_context, zombie_bake, layers, "compute")
+    layers[2, :, WEIGHT] = [5e-7, 4e-7]
+    layers[3, :, WEIGHT] = [5.0, 4.0]
+    layers[4, :, WEIGHT] = [5e-30, 4e-30]  # their rotation sum's squared norm would underflow float32 unscaled
+    layers[:, 1, CLIP] = 1
+    layers[:, :, PHASE] = [0.3, 0.6]
+    gpu = run_processor(gl_context, zombie_bake, layers, path)
     rest = reference.skinning_matrices(zombie.skeleton, reference.rest_pose(zombie.skeleton))[0][:, :3]
-    for a in range(3):
+    for a in range(2):
         assert np.max(np.abs(gpu[a] - rest)) < 1e-5
+    assert np.max(np.abs(gpu[2] - gpu[3])) < 1e-6 and np.max(np.abs(gpu[4] - gpu[3])) < 1e-6 and np.max(np.abs(gpu[2] - rest)) > 0.1
+    assert np.max(np.abs(gpu - reference_palette(zombie_bake, layers))) < 1e-5
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_rest_threshold_counts_the_masked_share_of_the_layer_weights(gl_context, zombie, zombie_bake, path):
+    """With joint masks the threshold compares a joint's masked weight with the layers' summed weight
+    before the masks: a joint the only layer's mask leaves at 1e-7 takes its rest pose (however large
+    the weight), one left at 1e-5 follows the clip."""
+    sk = zombie.skeleton
+    thigh, shin = sk.index("thigh_l"), sk.index("shin_l")
+    masks = np.ones((1, sk.joint_count), np.float32)
+    masks[0, thigh], masks[0, shin] = 1e-7, 1e-5
+    layers = empty_layers(2, 1)
+    layers[:, 0, CLIP], layers[:, 0, PHASE], layers[:, 0, MASK] = zombie_bake.clip_index("run"), 0.3, 0
+    layers[:, 0, WEIGHT] = [1.0, 3e5]
+    gpu = run_processor(gl_context, zombie_bake, layers, path, masks)
+    ref = reference_palette(zombie_bake, layers, masks)
+    assert np.max(np.abs(gpu - ref)) < 1e-5 and np.max(np.abs(gpu[0] - gpu[1])) < 1e-6
+    local = reference.blend(sk, [reference.sample_clip(sk, zombie.clip("run"), [0.3])], [[3e5]], masks.astype(np.float64))
+    np.testing.assert_allclose(local.rotation[0, thigh], sk.rest_rotation[thigh], atol=1e-12)
+    run = reference.sample_clip(sk, zombie.clip("run"), [0.3])
+    np.testing.assert_allclose(local.rotation[0, shin], run.rotation[0, shin], atol=1e-12)
+    assert abs(np.dot(run.rotation[0, thigh], sk.rest_rotation[thigh])) < 0.9999  # the run does move the thigh
 
 
 def test_single_layer_at_keys_matches_source_reference(gl_context, zombie, zombie_bake):

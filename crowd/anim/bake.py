@@ -21,6 +21,11 @@ Dual quaternions carry no scale. A character with joint scale (static or animate
 Quaternius' hedgehog) gets ``scale``: (rows, J) uniform scale per joint and frame; characters without
 it get ``scale = None``, and no scale texture exists. Non-uniform joint scale is approximated by its
 geometric mean, and the bake says so in ``warnings``.
+
+Storage error: every bake measures what its storage (f16 or f32) does to the keys it stores
+(``storage_error``: each joint skinned by the rounded keys against the float64 keys, at every stored
+frame) and warns where that exceeds STORAGE_WARN_M (1 mm), naming the joint, clip and frame, with what
+f32 would give. A warning, not a refusal: see the comment where it is raised.
 """
 
 from __future__ import annotations
@@ -44,6 +49,9 @@ MAX_ROWS = 16384  # GL_MAX_TEXTURE_SIZE guaranteed by every GL 4.x driver we tar
 # Joint scale within this of 1 is treated as 1 (exporters leave 0.99996 and the like); at 1 m from the
 # joint that is 0.1 mm. Anything dropped this way is reported in the bake's warnings.
 SCALE_EPS = 1e-4
+# Storage rounding the bake reports: the project's accuracy target (docs/BENCHMARKS.md). Measured on every
+# bake (a few milliseconds: one pass over the stored rows), see storage_error.
+STORAGE_WARN_M = 1e-3
 
 
 class BakeError(ValueError):
@@ -234,16 +242,83 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, 
     needs_scale = deviation > SCALE_EPS
     if 1e-6 < deviation <= SCALE_EPS:
         warnings.append(f"joint scale deviates from 1 by at most {deviation:.2g}; treated as 1 (no scale texture)")
+    stored_scale = scale.astype(dtype) if needs_scale else None
+    # Warn, not refuse: f16 is a deliberate trade of accuracy for half the bytes, and its floor on a
+    # human-sized character is about the 1 mm target itself (the built-in zombie's f16 keys are 1.03 mm
+    # off): a refusal would take f16 away from the very characters it is for. Where the error is large
+    # (a joint scaled 1e4 times), the warning says how large, where, and what f32 would give; the demo
+    # prints it and the stats JSON carries it, so it is never silent.
+    error, row_at, joint_at = storage_error(texels, scale if needs_scale else None, texels.astype(dtype), stored_scale, skeleton.parents)
+    if error > STORAGE_WARN_M:
+        line = (f"{precision} storage moves joint {skeleton.names[joint_at]!r} {_length(error)} from its float64 key "
+                f"({_row_name(infos, row_at)}), more than {STORAGE_WARN_M * 1e3:g} mm")
+        if precision != "f32":
+            f32_error = storage_error(texels, scale if needs_scale else None, texels.astype(np.float32),
+                                      scale.astype(np.float32) if needs_scale else None, skeleton.parents)[0]
+            line += f"; precision f32 keeps it within {_length(f32_error)}"
+        warnings.append(line)
     return AnimationBake(
         joint_names=skeleton.names,
         parents=skeleton.parents.astype(np.int32).copy(),
         texels=texels.astype(dtype),
-        scale=scale.astype(dtype) if needs_scale else None,
+        scale=stored_scale,
         clips=infos,
         fps=fps if fps == SOURCE_RATE else float(fps),
         precision=precision,
         warnings=warnings,
     )
+
+
+def _length(metres: float) -> str:
+    return f"{metres:.3g} m" if metres >= 1.0 else f"{metres * 1e3:.3g} mm"
+
+
+def _row_name(infos: list[ClipInfo], row: int) -> str:
+    if row == 0:
+        return "inverse bind"
+    for info in infos:
+        if info.first_row <= row < info.first_row + info.frame_count:
+            return f"clip {info.name!r}, frame {row - info.first_row}"
+    return "rest pose"
+
+
+def _decode(texels: np.ndarray, scale: np.ndarray | None) -> np.ndarray:
+    """(rows, J, 4, 4) float64 matrices of stored keys, decoded as the processor decodes them (the real
+    part made unit first)."""
+    t = np.asarray(texels, np.float64)
+    return tf.dq_to_mat4(t[:, 0::2], t[:, 1::2], None if scale is None else np.asarray(scale, np.float64))
+
+
+def _skinned_joints(local: np.ndarray, inverse_bind: np.ndarray, parents: np.ndarray, bind: np.ndarray) -> np.ndarray:
+    """(rows, J, 3): each joint's bind position `bind` (J, 4) skinned by pose rows `local` and the
+    inverse bind `inverse_bind` (J, 4, 4)."""
+    glob = np.empty_like(local)
+    for j, p in enumerate(parents):
+        glob[:, j] = local[:, j] if p < 0 else glob[:, p] @ local[:, j]
+    return np.einsum("rjab,jb->rja", (glob @ inverse_bind[None])[..., :3, :], bind)
+
+
+def storage_error(texels: np.ndarray, scale: np.ndarray | None, stored: np.ndarray, stored_scale: np.ndarray | None,
+                  parents: np.ndarray, chunk: int = 512) -> tuple[float, int, int]:
+    """(metres, row, joint): the largest distance, over every stored pose row (the clips' frames and
+    the rest row) and joint, between a joint skinned by the stored (rounded) keys and by the float64
+    keys, the inverse bind of row 0 included. A key's rounding adds up through the hierarchy and is
+    multiplied by the joint scales on the way: that is how f16 puts a joint scaled 1e4 times metres
+    off, while it moves the zombie's joints 1 mm. Rows go `chunk` at a time (a 16,384-row bake of 256
+    joints would otherwise hold half a gigabyte of matrices)."""
+    exact_ib = _decode(texels[:1], None if scale is None else scale[:1])[0]
+    stored_ib = _decode(stored[:1], None if stored_scale is None else stored_scale[:1])[0]
+    bind = np.linalg.inv(exact_ib)[:, :, 3]
+    worst, at = -1.0, (1, 0)
+    for first in range(1, texels.shape[0], chunk):
+        rows = slice(first, min(first + chunk, texels.shape[0]))
+        exact = _skinned_joints(_decode(texels[rows], None if scale is None else scale[rows]), exact_ib, parents, bind)
+        rounded = _skinned_joints(_decode(stored[rows], None if stored_scale is None else stored_scale[rows]), stored_ib, parents, bind)
+        err = np.linalg.norm(rounded - exact, axis=-1)
+        r, j = np.unravel_index(int(np.argmax(err)), err.shape)
+        if err[r, j] > worst:
+            worst, at = float(err[r, j]), (first + int(r), int(j))
+    return max(worst, 0.0), at[0], at[1]
 
 
 def joint_position_error(bake_: AnimationBake, skeleton: Skeleton, clip: Clip, phases) -> np.ndarray:

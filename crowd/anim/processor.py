@@ -5,14 +5,19 @@ Contract (the shape of an ozz-animation job: validated inputs, documented edge c
 input ``layers``: float32 (N, L, 4) with L = the processor's layer count (1..4); per layer
   ``[clip, phase, weight, mask]`` (column constants CLIP, PHASE, WEIGHT, MASK):
   - clip: index into the bake's clips (integer valued);
-  - phase: any finite value; looping clips wrap it into [0, 1), one-shot clips clamp it to [0, 1];
+  - phase: within ±32 cycles, where float32 holds it to 1e-6 cycles (validate_layers refuses the rest,
+    in one line, rather than round it); looping clips wrap it into [0, 1), one-shot clips clamp it to
+    [0, 1]. Producers wrap in float64 first (crowd.sim.ai.advance_phase, LayerOverrides.apply);
   - weight: finite, at most MAX_WEIGHT; negative weights count as 0; weights need not sum to 1;
   - mask: -1 for the whole body, else a row of the processor's joint masks (factor per joint in [0, 1]).
-  Per joint: weights are multiplied by the mask; each layer samples its keys as the interpolation
-  says (INTERPOLATIONS below: by default rotation nlerp and translation lerp); rotations are sign-aligned
-  to the heaviest layer and their weighted sum normalised, translations and scales are weighted means
-  (dq_lerp instead sums the dual quaternions); a joint whose weights add up to less than REST_THRESHOLD
-  takes the rest pose. Then the hierarchy is concatenated and multiplied by the inverse bind.
+  Per joint, as crowd.anim.reference.blend (its docstring says why each rule), with S the sum of the
+  layers' max(weight, 0) (only ratios of weights matter): weights are multiplied by the mask; each
+  layer samples its keys as the interpolation says (INTERPOLATIONS below: by default rotation nlerp
+  and translation lerp); rotations are sign-aligned to the anchor, the first-listed layer with a
+  weight above 0 at that joint, and their weighted sum normalised (the anchor's rotation where the
+  sum is shorter than CANCELLED_NORM times S), translations and scales are weighted means (dq_lerp
+  instead sums the dual quaternions); a joint whose masked weights add up to less than REST_THRESHOLD
+  times S takes the rest pose. Then the hierarchy is concatenated and multiplied by the inverse bind.
 
 output: the palette, three RGBA32F textures ("planes") holding rows 0, 1 and 2 of each 3x4 skinning
   matrix. Agent a, joint j lives at texel ((a % agents_per_row) * J + j, a // agents_per_row) of each
@@ -43,7 +48,7 @@ from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, validate_layers, vali
 from .bake import AnimationBake
 from ..gl import GLStage, gpu_bytes, load_shader
 from ..settings import DEFAULTS, SETTINGS
-from .reference import REST_THRESHOLD
+from .reference import CANCELLED_NORM, REST_THRESHOLD, aligned_sign
 
 MAX_JOINTS = 256  # one compute work group of 256 invocations holds at least one whole agent
 GROUP_SIZE = 256
@@ -159,6 +164,10 @@ def reference_palette(bake: AnimationBake, layers, masks=None, interpolation: st
     second = np.zeros((lcount, n, jc, 3 if qt else 4))  # translation (QT) or dual part (DQ)
     scale = np.zeros((lcount, n, jc))
     weight = np.zeros((lcount, n, jc))
+    # Raw weights, compared with S: the shaders scale them by a power of two near 1 / S, which changes no
+    # result (power_of_two_below in processor_common.glsl), and float64 does not underflow at float32's
+    # smallest weights.
+    layer_sum = np.maximum(layers[:, :, WEIGHT], 0.0).sum(axis=1)[:, None]  # (N, 1)
     for l in range(lcount):
         clip = layers[:, l, CLIP].astype(np.int64)
         real[l], second[l], scale[l] = _sample_keys(texels, scales, table, clip, layers[:, l, PHASE], interpolation)
@@ -170,15 +179,16 @@ def reference_palette(bake: AnimationBake, layers, masks=None, interpolation: st
     real = np.where(weight[..., None] > 0, real, 0.0)
     second = np.where(weight[..., None] > 0, second, 0.0)
     scale = np.where(weight > 0, scale, 0.0)
-    # First maximum, as the shader's strict '>' scan finds it.
-    heaviest = np.argmax(weight, axis=0)
-    ref = np.take_along_axis(real, heaviest[None, ..., None], axis=0)[0]
-    signed = np.where(np.sum(real * ref[None], axis=-1) < 0.0, -weight, weight)
+    anchor = np.argmax(weight > 0, axis=0)  # the first layer with a weight above 0, as the shader's scan finds it
+    ref = np.take_along_axis(real, anchor[None, ..., None], axis=0)[0]
+    signed = aligned_sign(real, ref[None]) * weight
     r = np.sum(signed[..., None] * real, axis=0)
+    cancelled = (np.linalg.norm(r, axis=-1) < CANCELLED_NORM * layer_sum)[..., None]
+    r = np.where(cancelled, ref, r)
     total = weight.sum(axis=0)
-    safe = np.where(total < REST_THRESHOLD, 1.0, total)
+    low = (total <= 0.0) | (total < REST_THRESHOLD * layer_sum)
+    safe = np.where(low, 1.0, total)
     s = np.sum(weight * scale, axis=0) / safe
-    low = total < REST_THRESHOLD
     rest_r = texels[bake.rest_row, 0::2]
     rest_d = texels[bake.rest_row, 1::2]
     rest_s = np.ones(jc) if scales is None else scales[bake.rest_row]
@@ -191,6 +201,7 @@ def reference_palette(bake: AnimationBake, layers, masks=None, interpolation: st
         local = tf.trs_to_mat4(t, r, np.repeat(s[..., None], 3, -1))
     else:
         d = np.sum(signed[..., None] * second, axis=0)
+        d = np.where(cancelled, np.take_along_axis(second, anchor[None, ..., None], axis=0)[0], d)
         d = np.where(low[..., None], rest_d[None], d)
         local = tf.dq_to_mat4(r, d, s)
     glob = np.empty_like(local)
@@ -244,7 +255,8 @@ class AnimationProcessor(GLStage):
         self.parents_texture = self._texture("animation", (jc, 1), 1, bake.parents.astype(np.int32), "i4")
         self.clips_texture = self._texture("animation", (len(bake.clips), 1), 4, bake.clip_table, "f4")
         self.masks_texture = None if self.masks is None else self._texture("animation", (jc, self.masks.shape[0]), 1, self.masks, "f4")
-        defines = {"LAYERS": layer_count, "REST_THRESHOLD": f"{REST_THRESHOLD:.1e}", "MAX_JOINTS": MAX_JOINTS}
+        defines = {"LAYERS": layer_count, "REST_THRESHOLD": f"{REST_THRESHOLD:.1e}", "CANCELLED_NORM": f"{CANCELLED_NORM:.1e}",
+                   "MAX_JOINTS": MAX_JOINTS}
         if self.scale_texture is not None:
             defines["HAS_SCALE"] = 1
         if self.masks_texture is not None:
