@@ -7,6 +7,7 @@ GPU processor, so it can show whether a clip or an import is right before anythi
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from pyglm import glm
@@ -87,12 +88,17 @@ def main(argv=None) -> int:
     parser.add_argument("--cell", type=int, default=200)
     parser.add_argument("--yaw", type=float, default=0.6, help="camera yaw in radians (0 = front)")
     args = parser.parse_args(argv)
-    from crowd.asset.gltf import load_character
+    from crowd.asset.gltf import GltfImportError, load_character
+    from crowd.asset.model import ModelError
 
-    character = load_character(args.model)
-    names = args.clips or [c.name for c in character.clips]
-    pieces = ("body", "head_a", "shirt_torn") if args.model is None else ()
-    render_sheet(character, names, args.columns, args.cell, args.out, args.yaw, pieces)
+    try:
+        character = load_character(args.model)
+        names = args.clips or [c.name for c in character.clips]
+        pieces = ("body", "head_a", "shirt_torn") if args.model is None else ()
+        render_sheet(character, names, args.columns, args.cell, args.out, args.yaw, pieces)
+    except (GltfImportError, ModelError) as exc:  # a bad file, or a --clips name it lacks: one line, no traceback
+        print(f"bench.preview: {exc}", file=sys.stderr)
+        return 2
     print(f"wrote {args.out}")
     return 0
 

@@ -189,3 +189,54 @@ def test_hedgehog_animated_scale_is_kept():
     scale_channels = [ch for clip in c.clips for ch in clip.channels if ch.path == "scale"]
     assert scale_channels
     assert max(float(np.max(ch.values)) for ch in scale_channels) > 1.1
+
+
+def test_spec_leniencies_still_load(tmp_path):
+    """What glTF allows, or what old exporters write, that a strict reader could wrongly refuse."""
+    def variant(name, mutate):
+        path = make_gltf(tmp_path / name)
+        doc = json.loads(path.read_text())
+        mutate(doc)
+        path.write_text(json.dumps(doc))
+        return load_character(path)
+
+    reference = load_character(make_gltf(tmp_path / "plain"))
+
+    # glTF: the inverse bind accessor holds at least one matrix per joint; the extra ones are unused.
+    path = make_gltf(tmp_path / "ibm", buffer_mode="external")
+    doc = json.loads(path.read_text())
+    ibm = doc["accessors"][doc["skins"][0]["inverseBindMatrices"]]
+    view = doc["bufferViews"][ibm["bufferView"]]
+    blob = (tmp_path / "ibm" / "test.bin").read_bytes()
+    matrices = blob[view["byteOffset"]: view["byteOffset"] + view["byteLength"]] + np.eye(4, dtype=np.float32).tobytes()
+    doc["bufferViews"].append({"buffer": 0, "byteOffset": len(blob), "byteLength": len(matrices)})
+    doc["buffers"][0]["byteLength"] = len(blob) + len(matrices)
+    doc["accessors"].append(dict(ibm, bufferView=len(doc["bufferViews"]) - 1, count=4))
+    doc["skins"][0]["inverseBindMatrices"] = len(doc["accessors"]) - 1
+    (tmp_path / "ibm" / "test.bin").write_bytes(blob + matrices)
+    path.write_text(json.dumps(doc))
+    np.testing.assert_array_equal(load_character(path).skeleton.inverse_bind, reference.skeleton.inverse_bind)
+    # byteStride 0 (glTF 1.0's "tightly packed"), required extensions that change nothing here, an
+    # explicit identity matrix.
+    for name, mutate in [("stride0", lambda d: d["bufferViews"][0].update(byteStride=0)),
+                         ("ext", lambda d: d.update(extensionsRequired=["KHR_materials_unlit", "KHR_texture_transform"])),
+                         ("matrix", lambda d: d["nodes"][3].update(matrix=[1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 1, 0, 1]))]:
+        c = variant(name, mutate)
+        np.testing.assert_array_equal(c.meshes[0].positions, reference.meshes[0].positions)
+        np.testing.assert_allclose(c.skeleton.rest_translation, reference.skeleton.rest_translation)
+
+
+def test_glb_json_chunk_padding_and_byte_order_mark(tmp_path):
+    import struct
+
+    from crowd.asset.zombie import ASSET_PATH
+
+    data = ASSET_PATH.read_bytes()
+    n = struct.unpack_from("<I", data, 12)[0]
+    js, rest = data[20:20 + n].rstrip(b" "), data[20 + n:]
+    js = b"\xef\xbb\xbf" + js  # a BOM, and zeros instead of spaces: written by some tools, harmless
+    js += b"\x00" * (-len(js) % 4)
+    glb = struct.pack("<I4s", len(js), b"JSON") + js + rest
+    path = tmp_path / "zombie.glb"
+    path.write_bytes(b"glTF" + struct.pack("<II", 2, 12 + len(glb)) + glb)
+    assert [c.name for c in load_character(path).clips] == [c.name for c in load_character(ASSET_PATH).clips]

@@ -73,6 +73,9 @@ class Skeleton:
             if not isinstance(a, np.ndarray) or a.shape != shape:
                 raise ModelError(f"skeleton.{attr} must have shape {shape}, got {getattr(a, 'shape', type(a))}")
             _finite(f"skeleton.{attr}", a)
+        zero = np.linalg.norm(self.rest_rotation, axis=-1) == 0.0
+        if np.any(zero):
+            raise ModelError(f"joint {self.names[int(np.argmax(zero))]!r}: rest rotation is the zero quaternion")
         for i, p in enumerate(self.parents):
             if not (-1 <= p < i):
                 raise ModelError(f"joint {self.names[i]!r} has parent {p}: joints must be sorted parents-first")
@@ -114,6 +117,11 @@ class Channel:
             raise ModelError(f"{where}: {self.path} values have shape {self.values.shape}, expected {want}")
         _finite(f"{where} times", self.times)
         _finite(f"{where} values", self.values)
+        if self.path == "rotation":
+            keys = self.values[:, 1] if self.interpolation == "CUBICSPLINE" else self.values
+            zero = np.linalg.norm(keys, axis=-1) == 0.0
+            if np.any(zero):  # a pose with no rotation: every sampler downstream would divide by zero
+                raise ModelError(f"{where}: key {int(np.argmax(zero))} is the zero quaternion")
         if k > 1 and np.any(np.diff(self.times) <= 0.0):
             raise ModelError(f"{where}: key times must increase strictly")
 
@@ -185,6 +193,7 @@ class SkinnedMesh:
         if self.colors is not None and self.colors.shape != (v, 4):
             raise ModelError(f"{where}: colors must be (V, 4)")
         _finite(f"{where} positions", self.positions)
+        _finite(f"{where} normals", self.normals)
         _finite(f"{where} weights", self.weights)
         if self.indices.ndim != 1 or self.indices.shape[0] % 3:
             raise ModelError(f"{where}: indices must be a flat triangle list")
