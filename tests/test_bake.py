@@ -193,3 +193,20 @@ def test_the_zombie_in_f16_is_warned_about_and_in_f32_is_not(zombie):
     b16 = bake(zombie.skeleton, zombie.clips, 30, "f16")
     assert len(b16.warnings) == 1 and "f16 storage moves joint 'hand_r_socket' 1.03 mm" in b16.warnings[0]
     assert bake(zombie.skeleton, zombie.clips, 30, "f32").warnings == []
+
+
+def test_a_bake_too_long_for_the_texture_is_refused_before_sampling(zombie, monkeypatch):
+    """An hour-long clip at 30 fps needs 108,003 rows: refused from the count, before any pose is sampled."""
+    import dataclasses
+
+    from crowd.anim import bake as bake_module
+    from crowd.anim.bake import BakeError
+
+    def no_sampling(*args, **kwargs):
+        raise AssertionError("the bake sampled poses before checking that its rows fit")
+
+    monkeypatch.setattr(bake_module.reference, "sample_clip", no_sampling)
+    clip = zombie.clips[0]
+    hour = dataclasses.replace(clip, end=clip.start + 3600.0)
+    with pytest.raises(BakeError, match="108003 frames do not fit a 16384-row texture"):
+        bake(zombie.skeleton, [hour], 30)

@@ -201,10 +201,15 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, 
     dual_rows = [tf.dq_from_rt(q, t)[1][None]]
     scale_rows = [_uniform_scale(s, "inverse bind", warnings)[None]]
 
+    # How many rows the clips need, counted before any is sampled: a long clip at a high rate is
+    # refused in a moment instead of after sampling hundreds of megabytes of poses.
+    intervals = [_source_intervals(clip) if fps == SOURCE_RATE else _intervals(clip.duration * fps) for clip in clips]
+    needed = 1 + sum(n + 1 for n in intervals) + 1  # inverse bind, the clips, the rest pose
+    if needed > max_rows:
+        raise BakeError(f"{needed} frames do not fit a {max_rows}-row texture: bake fewer clips or at a lower rate than {fps} fps")
     infos = []
     row = 1
-    for clip in clips:
-        n = _source_intervals(clip) if fps == SOURCE_RATE else _intervals(clip.duration * fps)
+    for clip, n in zip(clips, intervals):
         phases = np.arange(n + 1, dtype=np.float64) / n
         if clip.loop:
             phases[-1] = 0.0  # the closing frame repeats the first pose (then aligned to its predecessor)
@@ -222,8 +227,6 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, 
     dual_rows.append(tf.dq_from_rt(rest_q, skeleton.rest_translation)[1][None])
     scale_rows.append(_uniform_scale(skeleton.rest_scale, "rest pose", warnings)[None])
     row += 1
-    if row > max_rows:
-        raise BakeError(f"{row} frames do not fit a {max_rows}-row texture: bake fewer clips or at a lower rate than {fps} fps")
     if 2 * jc > max_rows:
         raise BakeError(f"{jc} joints need {2 * jc} texels per row, more than {max_rows}")
 
