@@ -1,4 +1,5 @@
-"""A contact sheet of a character's clips, skinned on the CPU by the float64 reference.
+"""A contact sheet of a character's clips, skinned on the CPU by the float64 reference: one row per clip,
+labelled with its name, framed on the skinned poses.
 
 It is a debugging and documentation view (``python -m bench.preview out.png``), independent of the
 GPU processor, so it can show whether a clip or an import is right before anything else is built.
@@ -25,57 +26,87 @@ def _view_proj(aspect: float, target, distance: float, yaw: float, pitch: float)
     return (proj * view).to_bytes()  # column-major, as GLSL expects
 
 
-def render_sheet(character: Character, clip_names: list[str], columns: int, cell: int, out: Path, yaw: float = 0.6,
-                 pieces: tuple[str, ...] = ("body", "head_a", "shirt_torn")) -> Path:
-    from PIL import Image
+LABEL_HEIGHT = 18  # pixels of the strip above each row that names its clip
 
-    ctx = headless_context(330)
-    prog = ctx.program(vertex_shader=load_shader("bench/preview.vert.glsl"), fragment_shader=load_shader("bench/preview.frag.glsl"))
-    rows = len(clip_names)
-    width, height = columns * cell, rows * cell
-    fbo = ctx.simple_framebuffer((width, height), samples=0)
-    fbo.use()
-    ctx.enable(ctx.DEPTH_TEST)
-    fbo.clear(0.16, 0.18, 0.22, 1.0)
-    meshes = [m for m in character.meshes if m.lod == 0 and (m.piece in pieces or not pieces)]
-    if not meshes:
-        meshes = [m for m in character.meshes if m.lod == 0]
+
+def skinned_cells(character: Character, clip_names: list[str], columns: int, meshes) -> list[list[list[np.ndarray]]]:
+    """Per clip, per column, per mesh: the (triangle corner, 10) rows of position, normal and colour,
+    skinned by the float64 reference. The sheet is framed on these, not on the bind-space positions:
+    a character skinned to another size or place than its bind meshes still fills its cells."""
     sk = character.skeleton
-    bind_min = np.min([m.positions.min(axis=0) for m in meshes], axis=0)
-    bind_max = np.max([m.positions.max(axis=0) for m in meshes], axis=0)
-    size = float(np.max(bind_max - bind_min))
-    centre = (bind_min + bind_max) / 2.0
-    ground = np.array([[-1, 0, -1], [1, 0, -1], [1, 0, 1], [-1, 0, -1], [1, 0, 1], [-1, 0, 1]], dtype=np.float64) * size
-    ground[:, 1] = bind_min[1]
-    prog["u_light_dir"].value = tuple(glm.normalize(glm.vec3(-0.4, -1.0, -0.5)))
-    prog["u_view_proj"].write(_view_proj(1.0, centre, 2.2 * size, yaw, 0.25))
-    for r, name in enumerate(clip_names):
+    cells = []
+    for name in clip_names:
         clip = character.clip(name)
         phases = np.linspace(0.0, 1.0, columns, endpoint=not clip.loop)
-        pose = reference.sample_clip(sk, clip, phases)
-        skin = reference.skinning_matrices(sk, pose)
+        skin = reference.skinning_matrices(sk, reference.sample_clip(sk, clip, phases))
+        row = []
         for c in range(columns):
-            ctx.viewport = (c * cell, (rows - 1 - r) * cell, cell, cell)
             parts = []
             for m in meshes:
                 p = reference.skin_points(skin[c : c + 1], m.positions, m.joints, m.weights)[0]
                 nrm = reference.skin_points(skin[c : c + 1] * np.array([1, 1, 1, 0]), m.normals, m.joints, m.weights)[0]
                 col = m.colors if m.colors is not None else np.ones((p.shape[0], 4))
                 parts.append(np.concatenate([p, nrm, col], axis=1)[m.indices])
-            parts.append(np.concatenate([ground, np.tile([0, 1, 0], (6, 1)), np.tile([0.3, 0.32, 0.3, 1], (6, 1))], axis=1))
-            data = np.concatenate(parts).astype(np.float32)
-            vbo = ctx.buffer(data.tobytes())
-            vao = ctx.vertex_array(prog, [(vbo, "3f 3f 4f", "in_position", "in_normal", "in_color")])
-            vao.render()
-            vao.release()
-            vbo.release()
-    img = Image.frombytes("RGB", (width, height), fbo.read(components=3)).transpose(Image.Transpose.FLIP_TOP_BOTTOM)
+            row.append(parts)
+        cells.append(row)
+    return cells
+
+
+def render_sheet(character: Character, clip_names: list[str], columns: int, cell: int, out: Path, yaw: float = 0.6,
+                 pieces: tuple[str, ...] = ("body", "head_a", "shirt_torn")) -> Path:
+    """One row per clip, labelled with its name, `columns` poses across its length, every cell framed on
+    the skinned poses of all rows (one scale for the whole sheet, so the rows compare)."""
+    from PIL import Image, ImageDraw
+
+    meshes = [m for m in character.meshes if m.lod == 0 and (m.piece in pieces or not pieces)]
+    if not meshes:
+        meshes = [m for m in character.meshes if m.lod == 0]
+    cells = skinned_cells(character, clip_names, columns, meshes)
+    points = np.concatenate([part[:, :3] for row in cells for parts in row for part in parts])
+    low, high = points.min(axis=0), points.max(axis=0)
+    size = float(np.max(high - low)) or 1.0
+    centre = (low + high) / 2.0
+    ground = np.array([[-1, 0, -1], [1, 0, -1], [1, 0, 1], [-1, 0, -1], [1, 0, 1], [-1, 0, 1]], dtype=np.float64) * size
+    ground[:, 0] += centre[0]
+    ground[:, 2] += centre[2]
+    ground[:, 1] = low[1]
+    floor = np.concatenate([ground, np.tile([0, 1, 0], (6, 1)), np.tile([0.3, 0.32, 0.3, 1], (6, 1))], axis=1)
+
+    ctx = headless_context(330)
+    prog = fbo = None
+    try:
+        prog = ctx.program(vertex_shader=load_shader("bench/preview.vert.glsl"), fragment_shader=load_shader("bench/preview.frag.glsl"))
+        rows = len(clip_names)
+        row_height = cell + LABEL_HEIGHT
+        width, height = columns * cell, rows * row_height
+        fbo = ctx.simple_framebuffer((width, height), samples=0)
+        fbo.use()
+        ctx.enable(ctx.DEPTH_TEST)
+        fbo.clear(0.16, 0.18, 0.22, 1.0)
+        prog["u_light_dir"].value = tuple(glm.normalize(glm.vec3(-0.4, -1.0, -0.5)))
+        prog["u_view_proj"].write(_view_proj(1.0, centre, 1.7 * size, yaw, 0.25))
+        for r, row in enumerate(cells):
+            for c, parts in enumerate(row):
+                ctx.viewport = (c * cell, (rows - 1 - r) * row_height, cell, cell)
+                data = np.concatenate([*parts, floor]).astype(np.float32)
+                vbo = ctx.buffer(data.tobytes())
+                vao = ctx.vertex_array(prog, [(vbo, "3f 3f 4f", "in_position", "in_normal", "in_color")])
+                vao.render()
+                vao.release()
+                vbo.release()
+        img = Image.frombytes("RGB", (width, height), fbo.read(components=3)).transpose(Image.Transpose.FLIP_TOP_BOTTOM)
+    finally:
+        for obj in (fbo, prog):
+            if obj is not None:
+                obj.release()
+        ctx.release()
+    draw = ImageDraw.Draw(img)
+    for r, name in enumerate(clip_names):
+        clip = character.clip(name)
+        draw.text((4, r * row_height + 3), f"{name}  ({clip.duration:.2f} s{', loops' if clip.loop else ''})", fill=(230, 230, 230))
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     img.save(out)
-    fbo.release()
-    prog.release()
-    ctx.release()
     return out
 
 
