@@ -46,6 +46,7 @@ class PipelineConfig:
     agents: int = DEFAULTS["agents"]
     seed: int = DEFAULTS["seed"]
     model: Path | None = None
+    model_scale: float | str = DEFAULTS["model_scale"]  # a size factor, or "auto" (a person's height where the file is far off)
     roles: dict = field(default_factory=dict)
     bake_fps: float | str = DEFAULTS["bake_fps"]  # or "source": each clip at its own key rate
     precision: str = DEFAULTS["precision"]
@@ -79,7 +80,7 @@ class CrowdPipeline(GLStage):
         SETTINGS["agents"].check(config.agents, PipelineError)
         self.ctx = ctx
         self.config = config
-        self.character = load_character(config.model)
+        self.character = load_character(config.model, scale=SETTINGS["model_scale"].check(config.model_scale, PipelineError))
         self.roles, self.role_notes = match_roles(self.character.clips, config.roles)
         # Leave out what the scene does not need: only the clips the roles play are baked.
         self.bake = bake_roles(self.character, self.roles, config.bake_fps, config.precision)

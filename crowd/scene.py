@@ -55,6 +55,7 @@ class Scene:
     name: str = "horde"
     model: Path | None = None
     agents: int = DEFAULTS["agents"]
+    model_scale: float | str = DEFAULTS["model_scale"]
     seed: int = DEFAULTS["seed"]
     bake_fps: float | str = DEFAULTS["bake_fps"]  # or "source"
     precision: str = DEFAULTS["precision"]
@@ -100,7 +101,7 @@ class Scene:
                       fov_y=self.camera.fov_y, aspect=aspect)
 
     def pipeline_config(self) -> PipelineConfig:
-        return PipelineConfig(agents=self.agents, seed=self.seed, model=self.model, roles=dict(self.roles), bake_fps=self.bake_fps,
+        return PipelineConfig(agents=self.agents, seed=self.seed, model=self.model, model_scale=self.model_scale, roles=dict(self.roles), bake_fps=self.bake_fps,
                               precision=self.precision, interpolation=self.interpolation, processor_path=self.processor, shadows=self.shadows, culling=self.culling,
                               lod_distances=tuple(self.lod_distances), ai=self.ai, weapons=self.weapons,
                               readback_latency=self.readback_latency)

@@ -236,6 +236,9 @@ class CrowdSession(GLStage):
             "lod_distances": lambda v: self.set_lod_distances(*SETTINGS["lod_distances"].check(v, SessionError)),
             "readback_latency": self.set_readback_latency,
         }
+        if name == "model_scale":
+            SETTINGS[name].check(value, SessionError)
+            raise SessionError("model scale is applied when the crowd is built: save the scene and run it again")
         if name in AI_SETTINGS:
             self.set_ai(**{name: value})
         elif name in controls:

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 SOURCE_RATE = "source"  # bake each clip at its own key rate
+AUTO_SCALE = "auto"  # measure the character's standing height and scale it to a person's where it is far off
 INF = math.inf
 
 
@@ -33,7 +34,7 @@ class SettingError(ValueError):
 class Setting:
     name: str  # the scene file's key and the command line's --flag (with dashes)
     group: str
-    kind: str  # int, float, bool, choice, rate (fps or "source"), pair (two increasing numbers), size (WxH)
+    kind: str  # int, float, bool, choice, rate (fps or "source"), scale (a factor or "auto"), pair, size (WxH)
     default: object
     help: str
     label: str = ""  # the words an error uses ("agent count"); the name when empty
@@ -59,6 +60,8 @@ class Setting:
             return "one of " + ", ".join(self.choices)
         if self.kind == "rate":
             return f"{_num(self.low)} to {_num(self.high)} fps or {SOURCE_RATE!r}"
+        if self.kind == "scale":
+            return f"a factor from {self.low:g} to {self.high:g} or {AUTO_SCALE!r}"
         if self.kind == "pair":
             return f"two numbers above {_num(self.low)}, the first no larger than the second"
         if self.kind == "size":
@@ -97,6 +100,8 @@ class Setting:
             return value if isinstance(value, str) and value in self.choices else _BAD
         if k == "rate":
             return value if value == SOURCE_RATE else self._number(value, float)
+        if k == "scale":
+            return value if value == AUTO_SCALE else self._number(value, float)
         if k == "pair":
             if not isinstance(value, (list, tuple)) or len(value) != 2:
                 return _BAD
@@ -136,6 +141,8 @@ class Setting:
                 return _number_text(t)
             if self.kind == "rate":
                 return t if t == SOURCE_RATE else _number_text(t)
+            if self.kind == "scale":
+                return t if t == AUTO_SCALE else _number_text(t)
             if self.kind == "bool":
                 return {"true": True, "on": True, "1": True, "false": False, "off": False, "0": False}.get(t.lower(), text)
             if self.kind == "pair":
@@ -187,6 +194,9 @@ _ALL = (
     # what runs
     Setting("agents", "scene", "int", 200, "number of zombies", label="agent count", low=0, high=1_000_000, slider=(0, 10_000)),
     Setting("seed", "scene", "int", 1, "random seed of the crowd (the same seed gives the same crowd)", low=0, high=2**63 - 1),
+    Setting("model_scale", "scene", "scale", AUTO_SCALE,
+            f'the model\'s size factor; "{AUTO_SCALE}" scales a character standing outside 0.5 to 3 m to 1.8 m',
+            label="model scale", low=1e-6, high=1e6),
     # the bake
     Setting("bake_fps", "clips", "rate", 30.0, f'bake rate in frames per second, or "{SOURCE_RATE}": each clip at its own key rate',
             label="bake rate", low=1, high=240, slider=(5, 60)),

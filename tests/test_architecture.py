@@ -60,7 +60,7 @@ def test_import_rules_catch_a_broken_rule(tmp_path):
 
 def test_every_setting_declares_type_bounds_default_and_help():
     for s in SETTINGS.values():
-        assert s.help and s.kind in ("int", "float", "bool", "choice", "rate", "pair", "size"), s.name
+        assert s.help and s.kind in ("int", "float", "bool", "choice", "rate", "scale", "pair", "size"), s.name
         assert s.check(s.default) == s.default, s.name  # the default passes its own check
         if s.slider is not None:
             lo, hi = s.slider

@@ -1,0 +1,91 @@
+"""A character brought to the crowd's world: metres, about a person's height.
+
+glTF says metres, but files are authored in whatever the tool used: a character 80 units tall puts the
+camera inside its polygons, and the AI's speeds and strides (metres per second, metres per cycle) make
+no sense for it. The standing height is measured from the rest pose, skinned (not from the bind meshes,
+which may be in another space or size than what is drawn). A character outside HUMAN_HEIGHTS is
+scaled to TARGET_HEIGHT with one warning that says so; a scene's or the command line's ``model_scale``
+sets the factor instead ("auto" measures).
+
+Scaling is uniform and exact in meaning: joint translations (rest and keyed), the translations of the
+inverse binds, mesh positions, attachment offsets and prop grips are multiplied by the factor, and
+rotations, normals and weights are untouched, so every skinned vertex moves by exactly that factor.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .model import Character, Clip
+from .pose import global_matrices, rest_pose
+
+HUMAN_HEIGHTS = (0.5, 3.0)  # metres: a character standing between these is taken as authored in metres
+TARGET_HEIGHT = 1.8  # metres: what a character outside them is scaled to
+AUTO = "auto"
+
+
+def standing_height(character: Character) -> float:
+    """Height (along +Y) of the character's most detailed meshes in the rest pose, skinned."""
+    sk = character.skeleton
+    joints = global_matrices(sk, rest_pose(sk))[0] @ np.asarray(sk.inverse_bind, np.float64)  # (J, 4, 4)
+    lod = min((m.lod for m in character.meshes), default=0)
+    low, high = np.inf, -np.inf
+    for mesh in character.meshes:
+        if mesh.lod != lod:
+            continue
+        p = np.c_[np.asarray(mesh.positions, np.float64), np.ones(len(mesh.positions))]
+        # y of each vertex under each of its 4 influences, blended by weight (linear blend: the rest
+        # pose is where the bind meshes came from, so any blend rule gives the same heights here).
+        y = np.einsum("vkj,vj->vk", joints[mesh.joints.astype(np.int64), 1, :], p)
+        skinned = np.sum(y * mesh.weights, axis=1)
+        low, high = min(low, float(skinned.min(initial=np.inf))), max(high, float(skinned.max(initial=-np.inf)))
+    return high - low if np.isfinite(high - low) else 0.0
+
+
+def scale_character(character: Character, factor: float) -> Character:
+    """The same character `factor` times as large (see the module docstring for what is scaled)."""
+    f = float(factor)
+
+    def moved(matrix: np.ndarray) -> np.ndarray:
+        out = np.array(matrix, np.float64, copy=True)
+        out[..., :3, 3] *= f
+        return out
+
+    sk = character.skeleton
+    skeleton = dataclasses.replace(sk, rest_translation=np.asarray(sk.rest_translation, np.float64) * f, inverse_bind=moved(sk.inverse_bind))
+
+    def clip(c: Clip) -> Clip:
+        channels = [dataclasses.replace(ch, values=ch.values * f) if ch.path == "translation" else ch for ch in c.channels]
+        return dataclasses.replace(c, channels=channels, stride=None if c.stride is None else c.stride * f)
+
+    def rigid(mesh):
+        return dataclasses.replace(mesh, positions=(np.asarray(mesh.positions, np.float64) * f).astype(np.float32))
+
+    return dataclasses.replace(
+        character, skeleton=skeleton,
+        meshes=[dataclasses.replace(m, positions=(np.asarray(m.positions, np.float64) * f).astype(np.float32)) for m in character.meshes],
+        clips=[clip(c) for c in character.clips],
+        attachments=[dataclasses.replace(a, mesh=rigid(a.mesh), offset=moved(a.offset)) for a in character.attachments],
+        props={name: dataclasses.replace(p, mesh=rigid(p.mesh), grip=moved(p.grip)) for name, p in character.props.items()},
+        warnings=list(character.warnings))
+
+
+def to_crowd_units(character: Character, model_scale: float | str = AUTO) -> Character:
+    """`character` at the crowd's scale: `model_scale` times as large, or with "auto", scaled to
+    TARGET_HEIGHT when its standing height lies outside HUMAN_HEIGHTS (one warning says so)."""
+    if model_scale != AUTO:
+        if float(model_scale) == 1.0:
+            return character
+        scaled = scale_character(character, float(model_scale))
+        scaled.warnings.append(f"scaled by {float(model_scale):g} (model_scale)")
+        return scaled
+    height = standing_height(character)
+    if height <= 0.0 or HUMAN_HEIGHTS[0] <= height <= HUMAN_HEIGHTS[1]:
+        return character
+    factor = TARGET_HEIGHT / height
+    scaled = scale_character(character, factor)
+    scaled.warnings.append(f"stands {height:.4g} units tall, outside {HUMAN_HEIGHTS[0]:g} to {HUMAN_HEIGHTS[1]:g} m: "
+                           f"scaled by {factor:.4g} to {TARGET_HEIGHT:g} m (model_scale sets the factor)")
+    return scaled
