@@ -87,3 +87,23 @@ def test_shared_rigged_simple_is_scaled_to_a_person():
     assert any("stands 9.15 units tall" in w for w in character.warnings)
     cesium = load_character(shared("CesiumMan.glb"))  # 1.5 m: as authored
     assert standing_height(cesium) == pytest.approx(1.5066, abs=1e-3) and not any("scaled" in w for w in cesium.warnings)
+
+
+def test_a_character_modelled_around_its_centre_is_put_on_the_ground(zombie):
+    from crowd.asset.units import lift_character, rest_extent
+
+    sunk = lift_character(zombie, -0.93)  # the zombie, modelled around its middle
+    assert rest_extent(sunk)[0] == pytest.approx(rest_extent(zombie)[0] - 0.93, abs=1e-9)
+    fixed = to_crowd_units(sunk)
+    assert rest_extent(fixed)[0] == pytest.approx(0.0, abs=1e-9)
+    assert any("off the ground" in w for w in fixed.warnings)
+    moved = rest_extent(fixed)[0] - rest_extent(zombie)[0]
+    np.testing.assert_allclose(joint_positions(fixed), joint_positions(zombie) + [0.0, moved, 0.0], atol=1e-9)
+    assert to_crowd_units(zombie) is zombie  # its soles sink 9 mm into the ground: within the tolerance
+
+
+def test_shared_rigged_simple_stands_on_the_ground():
+    from crowd.asset.units import rest_extent
+
+    low, high = rest_extent(load_character(shared("RiggedSimple.glb")))
+    assert low == pytest.approx(0.0, abs=1e-6) and high == pytest.approx(TARGET_HEIGHT, rel=1e-6)

@@ -21,6 +21,7 @@ import numpy as np
 from .model import Character, Clip
 from .pose import global_matrices, rest_pose
 
+GROUND_TOLERANCE = 0.05  # share of the height the lowest rest-pose point may lie off the ground (soles sink a little)
 HUMAN_HEIGHTS = (0.5, 3.0)  # metres: a character standing between these is taken as authored in metres
 TARGET_HEIGHT = 1.8  # metres: what a character outside them is scaled to
 AUTO = "auto"
@@ -28,6 +29,12 @@ AUTO = "auto"
 
 def standing_height(character: Character) -> float:
     """Height (along +Y) of the character's most detailed meshes in the rest pose, skinned."""
+    low, high = rest_extent(character)
+    return high - low if np.isfinite(high - low) else 0.0
+
+
+def rest_extent(character: Character) -> tuple[float, float]:
+    """Lowest and highest y of the character's most detailed meshes in the rest pose, skinned."""
     sk = character.skeleton
     joints = global_matrices(sk, rest_pose(sk))[0] @ np.asarray(sk.inverse_bind, np.float64)  # (J, 4, 4)
     lod = min((m.lod for m in character.meshes), default=0)
@@ -41,7 +48,32 @@ def standing_height(character: Character) -> float:
         y = np.einsum("vkj,vj->vk", joints[mesh.joints.astype(np.int64), 1, :], p)
         skinned = np.sum(y * mesh.weights, axis=1)
         low, high = min(low, float(skinned.min(initial=np.inf))), max(high, float(skinned.max(initial=-np.inf)))
-    return high - low if np.isfinite(high - low) else 0.0
+    return low, high
+
+
+def lift_character(character: Character, lift: float) -> Character:
+    """The same character `lift` metres higher: its root joints' rest and keyed translations move up,
+    so every joint, skinned vertex, attachment and prop follows."""
+    roots = set(np.flatnonzero(np.asarray(character.skeleton.parents) < 0).tolist())
+    up = np.array([0.0, float(lift), 0.0])
+    rest = np.asarray(character.skeleton.rest_translation, np.float64).copy()
+    rest[sorted(roots)] += up
+    skeleton = dataclasses.replace(character.skeleton, rest_translation=rest)
+
+    def clip(c: Clip) -> Clip:
+        channels = []
+        for ch in c.channels:
+            if ch.path == "translation" and ch.joint in roots:
+                values = np.array(ch.values, np.float64, copy=True)
+                if values.ndim == 3:  # CUBICSPLINE: (in tangent, value, out tangent) per key; only values move
+                    values[:, 1] += up
+                else:
+                    values += up
+                ch = dataclasses.replace(ch, values=values)
+            channels.append(ch)
+        return dataclasses.replace(c, channels=channels)
+
+    return dataclasses.replace(character, skeleton=skeleton, clips=[clip(c) for c in character.clips], warnings=list(character.warnings))
 
 
 def scale_character(character: Character, factor: float) -> Character:
@@ -73,19 +105,23 @@ def scale_character(character: Character, factor: float) -> Character:
 
 
 def to_crowd_units(character: Character, model_scale: float | str = AUTO) -> Character:
-    """`character` at the crowd's scale: `model_scale` times as large, or with "auto", scaled to
-    TARGET_HEIGHT when its standing height lies outside HUMAN_HEIGHTS (one warning says so)."""
+    """`character` at the crowd's scale, standing on the ground: `model_scale` times as large, or with
+    "auto", scaled to TARGET_HEIGHT when its standing height lies outside HUMAN_HEIGHTS; then lifted or
+    lowered onto y = 0 when its lowest rest-pose point lies more than GROUND_TOLERANCE of its height off
+    it (a character modelled around its centre). Each change is one warning."""
     if model_scale != AUTO:
-        if float(model_scale) == 1.0:
-            return character
-        scaled = scale_character(character, float(model_scale))
-        scaled.warnings.append(f"scaled by {float(model_scale):g} (model_scale)")
-        return scaled
-    height = standing_height(character)
-    if height <= 0.0 or HUMAN_HEIGHTS[0] <= height <= HUMAN_HEIGHTS[1]:
-        return character
-    factor = TARGET_HEIGHT / height
-    scaled = scale_character(character, factor)
-    scaled.warnings.append(f"stands {height:.4g} units tall, outside {HUMAN_HEIGHTS[0]:g} to {HUMAN_HEIGHTS[1]:g} m: "
-                           f"scaled by {factor:.4g} to {TARGET_HEIGHT:g} m (model_scale sets the factor)")
-    return scaled
+        if float(model_scale) != 1.0:
+            character = scale_character(character, float(model_scale))
+            character.warnings.append(f"scaled by {float(model_scale):g} (model_scale)")
+    else:
+        height = standing_height(character)
+        if height > 0.0 and not HUMAN_HEIGHTS[0] <= height <= HUMAN_HEIGHTS[1]:
+            factor = TARGET_HEIGHT / height
+            character = scale_character(character, factor)
+            character.warnings.append(f"stands {height:.4g} units tall, outside {HUMAN_HEIGHTS[0]:g} to {HUMAN_HEIGHTS[1]:g} m: "
+                                      f"scaled by {factor:.4g} to {TARGET_HEIGHT:g} m (model_scale sets the factor)")
+    low, high = rest_extent(character)
+    if np.isfinite(low) and high > low and abs(low) > GROUND_TOLERANCE * (high - low):
+        character = lift_character(character, -low)
+        character.warnings.append(f"its feet were {low:+.3g} m off the ground in the rest pose: moved {-low:+.3g} m to stand on it")
+    return character
