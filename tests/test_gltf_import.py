@@ -171,17 +171,34 @@ def test_two_skinned_meshes_share_one_skin():
     assert c.clip("Walk").loop and not c.clip("Death").loop
 
 
-def test_rigid_weapons_parented_to_joints_become_attachments():
+def test_rigid_weapons_parented_to_joints_become_skinned_pieces():
+    """Issue 18, point 1: the rigid meshes on Matt's hand are drawn with the body, as pieces weighted 1
+    to their joint; skinned at any pose they sit where joint_world @ offset puts them."""
+    from crowd.anim import reference
+    from crowd.asset import gltf as gltf_module
+
     c = load_character(shared("Quaternius_Characters_Matt_SingleWeapon.gltf"))
-    assert len(c.attachments) == 2
+    assert not c.attachments
+    rigid = [m for m in c.meshes if m.piece.startswith("rigid")]
+    assert len(rigid) == 2
     sk = c.skeleton
-    for a in c.attachments:
-        assert a.mesh.triangle_count > 0 and 0 <= a.joint < sk.joint_count
-        chain, j = [], a.joint
+    for m in rigid:
+        assert m.triangle_count > 0 and np.all(m.weights[:, 0] == 1.0) and len(set(m.joints[:, 0].tolist())) == 1
+        chain, j = [], int(m.joints[0, 0])
         while j >= 0:
             chain.append(sk.names[j])
             j = sk.parents[j]
         assert "LowerArm.L" in chain  # both weapons ride on the left hand's finger joint
+    # The same file's attachments, as the importer found them, against the pieces made of them.
+    raw = gltf_module._import(gltf_module._Reader(shared("Quaternius_Characters_Matt_SingleWeapon.gltf")))
+    assert len(raw.attachments) == 2
+    pose = reference.sample_clip(sk, c.clips[3], np.array([0.4]))
+    world = reference.global_matrices(sk, pose)[0]
+    skin = reference.skinning_matrices(sk, pose)
+    for a, m in zip(raw.attachments, rigid):
+        expected = (np.c_[a.mesh.positions, np.ones(len(a.mesh.positions))] @ (world[a.joint] @ a.offset).T)[:, :3]
+        drawn = reference.skin_points(skin, m.positions, m.joints, m.weights)[0]
+        np.testing.assert_allclose(drawn, expected, atol=1e-5)
 
 
 def test_hedgehog_animated_scale_is_kept():
