@@ -107,3 +107,38 @@ def test_shared_rigged_simple_stands_on_the_ground():
 
     low, high = rest_extent(load_character(shared("RiggedSimple.glb")))
     assert low == pytest.approx(0.0, abs=1e-6) and high == pytest.approx(TARGET_HEIGHT, rel=1e-6)
+
+
+def test_root_motion_is_taken_out_of_a_looping_walk_and_becomes_its_stride(zombie):
+    """The zombie's shamble, exported as Mixamo would (the root travels a stride per cycle, no stride
+    given): the travel comes out of the root keys as a line in time, the stride is that travel, and the
+    pose is the in-place shamble again. One-shot clips keep their motion."""
+    import dataclasses
+
+    from crowd.asset.root_motion import take_out_root_motion
+
+    shamble = zombie.clip("shamble")
+    assert shamble.loop and shamble.stride
+    root = int(np.flatnonzero(zombie.skeleton.parents < 0)[0])
+    travel = np.array([0.2, 0.0, 1.0]) / np.linalg.norm([0.2, 0.0, 1.0]) * shamble.stride
+
+    def travelling(channel):
+        if channel.path != "translation" or channel.joint != root:
+            return channel
+        u = (channel.times - shamble.start) / shamble.duration
+        return dataclasses.replace(channel, values=channel.values + u[:, None] * travel)
+
+    exported = dataclasses.replace(shamble, channels=[travelling(c) for c in shamble.channels], stride=None)
+    assert any(c.path == "translation" and c.joint == root for c in shamble.channels)
+    death = zombie.clip("death")  # one-shot, and it travels (0.55 m): kept as it is
+    character = dataclasses.replace(zombie, clips=[exported, death], warnings=[])
+    fixed = take_out_root_motion(character)
+    walk = fixed.clip("shamble")
+    assert walk.stride == pytest.approx(shamble.stride, rel=1e-9)
+    sk = zombie.skeleton
+    phases = np.linspace(0.0, 1.0, 25)
+    np.testing.assert_allclose(reference.sample_clip(sk, walk, phases).translation,
+                               reference.sample_clip(sk, shamble, phases).translation, atol=1e-9)
+    assert fixed.clip("death") is death
+    assert [w for w in fixed.warnings if "root travels" in w and "'shamble'" in w]
+    assert take_out_root_motion(zombie) is zombie  # the zombie's clips are in place already

@@ -67,6 +67,7 @@ import numpy as np
 from .. import transforms as tf
 from .pose import sample_clip
 from .pieces import attachments_as_pieces
+from .root_motion import take_out_root_motion
 from .units import AUTO, to_crowd_units
 from .model import Attachment, Channel, Character, Clip, ModelError, Prop, RigidMesh, Skeleton, SkinnedMesh, vertex_normals
 
@@ -592,7 +593,7 @@ def load_character(path: str | Path | None = None, clips: list[str] | None = Non
         # A safety net for what the checks above missed: one line for the person, and words the
         # hostile-file tests look for, so a miss still fails CI.
         raise GltfImportError(f"{path.name}: {_UNEXPECTED} ({type(exc).__name__}: {_one_line(exc)})") from None
-    return to_crowd_units(attachments_as_pieces(_select_clips(character, clips, path.name)), scale)
+    return to_crowd_units(take_out_root_motion(attachments_as_pieces(_select_clips(character, clips, path.name))), scale)
 
 
 def _select_clips(character: Character, clips, where: str) -> Character:
