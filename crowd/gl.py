@@ -107,6 +107,14 @@ def gpu_bytes(objects) -> int:
     for obj in objects:
         if isinstance(obj, moderngl.Texture):
             total += obj.width * obj.height * obj.components * _DTYPE_BYTES[obj.dtype]
+        elif isinstance(obj, moderngl.TextureArray):
+            w, h, layers = obj.size
+            texels = w * h
+            if isinstance(obj.extra, dict) and obj.extra.get("mipmapped"):  # the whole chain down to 1x1
+                while w > 1 or h > 1:
+                    w, h = max(w // 2, 1), max(h // 2, 1)
+                    texels += w * h
+            total += texels * layers * obj.components * _DTYPE_BYTES[obj.dtype]
         elif isinstance(obj, moderngl.Buffer):
             total += obj.size
     return total

@@ -1,12 +1,26 @@
 #version 330 core
 // Shared by the crowd, the weapons and the Panda3D peer of crowd-bench peers (panda_actor.vert.glsl).
+// TEXTURED: the base colour times a layer of the crowd's texture array (crowd/draw/materials.py).
 #include "lighting.glsl"
 in vec3 v_world;
 in vec3 v_normal;
 in vec4 v_color;
+#ifdef TEXTURED
+in vec2 v_uv;
+uniform sampler2DArray u_albedo;  // linear RGBA16F; wrap and filter from the piece's sampler object
+uniform float u_layer;
+uniform vec2 u_uv_mirror;         // 1 where the wrap is MIRRORED_REPEAT (the sampler itself repeats)
+#endif
 out vec4 o_color;
 void main() {
     vec3 n = normalize(v_normal);
     if (!gl_FrontFacing) n = -n;
-    o_color = vec4(shade(v_color.rgb, v_world, n), 1.0);
+    vec3 albedo = v_color.rgb;
+#ifdef TEXTURED
+    // Fold mirrored axes by hand; the unfolded coordinate's derivatives keep the mip level smooth
+    // across the fold.
+    vec2 folded = mix(v_uv, 1.0 - abs(mod(v_uv, 2.0) - 1.0), u_uv_mirror);
+    albedo *= textureGrad(u_albedo, vec3(folded, u_layer), dFdx(v_uv), dFdy(v_uv)).rgb;
+#endif
+    o_color = vec4(shade(albedo, v_world, n), 1.0);
 }

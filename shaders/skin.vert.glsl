@@ -11,11 +11,17 @@
 // and CrowdRenderer.prepare.
 //
 // Defines: DEPTH_ONLY (shadow pass: position only), UNSKINNED (the benchmark's ceiling: the same
-// draw and buffers without bone fetches).
+// draw and buffers without bone fetches), TEXTURED (a third attribute, the base-colour texture
+// coordinate: only pieces with a texture carry it, so the untextured crowd reads two).
 
 in vec3 in_position;   // bind space
 in uvec4 in_packed;    // x: normal, snorm10 x3 | y: joints, 4 x u8 (by descending weight)
                        // z: weights 1-3 as unorm10 of 2w (weight 0 = 1 - the rest) | w: colour, RGBA8
+
+#ifdef TEXTURED
+in vec2 in_uv;
+out vec2 v_uv;
+#endif
 
 in vec4 i_position_scale;  // agent origin relative to the camera (float64 on the CPU, then float32), uniform scale
 in uvec3 i_packed;         // x: palette texel of joint 0 (x | y << 16) | y: tint, RGBA8 | z: cos, sin of the heading, snorm16 x2
@@ -76,5 +82,8 @@ void main() {
     v_world = world;
     v_normal = vec3(c * normal.x + s * normal.z, normal.y, -s * normal.x + c * normal.z);
     v_color = unpack_rgba8(in_packed.w) * unpack_rgba8(i_packed.y);
+#endif
+#ifdef TEXTURED
+    v_uv = in_uv;
 #endif
 }

@@ -181,3 +181,127 @@ def expected_skinning(key: int, armature_scale=1.0, armature_rotation=False, int
     for k in range(4):
         out += w[:, k, None] * np.einsum("vij,vj->vi", skin[JOINTS[:, k]], p)[:, :3]
     return out
+
+
+# -- a second skin in the same file (issue 18, point 1: several skins)
+
+OFFSET = tf.trs_to_mat4(np.array([0.2, -0.5, 0.3]), tf.quat_from_axis_angle([0.0, 1.0, 0.0], 0.7), np.ones(3))
+EXTRA_POSITIONS = np.array([[-0.15, 1.8, 0.05], [0.15, 1.8, 0.05], [-0.15, 2.1, 0.05], [0.15, 2.1, 0.05]])
+EXTRA_WEIGHTS = np.array([[0.6, 0.4, 0, 0], [1, 0, 0, 0], [0.8, 0.2, 0, 0], [0.5, 0.5, 0, 0]])
+EXTRA_JOINTS = np.array([[0, 1, 0, 0], [0, 0, 0, 0], [1, 2, 0, 0], [2, 0, 0, 0]])
+EXTRA_INDICES = np.array([0, 1, 2, 2, 1, 3], dtype=np.uint16)
+
+
+def bind_worlds(armature_scale=1.0, armature_rotation=False) -> np.ndarray:
+    """World transforms of root, mid and tip at bind time (the rest pose), with plain matrices."""
+    arm = armature_matrix(armature_scale, armature_rotation)
+    out = [arm @ tf.trs_to_mat4(JOINT_T[0], np.array([0, 0, 0, 1.0]), np.ones(3))]
+    for k in (1, 2):
+        out.append(out[-1] @ tf.trs_to_mat4(JOINT_T[k], np.array([0, 0, 0, 1.0]), np.ones(3)))
+    return np.array(out)
+
+
+def joint_worlds(key: int, armature_scale=1.0, armature_rotation=False) -> np.ndarray:
+    """World transforms of root, mid and tip at clip key `key`, by the glTF spec, with plain matrices."""
+    arm = armature_matrix(armature_scale, armature_rotation)
+    rot = tf.quat_from_axis_angle([0.0, 0.0, 1.0], MID_ANGLES[key])
+    root = arm @ tf.trs_to_mat4(ROOT_MOVES[key], np.array([0, 0, 0, 1.0]), np.ones(3))
+    mid = root @ tf.trs_to_mat4(JOINT_T[1], rot, np.ones(3))
+    tip = mid @ tf.trs_to_mat4(JOINT_T[2], np.array([0, 0, 0, 1.0]), np.ones(3))
+    return np.array([root, mid, tip])
+
+
+def add_skin(path: Path, mode: str, name: str | None = None, armature_scale=1.0, armature_rotation=False) -> dict:
+    """Post-edit a make_gltf file: add a skin, a mesh drawn with it and its node(s); the binary data goes
+    in a buffer of its own (a base64 data URI). Call it again for a third skin. Modes:
+    - "visor": a skin over [tip, mid] with the main skin's inverse binds (merged, no duplicates);
+    - "offset": a skin over [mid, tip, root] whose inverse binds are the main ones times OFFSET, its mesh
+      written in that bind space (p' = OFFSET^-1 p), so it skins exactly as EXTRA_POSITIONS in the main
+      bind space would (merged, every joint duplicated);
+    - "separate": a second chain root2 → mid2 → tip2 under its own armature node 3 m along x, with the
+      strip on it (another character: left out).
+    Returns what the file holds, for the test's own computation: skin (its index), joints (the chain
+    index, 0 root to 2 tip, of each skin joint; None for "separate"), nodes (the joint nodes),
+    inverse_bind (row-major float64 of the written float32), positions (float64 of the written float32),
+    vertex_joints, weights (normalised), mesh (its name)."""
+    path = Path(path)
+    doc = json.loads(path.read_text())
+    blob = bytearray()
+    buffer = len(doc["buffers"])
+    nodes, accessors, views = doc["nodes"], doc["accessors"], doc["bufferViews"]
+    skin = len(doc["skins"])
+
+    def add(arr: np.ndarray, ctype: int, kind: str) -> int:
+        while len(blob) % 4:
+            blob.append(0)
+        views.append({"buffer": buffer, "byteOffset": len(blob), "byteLength": arr.nbytes})
+        blob.extend(arr.tobytes())
+        accessors.append({"bufferView": len(views) - 1, "componentType": ctype, "count": int(arr.shape[0]), "type": kind})
+        return len(accessors) - 1
+
+    main_ibm = np.linalg.inv(bind_worlds(armature_scale, armature_rotation))
+    if mode == "visor":
+        chain, pos = [2, 1], EXTRA_POSITIONS
+        ibm = main_ibm[chain]
+        joint_nodes = [1 + c for c in chain]
+    elif mode == "offset":
+        chain = [1, 2, 0]
+        ibm = main_ibm[chain] @ OFFSET
+        p = np.concatenate([EXTRA_POSITIONS, np.ones((4, 1))], 1)
+        pos = (np.linalg.inv(OFFSET) @ p.T).T[:, :3]
+        joint_nodes = [1 + c for c in chain]
+    elif mode == "separate":
+        first = len(nodes)
+        nodes.append({"name": "Armature2", "translation": [3.0, 0.0, 0.0], "children": [first + 1]})
+        nodes.append({"name": "root2", "children": [first + 2]})
+        nodes.append({"name": "mid2", "translation": JOINT_T[1].tolist(), "children": [first + 3]})
+        nodes.append({"name": "tip2", "translation": JOINT_T[2].tolist()})
+        doc["scenes"][0]["nodes"].append(first)
+        shift = tf.trs_to_mat4(np.array([3.0, 0.0, 0.0]), np.array([0, 0, 0, 1.0]), np.ones(3))
+        ibm = np.linalg.inv(shift @ bind_worlds())
+        chain, joint_nodes = None, [first + 1, first + 2, first + 3]
+        pos = POSITIONS.astype(np.float64) + [3.0, 0.0, 0.0]
+    else:
+        raise ValueError(f"unknown mode {mode!r}")
+    if mode == "separate":
+        vjoints, weights, indices = JOINTS, WEIGHTS, np.array([0, 1, 2, 2, 1, 3, 2, 3, 4, 4, 3, 5], dtype=np.uint16)
+    else:
+        vjoints, weights, indices = EXTRA_JOINTS.copy(), EXTRA_WEIGHTS, EXTRA_INDICES
+        vjoints[vjoints >= len(joint_nodes)] = 0
+    pos32 = pos.astype(np.float32)
+    ibm32 = np.transpose(ibm, (0, 2, 1)).astype(np.float32).reshape(-1, 16)
+    pos_acc = add(pos32, 5126, "VEC3")
+    accessors[-1]["min"], accessors[-1]["max"] = pos32.min(0).tolist(), pos32.max(0).tolist()
+    nrm_acc = add(np.tile(np.array([[0, 0, 1]], dtype=np.float32), (len(pos), 1)), 5126, "VEC3")
+    j_acc = add(vjoints.astype(np.uint8), 5121, "VEC4")
+    w_acc = add(weights.astype(np.float32), 5126, "VEC4")
+    i_acc = add(indices, 5123, "SCALAR")
+    ibm_acc = add(ibm32, 5126, "MAT4")
+    mesh_name = f"{mode}{skin}"
+    doc["meshes"].append({"name": mesh_name, "primitives": [{"attributes": {"POSITION": pos_acc, "NORMAL": nrm_acc, "JOINTS_0": j_acc,
+                                                                         "WEIGHTS_0": w_acc}, "indices": i_acc}]})
+    skin_obj = {"joints": joint_nodes, "inverseBindMatrices": ibm_acc}
+    if name is not None:
+        skin_obj["name"] = name
+    doc["skins"].append(skin_obj)
+    nodes.append({"name": mesh_name, "mesh": len(doc["meshes"]) - 1, "skin": skin})
+    doc["scenes"][0]["nodes"].append(len(nodes) - 1)
+    doc["buffers"].append({"byteLength": len(blob),
+                           "uri": "data:application/octet-stream;base64," + base64.b64encode(bytes(blob)).decode()})
+    path.write_text(json.dumps(doc))
+    return {"skin": skin, "joints": chain, "nodes": joint_nodes, "mesh": mesh_name,
+            "inverse_bind": ibm32.astype(np.float64).reshape(-1, 4, 4).transpose(0, 2, 1),
+            "positions": pos32.astype(np.float64), "vertex_joints": vjoints,
+            "weights": weights / weights.sum(1, keepdims=True)}
+
+
+def expected_extra_skinning(extra: dict, key: int, armature_scale=1.0, armature_rotation=False) -> np.ndarray:
+    """World positions of an add_skin mesh ("visor" or "offset") at clip key `key`, by the glTF spec:
+    Σ w · world(joint) · inverse_bind(skin, joint) · p, with plain matrices."""
+    worlds = joint_worlds(key, armature_scale, armature_rotation)[extra["joints"]]
+    skin = worlds @ extra["inverse_bind"]
+    p = np.concatenate([extra["positions"], np.ones((len(extra["positions"]), 1))], 1)
+    out = np.zeros((len(p), 3))
+    for k in range(4):
+        out += extra["weights"][:, k, None] * np.einsum("vij,vj->vi", skin[extra["vertex_joints"][:, k]], p)[:, :3]
+    return out

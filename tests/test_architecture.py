@@ -171,7 +171,7 @@ def test_layer_overrides_are_an_input_of_the_frame(gl_context):
 # -- GL objects are released on every path
 
 
-_GL_KINDS = ("Buffer", "Texture", "Program", "Shader", "VertexArray", "Framebuffer", "Renderbuffer")
+_GL_KINDS = ("Buffer", "Texture", "Program", "Shader", "VertexArray", "Framebuffer", "Renderbuffer", "Sampler")
 _DELETE_STATUS = 0x8B80
 
 

@@ -114,7 +114,8 @@ SOURCES = [Source(p) for p in [ASSET_PATH, *shared_files()]]
 
 # -- JSON-level mutations
 
-COLLECTIONS = ("accessors", "bufferViews", "buffers", "nodes", "skins", "meshes", "animations", "materials")
+COLLECTIONS = ("accessors", "bufferViews", "buffers", "nodes", "skins", "meshes", "animations", "materials",
+               "textures", "images", "samplers")
 WRONG = ["x", "", [], {}, None, True, False, [1, 2], {"a": 1}, [None], "../outside.bin", "/etc/hostname",
          "data:application/octet-stream;base64,AAAA"]
 NUMBERS = [-1, -2, -(2**31), 0, 1, 2, 3, 4, 5, 7, 252, 253, 2**16, 2**31, 2**32 + 1, 2**53, 2**63, 10**30,

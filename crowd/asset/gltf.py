@@ -2,8 +2,17 @@
 
 Contract: ``load_character(path, clips=None)`` returns a validated ``Character`` whose skeleton is
 sorted parents-first, or raises ``GltfImportError`` with one line that names the file and the culprit.
-Whatever is read but cannot be used (morph targets, textures, extra skins, static meshes) is listed in
-``character.warnings``; nothing is dropped silently.
+Whatever is read but cannot be used (morph targets, textures, other characters' skins, static meshes) is
+listed in ``character.warnings``; nothing is dropped silently.
+
+Several skins. The main skin is the one most mesh nodes draw with (ties: the lowest index). Another skin
+whose joints all hang, in the joint forest of the joints of every skin drawing a mesh, in a tree that
+holds a joint of the main skin (a visor over the head joints, a second hand skin over the arm) is merged
+into one skeleton on the union of the joints (the main skin's first, in its order; then the others' new
+ones), with one warning. A joint takes the inverse bind of the first skin that lists it; a skin that
+lists it with another inverse bind draws through a duplicate joint, "name@skinK": a child of that joint
+at identity rest, without channels, with that skin's inverse bind, so world @ inverse bind is exactly
+what glTF means. A skin on another joint tree is another character: left out, one warning.
 
 Space: skinned vertices stay in the mesh's bind space (glTF ignores a skinned mesh node's transform).
 Non-joint nodes above and between joints are folded into the joints' local transforms, and a constant
@@ -65,6 +74,7 @@ from urllib.parse import unquote
 import numpy as np
 
 from .. import transforms as tf
+from .gltf_materials import Materials
 from .pose import sample_clip
 from .pieces import attachments_as_pieces
 from .root_motion import take_out_root_motion
@@ -76,7 +86,8 @@ _COMPONENT = {5120: np.dtype("<i1"), 5121: np.dtype("<u1"), 5122: np.dtype("<i2"
 _NCOMP = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 _FLOAT, _UNSIGNED = (5126,), (5121, 5123, 5125)
 _SINGULAR = {"accessors": "accessor", "bufferViews": "bufferView", "buffers": "buffer", "nodes": "node",
-             "meshes": "mesh", "skins": "skin", "animations": "animation", "materials": "material"}
+             "meshes": "mesh", "skins": "skin", "animations": "animation", "materials": "material",
+             "textures": "texture", "images": "image", "samplers": "sampler"}
 LOOP_ANGLE_TOLERANCE = np.radians(2.0)  # first and last pose this close → the clip loops
 LOOP_DISTANCE_TOLERANCE = 0.01
 
@@ -349,6 +360,8 @@ class _Reader:
         if folder != target and folder not in target.parents:
             self.fail(f"{where} uri {_show(uri)} points outside the file's folder")
         try:
+            if not target.exists():
+                self.fail(f"{where} file {_show(uri)} is missing from the model's folder")
             if not target.is_file():  # a FIFO or a device would block or never end
                 self.fail(f"{where} file {_show(uri)} is not a regular file in the model's folder")
             return self._read_file(target, f"{where} file {_show(uri)}")
@@ -697,22 +710,26 @@ def _import(r: _Reader) -> Character:
     if not skin_use:
         r.fail("no node draws a mesh with a skin")
     skin_index = max(skin_use, key=lambda k: (skin_use[k], -k))
-    if len(skin_use) > 1:
-        warn.append(f"file has {len(skin_use)} skins; kept skin {skin_index}, meshes on other skins left out")
-    skin = r.item("skins", skin_index)
-    src_joints = r.list(skin, "joints", f"skin {skin_index}")
-    if not src_joints:
-        r.fail(f"skin {skin_index} has no joints")
+    # Every skin that draws a mesh is checked; those that hang in the main skin's joint trees are merged.
+    skin_joints = {skin_index: _skin_joints(r, skin_index)}
+    for k in sorted(skin_use):
+        if k != skin_index:
+            skin_joints[k] = _skin_joints(r, k)
+    merged = _mergeable_skins(r, tree, skin_index, skin_joints, warn)
+    # The union: the main skin's joints in its order, then the other skins' new joints in skin order.
+    src_joints = list(skin_joints[skin_index])
+    listed = set(src_joints)
+    for k in merged[1:]:
+        for j in skin_joints[k]:
+            if j not in listed:
+                listed.add(j)
+                src_joints.append(j)
     if len(src_joints) > MAX_JOINTS:
-        r.fail(f"skin {skin_index} has {len(src_joints):,} joints, more than the {MAX_JOINTS:,} a vertex can address")
-    for j in src_joints:
-        r.item("nodes", j, "joint node")
-    if len(set(src_joints)) != len(src_joints):
-        r.fail(f"skin {skin_index} lists a joint twice")
-    tree.joints = set(src_joints)
+        r.fail(f"skins {', '.join(map(str, merged))} have {len(src_joints):,} joints together, more than the {MAX_JOINTS:,} a vertex can address")
+    tree.joints = listed
     joint_parent = tree.joint_above
 
-    # Parents-first order, stable in the skin's order.
+    # Parents-first order, stable in the union's order.
     position = {j: i for i, j in enumerate(src_joints)}
     depth: dict[int, int] = {}
     for j in src_joints:
@@ -726,7 +743,6 @@ def _import(r: _Reader) -> Character:
             depth[k] = d
     order = sorted(src_joints, key=lambda j: (depth[j], position[j]))
     new_index = {node: i for i, node in enumerate(order)}
-    skin_to_new = np.array([new_index[j] for j in src_joints], dtype=np.int64)
     jc = len(order)
     names, seen = [], set()
     for i, node in enumerate(order):
@@ -736,7 +752,7 @@ def _import(r: _Reader) -> Character:
             name = f"{name}.{i}"
         seen.add(name)
         names.append(name)
-    parents = np.array([new_index[joint_parent(n)] if joint_parent(n) is not None else -1 for n in order], dtype=np.int32)
+    parent_list = [new_index[joint_parent(n)] if joint_parent(n) is not None else -1 for n in order]
 
     rest_t = np.zeros((jc, 3))
     rest_q = np.zeros((jc, 4))
@@ -757,6 +773,52 @@ def _import(r: _Reader) -> Character:
             folds.append(fold)
         rest_t[i], rest_q[i], rest_s[i] = t, q, s
 
+    # Inverse binds: each joint takes the first merged skin's (the main skin's first) that lists it. A
+    # skin that lists a joint with another inverse bind draws through a duplicate joint: a child of that
+    # joint at identity rest, so its world transform is the joint's and world @ ibm is what glTF means.
+    ibm_file = np.empty((jc, 4, 4))
+    assigned = np.zeros(jc, dtype=bool)
+    skin_maps: dict[int, np.ndarray] = {}
+    dup_of: list[int] = []
+    dup_ibm: list[np.ndarray] = []
+    for k in merged:
+        ibm_k = _skin_inverse_binds(r, k, len(skin_joints[k]))
+        idx = np.array([new_index[j] for j in skin_joints[k]], dtype=np.int64)
+        fresh = ~assigned[idx]
+        ibm_file[idx[fresh]] = ibm_k[fresh]
+        assigned[idx[fresh]] = True
+        held = ibm_file[idx]
+        size = np.maximum(1.0, np.maximum(np.abs(held).max(axis=(1, 2)), np.abs(ibm_k).max(axis=(1, 2))))
+        differ = np.flatnonzero(np.abs(held - ibm_k).max(axis=(1, 2)) > 1e-6 * size)
+        if jc + len(dup_of) + len(differ) > MAX_JOINTS:
+            r.fail(f"skins {', '.join(map(str, merged))} need more than the {MAX_JOINTS:,} joints a vertex can address "
+                   "(duplicates for differing inverse binds included)")
+        mapping = idx.copy()
+        for p in differ:
+            o = int(idx[p])
+            mapping[p] = jc + len(dup_of)
+            name = f"{names[o]}@skin{k}"
+            while name in seen:
+                name = f"{name}.{mapping[p]}"
+            seen.add(name)
+            names.append(name)
+            dup_of.append(o)
+            dup_ibm.append(ibm_k[p])
+        skin_maps[k] = mapping
+    if len(merged) > 1:
+        warn.append(f"merged skins {', '.join(map(str, merged))} into one skeleton ({jc + len(dup_of)} joints; "
+                    f"{len(dup_of)} duplicated for differing inverse binds)")
+    if dup_of:
+        n = len(dup_of)
+        parent_list += dup_of
+        rest_t = np.concatenate([rest_t, np.zeros((n, 3))])
+        rest_q = np.concatenate([rest_q, np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))])
+        rest_s = np.concatenate([rest_s, np.ones((n, 3))])
+        folds += [None] * n
+        ibm_file = np.concatenate([ibm_file, np.array(dup_ibm)])
+        jc += n
+    parents = np.array(parent_list, dtype=np.int32)
+
     # Factor a constant uniform scale above the root joint(s) out of the skeleton: child translations
     # are multiplied by it and the inverse binds absorb it, so joint transforms stay rigid.
     roots = [i for i in range(jc) if parents[i] < 0]
@@ -769,27 +831,18 @@ def _import(r: _Reader) -> Character:
             if parents[i] >= 0:
                 rest_t[i] *= factor
 
-    ibm_index = r.index(skin, "inverseBindMatrices", "accessors", f"skin {skin_index}")
-    if ibm_index is not None:
-        ibm_raw = r.accessor(ibm_index, "inverseBindMatrices", ("MAT4",), _FLOAT)
-        if ibm_raw.shape[0] < len(src_joints):
-            r.fail(f"inverseBindMatrices has {ibm_raw.shape[0]} matrices for {len(src_joints)} joints")
-        ibm_src = ibm_raw[: len(src_joints)].astype(np.float64).reshape(-1, 4, 4).transpose(0, 2, 1)
-        _check_matrices(r, ibm_src, f"accessor {ibm_index} (inverseBindMatrices)")
-    else:
-        ibm_src = np.tile(np.eye(4), (len(src_joints), 1, 1))
-    ibm = np.empty((jc, 4, 4))
-    ibm[skin_to_new] = ibm_src
-    ibm = np.diag([factor, factor, factor, 1.0]) @ ibm
+    ibm = np.diag([factor, factor, factor, 1.0]) @ ibm_file
     if not np.all(np.isfinite(ibm)):
         r.fail("inverseBindMatrices hold NaN or Inf")
 
     skeleton = Skeleton(tuple(names), parents, rest_t, tf.quat_normalize(rest_q), rest_s, ibm).validate()
 
-    meshes = _read_meshes(r, tree, skin_index, skin_to_new, warn)
+    materials = Materials(r)
+    meshes = _read_meshes(r, tree, skin_maps, materials, warn)
     if not meshes:
         r.fail("the skinned meshes have no triangles")
-    attachments, props = _read_rigid(r, tree, new_index, factor, warn)
+    attachments, props = _read_rigid(r, tree, new_index, factor, materials, warn)
+    warn.extend(materials.warnings())
     sockets = {}
     for node, i in new_index.items():
         name = crowd_extras(nodes[node]).get("socket")
@@ -800,8 +853,103 @@ def _import(r: _Reader) -> Character:
         r.fail("no animation animates the skin's joints: the crowd needs at least one clip")
     _check_scale_chains(r, skeleton, clips)
     name = Path(r.path).stem
-    character = Character(name, skeleton, meshes, clips, attachments, props, sockets, warn)
+    character = Character(name, skeleton, meshes, clips, attachments, props, sockets, warn, materials.textures)
     return character.validate()
+
+
+def _skin_label(r: _Reader, k: int, joints: int) -> str:
+    """'skin 1 ('Bob', 20 joints)' for messages."""
+    name = r.item("skins", k).get("name")
+    return f"skin {k} ({name!r}, {joints} joints)" if isinstance(name, str) and name else f"skin {k} ({joints} joints)"
+
+
+def _skin_joints(r: _Reader, k: int) -> list[int]:
+    """Skin k's joint nodes, checked: some, at most MAX_JOINTS, each a node, none twice."""
+    skin = r.item("skins", k)
+    joints = r.list(skin, "joints", f"skin {k}")
+    if not joints:
+        r.fail(f"skin {k} has no joints")
+    if len(joints) > MAX_JOINTS:
+        r.fail(f"skin {k} has {len(joints):,} joints, more than the {MAX_JOINTS:,} a vertex can address")
+    for j in joints:
+        r.item("nodes", j, "joint node")
+    if len(set(joints)) != len(joints):
+        r.fail(f"skin {k} lists a joint twice")
+    return joints
+
+
+def _joint_tops(tree: _Tree, joints: set[int]) -> dict[int, int]:
+    """For each joint: the top joint of its tree in the forest of `joints` (parent = the nearest joint
+    above). Linear in the nodes walked; tree.joints and its memo are left alone."""
+    above: dict[int, int | None] = {}
+
+    def joint_above(node: int) -> int | None:
+        chain, k = [], node
+        while k not in above:
+            chain.append(k)
+            p = tree.parent.get(k)
+            if p is None or p in joints:
+                found = p
+                break
+            k = p
+        else:
+            found = above[k]
+        for k in chain:
+            above[k] = found
+        return found
+
+    top: dict[int, int] = {}
+    for j in joints:
+        chain, k = [], j
+        while k not in top:
+            chain.append(k)
+            a = joint_above(k)
+            if a is None:
+                found = k
+                break
+            k = a
+        else:
+            found = top[k]
+        for k in chain:
+            top[k] = found
+    return top
+
+
+def _mergeable_skins(r: _Reader, tree: _Tree, main: int, skin_joints: dict[int, list[int]], warn: list[str]) -> list[int]:
+    """The skins that form one skeleton with the main skin, main first: those all of whose joints lie,
+    in the joint forest of the joints of every skin drawing a mesh, in a tree that holds a joint of the
+    main skin. The others are other characters (or do not fit one skeleton): left out, one warning each."""
+    others = sorted(k for k in skin_joints if k != main)
+    if not others:
+        return [main]
+    top = _joint_tops(tree, set().union(*skin_joints.values()))
+    main_tops = {top[j] for j in skin_joints[main]}
+    merged = [main]
+    for k in others:
+        joints = skin_joints[k]
+        outside = sum(top[j] not in main_tops for j in joints)
+        if not outside:
+            merged.append(k)
+        elif outside == len(joints):
+            warn.append(f"{_skin_label(r, k, len(joints))} shares no joint tree with skin {main}: it is another character; left out")
+        else:
+            warn.append(f"{_skin_label(r, k, len(joints))} has {outside} joints outside skin {main}'s joint trees: "
+                        "it does not fit one skeleton with it; left out")
+    return merged
+
+
+def _skin_inverse_binds(r: _Reader, k: int, joint_count: int) -> np.ndarray:
+    """Skin k's inverse bind matrices as float64 (joint_count, 4, 4), row-major, checked (identity without them)."""
+    skin = r.item("skins", k)
+    ibm_index = r.index(skin, "inverseBindMatrices", "accessors", f"skin {k}")
+    if ibm_index is None:
+        return np.tile(np.eye(4), (joint_count, 1, 1))
+    raw = r.accessor(ibm_index, "inverseBindMatrices", ("MAT4",), _FLOAT)
+    if raw.shape[0] < joint_count:
+        r.fail(f"skin {k}: inverseBindMatrices has {raw.shape[0]} matrices for {joint_count} joints")
+    ibm = raw[:joint_count].astype(np.float64).reshape(-1, 4, 4).transpose(0, 2, 1)
+    _check_matrices(r, ibm, f"accessor {ibm_index} (inverseBindMatrices)")
+    return ibm
 
 
 def _check_matrices(r: _Reader, m: np.ndarray, what: str) -> None:
@@ -899,17 +1047,13 @@ def _colors(r: _Reader, prim: dict, v: int, label: str) -> np.ndarray | None:
     return np.concatenate([c, np.ones((v, 1))], axis=1) if c.shape[1] == 3 else c
 
 
-def _base_color(r: _Reader, prim: dict, label: str) -> tuple[tuple[float, ...], bool]:
-    """(base colour factor, whether a base colour texture was left out)."""
-    material = r.index(prim, "material", "materials", label)
-    if material is None:
-        return (1.0, 1.0, 1.0, 1.0), False
-    where = f"material {material}"
-    pbr = r.obj(r.item("materials", material), "pbrMetallicRoughness", where)
-    if pbr is None:
-        return (1.0, 1.0, 1.0, 1.0), False
-    base = tuple(float(x) for x in r.numbers(pbr, "baseColorFactor", 4, f"{where} pbrMetallicRoughness", [1.0, 1.0, 1.0, 1.0]))
-    return base, pbr.get("baseColorTexture") is not None
+def _uvs(r: _Reader, prim: dict, surface, materials: Materials, label: str, v: int) -> np.ndarray | None:
+    """The texture coordinates of a textured surface (None: untextured, or it has none)."""
+    if surface.texture < 0:
+        return None
+    key = f"TEXCOORD_{surface.texcoord}"
+    raw = _vertex_data(r, prim, key, label, v, ("VEC2",))
+    return materials.uvs(surface, raw, label, f"accessor {_attr(r, prim, key, label)} ({label} {key})")
 
 
 def _mode(r: _Reader, prim: dict, label: str) -> int:
@@ -926,15 +1070,20 @@ def _mesh_extras(r: _Reader, extras: dict, label: str) -> tuple[str, int, str]:
     return str(extras.get("piece", label)), lod, str(extras.get("group", ""))
 
 
-def _read_meshes(r: _Reader, tree: _Tree, skin_index: int, skin_to_new: np.ndarray, warn: list[str]) -> list[SkinnedMesh]:
+def _read_meshes(r: _Reader, tree: _Tree, skin_maps: dict[int, np.ndarray], materials: Materials, warn: list[str]) -> list[SkinnedMesh]:
+    """The meshes drawn with the merged skins; `skin_maps[k]` maps skin k's joint indices to the skeleton's."""
     meshes: list[SkinnedMesh] = []
-    seen_mesh = set()
-    textured = False
+    seen_mesh: set[tuple[int, int]] = set()
+    read_mesh: set[int] = set()
     for node in tree.nodes:
-        mesh_index = node.get("mesh")
-        if mesh_index is None or node.get("skin") != skin_index or mesh_index in seen_mesh:
+        mesh_index, skin_index = node.get("mesh"), node.get("skin")
+        if mesh_index is None or skin_index not in skin_maps or (mesh_index, skin_index) in seen_mesh:
             continue
-        seen_mesh.add(mesh_index)
+        seen_mesh.add((mesh_index, skin_index))
+        skin_to_new = skin_maps[skin_index]
+        # A mesh drawn with two merged skins is two meshes: the second is named after its skin.
+        suffix = f"@skin{skin_index}" if mesh_index in read_mesh else ""
+        read_mesh.add(mesh_index)
         mesh = r.item("meshes", mesh_index)
         extras = crowd_extras(mesh)
         mesh_name = mesh.get("name") if isinstance(mesh.get("name"), str) else None
@@ -943,6 +1092,7 @@ def _read_meshes(r: _Reader, tree: _Tree, skin_index: int, skin_to_new: np.ndarr
             label = mesh_name or f"mesh{mesh_index}"
             if len(primitives) > 1:
                 label = f"{label}#{pi}"
+            label += suffix
             if not isinstance(prim, dict):
                 r.fail(f"{label} is not a JSON object")
             r.count_primitive(label)
@@ -1001,25 +1151,26 @@ def _read_meshes(r: _Reader, tree: _Tree, skin_index: int, skin_to_new: np.ndarr
                 continue
             nrm = _normals(r, prim, pos, idx, label, warn)
             colors = _colors(r, prim, v, label)
-            base, has_texture = _base_color(r, prim, label)
-            textured |= has_texture
+            surface = materials.surface(prim, label)
+            uvs = _uvs(r, prim, surface, materials, label, v)
             piece, lod, group = _mesh_extras(r, extras, label)
             meshes.append(SkinnedMesh(
                 name=label, piece=piece, lod=lod,
                 positions=pos.astype(np.float32), normals=tf.quat_normalize(np.concatenate([nrm, np.zeros((v, 1))], 1))[:, :3].astype(np.float32),
                 joints=joints.astype(np.uint16), weights=weights.astype(np.float32), indices=idx.astype(np.uint32),
-                colors=None if colors is None else colors.astype(np.float32), base_color=base, group=group,
+                colors=None if colors is None else colors.astype(np.float32), base_color=surface.base_color, group=group,
+                texture=surface.texture if uvs is not None else -1, uvs=uvs,
             ))
-    if textured:
-        warn.append("textures left out: base colour factors and vertex colours are used")
     return meshes
 
 
-def _rigid_mesh(r: _Reader, mesh_index: int, warn: list[str]) -> RigidMesh | None:
+def _rigid_parts(r: _Reader, mesh_index: int, materials: Materials, warn: list[str]) -> list[RigidMesh]:
+    """A rigid mesh as one RigidMesh per base-colour texture its primitives use (untextured ones
+    together): each part is then one draw. Each primitive's base colour factor is multiplied into its
+    vertex colours, so primitives of different colours keep them in one part."""
     mesh = r.item("meshes", mesh_index)
     mesh_name = mesh.get("name") if isinstance(mesh.get("name"), str) else None
-    parts_p, parts_n, parts_i, parts_c, base = [], [], [], [], (1.0, 1.0, 1.0, 1.0)
-    count = 0
+    parts: dict[int, list] = {}  # texture -> [(positions, normals, indices, colours, uvs)]
     for prim in r.list(mesh, "primitives", f"mesh {mesh_index}"):
         label = f"mesh {mesh_name or mesh_index!r}"
         if not isinstance(prim, dict):
@@ -1029,31 +1180,50 @@ def _rigid_mesh(r: _Reader, mesh_index: int, warn: list[str]) -> RigidMesh | Non
             continue
         pos = _positions(r, prim, label)
         idx = _indices(r, prim, pos.shape[0], label, warn)
+        if not idx.size:
+            continue
         nrm = _normals(r, prim, pos, idx, label, warn)
-        base, _ = _base_color(r, prim, label)
-        parts_c.append(_colors(r, prim, pos.shape[0], label))
-        parts_p.append(pos)
-        parts_n.append(nrm)
-        parts_i.append(idx + count)
-        count += pos.shape[0]
-    if not parts_p or not sum(len(i) for i in parts_i):
+        surface = materials.surface(prim, label)
+        uvs = _uvs(r, prim, surface, materials, label, pos.shape[0])
+        colors = _colors(r, prim, pos.shape[0], label)
+        colors = (np.ones((pos.shape[0], 4)) if colors is None else colors) * np.asarray(surface.base_color)
+        parts.setdefault(surface.texture if uvs is not None else -1, []).append((pos, nrm, idx, colors, uvs))
+    if not parts:
         warn.append(f"mesh {mesh_name!r} has no triangles; left out")
+        return []
+    out = []
+    for texture, prims in sorted(parts.items()):
+        starts = np.cumsum([0] + [len(p[0]) for p in prims])
+        name = mesh_name or f"mesh{mesh_index}"
+        out.append(RigidMesh(
+            name if len(parts) == 1 else f"{name}#{len(out)}",
+            np.concatenate([p[0] for p in prims]).astype(np.float32), np.concatenate([p[1] for p in prims]).astype(np.float32),
+            np.concatenate([p[2] + k for p, k in zip(prims, starts)]).astype(np.uint32),
+            np.concatenate([p[3] for p in prims]).astype(np.float32), texture=texture,
+            uvs=np.concatenate([p[4] for p in prims]).astype(np.float32) if texture >= 0 else None))
+    return out
+
+
+def _untextured(parts: list[RigidMesh]) -> RigidMesh | None:
+    """The parts as one untextured mesh (a prop: the weapons stage draws one mesh per prop)."""
+    if not parts:
         return None
-    colors = None
-    if any(c is not None for c in parts_c):  # primitives without colours are white
-        colors = np.concatenate([np.ones((len(p), 4)) if c is None else c for p, c in zip(parts_p, parts_c)]).astype(np.float32)
-    return RigidMesh(mesh_name or f"mesh{mesh_index}", np.concatenate(parts_p).astype(np.float32),
-                     np.concatenate(parts_n).astype(np.float32), np.concatenate(parts_i).astype(np.uint32), colors, base)
+    starts = np.cumsum([0] + [len(p.positions) for p in parts])
+    return RigidMesh(parts[0].name.split("#")[0], np.concatenate([p.positions for p in parts]), np.concatenate([p.normals for p in parts]),
+                     np.concatenate([p.indices + k for p, k in zip(parts, starts)]).astype(np.uint32), np.concatenate([p.colors for p in parts]))
 
 
-def _read_rigid(r: _Reader, tree: _Tree, new_index, factor: float, warn: list[str]):
+def _read_rigid(r: _Reader, tree: _Tree, new_index, factor: float, materials: Materials, warn: list[str]):
     attachments, props = [], {}
     nodes = tree.nodes
     for ni, node in enumerate(nodes):
         extras = crowd_extras(node)
         if node.get("mesh") is not None and node.get("skin") is None:
             if isinstance(extras.get("prop"), str):
-                mesh = _rigid_mesh(r, node["mesh"], warn)
+                parts = _rigid_parts(r, node["mesh"], materials, warn)
+                if any(part.texture >= 0 for part in parts):
+                    warn.append(f"prop {extras['prop']!r}: its texture is left out (props are drawn in their vertex and base colours)")
+                mesh = _untextured(parts)
                 grip = np.eye(4)
                 for c in node.get("children") or []:
                     if crowd_extras(nodes[c]).get("grip") is not None:
@@ -1071,9 +1241,8 @@ def _read_rigid(r: _Reader, tree: _Tree, new_index, factor: float, warn: list[st
                 continue
             p = tree.parent[ni]
             offset = r.local(ni) if p == k else tree.run_matrix(p) @ r.local(ni)
-            mesh = _rigid_mesh(r, node["mesh"], warn)
-            if mesh is not None:
-                attachments.append(Attachment(mesh, new_index[k], np.diag([factor, factor, factor, 1.0]) @ offset))
+            for part in _rigid_parts(r, node["mesh"], materials, warn):
+                attachments.append(Attachment(part, new_index[k], np.diag([factor, factor, factor, 1.0]) @ offset))
     return attachments, props
 
 

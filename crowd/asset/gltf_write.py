@@ -6,6 +6,8 @@ Layout, chosen so a standard viewer shows something sensible and the importer re
 - scene 0 shows LOD0 with the first piece of each variation group; scenes "lod1", "lod2" show the
   lower LODs; scene "variants" holds the other variation pieces; scene "props" holds the props, each
   with a child ``<name>_grip`` node for its grip frame;
+- base-colour textures as PNG images in the binary chunk, each with its sampler; a textured mesh has
+  a material of its own (its base colour factor and texture) and TEXCOORD_0;
 - project-specific facts (piece, LOD, group, loop flag, phase markers, stride, socket, prop) live in
   ``extras.crowd``, which viewers ignore.
 Every write goes through a temporary file and an atomic rename.
@@ -13,6 +15,7 @@ Every write goes through a temporary file and an atomic rename.
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -76,6 +79,8 @@ def _primitive(blob: _Blob, mesh, joint_count: int | None, material: int) -> g.P
     if mesh.colors is not None:
         col = np.round(np.clip(mesh.colors, 0, 1) * 255.0).astype(np.uint8)
         attrs.COLOR_0 = blob.accessor(col, UBYTE, "VEC4", ARRAY_BUFFER, normalized=True)
+    if mesh.texture >= 0:
+        attrs.TEXCOORD_0 = blob.accessor(np.asarray(mesh.uvs, np.float32), FLOAT, "VEC2", ARRAY_BUFFER)
     if isinstance(mesh, SkinnedMesh):
         small = joint_count <= 256
         attrs.JOINTS_0 = blob.accessor(mesh.joints.astype(np.uint8 if small else np.uint16), UBYTE if small else USHORT, "VEC4", ARRAY_BUFFER)
@@ -84,6 +89,41 @@ def _primitive(blob: _Blob, mesh, joint_count: int | None, material: int) -> g.P
     idx = mesh.indices.astype(np.uint32 if wide else np.uint16)
     return g.Primitive(attributes=attrs, indices=blob.accessor(idx, UINT if wide else USHORT, "SCALAR", ELEMENT_ARRAY_BUFFER),
                        material=material, mode=4)
+
+
+def _png(pixels: np.ndarray) -> bytes:
+    from PIL import Image
+
+    out = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(pixels), mode="RGBA").save(out, format="PNG")
+    return out.getvalue()
+
+
+def _textures(blob: _Blob, character: Character) -> None:
+    """glTF textures 0..T-1 for the character's textures (an image each distinct pixels array)."""
+    gl = blob.gltf
+    images: dict[int, int] = {}
+    for tex in character.textures:
+        if id(tex.pixels) not in images:
+            data = _png(tex.pixels)
+            while len(blob.data) % 4:
+                blob.data.append(0)
+            gl.bufferViews.append(g.BufferView(buffer=0, byteOffset=len(blob.data), byteLength=len(data)))
+            blob.data += data
+            gl.images.append(g.Image(name=tex.name, mimeType="image/png", bufferView=len(gl.bufferViews) - 1))
+            images[id(tex.pixels)] = len(gl.images) - 1
+        gl.samplers.append(g.Sampler(magFilter=tex.mag_filter, minFilter=tex.min_filter, wrapS=tex.wrap[0], wrapT=tex.wrap[1]))
+        gl.textures.append(g.Texture(source=images[id(tex.pixels)], sampler=len(gl.samplers) - 1))
+
+
+def _material(gl: g.GLTF2, mesh, untextured: int) -> int:
+    """White untextured meshes share material `untextured`; a textured or tinted one gets its own."""
+    if mesh.texture < 0 and tuple(mesh.base_color) == (1.0, 1.0, 1.0, 1.0):
+        return untextured
+    texture = g.TextureInfo(index=mesh.texture) if mesh.texture >= 0 else None
+    gl.materials.append(g.Material(name=f"{mesh.name}_material", pbrMetallicRoughness=g.PbrMetallicRoughness(
+        baseColorFactor=[float(x) for x in mesh.base_color], baseColorTexture=texture, metallicFactor=0.0, roughnessFactor=0.9)))
+    return len(gl.materials) - 1
 
 
 def character_to_gltf(character: Character) -> tuple[g.GLTF2, bytes]:
@@ -95,6 +135,7 @@ def character_to_gltf(character: Character) -> tuple[g.GLTF2, bytes]:
         baseColorFactor=[1.0, 1.0, 1.0, 1.0], metallicFactor=0.0, roughnessFactor=0.9)))
     gl.materials.append(g.Material(name="prop", pbrMetallicRoughness=g.PbrMetallicRoughness(
         baseColorFactor=[1.0, 1.0, 1.0, 1.0], metallicFactor=0.6, roughnessFactor=0.5)))
+    _textures(blob, character)
 
     socket_names = {j: name for name, j in character.sockets.items()}
     gl.nodes.append(g.Node(name=character.name, children=[1 + j for j in range(sk.joint_count) if sk.parents[j] < 0]))
@@ -111,7 +152,7 @@ def character_to_gltf(character: Character) -> tuple[g.GLTF2, bytes]:
     scenes: dict[str, list[int]] = {}
     seen_groups: dict[tuple[int, str], str] = {}
     for mesh in character.meshes:
-        gl.meshes.append(g.Mesh(name=mesh.name, primitives=[_primitive(blob, mesh, sk.joint_count, 0)],
+        gl.meshes.append(g.Mesh(name=mesh.name, primitives=[_primitive(blob, mesh, sk.joint_count, _material(gl, mesh, 0))],
                                 extras={"crowd": {"piece": mesh.piece, "lod": mesh.lod, "group": mesh.group}}))
         gl.nodes.append(g.Node(name=mesh.name, mesh=len(gl.meshes) - 1, skin=0))
         first = not mesh.group or seen_groups.setdefault((mesh.lod, mesh.group), mesh.piece) == mesh.piece
@@ -120,7 +161,7 @@ def character_to_gltf(character: Character) -> tuple[g.GLTF2, bytes]:
 
     props = []
     for name, prop in character.props.items():
-        gl.meshes.append(g.Mesh(name=prop.mesh.name, primitives=[_primitive(blob, prop.mesh, None, 1)]))
+        gl.meshes.append(g.Mesh(name=prop.mesh.name, primitives=[_primitive(blob, prop.mesh, None, _material(gl, prop.mesh, 1))]))
         gl.nodes.append(g.Node(name=prop.mesh.name, mesh=len(gl.meshes) - 1, extras={"crowd": {"prop": name}},
                                children=[len(gl.nodes) + 1]))
         props.append(len(gl.nodes) - 1)

@@ -12,6 +12,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 INTERPOLATIONS = ("LINEAR", "STEP", "CUBICSPLINE")
+# Sampler values as glTF (and GL) write them.
+NEAREST, LINEAR = 9728, 9729
+MIPMAP_FILTERS = (9984, 9985, 9986, 9987)  # {NEAREST, LINEAR}_MIPMAP_{NEAREST, LINEAR}
+REPEAT, CLAMP_TO_EDGE, MIRRORED_REPEAT = 10497, 33071, 33648
+WRAPS = (REPEAT, CLAMP_TO_EDGE, MIRRORED_REPEAT)
 PATHS = {"translation": 3, "rotation": 4, "scale": 3}
 
 
@@ -161,6 +166,33 @@ class Clip:
 
 
 @dataclass
+class Texture:
+    """A base-colour image as the file authored it, with its sampler.
+
+    ``pixels`` is sRGB-encoded RGBA8 with row 0 at v = 0 (glTF puts the image's first row at the top,
+    where v = 0, as GL's first uploaded row is t = 0, so no flip is needed anywhere). Textures that use
+    one image share one ``pixels`` array object: the draw stage packs each image into the texture array
+    once.
+    """
+
+    name: str
+    pixels: np.ndarray  # uint8 (H, W, 4)
+    wrap: tuple[int, int] = (REPEAT, REPEAT)  # s, t
+    mag_filter: int = LINEAR
+    min_filter: int = 9987  # LINEAR_MIPMAP_LINEAR: glTF leaves it to the viewer when a file says nothing
+
+    def validate(self) -> "Texture":
+        p = self.pixels
+        if not isinstance(p, np.ndarray) or p.dtype != np.uint8 or p.ndim != 3 or p.shape[2] != 4 or 0 in p.shape:
+            raise ModelError(f"texture {self.name!r}: pixels must be uint8 (H, W, 4), got {getattr(p, 'dtype', type(p))} {getattr(p, 'shape', '')}")
+        if any(w not in WRAPS for w in self.wrap) or len(self.wrap) != 2:
+            raise ModelError(f"texture {self.name!r}: wrap must be two of {WRAPS}, got {self.wrap}")
+        if self.mag_filter not in (NEAREST, LINEAR) or self.min_filter not in (NEAREST, LINEAR, *MIPMAP_FILTERS):
+            raise ModelError(f"texture {self.name!r}: unknown filter ({self.mag_filter}, {self.min_filter})")
+        return self
+
+
+@dataclass
 class SkinnedMesh:
     name: str
     piece: str  # "body", "head_a", ...: pieces of one variation group are swapped per agent
@@ -173,12 +205,16 @@ class SkinnedMesh:
     colors: np.ndarray | None = None  # float32 (V, 4) linear RGBA, or None
     base_color: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
     group: str = ""  # variation group ("head"), empty for pieces every agent wears
+    # Base-colour texture: an index into Character.textures (-1: none) and the texture coordinates
+    # it is sampled at, KHR_texture_transform already applied (float32 (V, 2)).
+    texture: int = -1
+    uvs: np.ndarray | None = None
 
     @property
     def triangle_count(self) -> int:
         return int(self.indices.shape[0] // 3)
 
-    def validate(self, joint_count: int) -> "SkinnedMesh":
+    def validate(self, joint_count: int, texture_count: int = 0) -> "SkinnedMesh":
         where = f"mesh {self.name!r}"
         v = self.positions.shape[0]
         for attr, shape, dtype in (
@@ -192,6 +228,7 @@ class SkinnedMesh:
                 raise ModelError(f"{where}: {attr} must be {np.dtype(dtype).name} {shape}, got {a.dtype} {a.shape}")
         if self.colors is not None and self.colors.shape != (v, 4):
             raise ModelError(f"{where}: colors must be (V, 4)")
+        _check_texture(where, self.texture, self.uvs, v, texture_count)
         _finite(f"{where} positions", self.positions)
         _finite(f"{where} normals", self.normals)
         _finite(f"{where} weights", self.weights)
@@ -206,6 +243,16 @@ class SkinnedMesh:
         return self
 
 
+def _check_texture(where: str, texture: int, uvs, vertices: int, texture_count: int) -> None:
+    if texture < 0:
+        return
+    if texture >= texture_count:
+        raise ModelError(f"{where}: texture {texture} of {texture_count}")
+    if not isinstance(uvs, np.ndarray) or uvs.shape != (vertices, 2) or uvs.dtype != np.float32:
+        raise ModelError(f"{where}: a textured mesh needs float32 uvs (V, 2), got {getattr(uvs, 'shape', None)}")
+    _finite(f"{where} uvs", uvs)
+
+
 @dataclass
 class RigidMesh:
     name: str
@@ -214,6 +261,8 @@ class RigidMesh:
     indices: np.ndarray  # uint32 (3T,)
     colors: np.ndarray | None = None
     base_color: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
+    texture: int = -1  # as SkinnedMesh
+    uvs: np.ndarray | None = None
 
     @property
     def triangle_count(self) -> int:
@@ -251,6 +300,7 @@ class Character:
     props: dict[str, Prop] = field(default_factory=dict)
     sockets: dict[str, int] = field(default_factory=dict)  # socket name -> joint index
     warnings: list[str] = field(default_factory=list)  # what the import left out or approximated
+    textures: list[Texture] = field(default_factory=list)  # base-colour textures the meshes index
 
     def clip(self, name: str) -> Clip:
         for c in self.clips:
@@ -260,8 +310,10 @@ class Character:
 
     def validate(self) -> "Character":
         self.skeleton.validate()
+        for t in self.textures:
+            t.validate()
         for m in self.meshes:
-            m.validate(self.skeleton.joint_count)
+            m.validate(self.skeleton.joint_count, len(self.textures))
         names = [c.name for c in self.clips]
         if len(set(names)) != len(names):
             raise ModelError(f"character {self.name!r} has duplicate clip names")

@@ -29,6 +29,7 @@ from ..lighting import FOG_COLOR, LIGHTING, SUN_DIR
 from ..asset.model import Character, SkinnedMesh
 from ..anim.processor import palette_texel
 from ..asset.vertex_cache import optimize_triangle_order
+from .materials import TEXTURE_UNIT, MaterialTextures
 
 # Per-vertex record, 28 bytes: the position and one uvec4 (see shaders/skin.vert.glsl for why two
 # attributes). packed[0]: normal as three snorm10; packed[1]: joints, 4 x u8 by descending weight;
@@ -36,6 +37,9 @@ from ..asset.vertex_cache import optimize_triangle_order
 # so the four sum to 1 exactly); packed[3]: colour, RGBA8.
 VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("packed", "<u4", 4)])
 VERTEX_FORMAT = ("3f 4u", "in_position", "in_packed")
+# Pieces with a base-colour texture carry its coordinate too (36 bytes); the others keep 28.
+TEXTURED_VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("packed", "<u4", 4), ("uv", "<f4", 2)])
+TEXTURED_VERTEX_FORMAT = ("3f 4u 2f", "in_position", "in_packed", "in_uv")
 WEIGHT_STEP = 1.0 / 2046.0  # a stored weight is within half of this of the float weight
 # Per-instance record, 28 bytes: position relative to the camera and scale; palette texel of the agent's
 # joint 0 (x | y << 16), tint RGBA8, cos and sin of the heading as snorm16.
@@ -116,8 +120,12 @@ def heading_snorm16(yaw: np.ndarray) -> np.ndarray:
 
 def pack_vertices(mesh: SkinnedMesh) -> np.ndarray:
     """Vertex records with each vertex's influences sorted by descending weight, so the shader can
-    skip the third and fourth bones where their weight is zero."""
-    v = np.zeros(mesh.positions.shape[0], VERTEX_DTYPE)
+    skip the third and fourth bones where their weight is zero; a textured mesh's records end with
+    its texture coordinate."""
+    textured = mesh.texture >= 0
+    v = np.zeros(mesh.positions.shape[0], TEXTURED_VERTEX_DTYPE if textured else VERTEX_DTYPE)
+    if textured:
+        v["uv"] = mesh.uvs
     v["position"] = mesh.positions
     v["packed"][:, 0] = pack_normals(mesh.normals)
     order = np.argsort(-mesh.weights, axis=1, kind="stable")
@@ -145,6 +153,7 @@ class _Draw:
     vbo: moderngl.Buffer
     ibo: moderngl.Buffer
     instances: moderngl.Buffer
+    texture: int = -1  # index into Character.textures, -1: none
     vaos: dict = field(default_factory=dict)  # program key → VertexArray
     count: int = 0
 
@@ -155,9 +164,10 @@ class CrowdRenderer(GLStage):
     def __init__(self, ctx: moderngl.Context, character: Character, joint_count: int, agents_per_row: int,
                  pieces: tuple[str, ...] | None = None, lod_distances=DEFAULT_LOD_DISTANCES, shadows: bool = True,
                  shadow_size: int = 2048, culling: bool = True):
-        self._objects: dict[str, list] = {"meshes": [], "instances": [], "programs": [], "shadow_map": [], "ground": []}
+        self._objects: dict[str, list] = {"meshes": [], "instances": [], "programs": [], "shadow_map": [], "ground": [], "textures": []}
         self._programs: dict[tuple, moderngl.Program] = {}
         self.draws: list[_Draw] = []
+        self.materials: MaterialTextures | None = None
         self.ctx = ctx
         self.joint_count = joint_count
         self.agents_per_row = agents_per_row
@@ -176,7 +186,10 @@ class CrowdRenderer(GLStage):
             vbo = self._own("meshes", ctx.buffer(pack_vertices(m).tobytes()))
             ibo = self._own("meshes", ctx.buffer(optimize_triangle_order(m.indices, len(m.positions)).tobytes()))
             inst = self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
-            self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, vbo, ibo, inst))
+            self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, vbo, ibo, inst, m.texture))
+        # Only the textures a drawn piece uses reach the GPU, and none when no piece has one.
+        used = {m.texture for m in meshes if m.texture >= 0}
+        self.materials = self._own("textures", MaterialTextures(ctx, character.textures, used)) if used else None
         # A sphere around the bind pose, widened for poses that reach out or lie down (death).
         allpos = np.concatenate([m.positions for m in meshes]).astype(np.float64)
         lo, hi = allpos.min(axis=0), allpos.max(axis=0)
@@ -206,9 +219,10 @@ class CrowdRenderer(GLStage):
         self._objects[group].append(obj)
         return obj
 
-    def _program(self, kind: str, skinned: bool | str) -> moderngl.Program:
-        """kind: color, depth or ground; skinned: True, or False for the benchmark's unskinned ceiling."""
-        key = (kind, skinned)
+    def _program(self, kind: str, skinned: bool | str, textured: bool = False) -> moderngl.Program:
+        """kind: color, depth or ground; skinned: True, or False for the benchmark's unskinned ceiling;
+        textured: the colour pass of a piece with a base-colour texture."""
+        key = (kind, skinned, textured)
         if key in self._programs:
             return self._programs[key]
         defines = {}
@@ -222,6 +236,8 @@ class CrowdRenderer(GLStage):
                 vdefs["DEPTH_ONLY"] = 1
                 frag = load_shader("depth.frag.glsl")
             else:
+                if textured:
+                    vdefs["TEXTURED"] = defines["TEXTURED"] = 1
                 frag = load_shader("skin.frag.glsl", defines)
             prog = self.ctx.program(vertex_shader=load_shader("skin.vert.glsl", vdefs), fragment_shader=frag)
             for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
@@ -229,19 +245,28 @@ class CrowdRenderer(GLStage):
                     prog[name] = unit
         if "u_shadow_map" in prog:
             prog["u_shadow_map"] = 3
+        if "u_albedo" in prog:
+            prog["u_albedo"] = TEXTURE_UNIT
         self._programs[key] = self._own("programs", prog)
         return prog
 
     def _vao(self, draw: _Draw, kind: str, skinned: bool) -> moderngl.VertexArray:
         key = (kind, skinned)
         if key not in draw.vaos:
-            prog = self._program(kind, skinned)
-            content = [(draw.vbo, *_read_by(prog, VERTEX_FORMAT)), (draw.instances, *_read_by(prog, INSTANCE_FORMAT))]
+            prog = self._draw_program(draw, kind, skinned)
+            layout = TEXTURED_VERTEX_FORMAT if draw.texture >= 0 else VERTEX_FORMAT
+            content = [(draw.vbo, *_read_by(prog, layout)), (draw.instances, *_read_by(prog, INSTANCE_FORMAT))]
             draw.vaos[key] = self._own("programs", self.ctx.vertex_array(prog, content, index_buffer=draw.ibo, index_element_size=4))
         return draw.vaos[key]
 
+    def _draw_program(self, draw: _Draw, kind: str, skinned: bool) -> moderngl.Program:
+        return self._program(kind, skinned, kind == "color" and draw.texture >= 0)
+
     def gpu_bytes(self) -> dict[str, int]:
-        return {group: gpu_bytes(objs) for group, objs in self._objects.items() if group != "programs"}
+        out = {group: gpu_bytes(objs) for group, objs in self._objects.items() if group not in ("programs", "textures")}
+        if self.materials is not None:
+            out["textures"] = self.materials.gpu_bytes()
+        return out
 
     def release(self) -> None:
         for objs in self._objects.values():
@@ -250,6 +275,7 @@ class CrowdRenderer(GLStage):
         self._objects = {k: [] for k in self._objects}
         self._programs.clear()
         self.draws = []
+        self.materials = None
 
     # -- per frame
 
@@ -364,12 +390,17 @@ class CrowdRenderer(GLStage):
         self.ctx.disable(moderngl.CULL_FACE)
         if skinned:
             processor.bind_palette(0)
-        prog = self._program("color", skinned)
-        prog["u_view_proj"].write(gl_bytes(view.view_proj))
-        self.set_lighting(prog, view)
-        for draw in self.draws:
-            if draw.count:
-                self._vao(draw, "color", skinned).render(moderngl.TRIANGLES, instances=draw.count)
+        for textured in (False, True) if self.materials is not None else (False,):
+            prog = self._program("color", skinned, textured)
+            prog["u_view_proj"].write(gl_bytes(view.view_proj))
+            self.set_lighting(prog, view)
+            for draw in self.draws:
+                if draw.count and (draw.texture >= 0) == textured:
+                    if textured:
+                        self.materials.bind(draw.texture, prog)
+                    self._vao(draw, "color", skinned).render(moderngl.TRIANGLES, instances=draw.count)
+        if self.materials is not None:
+            self.materials.unbind()
 
     def ground_pass(self, framebuffer, view: "FrameView") -> None:
         framebuffer.use()
