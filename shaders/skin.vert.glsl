@@ -11,17 +11,23 @@
 // and CrowdRenderer.prepare.
 //
 // Defines: DEPTH_ONLY (shadow pass: position only), UNSKINNED (the benchmark's ceiling: the same
-// draw and buffers without bone fetches), TEXTURED (a third attribute, the base-colour texture
-// coordinate: only pieces with a texture carry it, so the untextured crowd reads two).
-
-in vec3 in_position;   // bind space
-in uvec4 in_packed;    // x: normal, snorm10 x3 | y: joints, 4 x u8 (by descending weight)
-                       // z: weights 1-3 as unorm10 of 2w (weight 0 = 1 - the rest) | w: colour, RGBA8
+// draw and buffers without bone fetches), TEXTURED (a piece with a base-colour texture: its position
+// comes as the float bits of a uvec4 whose w holds the texture coordinate, so it still reads two
+// attributes; a third attribute for the coordinate made the H200's draw of a textured crowd 43 %
+// slower, docs/BENCHMARKS.md "Textures").
 
 #ifdef TEXTURED
-in vec2 in_uv;
+in uvec4 in_position;  // xyz: the bind-space position's float bits | w: the texture coordinate as
+                       // unorm16 x2 across the piece's coordinate box (u_uv_box)
+uniform vec4 u_uv_box; // xy: the box's corner, zw: its size
+#ifndef DEPTH_ONLY
 out vec2 v_uv;
 #endif
+#else
+in vec3 in_position;   // bind space
+#endif
+in uvec4 in_packed;    // x: normal, snorm10 x3 | y: joints, 4 x u8 (by descending weight)
+                       // z: weights 1-3 as unorm10 of 2w (weight 0 = 1 - the rest) | w: colour, RGBA8
 
 in vec4 i_position_scale;  // agent origin relative to the camera (float64 on the CPU, then float32), uniform scale
 in uvec3 i_packed;         // x: palette texel of joint 0 (x | y << 16) | y: tint, RGBA8 | z: cos, sin of the heading, snorm16 x2
@@ -42,11 +48,16 @@ vec4 unpack_rgba8(uint v) {
 }
 
 void main() {
-    vec4 p = vec4(in_position, 1.0);
+#ifdef TEXTURED
+    vec3 position = uintBitsToFloat(in_position.xyz);
+#else
+    vec3 position = in_position;
+#endif
+    vec4 p = vec4(position, 1.0);
     // Sign extension of each 10-bit field: shift it to the top, then arithmetic shift back down.
     vec3 bind_normal = vec3(ivec3(uvec3(in_packed.x) << uvec3(22u, 12u, 2u)) >> 22) / 511.0;
 #ifdef UNSKINNED
-    vec3 skinned = in_position;
+    vec3 skinned = position;
     vec3 normal = bind_normal;
 #else
     ivec2 base = ivec2(i_packed.x & 0xFFFFu, i_packed.x >> 16);
@@ -83,7 +94,7 @@ void main() {
     v_normal = vec3(c * normal.x + s * normal.z, normal.y, -s * normal.x + c * normal.z);
     v_color = unpack_rgba8(in_packed.w) * unpack_rgba8(i_packed.y);
 #endif
-#ifdef TEXTURED
-    v_uv = in_uv;
+#if defined(TEXTURED) && !defined(DEPTH_ONLY)
+    v_uv = u_uv_box.xy + u_uv_box.zw * (vec2((uvec2(in_position.w) >> uvec2(0u, 16u)) & 0xFFFFu) / 65535.0);
 #endif
 }

@@ -348,3 +348,28 @@ def test_shared_textured_characters_draw_their_texture(name, tmp_path, gl_contex
     flat = draw(tmp_path / "plain.glb", gl_context, model_scale=1.0)
     covered = np.abs(image - flat).max(axis=2) > 24
     assert covered.mean() > 0.002, name
+
+
+def test_texture_coordinates_are_packed_within_a_60th_of_a_texel():
+    from crowd.draw.render import pack_vertices, unpack_uvs, uv_box
+
+    rng = np.random.default_rng(3)
+    for low, high in ((0.0, 1.0), (-3.0, 7.0), (0.25, 0.25)):
+        uvs = rng.uniform(low, high, (500, 2)).astype(np.float32)
+        uvs[0] = low
+        mesh = dataclasses.replace(_one_mesh(), texture=0, uvs=uvs)
+        packed = pack_vertices(mesh)
+        corner, size = uv_box(uvs)
+        back = unpack_uvs(packed["position_uv"][:, 3], corner, size)
+        assert np.max(np.abs(back - uvs)) <= np.max(size) / 65535 / 2 + 1e-7
+        np.testing.assert_array_equal(packed["position_uv"][:, :3].view(np.float32), mesh.positions)
+
+
+def _one_mesh(n=500):
+    from crowd.asset.model import SkinnedMesh
+
+    rng = np.random.default_rng(0)
+    joints = np.zeros((n, 4), np.uint16)
+    weights = np.tile(np.float32([1, 0, 0, 0]), (n, 1))
+    normals = np.tile(np.float32([0, 1, 0]), (n, 1))
+    return SkinnedMesh("m", "body", 0, rng.normal(size=(n, 3)).astype(np.float32), normals, joints, weights, np.arange(n - n % 3, dtype=np.uint32))

@@ -37,9 +37,10 @@ from .materials import TEXTURE_UNIT, MaterialTextures
 # so the four sum to 1 exactly); packed[3]: colour, RGBA8.
 VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("packed", "<u4", 4)])
 VERTEX_FORMAT = ("3f 4u", "in_position", "in_packed")
-# Pieces with a base-colour texture carry its coordinate too (36 bytes); the others keep 28.
-TEXTURED_VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("packed", "<u4", 4), ("uv", "<f4", 2)])
-TEXTURED_VERTEX_FORMAT = ("3f 4u 2f", "in_position", "in_packed", "in_uv")
+# Pieces with a base-colour texture, 32 bytes: the position's float bits and the texture coordinate
+# (unorm16 x2 across the piece's coordinate box) in one uvec4, so the shader still reads two attributes.
+TEXTURED_VERTEX_DTYPE = np.dtype([("position_uv", "<u4", 4), ("packed", "<u4", 4)])
+TEXTURED_VERTEX_FORMAT = ("4u 4u", "in_position", "in_packed")
 WEIGHT_STEP = 1.0 / 2046.0  # a stored weight is within half of this of the float weight
 # Per-instance record, 28 bytes: position relative to the camera and scale; palette texel of the agent's
 # joint 0 (x | y << 16), tint RGBA8, cos and sin of the heading as snorm16.
@@ -125,8 +126,12 @@ def pack_vertices(mesh: SkinnedMesh) -> np.ndarray:
     textured = mesh.texture >= 0
     v = np.zeros(mesh.positions.shape[0], TEXTURED_VERTEX_DTYPE if textured else VERTEX_DTYPE)
     if textured:
-        v["uv"] = mesh.uvs
-    v["position"] = mesh.positions
+        v["position_uv"][:, :3] = np.ascontiguousarray(mesh.positions, np.float32).view(np.uint32)
+        corner, size = uv_box(mesh.uvs)
+        q = np.rint((np.asarray(mesh.uvs, np.float64) - corner) / size * 65535.0).astype(np.uint32)
+        v["position_uv"][:, 3] = q[:, 0] | (q[:, 1] << 16)
+    else:
+        v["position"] = mesh.positions
     v["packed"][:, 0] = pack_normals(mesh.normals)
     order = np.argsort(-mesh.weights, axis=1, kind="stable")
     w = np.take_along_axis(np.asarray(mesh.weights, np.float64), order, axis=1)
@@ -136,6 +141,22 @@ def pack_vertices(mesh: SkinnedMesh) -> np.ndarray:
     v["packed"][:, 2] = q[:, 0] | (q[:, 1] << 10) | (q[:, 2] << 20)
     v["packed"][:, 3] = pack_colors(mesh.colors, mesh.base_color, len(v))
     return v
+
+
+def uv_box(uvs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(corner, size) of the box around a mesh's texture coordinates that unorm16 spans (a size of 0
+    becomes 1, so a constant coordinate is stored exactly). Steps are size/65535: 1/60 of a texel of a
+    1024 texture for coordinates within [0, 1]."""
+    uv = np.asarray(uvs, np.float64)
+    corner = uv.min(axis=0)
+    size = uv.max(axis=0) - corner
+    return corner, np.where(size > 0.0, size, 1.0)
+
+
+def unpack_uvs(packed: np.ndarray, corner, size) -> np.ndarray:
+    """The texture coordinates the shader decodes from position_uv[:, 3] (the numpy twin of skin.vert.glsl)."""
+    q = (packed[:, None].astype(np.uint32) >> np.array([0, 16], np.uint32)) & 0xFFFF
+    return np.asarray(corner) + np.asarray(size) * (q.astype(np.float64) / 65535.0)
 
 
 def unpack_weights(packed: np.ndarray) -> np.ndarray:
@@ -154,6 +175,7 @@ class _Draw:
     ibo: moderngl.Buffer
     instances: moderngl.Buffer
     texture: int = -1  # index into Character.textures, -1: none
+    uv_box: tuple = (0.0, 0.0, 1.0, 1.0)  # corner and size of the texture coordinates' unorm16 box
     vaos: dict = field(default_factory=dict)  # program key → VertexArray
     count: int = 0
 
@@ -186,7 +208,8 @@ class CrowdRenderer(GLStage):
             vbo = self._own("meshes", ctx.buffer(pack_vertices(m).tobytes()))
             ibo = self._own("meshes", ctx.buffer(optimize_triangle_order(m.indices, len(m.positions)).tobytes()))
             inst = self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
-            self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, vbo, ibo, inst, m.texture))
+            box = tuple(float(x) for x in np.concatenate(uv_box(m.uvs))) if m.texture >= 0 else (0.0, 0.0, 1.0, 1.0)
+            self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, vbo, ibo, inst, m.texture, box))
         # Only the textures a drawn piece uses reach the GPU, and none when no piece has one.
         used = {m.texture for m in meshes if m.texture >= 0}
         self.materials = self._own("textures", MaterialTextures(ctx, character.textures, used)) if used else None
@@ -237,8 +260,10 @@ class CrowdRenderer(GLStage):
                 frag = load_shader("depth.frag.glsl")
             else:
                 if textured:
-                    vdefs["TEXTURED"] = defines["TEXTURED"] = 1
+                    defines["TEXTURED"] = 1
                 frag = load_shader("skin.frag.glsl", defines)
+            if textured:
+                vdefs["TEXTURED"] = 1
             prog = self.ctx.program(vertex_shader=load_shader("skin.vert.glsl", vdefs), fragment_shader=frag)
             for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
                 if name in prog:
@@ -259,8 +284,12 @@ class CrowdRenderer(GLStage):
             draw.vaos[key] = self._own("programs", self.ctx.vertex_array(prog, content, index_buffer=draw.ibo, index_element_size=4))
         return draw.vaos[key]
 
+    def _variants(self) -> tuple[bool, ...]:
+        """The program variants a pass runs: untextured, and textured where a piece has a texture."""
+        return (False, True) if self.materials is not None else (False,)
+
     def _draw_program(self, draw: _Draw, kind: str, skinned: bool) -> moderngl.Program:
-        return self._program(kind, skinned, kind == "color" and draw.texture >= 0)
+        return self._program(kind, skinned, draw.texture >= 0)
 
     def gpu_bytes(self) -> dict[str, int]:
         out = {group: gpu_bytes(objs) for group, objs in self._objects.items() if group not in ("programs", "textures")}
@@ -369,11 +398,12 @@ class CrowdRenderer(GLStage):
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE)
         processor.bind_palette(0)
-        prog = self._program("depth", True)
-        prog["u_view_proj"].write(gl_bytes(view.light_view_proj))
-        for draw in self.draws:
-            if draw.count:
-                self._vao(draw, "depth", True).render(moderngl.TRIANGLES, instances=draw.count)
+        for textured in self._variants():
+            prog = self._program("depth", True, textured)
+            prog["u_view_proj"].write(gl_bytes(view.light_view_proj))
+            for draw in self.draws:
+                if draw.count and (draw.texture >= 0) == textured:
+                    self._vao(draw, "depth", True).render(moderngl.TRIANGLES, instances=draw.count)
         return True
 
     def set_lighting(self, prog, view: "FrameView"):
@@ -390,7 +420,7 @@ class CrowdRenderer(GLStage):
         self.ctx.disable(moderngl.CULL_FACE)
         if skinned:
             processor.bind_palette(0)
-        for textured in (False, True) if self.materials is not None else (False,):
+        for textured in self._variants():
             prog = self._program("color", skinned, textured)
             prog["u_view_proj"].write(gl_bytes(view.view_proj))
             self.set_lighting(prog, view)
@@ -398,6 +428,7 @@ class CrowdRenderer(GLStage):
                 if draw.count and (draw.texture >= 0) == textured:
                     if textured:
                         self.materials.bind(draw.texture, prog)
+                        prog["u_uv_box"] = draw.uv_box
                     self._vao(draw, "color", skinned).render(moderngl.TRIANGLES, instances=draw.count)
         if self.materials is not None:
             self.materials.unbind()
