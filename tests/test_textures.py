@@ -78,6 +78,10 @@ def test_layers_are_resampled_in_linear_light_and_pixel_art_stays_square():
     assert set(np.unique(square[..., 0])) == {0.0, 1.0}
     assert layer_size([Texture("a", np.zeros((8, 64, 4), np.uint8)), Texture("b", np.zeros((32, 16, 4), np.uint8))]) == (64, 32)
     assert layer_size([Texture("a", np.zeros((1, 9000, 4), np.uint8))]) == (2048, 1)
+    # 200 small images beside one 2048 square: halved until the array fits its budget (256 MB).
+    many = [Texture("big", np.zeros((2048, 2048, 4), np.uint8))] + [Texture(f"s{i}", np.zeros((16, 16, 4), np.uint8)) for i in range(200)]
+    w, h = layer_size(many)
+    assert (w, h) == (256, 256) and 201 * w * h * 8 * 4 // 3 <= 256 << 20
 
 
 # -- images
@@ -114,6 +118,24 @@ def test_a_cut_png_and_a_gif_are_one_line():
     Image.fromarray(FOUR, "RGBA").convert("P").save(gif, format="GIF")
     with pytest.raises(ImageError, match="is not a PNG or JPEG"):
         decode_image(gif.getvalue(), "image 0")
+
+
+def test_images_past_the_files_pixel_budget_are_left_out(tmp_path, textured_doc, monkeypatch):
+    from crowd.asset import gltf_materials
+
+    doc, blob = textured_doc
+    monkeypatch.setattr(gltf_materials, "MAX_TOTAL_PIXELS", 3)  # the 4-pixel strip is past it
+    c = load_character(_as_gltf(tmp_path, doc, blob))
+    assert not c.textures and any("past the 3 pixels all images of a file" in w for w in c.warnings)
+
+
+def test_more_textures_than_an_array_holds_are_refused(tmp_path, textured_doc, monkeypatch):
+    from crowd.asset import gltf_materials
+
+    doc, blob = textured_doc
+    monkeypatch.setattr(gltf_materials, "MAX_TEXTURES", 0)
+    with pytest.raises(GltfImportError, match="more than 0 base-colour textures"):
+        load_character(_as_gltf(tmp_path, doc, blob))
 
 
 def test_an_image_too_large_is_refused_from_its_header():

@@ -8,7 +8,8 @@ so a textured piece is still one instanced draw per (piece, LOD).
 
 Images are PNG or JPEG, embedded (a bufferView or a data URI) or a file in the model's folder, decoded
 by Pillow (a dependency of moderngl-window already, so it adds nothing to install). An image that cannot
-be used (missing, outside the folder, not PNG/JPEG, corrupt, larger than MAX_IMAGE_PIXELS) leaves its
+be used (missing, outside the folder, not PNG/JPEG, corrupt, larger than MAX_IMAGE_PIXELS, or past
+MAX_TOTAL_PIXELS with the images before it) leaves its
 meshes drawn with the base colour factor and vertex colours, and one warning naming the image and why:
 the character itself is still right, and real exports often reference a texture nobody shipped.
 Texture coordinates that cannot be drawn (NaN, beyond ±MAX_UV) are refused, as positions are.
@@ -27,6 +28,8 @@ import numpy as np
 from .model import CLAMP_TO_EDGE, LINEAR, MIPMAP_FILTERS, NEAREST, REPEAT, WRAPS, Texture
 
 MAX_IMAGE_PIXELS = 4096 * 4096  # 64 MB as RGBA8: a character's atlas is at most 4k
+MAX_TOTAL_PIXELS = 4 * MAX_IMAGE_PIXELS  # all images of one file together, decoded (256 MB)
+MAX_TEXTURES = 256  # the layers every GL 3.3 texture array may hold
 MAX_UV = 1e4  # float32 keeps 1/1600 of a texel of a 1024 texture here; beyond, the texture is noise
 _MAPS = ("normalTexture", "occlusionTexture", "emissiveTexture")
 _FORMATS = {"PNG": "image/png", "JPEG": "image/jpeg"}
@@ -63,6 +66,7 @@ class Materials:
         self._images: dict[int, np.ndarray | None] = {}
         self._left_out: set[str] = set()
         self._notes: list[str] = []
+        self._pixels = 0  # decoded so far, against MAX_TOTAL_PIXELS
 
     # -- per primitive
 
@@ -145,6 +149,8 @@ class Materials:
             self._notes.append(f"{where} has no PNG or JPEG source{' (only ' + ', '.join(others) + ')' if others else ''}; drawn without it")
         else:
             pixels = self._image(source)
+            if pixels is not None and len(self.textures) >= MAX_TEXTURES:
+                r.fail(f"{where}: more than {MAX_TEXTURES} base-colour textures, the layers a texture array is sure to hold")
             if pixels is not None:
                 wrap, mag, minify = self._sampler(r.index(tex, "sampler", "samplers", where))
                 name = r.item("images", source).get("name")
@@ -177,7 +183,8 @@ class Materials:
         name = image.get("name")
         where = f"image {index}" + (f" ({name!r})" if isinstance(name, str) and name else "")
         try:
-            pixels = decode_image(self._image_bytes(image, where), where)
+            pixels = decode_image(self._image_bytes(image, where), where, MAX_TOTAL_PIXELS - self._pixels)
+            self._pixels += pixels.shape[0] * pixels.shape[1]
         except ValueError as exc:  # GltfImportError from the reader, or ImageError below: one line each
             self._notes.append(f"{str(exc).removeprefix(f'{r.where}: ')}; drawn without it")
             pixels = None
@@ -211,9 +218,10 @@ class ImageError(ValueError):
     """An image the crowd cannot use; the message is one line."""
 
 
-def decode_image(data: bytes, where: str) -> np.ndarray:
+def decode_image(data: bytes, where: str, budget: int = MAX_IMAGE_PIXELS) -> np.ndarray:
     """PNG or JPEG bytes → uint8 (H, W, 4) sRGB RGBA, refused in one line when it is anything else,
-    corrupt, or larger than MAX_IMAGE_PIXELS (checked from the header, before decoding)."""
+    corrupt, larger than MAX_IMAGE_PIXELS or than `budget` pixels (both checked from the header,
+    before decoding)."""
     from PIL import Image  # imported here: only files with textures pay for it
 
     try:
@@ -221,6 +229,8 @@ def decode_image(data: bytes, where: str) -> np.ndarray:
             w, h = im.size
             if w * h > MAX_IMAGE_PIXELS:
                 raise ImageError(f"{where} is {w}x{h}, more than the {MAX_IMAGE_PIXELS:,} pixels allowed")
+            if w * h > budget:
+                raise ImageError(f"{where} is {w}x{h}, past the {MAX_TOTAL_PIXELS:,} pixels all images of a file may decode to")
             pixels = np.asarray(im.convert("RGBA"), dtype=np.uint8)
     except ImageError:
         raise

@@ -26,6 +26,7 @@ from ..asset.model import MIPMAP_FILTERS, MIRRORED_REPEAT, NEAREST, CLAMP_TO_EDG
 from ..gl import GLObjects, GLStage
 
 MAX_LAYER_SIZE = 2048
+MAX_ARRAY_BYTES = 256 << 20  # the array with its mip chain; layers are halved until it fits
 TEXTURE_UNIT = 4  # units 0-2: the palette, 3: the shadow map
 
 
@@ -35,11 +36,15 @@ def srgb_to_linear(c: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
-def layer_size(textures: list[Texture], limit: int = MAX_LAYER_SIZE) -> tuple[int, int]:
-    """(width, height) every layer is stored at: the largest image's, each side at most `limit`."""
-    w = max(t.pixels.shape[1] for t in textures)
-    h = max(t.pixels.shape[0] for t in textures)
-    return min(w, limit), min(h, limit)
+def layer_size(textures: list[Texture], limit: int = MAX_LAYER_SIZE, budget: int = MAX_ARRAY_BYTES) -> tuple[int, int]:
+    """(width, height) every layer is stored at: the largest image's, each side at most `limit`, both
+    halved until the array (RGBA16F, a third more for mip levels) fits `budget` bytes. Small images
+    are scaled up to the largest, so many small ones beside one big one would otherwise multiply it."""
+    w = min(max(t.pixels.shape[1] for t in textures), limit)
+    h = min(max(t.pixels.shape[0] for t in textures), limit)
+    while len(textures) * w * h * 8 * 4 // 3 > budget and (w > 1 or h > 1):
+        w, h = max(w // 2, 1), max(h // 2, 1)
+    return w, h
 
 
 def linear_layer(texture: Texture, size: tuple[int, int]) -> np.ndarray:
