@@ -14,9 +14,16 @@
 // draw and buffers without bone fetches), TEXTURED (a piece with a base-colour texture: its position
 // comes as the float bits of a uvec4 whose w holds the texture coordinate, so it still reads two
 // attributes; a third attribute for the coordinate made the H200's draw of a textured crowd 43 %
-// slower, docs/BENCHMARKS.md "Textures").
+// slower, docs/BENCHMARKS.md "Textures"), and WIDE_UV (with TEXTURED: float coordinates as a third
+// attribute, for the rare piece whose coordinates span more than unorm16 can hold to a texel).
 
-#ifdef TEXTURED
+#if defined(TEXTURED) && defined(WIDE_UV)
+in vec3 in_position;   // bind space
+in vec2 in_uv;
+#ifndef DEPTH_ONLY
+out vec2 v_uv;
+#endif
+#elif defined(TEXTURED)
 in uvec4 in_position;  // xyz: the bind-space position's float bits | w: the texture coordinate as
                        // unorm16 x2 across the piece's coordinate box (u_uv_box)
 uniform vec4 u_uv_box; // xy: the box's corner, zw: its size
@@ -48,7 +55,7 @@ vec4 unpack_rgba8(uint v) {
 }
 
 void main() {
-#ifdef TEXTURED
+#if defined(TEXTURED) && !defined(WIDE_UV)
     vec3 position = uintBitsToFloat(in_position.xyz);
 #else
     vec3 position = in_position;
@@ -94,7 +101,9 @@ void main() {
     v_normal = vec3(c * normal.x + s * normal.z, normal.y, -s * normal.x + c * normal.z);
     v_color = unpack_rgba8(in_packed.w) * unpack_rgba8(i_packed.y);
 #endif
-#if defined(TEXTURED) && !defined(DEPTH_ONLY)
+#if defined(TEXTURED) && defined(WIDE_UV) && !defined(DEPTH_ONLY)
+    v_uv = in_uv;
+#elif defined(TEXTURED) && !defined(DEPTH_ONLY)
     v_uv = u_uv_box.xy + u_uv_box.zw * (vec2((uvec2(in_position.w) >> uvec2(0u, 16u)) & 0xFFFFu) / 65535.0);
 #endif
 }

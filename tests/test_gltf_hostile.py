@@ -305,7 +305,7 @@ def test_memory_budget_over_all_accessor_reads(tmp_path, monkeypatch):
 def test_file_budget_and_json_budget(tmp_path, monkeypatch):
     path = make_gltf(tmp_path, buffer_mode="external")
     monkeypatch.setattr(gltf, "MAX_FILE_BYTES", path.stat().st_size + 100)
-    refused(path, "buffer 0 file 'test.bin' brings the bytes read to")
+    refused(path, "buffer 0 file 'test.bin' would bring the bytes read to")
     monkeypatch.setattr(gltf, "MAX_FILE_BYTES", 1 << 30)
     monkeypatch.setattr(gltf, "MAX_JSON_VALUES", 50)
     refused(path, "the JSON holds about", "more than the 50 allowed")

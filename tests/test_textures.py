@@ -134,7 +134,7 @@ def test_more_textures_than_an_array_holds_are_refused(tmp_path, textured_doc, m
 
     doc, blob = textured_doc
     monkeypatch.setattr(gltf_materials, "MAX_TEXTURES", 0)
-    with pytest.raises(GltfImportError, match="more than 0 base-colour textures"):
+    with pytest.raises(GltfImportError, match="more than 0 base-colour images"):
         load_character(_as_gltf(tmp_path, doc, blob))
 
 
@@ -395,3 +395,97 @@ def _one_mesh(n=500):
     weights = np.tile(np.float32([1, 0, 0, 0]), (n, 1))
     normals = np.tile(np.float32([0, 1, 0]), (n, 1))
     return SkinnedMesh("m", "body", 0, rng.normal(size=(n, 3)).astype(np.float32), normals, joints, weights, np.arange(n - n % 3, dtype=np.uint32))
+
+
+def test_mirrored_repeat_filters_an_edge_texel_with_itself(tmp_path, zombie, gl_context):
+    """At a fold (u = 1, and u = 0) linear filtering under MIRRORED_REPEAT reads the edge texel alone,
+    as GL's mirrored repeat does; a repeating sampler under the fold would mix in the opposite edge."""
+    pictures = {}
+    for name, pixels, uv, wrap in (("fold at 1", FOUR, 1.0, MIRRORED_REPEAT), ("yellow", FOUR[:, 3:4], 0.5, REPEAT),
+                                   ("fold at 0", FOUR, 0.0, MIRRORED_REPEAT), ("red", FOUR[:, 0:1], 0.5, REPEAT)):
+        path = tmp_path / f"{name.replace(' ', '_')}.glb"
+        write_glb(textured(zombie, np.ascontiguousarray(pixels), (uv, 0.5), wrap=(wrap, REPEAT), mag=LINEAR, minify=LINEAR), path)
+        pictures[name] = draw(path, gl_context)
+    assert np.abs(pictures["fold at 1"] - pictures["yellow"]).max() <= 1
+    assert np.abs(pictures["fold at 0"] - pictures["red"]).max() <= 1
+
+
+def _gradient_character(zombie, offset=0.0):
+    """The zombie with a smooth 64-texel gradient along u, u running with each vertex's height."""
+    ramp = np.zeros((1, 64, 4), np.uint8)
+    ramp[0, :, 0] = np.linspace(0, 255, 64)
+    ramp[0, :, 1] = np.linspace(255, 0, 64)
+    ramp[0, :, 3] = 255
+    char = textured(zombie, ramp, (0.0, 0.5), mag=LINEAR, minify=LINEAR)
+    meshes = []
+    for m in char.meshes:
+        u = (m.positions[:, 1] - m.positions[:, 1].min()) / max(float(np.ptp(m.positions[:, 1])), 1e-6)
+        meshes.append(dataclasses.replace(m, uvs=np.stack([u + offset, np.full_like(u, 0.5)], axis=1).astype(np.float32)))
+    return dataclasses.replace(char, meshes=meshes)
+
+
+def test_packed_coordinates_draw_as_float_ones_do(tmp_path, zombie, gl_context, monkeypatch):
+    """Coordinates that vary over the body: the packed layout's decode in the shader draws what float
+    coordinates draw, to 2 levels of 255; and a piece whose coordinates span more than PACKED_UV_SPAN
+    (one stray vertex at u = 1000, which would make the packed step 1000/65535) is drawn with float
+    coordinates and says so."""
+    from crowd.draw import render
+
+    write_glb(_gradient_character(zombie), tmp_path / "g.glb")
+    packed = draw(tmp_path / "g.glb", gl_context)
+    with monkeypatch.context() as m:
+        m.setattr(render, "PACKED_UV_SPAN", -1.0)  # every textured piece takes the float layout
+        wide = draw(tmp_path / "g.glb", gl_context)
+    assert np.abs(packed - wide).max() <= 2
+    far = _gradient_character(zombie)
+    far = dataclasses.replace(far, meshes=[dataclasses.replace(m, uvs=np.where(np.arange(len(m.uvs))[:, None] == 0, m.uvs + [[1000.0, 0.0]], m.uvs).astype(np.float32))
+                                           for m in far.meshes])
+    write_glb(far, tmp_path / "far.glb")
+    loaded = load_character(tmp_path / "far.glb")
+    assert any("span" in w and "float coordinates" in w for w in loaded.warnings)
+    assert all(render.uv_layout(m) == "wide" for m in loaded.meshes)
+
+
+def test_sixteen_bit_grey_pngs_keep_their_values():
+    out = io.BytesIO()
+    Image.fromarray(np.array([[1000, 32768, 65535]], np.uint16)).save(out, format="PNG")
+    np.testing.assert_array_equal(decode_image(out.getvalue(), "image 0")[0, :, 0], [3, 128, 255])
+
+
+def test_a_jpeg_of_thousands_of_scans_is_refused_before_decoding():
+    data = png(np.repeat(np.repeat(FOUR, 8, 0), 8, 1), fmt="JPEG", mode="RGB")
+    bomb = data[:-2] + b"\xff\xda" * 500 + data[-2:]
+    with pytest.raises(ImageError, match="JPEG of 50[0-9] scans, more than the 100 allowed"):
+        decode_image(bomb, "image 0")
+
+
+def test_an_image_with_both_a_uri_and_a_buffer_view_is_left_out(tmp_path, textured_doc):
+    doc, blob = textured_doc
+    doc["images"][0]["uri"] = "skin.png"
+    c = load_character(_as_gltf(tmp_path, doc, blob))
+    assert not c.textures and any("both a uri and a bufferView" in w for w in c.warnings)
+
+
+def test_specular_glossiness_diffuse_is_the_base_colour(tmp_path, textured_doc):
+    doc, blob = textured_doc
+    mat = next(m for m in doc["materials"] if "baseColorTexture" in m["pbrMetallicRoughness"])
+    pbr = mat.pop("pbrMetallicRoughness")
+    mat["extensions"] = {"KHR_materials_pbrSpecularGlossiness": {"diffuseFactor": [0.5, 0.25, 1.0, 1.0],
+                                                                  "diffuseTexture": pbr["baseColorTexture"]}}
+    c = load_character(_as_gltf(tmp_path, doc, blob))
+    textured_meshes = [m for m in c.meshes if m.texture == 0]
+    assert textured_meshes and textured_meshes[0].base_color == (0.5, 0.25, 1.0, 1.0)
+    assert any("KHR_materials_pbrSpecularGlossiness specular and glossiness" in w for w in c.warnings)
+
+
+def test_a_refused_read_counts_nothing_against_the_file_budget(tmp_path, textured_doc, monkeypatch):
+    from crowd.asset import gltf
+
+    path = _as_gltf(tmp_path, *textured_doc)
+    reader = gltf._Reader(path)
+    before = reader._loaded_bytes
+    monkeypatch.setattr(gltf, "MAX_FILE_BYTES", before + 10)
+    with pytest.raises(GltfImportError, match="would bring the bytes read to"):
+        reader._charge_file(11, "image 0")
+    assert reader._loaded_bytes == before
+    reader._charge_file(10, "buffer 1")  # what comes after still fits

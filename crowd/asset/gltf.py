@@ -180,9 +180,11 @@ class _Reader:
     # -- the container
 
     def _charge_file(self, size: int, what: str) -> None:
+        """Counts `size` bytes against MAX_FILE_BYTES, or refuses them and counts nothing (an image left
+        out for its size must not use up the budget of what comes after it)."""
+        if self._loaded_bytes + size > MAX_FILE_BYTES:
+            self.fail(f"{what} would bring the bytes read to {self._loaded_bytes + size:,}, more than the {MAX_FILE_BYTES:,} allowed")
         self._loaded_bytes += size
-        if self._loaded_bytes > MAX_FILE_BYTES:
-            self.fail(f"{what} brings the bytes read to {self._loaded_bytes:,}, more than the {MAX_FILE_BYTES:,} allowed")
 
     def _read_file(self, target: Path, what: str) -> bytes:
         """A file's bytes, refused from its size before a byte is read. A file whose size is not what
@@ -1164,7 +1166,7 @@ def _read_meshes(r: _Reader, tree: _Tree, skin_maps: dict[int, np.ndarray], mate
     return meshes
 
 
-def _rigid_parts(r: _Reader, mesh_index: int, materials: Materials, warn: list[str]) -> list[RigidMesh]:
+def _rigid_parts(r: _Reader, mesh_index: int, materials: Materials, warn: list[str], textures: bool = True) -> list[RigidMesh]:
     """A rigid mesh as one RigidMesh per base-colour texture its primitives use (untextured ones
     together): each part is then one draw. Each primitive's base colour factor is multiplied into its
     vertex colours, so primitives of different colours keep them in one part."""
@@ -1183,7 +1185,7 @@ def _rigid_parts(r: _Reader, mesh_index: int, materials: Materials, warn: list[s
         if not idx.size:
             continue
         nrm = _normals(r, prim, pos, idx, label, warn)
-        surface = materials.surface(prim, label)
+        surface = materials.surface(prim, label, textures)
         uvs = _uvs(r, prim, surface, materials, label, pos.shape[0])
         colors = _colors(r, prim, pos.shape[0], label)
         colors = (np.ones((pos.shape[0], 4)) if colors is None else colors) * np.asarray(surface.base_color)
@@ -1220,8 +1222,8 @@ def _read_rigid(r: _Reader, tree: _Tree, new_index, factor: float, materials: Ma
         extras = crowd_extras(node)
         if node.get("mesh") is not None and node.get("skin") is None:
             if isinstance(extras.get("prop"), str):
-                parts = _rigid_parts(r, node["mesh"], materials, warn)
-                if any(part.texture >= 0 for part in parts):
+                parts = _rigid_parts(r, node["mesh"], materials, warn, textures=False)
+                if any(materials.has_texture(prim) for prim in r.list(r.item("meshes", node["mesh"]), "primitives", "") if isinstance(prim, dict)):
                     warn.append(f"prop {extras['prop']!r}: its texture is left out (props are drawn in their vertex and base colours)")
                 mesh = _untextured(parts)
                 grip = np.eye(4)

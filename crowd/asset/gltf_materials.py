@@ -3,7 +3,9 @@ the ``baseColorTexture``, sampled at its TEXCOORD set through its sampler's wrap
 KHR_texture_transform.
 
 What the crowd's one lighting model cannot use (normal, metallic-roughness, occlusion and emissive
-maps, alpha blending) is named in one warning. The draw stage packs every image into one texture array,
+maps, alpha modes, specular-glossiness) is named in one warning. A KHR_materials_pbrSpecularGlossiness
+material without pbrMetallicRoughness is drawn with its diffuse factor and texture as the base colour,
+which is what it means. Props (the weapons the crowd holds) read their base colour only. The draw stage packs every image into one texture array,
 so a textured piece is still one instanced draw per (piece, LOD).
 
 Images are PNG or JPEG, embedded (a bufferView or a data URI) or a file in the model's folder, decoded
@@ -12,7 +14,11 @@ be used (missing, outside the folder, not PNG/JPEG, corrupt, larger than MAX_IMA
 MAX_TOTAL_PIXELS with the images before it) leaves its
 meshes drawn with the base colour factor and vertex colours, and one warning naming the image and why:
 the character itself is still right, and real exports often reference a texture nobody shipped.
-Texture coordinates that cannot be drawn (NaN, beyond ±MAX_UV) are refused, as positions are.
+Decoding is bounded before it starts: pixels per image and per file from the headers, and a JPEG's
+count of scans (libjpeg decodes each over the whole image, so a file of thousands of tiny scans would
+take minutes). 16-bit grey PNGs keep their values (Pillow's RGBA conversion clips them to white).
+Texture coordinates that cannot be drawn (NaN, beyond ±MAX_UV) are refused, as positions are; a piece
+whose coordinates span more than PACKED_UV_SPAN is named in a warning (it draws with float coordinates).
 """
 
 from __future__ import annotations
@@ -25,13 +31,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import CLAMP_TO_EDGE, LINEAR, MIPMAP_FILTERS, NEAREST, REPEAT, WRAPS, Texture
+from .model import CLAMP_TO_EDGE, LINEAR, MIPMAP_FILTERS, NEAREST, PACKED_UV_SPAN, REPEAT, WRAPS, Texture
 
 MAX_IMAGE_PIXELS = 4096 * 4096  # 64 MB as RGBA8: a character's atlas is at most 4k
 MAX_TOTAL_PIXELS = 4 * MAX_IMAGE_PIXELS  # all images of one file together, decoded (256 MB)
-MAX_TEXTURES = 256  # the layers every GL 3.3 texture array may hold
+MAX_TEXTURES = 256  # distinct images: the layers every GL 3.3 texture array may hold
+MAX_JPEG_SCANS = 100  # progressive JPEGs have about 10; each scan is decoded over the whole image
 MAX_UV = 1e4  # float32 keeps 1/1600 of a texel of a 1024 texture here; beyond, the texture is noise
 _MAPS = ("normalTexture", "occlusionTexture", "emissiveTexture")
+_SPEC_GLOSS = "KHR_materials_pbrSpecularGlossiness"  # archived, still exported: its diffuse is a base colour
 _FORMATS = {"PNG": "image/png", "JPEG": "image/jpeg"}
 
 
@@ -67,10 +75,21 @@ class Materials:
         self._left_out: set[str] = set()
         self._notes: list[str] = []
         self._pixels = 0  # decoded so far, against MAX_TOTAL_PIXELS
+        self._layers: set[int] = set()  # distinct images in self.textures, against MAX_TEXTURES
 
     # -- per primitive
 
-    def surface(self, prim: dict, label: str) -> Surface:
+    def has_texture(self, prim: dict) -> bool:
+        """Whether a primitive's material names a base-colour texture (read without decoding it)."""
+        material = prim.get("material")
+        mats = self.r.array("materials")
+        if not isinstance(material, int) or not 0 <= material < len(mats) or not isinstance(mats[material], dict):
+            return False
+        pbr = mats[material].get("pbrMetallicRoughness")
+        return isinstance(pbr, dict) and pbr.get("baseColorTexture") is not None
+
+    def surface(self, prim: dict, label: str, textures: bool = True) -> Surface:
+        """The primitive's base colour and texture; `textures=False` reads the colour only (props)."""
         r = self.r
         material = r.index(prim, "material", "materials", label)
         if material is None:
@@ -85,16 +104,22 @@ class Materials:
             r.choice(mat, "alphaMode", where, ("OPAQUE", "MASK", "BLEND"))
             self._left_out.add(f"alphaMode {alpha}")
         pbr = r.obj(mat, "pbrMetallicRoughness", where)
+        factor_key, texture_key = "baseColorFactor", "baseColorTexture"
+        gloss = r.obj(r.obj(mat, "extensions", where) or {}, _SPEC_GLOSS, f"{where} extensions")
+        if gloss is not None:
+            self._left_out.add(f"{_SPEC_GLOSS} specular and glossiness")
+            if pbr is None:  # what a viewer without the extension falls back to is white; its diffuse is meant
+                pbr, factor_key, texture_key = gloss, "diffuseFactor", "diffuseTexture"
         if pbr is None:
             return Surface((1.0, 1.0, 1.0, 1.0))
-        where = f"{where} pbrMetallicRoughness"
-        base = tuple(float(x) for x in r.numbers(pbr, "baseColorFactor", 4, where, [1.0, 1.0, 1.0, 1.0]))
+        where = f"{where} {'pbrMetallicRoughness' if factor_key == 'baseColorFactor' else _SPEC_GLOSS}"
+        base = tuple(float(x) for x in r.numbers(pbr, factor_key, 4, where, [1.0, 1.0, 1.0, 1.0]))
         if r.obj(pbr, "metallicRoughnessTexture", where) is not None:
             self._left_out.add("metallicRoughnessTexture")
-        info = r.obj(pbr, "baseColorTexture", where)
-        if info is None:
+        info = r.obj(pbr, texture_key, where)
+        if info is None or not textures:
             return Surface(base)
-        where = f"{where} baseColorTexture"
+        where = f"{where} {texture_key}"
         texture = self._texture(r.index(info, "index", "textures", where, required=True))
         texcoord = r.whole(info, "texCoord", where, default=0, hi=31)
         extensions = r.obj(info, "extensions", where) or {}
@@ -126,6 +151,10 @@ class Materials:
         bad = ~np.isfinite(uv) | (np.abs(uv) > MAX_UV)
         if np.any(bad):
             self.r.fail(f"{what}: vertex {int(np.argmax(bad.any(axis=1)))} has a texture coordinate that is NaN or beyond ±{MAX_UV:g}")
+        span = float(np.max(uv.max(axis=0) - uv.min(axis=0))) if len(uv) else 0.0
+        if span > PACKED_UV_SPAN:
+            self._notes.append(f"{label}: texture coordinates span {span:.4g}, more than the {PACKED_UV_SPAN:g} a packed vertex holds; "
+                               "drawn with float coordinates, a third vertex attribute (slower)")
         return uv.astype(np.float32)
 
     def warnings(self) -> list[str]:
@@ -149,8 +178,10 @@ class Materials:
             self._notes.append(f"{where} has no PNG or JPEG source{' (only ' + ', '.join(others) + ')' if others else ''}; drawn without it")
         else:
             pixels = self._image(source)
-            if pixels is not None and len(self.textures) >= MAX_TEXTURES:
-                r.fail(f"{where}: more than {MAX_TEXTURES} base-colour textures, the layers a texture array is sure to hold")
+            if pixels is not None and source not in self._layers:
+                if len(self._layers) >= MAX_TEXTURES:
+                    r.fail(f"{where}: more than {MAX_TEXTURES} base-colour images, the layers a texture array is sure to hold")
+                self._layers.add(source)
             if pixels is not None:
                 wrap, mag, minify = self._sampler(r.index(tex, "sampler", "samplers", where))
                 name = r.item("images", source).get("name")
@@ -195,6 +226,8 @@ class Materials:
         r = self.r
         uri = image.get("uri")
         view = r.index(image, "bufferView", "bufferViews", where)
+        if view is not None and uri is not None:
+            raise ImageError(f"{where} has both a uri and a bufferView (glTF allows one)")
         if view is not None:
             data, start, length, _ = r.view(view)
             return bytes(data[start:start + length])
@@ -231,6 +264,14 @@ def decode_image(data: bytes, where: str, budget: int = MAX_IMAGE_PIXELS) -> np.
                 raise ImageError(f"{where} is {w}x{h}, more than the {MAX_IMAGE_PIXELS:,} pixels allowed")
             if w * h > budget:
                 raise ImageError(f"{where} is {w}x{h}, past the {MAX_TOTAL_PIXELS:,} pixels all images of a file may decode to")
+            # libjpeg decodes every scan over the whole image: thousands of tiny scans take minutes. In
+            # entropy-coded data 0xFF is always followed by 0x00 or a restart marker, so this counts
+            # start-of-scan markers (and those of an embedded thumbnail, which only errs on the safe side).
+            scans = data.count(b"\xff\xda") if im.format == "JPEG" else 0
+            if scans > MAX_JPEG_SCANS:
+                raise ImageError(f"{where} is a JPEG of {scans} scans, more than the {MAX_JPEG_SCANS} allowed")
+            if im.mode in ("I;16", "I;16B", "I;16L", "I"):  # 16-bit grey: convert() would clip it to white
+                im = Image.fromarray((np.asarray(im).astype(np.uint32) >> 8).clip(0, 255).astype(np.uint8))
             pixels = np.asarray(im.convert("RGBA"), dtype=np.uint8)
     except ImageError:
         raise

@@ -17,6 +17,9 @@ NEAREST, LINEAR = 9728, 9729
 MIPMAP_FILTERS = (9984, 9985, 9986, 9987)  # {NEAREST, LINEAR}_MIPMAP_{NEAREST, LINEAR}
 REPEAT, CLAMP_TO_EDGE, MIRRORED_REPEAT = 10497, 33071, 33648
 WRAPS = (REPEAT, CLAMP_TO_EDGE, MIRRORED_REPEAT)
+# A textured piece whose coordinates span at most this (on each axis) has them packed as unorm16 across
+# their box, which keeps 1/4 texel of a 2048 texture; a wider span is drawn with float coordinates.
+PACKED_UV_SPAN = 16.0
 PATHS = {"translation": 3, "rotation": 4, "scale": 3}
 
 

@@ -8,8 +8,10 @@ resampled NEAREST so their pixels stay square.
 
 Why sampler objects: each glTF texture carries its own wrap and filter, and a sampler object binds
 them to the array at draw time (GL 3.3 core). GL's MIRRORED_REPEAT has no moderngl switch, so the
-sampler repeats and the shader folds the coordinate (``u_uv_mirror``), sampling with the unfolded
-coordinate's derivatives so the fold leaves no seam in the mip level.
+shader folds the coordinate into [0, 1] (``u_uv_mirror``) and the sampler clamps that axis, so
+filtering at a fold blends the edge texel with itself as GL's mirrored repeat does (a repeating
+sampler would blend it with the opposite edge); the unfolded coordinate's derivatives keep the mip
+level smooth across the fold.
 
 Storage: RGBA16F holding linear colour. moderngl cannot make an sRGB texture array, and decoding sRGB
 after filtering would darken every filtered edge (a black-white edge half way reads 0.21 instead of
@@ -22,18 +24,21 @@ from __future__ import annotations
 import moderngl
 import numpy as np
 
-from ..asset.model import MIPMAP_FILTERS, MIRRORED_REPEAT, NEAREST, CLAMP_TO_EDGE, Texture
+from ..asset.model import MIPMAP_FILTERS, MIRRORED_REPEAT, NEAREST, REPEAT, Texture
 from ..gl import GLObjects, GLStage
 
 MAX_LAYER_SIZE = 2048
 MAX_ARRAY_BYTES = 256 << 20  # the array with its mip chain; layers are halved until it fits
-TEXTURE_UNIT = 4  # units 0-2: the palette, 3: the shadow map
+TEXTURE_UNIT = 6  # units 0-2: the palette, 3: the shadow map; the processor's pass uses 0-5
 
 
 def srgb_to_linear(c: np.ndarray) -> np.ndarray:
     """The sRGB transfer function's inverse (IEC 61966-2-1), float64 in [0, 1]."""
     c = np.asarray(c, np.float64)
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+_SRGB8_TO_LINEAR = srgb_to_linear(np.arange(256) / 255.0).astype(np.float32)  # a lookup: 8-bit codes only
 
 
 def layer_size(textures: list[Texture], limit: int = MAX_LAYER_SIZE, budget: int = MAX_ARRAY_BYTES) -> tuple[int, int]:
@@ -51,14 +56,20 @@ def linear_layer(texture: Texture, size: tuple[int, int]) -> np.ndarray:
     """float32 (H, W, 4): the texture's colour in linear light (alpha as stored), resampled to `size`."""
     from PIL import Image
 
-    rgba = texture.pixels.astype(np.float64) / 255.0
-    rgba[..., :3] = srgb_to_linear(rgba[..., :3])
-    rgba = rgba.astype(np.float32)
+    rgba = _SRGB8_TO_LINEAR[texture.pixels]
+    rgba[..., 3] = texture.pixels[..., 3] / np.float32(255.0)
     w, h = size
     if rgba.shape[:2] == (h, w):
         return rgba
-    nearest = texture.mag_filter == NEAREST
-    method = Image.Resampling.NEAREST if nearest else Image.Resampling.LANCZOS
+    # Upscaled as the GPU would have filtered the original (bilinear: Lanczos rings and sharpens what
+    # was authored soft); reduced with Lanczos. Pillow's resampling clamps at the edges whatever the
+    # wrap, which can leave a faint seam on a repeating texture that is resampled.
+    if texture.mag_filter == NEAREST:
+        method = Image.Resampling.NEAREST
+    elif w >= rgba.shape[1] and h >= rgba.shape[0]:
+        method = Image.Resampling.BILINEAR
+    else:
+        method = Image.Resampling.LANCZOS
     channels = [np.asarray(Image.fromarray(np.ascontiguousarray(rgba[..., k]), mode="F").resize((w, h), method)) for k in range(4)]
     return np.clip(np.stack(channels, axis=-1), 0.0, 1.0).astype(np.float32)
 
@@ -96,7 +107,7 @@ class MaterialTextures(GLStage):
             tex = textures[t]
             minify = tex.min_filter if self.mipmapped or tex.min_filter not in MIPMAP_FILTERS else tex.mag_filter
             self.samplers[t] = self._objects.add(ctx.sampler(
-                repeat_x=tex.wrap[0] != CLAMP_TO_EDGE, repeat_y=tex.wrap[1] != CLAMP_TO_EDGE, filter=(minify, tex.mag_filter)))
+                repeat_x=tex.wrap[0] == REPEAT, repeat_y=tex.wrap[1] == REPEAT, filter=(minify, tex.mag_filter)))
             self.mirror[t] = (float(tex.wrap[0] == MIRRORED_REPEAT), float(tex.wrap[1] == MIRRORED_REPEAT))
 
     def bind(self, texture: int, prog: moderngl.Program) -> None:

@@ -26,7 +26,7 @@ from ..frame import Camera, Instances
 from ..gl import GLStage, gpu_bytes, load_shader
 from ..settings import DEFAULTS, SETTINGS
 from ..lighting import FOG_COLOR, LIGHTING, SUN_DIR
-from ..asset.model import Character, SkinnedMesh
+from ..asset.model import PACKED_UV_SPAN, Character, SkinnedMesh
 from ..anim.processor import palette_texel
 from ..asset.vertex_cache import optimize_triangle_order
 from .materials import TEXTURE_UNIT, MaterialTextures
@@ -41,6 +41,12 @@ VERTEX_FORMAT = ("3f 4u", "in_position", "in_packed")
 # (unorm16 x2 across the piece's coordinate box) in one uvec4, so the shader still reads two attributes.
 TEXTURED_VERTEX_DTYPE = np.dtype([("position_uv", "<u4", 4), ("packed", "<u4", 4)])
 TEXTURED_VERTEX_FORMAT = ("4u 4u", "in_position", "in_packed")
+# A textured piece whose coordinates span more than PACKED_UV_SPAN (unorm16 would lose texels): float
+# coordinates as a third attribute, 36 bytes (and a draw about 1.4x as long on the H200).
+WIDE_UV_VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("packed", "<u4", 4), ("uv", "<f4", 2)])
+WIDE_UV_VERTEX_FORMAT = ("3f 4u 2f", "in_position", "in_packed", "in_uv")
+_LAYOUTS = {"": (VERTEX_DTYPE, VERTEX_FORMAT), "packed": (TEXTURED_VERTEX_DTYPE, TEXTURED_VERTEX_FORMAT),
+            "wide": (WIDE_UV_VERTEX_DTYPE, WIDE_UV_VERTEX_FORMAT)}
 WEIGHT_STEP = 1.0 / 2046.0  # a stored weight is within half of this of the float weight
 # Per-instance record, 28 bytes: position relative to the camera and scale; palette texel of the agent's
 # joint 0 (x | y << 16), tint RGBA8, cos and sin of the heading as snorm16.
@@ -119,13 +125,24 @@ def heading_snorm16(yaw: np.ndarray) -> np.ndarray:
     return np.stack([_snorm(np.cos(yaw), 16), _snorm(np.sin(yaw), 16)], axis=1)
 
 
+def uv_layout(mesh: SkinnedMesh) -> str:
+    """The vertex layout of a mesh: "" (untextured), "packed" (the coordinate beside the position,
+    as unorm16 across its box) or "wide" (float coordinates, for a span packing would blur)."""
+    if mesh.texture < 0:
+        return ""
+    corner, size = uv_box(mesh.uvs)
+    return "packed" if float(np.max(size)) <= PACKED_UV_SPAN else "wide"
+
+
 def pack_vertices(mesh: SkinnedMesh) -> np.ndarray:
     """Vertex records with each vertex's influences sorted by descending weight, so the shader can
-    skip the third and fourth bones where their weight is zero; a textured mesh's records end with
-    its texture coordinate."""
-    textured = mesh.texture >= 0
-    v = np.zeros(mesh.positions.shape[0], TEXTURED_VERTEX_DTYPE if textured else VERTEX_DTYPE)
-    if textured:
+    skip the third and fourth bones where their weight is zero, laid out as `uv_layout` says."""
+    layout = uv_layout(mesh)
+    v = np.zeros(mesh.positions.shape[0], _LAYOUTS[layout][0])
+    if layout == "wide":
+        v["position"] = mesh.positions
+        v["uv"] = mesh.uvs
+    elif layout == "packed":
         v["position_uv"][:, :3] = np.ascontiguousarray(mesh.positions, np.float32).view(np.uint32)
         corner, size = uv_box(mesh.uvs)
         q = np.rint((np.asarray(mesh.uvs, np.float64) - corner) / size * 65535.0).astype(np.uint32)
@@ -175,6 +192,7 @@ class _Draw:
     ibo: moderngl.Buffer
     instances: moderngl.Buffer
     texture: int = -1  # index into Character.textures, -1: none
+    layout: str = ""  # uv_layout
     uv_box: tuple = (0.0, 0.0, 1.0, 1.0)  # corner and size of the texture coordinates' unorm16 box
     vaos: dict = field(default_factory=dict)  # program key → VertexArray
     count: int = 0
@@ -209,7 +227,7 @@ class CrowdRenderer(GLStage):
             ibo = self._own("meshes", ctx.buffer(optimize_triangle_order(m.indices, len(m.positions)).tobytes()))
             inst = self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
             box = tuple(float(x) for x in np.concatenate(uv_box(m.uvs))) if m.texture >= 0 else (0.0, 0.0, 1.0, 1.0)
-            self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, vbo, ibo, inst, m.texture, box))
+            self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, vbo, ibo, inst, m.texture, uv_layout(m), box))
         # Only the textures a drawn piece uses reach the GPU, and none when no piece has one.
         used = {m.texture for m in meshes if m.texture >= 0}
         self.materials = self._own("textures", MaterialTextures(ctx, character.textures, used)) if used else None
@@ -242,10 +260,10 @@ class CrowdRenderer(GLStage):
         self._objects[group].append(obj)
         return obj
 
-    def _program(self, kind: str, skinned: bool | str, textured: bool = False) -> moderngl.Program:
+    def _program(self, kind: str, skinned: bool | str, layout: str = "") -> moderngl.Program:
         """kind: color, depth or ground; skinned: True, or False for the benchmark's unskinned ceiling;
-        textured: the colour pass of a piece with a base-colour texture."""
-        key = (kind, skinned, textured)
+        layout: a textured piece's vertex layout ("packed" or "wide", see uv_layout), "" for none."""
+        key = (kind, skinned, layout)
         if key in self._programs:
             return self._programs[key]
         defines = {}
@@ -259,11 +277,13 @@ class CrowdRenderer(GLStage):
                 vdefs["DEPTH_ONLY"] = 1
                 frag = load_shader("depth.frag.glsl")
             else:
-                if textured:
+                if layout:
                     defines["TEXTURED"] = 1
                 frag = load_shader("skin.frag.glsl", defines)
-            if textured:
+            if layout:
                 vdefs["TEXTURED"] = 1
+            if layout == "wide":
+                vdefs["WIDE_UV"] = 1
             prog = self.ctx.program(vertex_shader=load_shader("skin.vert.glsl", vdefs), fragment_shader=frag)
             for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
                 if name in prog:
@@ -279,17 +299,16 @@ class CrowdRenderer(GLStage):
         key = (kind, skinned)
         if key not in draw.vaos:
             prog = self._draw_program(draw, kind, skinned)
-            layout = TEXTURED_VERTEX_FORMAT if draw.texture >= 0 else VERTEX_FORMAT
-            content = [(draw.vbo, *_read_by(prog, layout)), (draw.instances, *_read_by(prog, INSTANCE_FORMAT))]
+            content = [(draw.vbo, *_read_by(prog, _LAYOUTS[draw.layout][1])), (draw.instances, *_read_by(prog, INSTANCE_FORMAT))]
             draw.vaos[key] = self._own("programs", self.ctx.vertex_array(prog, content, index_buffer=draw.ibo, index_element_size=4))
         return draw.vaos[key]
 
-    def _variants(self) -> tuple[bool, ...]:
-        """The program variants a pass runs: untextured, and textured where a piece has a texture."""
-        return (False, True) if self.materials is not None else (False,)
+    def _variants(self) -> list[str]:
+        """The program variants a pass runs: one per vertex layout among the pieces."""
+        return sorted({d.layout for d in self.draws})
 
     def _draw_program(self, draw: _Draw, kind: str, skinned: bool) -> moderngl.Program:
-        return self._program(kind, skinned, draw.texture >= 0)
+        return self._program(kind, skinned, draw.layout)
 
     def gpu_bytes(self) -> dict[str, int]:
         out = {group: gpu_bytes(objs) for group, objs in self._objects.items() if group not in ("programs", "textures")}
@@ -398,11 +417,11 @@ class CrowdRenderer(GLStage):
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE)
         processor.bind_palette(0)
-        for textured in self._variants():
-            prog = self._program("depth", True, textured)
+        for layout in self._variants():
+            prog = self._program("depth", True, layout)
             prog["u_view_proj"].write(gl_bytes(view.light_view_proj))
             for draw in self.draws:
-                if draw.count and (draw.texture >= 0) == textured:
+                if draw.count and draw.layout == layout:
                     self._vao(draw, "depth", True).render(moderngl.TRIANGLES, instances=draw.count)
         return True
 
@@ -420,18 +439,21 @@ class CrowdRenderer(GLStage):
         self.ctx.disable(moderngl.CULL_FACE)
         if skinned:
             processor.bind_palette(0)
-        for textured in self._variants():
-            prog = self._program("color", skinned, textured)
-            prog["u_view_proj"].write(gl_bytes(view.view_proj))
-            self.set_lighting(prog, view)
-            for draw in self.draws:
-                if draw.count and (draw.texture >= 0) == textured:
-                    if textured:
-                        self.materials.bind(draw.texture, prog)
-                        prog["u_uv_box"] = draw.uv_box
-                    self._vao(draw, "color", skinned).render(moderngl.TRIANGLES, instances=draw.count)
-        if self.materials is not None:
-            self.materials.unbind()
+        try:
+            for layout in self._variants():
+                prog = self._program("color", skinned, layout)
+                prog["u_view_proj"].write(gl_bytes(view.view_proj))
+                self.set_lighting(prog, view)
+                for draw in self.draws:
+                    if draw.count and draw.layout == layout:
+                        if layout:
+                            self.materials.bind(draw.texture, prog)
+                        if layout == "packed":
+                            prog["u_uv_box"] = draw.uv_box
+                        self._vao(draw, "color", skinned).render(moderngl.TRIANGLES, instances=draw.count)
+        finally:
+            if self.materials is not None:  # a sampler object left on its unit would override what binds there next
+                self.materials.unbind()
 
     def ground_pass(self, framebuffer, view: "FrameView") -> None:
         framebuffer.use()
