@@ -100,9 +100,11 @@ def main(argv=None) -> int:
         return 2
     for note in stats["warnings"]:
         print(f"  note: {note}")
-    f = stats["frame_ms"]
+    period, latency = stats["frame_period_ms"], stats["frame_latency_ms"]
+    paced = f"frame period p50 {period['p50']} ms, p95 {period['p95']} ms; " if period else ""
+    timed = f"latency p50 {latency['p50']} ms, p95 {latency['p95']} ms; " if latency else ""
     print(f"{stats['agents']} agents, {stats['frames']} frames at {stats['size'][0]}x{stats['size'][1]} on {stats['gl_renderer']}: "
-          f"frame p50 {f['p50']} ms, p95 {f['p95']} ms; processor ({stats['processor_path']}) {stats['passes_ms'].get('process', 0)} ms; "
+          f"{paced}{timed}processor ({stats['processor_path']}) {stats['passes_ms'].get('process', 0)} ms; "
           f"{stats['last_frame']['triangles']:,} triangles; NaN rows {stats['nan_count']}")
     w = stats["weapons"]
     if w["enabled"]:

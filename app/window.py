@@ -57,12 +57,16 @@ class CrowdWindow(mglw.WindowConfig):
         self.keys_down: set = set()
         self._press = None  # where a left press started, to tell a click from a drag
         self._dragged = 0.0
-        self.frame_ms: list[float] = []
+        self.frame_period_ms: list[float] = []  # from one frame's start to the next: the swap paces it
+        self._last_start: float | None = None
 
     # -- frames
 
     def on_render(self, time_s: float, frame_time: float) -> None:
         started = time.perf_counter()
+        if self._last_start is not None:
+            self.frame_period_ms.append((started - self._last_start) * 1e3)
+        self._last_start = started
         dt = min(max(frame_time, 0.0), MAX_FRAME_DT)
         self._walk_player(dt)
         self.orbit.apply(self.session.pipeline.camera)
@@ -76,7 +80,6 @@ class CrowdWindow(mglw.WindowConfig):
         self.panel.draw()
         self.imgui.render()
         self.gui.render(self.imgui.get_draw_data())
-        self.frame_ms.append((time.perf_counter() - started) * 1e3)
 
     def _walk_player(self, dt: float) -> None:
         keys = self.wnd.keys
@@ -204,7 +207,9 @@ def run_window(scene: Scene, size: tuple[int, int], frames: int | None, screensh
         window.session.pipeline.timer.end_frame(drain=True)
         if screenshot is not None:
             window.screenshot(screenshot)
-        stats = collect_stats(window.ctx, window.session.pipeline, window.frame_ms, window.wnd.buffer_size, scene)
+        # The window never finishes a frame to time it (that would stall it), so it has no latency.
+        stats = collect_stats(window.ctx, window.session.pipeline, {"frame_period_ms": window.frame_period_ms[1:]},
+                              window.wnd.buffer_size, scene, len(window.frame_period_ms) + 1)
         stats["gpu_bytes"]["markers"] = window.markers.gpu_bytes()
         stats["window"] = {"backend": "pyglet", "frames": count, **describe(window.ctx)}
         if stats_path is not None:

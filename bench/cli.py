@@ -208,8 +208,9 @@ def bench_ai(args) -> int:
 
 def bench_frame(args) -> int:
     """The whole headless frame (AI, processor, culling, shadows, draws, weapons) as a window runs it.
-    Period: `frames` frames issued back to back with one finish at the end, divided by `frames` (what a
-    window's frame rate is). Latency: one finish per frame. Both after a warm-up, `repeats` times; the
+    Period: `frames` frames issued back to back with one finish at the end, the CPU at most 2 frames
+    ahead of the GPU as a swapping window is (crowd.smoke.paced_frames), divided by `frames` (what a
+    window's frame rate is); the per-frame intervals give its p95 and max. Latency: one finish per frame. Both after a warm-up, `repeats` times; the
     pass medians come from the same frames (GPU passes from timer queries)."""
     import moderngl
 
@@ -217,7 +218,7 @@ def bench_frame(args) -> int:
     from crowd.pipeline import CrowdPipeline
     from crowd.scene import Scene, load_scene
     from crowd.settings import parse
-    from crowd.smoke import FIXED_DT
+    from crowd.smoke import FIXED_DT, paced_frames
 
     size = parse("size", args.size)
     scene = load_scene(args.scene) if args.scene else Scene()
@@ -235,13 +236,11 @@ def bench_frame(args) -> int:
                 for _ in range(args.warmup):
                     pipeline.frame(target.framebuffer, FIXED_DT)
                 ctx.finish()
-                periods, latencies = [], []
+                periods, latencies, intervals = [], [], []
                 for _ in range(args.repeats):
-                    t0 = time.perf_counter()
-                    for _ in range(args.frames):
-                        pipeline.frame(target.framebuffer, FIXED_DT)
-                    ctx.finish()
-                    periods.append((time.perf_counter() - t0) * 1e3 / args.frames)
+                    paced = paced_frames(ctx, lambda: pipeline.frame(target.framebuffer, FIXED_DT), args.frames)
+                    periods.append(sum(paced) / len(paced))
+                    intervals += paced
                     for _ in range(max(1, args.frames // 2)):
                         t0 = time.perf_counter()
                         pipeline.frame(target.framebuffer, FIXED_DT)
@@ -250,6 +249,8 @@ def bench_frame(args) -> int:
                 pipeline.timer.end_frame(drain=True)
                 passes = pipeline.timer.medians()
             row = {"agents": n, "period_ms": round(float(np.median(periods)), 3), "periods_ms": [round(p, 3) for p in periods],
+                   "frame_period_ms": {"p50": round(float(np.percentile(intervals, 50)), 3), "p95": round(float(np.percentile(intervals, 95)), 3),
+                                       "max": round(float(np.max(intervals)), 3)},
                    "latency_ms": round(float(np.median(latencies)), 3), "passes_ms": passes}
             rows.append(row)
             top = sorted(passes.items(), key=lambda kv: -kv[1])[:4]

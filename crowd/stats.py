@@ -69,16 +69,20 @@ def pipeline_stats(pipeline) -> dict:
     }
 
 
-def collect_stats(ctx: moderngl.Context, pipeline, frame_ms: list, size, config) -> dict:
-    """The stats JSON of a run (headless or windowed): device, frame times, passes and the pipeline's own."""
+def collect_stats(ctx: moderngl.Context, pipeline, timings: dict[str, list], size, config, frames: int) -> dict:
+    """The stats JSON of a run (headless or windowed): device, frame times, passes and the pipeline's own.
+    `timings` maps "frame_period_ms" (frames back to back, as a window runs) and "frame_latency_ms"
+    (one finish per frame) to their per-frame ms; each is reported as p50, p95 and max with its count,
+    or None where the run did not measure it (a window cannot without stalling itself)."""
     stats = describe(ctx)
     stats.update({
         "agents": pipeline.agents,
-        "frames": len(frame_ms),
+        "frames": frames,
         "size": list(size),
         "seed": pipeline.config.seed,
         "model": str(config.model) if config.model else "built-in zombie",
-        "frame_ms": percentiles(frame_ms[1:] if len(frame_ms) > 1 else frame_ms),  # frame 0 compiles shaders
+        **{key: ({**percentiles(timings[key]), "frames": len(timings[key])} if timings.get(key) else None)
+           for key in ("frame_period_ms", "frame_latency_ms")},
         "nan_count": pipeline.processor.nan_rows(),
         "python": platform.python_version(),
         "moderngl": moderngl.__version__,

@@ -61,9 +61,12 @@ def test_zero_and_one_agent(tmp_path, gl_context, agents):
 def test_stats_fields_and_no_shadow_resources_when_shadows_are_off(tmp_path, gl_context):
     stats = run_headless(PipelineConfig(agents=20, shadows=False), 4, SIZE, None, tmp_path / "s.json", ctx=gl_context)
     saved = json.loads((tmp_path / "s.json").read_text())
-    for key in ("gl_renderer", "gl_version", "agents", "frames", "size", "frame_ms", "passes_ms", "passes_run", "gpu_bytes", "nan_count"):
+    for key in ("gl_renderer", "gl_version", "agents", "frames", "size", "frame_period_ms", "frame_latency_ms", "passes_ms", "passes_run", "gpu_bytes", "nan_count"):
         assert key in saved, key
-    assert set(saved["frame_ms"]) == {"p50", "p95", "max"}
+    # 4 frames: 2 back to back (the first dropped: it compiles shaders), then 2 with a finish each.
+    assert saved["frame_period_ms"]["frames"] == 1 and saved["frame_latency_ms"]["frames"] == 2
+    for key in ("frame_period_ms", "frame_latency_ms"):
+        assert set(saved[key]) == {"p50", "p95", "max", "frames"} and saved[key]["p50"] > 0
     assert saved["passes_clock"]["process"] == "gpu" and saved["passes_ms"]["process"] > 0
     assert saved["passes_clock"]["ai"] == "cpu" and saved["passes_ms"]["ai"] > 0  # the crowd AI's CPU ms per frame
     assert saved["ai"]["faults"] == [] and sum(saved["ai"]["states"].values()) == 20
@@ -210,3 +213,30 @@ def test_crowd_bench_frame_reports_period_and_latency(tmp_path):
         assert len(row["periods_ms"]) == 2 and row["period_ms"] > 0 and row["latency_ms"] > 0
     assert "draw" in report["rows"][1]["passes_ms"] and "draw" not in report["rows"][0]["passes_ms"]  # nobody to draw at 0
     assert main(["frame", "--size", "1x1"]) == 2  # a bad size: one line, exit 2
+
+
+def test_paced_frames_run_at_most_two_ahead_and_time_each_start(gl_context, monkeypatch):
+    """The period loop waits for frame k - 2's fence before issuing frame k (as a double-buffered swap
+    does), never for the frame just issued, and returns one interval per frame."""
+    from crowd import smoke
+
+    events = []
+
+    class Recorded:
+        def __init__(self):
+            self.k = len([e for e in events if e[0] == "fence"])
+            events.append(("fence", self.k))
+
+        def wait(self):
+            events.append(("wait", self.k))
+
+        def release(self):
+            pass
+
+    monkeypatch.setattr(smoke, "Fence", Recorded)
+    intervals = smoke.paced_frames(gl_context, lambda: events.append(("frame", None)), 5)
+    assert len(intervals) == 5 and all(ms >= 0 for ms in intervals)
+    waits = [k for kind, k in events if kind == "wait"]
+    assert waits == [0, 1, 2]  # before frames 2, 3 and 4: for frames 0, 1 and 2
+    order = [kind for kind, _ in events]
+    assert order[:4] == ["frame", "fence", "frame", "fence"] and order[4] == "wait"
