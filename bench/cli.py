@@ -248,7 +248,15 @@ def bench_frame(args) -> int:
                         latencies.append((time.perf_counter() - t0) * 1e3)
                 pipeline.timer.end_frame(drain=True)
                 passes = pipeline.timer.medians()
-            row = {"agents": n, "period_ms": round(float(np.median(periods)), 3), "periods_ms": [round(p, 3) for p in periods],
+                ctx.finish()
+                if pipeline.renderer.gpu is not None:
+                    pipeline.renderer.gpu.counts(wait=True)
+                    pipeline.renderer._gpu_last()
+                drawn = dict(pipeline.renderer.last)
+                weapons = dict(pipeline.weapons.last) if pipeline.weapons is not None else None
+                memory = pipeline.gpu_bytes()
+                cull = pipeline.renderer.cull_path
+            row = {"agents": n, "cull": cull, "drawn": drawn, "weapons": weapons, "gpu_bytes": memory, "period_ms": round(float(np.median(periods)), 3), "periods_ms": [round(p, 3) for p in periods],
                    "frame_period_ms": {"p50": round(float(np.percentile(intervals, 50)), 3), "p95": round(float(np.percentile(intervals, 95)), 3),
                                        "max": round(float(np.max(intervals)), 3)},
                    "latency_ms": round(float(np.median(latencies)), 3), "passes_ms": passes}

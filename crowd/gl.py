@@ -57,6 +57,10 @@ class GLObjects:
         self._objects.append(obj)
         return obj
 
+    def remove(self, obj) -> None:
+        """Forget `obj`: its owner releases it now, ahead of the rest."""
+        self._objects = [o for o in self._objects if o is not obj]
+
     def __iter__(self):
         return iter(self._objects)
 

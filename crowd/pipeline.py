@@ -15,6 +15,8 @@ Without armed agents there is no gather pass, no read-back buffer and a single p
 
 from __future__ import annotations
 
+import contextlib
+
 import dataclasses
 from collections import deque
 from dataclasses import dataclass, field
@@ -60,6 +62,7 @@ class PipelineConfig:
     scripted_player: bool = True  # headless: the player walks a circle and strikes; the window moves it instead
     weapons: bool = DEFAULTS["weapons"]  # armed agents carry weapons (AIConfig.armed_share says how many)
     readback_latency: int = DEFAULTS["readback_latency"]  # frames between gathering a socket and the CPU reading it
+    cull: str = DEFAULTS["cull"]  # "auto", "gpu" or "cpu": where culling, LOD and the instance lists are made
 
 
 @dataclass
@@ -135,7 +138,7 @@ class CrowdPipeline(GLStage):
         c = self.config
         return StageSpec(layers=LAYERS, masks=upper_body_mask(self.character.skeleton), processor_path=c.processor_path,
                          interpolation=c.interpolation, lod_distances=c.lod_distances, shadows=c.shadows, culling=c.culling,
-                         armed=self.readback is not None if armed is None else armed, readback_latency=self.latency)
+                         armed=self.readback is not None if armed is None else armed, readback_latency=self.latency, cull=c.cull)
 
     # -- run-time settings: the panel and the command line both come through these
 
@@ -156,6 +159,20 @@ class CrowdPipeline(GLStage):
         self.stages.replace("renderer", build_renderer(self.ctx, self.character, self.processor, spec))
         if self.weapons is not None:
             self.stages.replace("weapons", build_weapons(self.ctx, self.character, spec))
+
+    def set_cull_path(self, path: str) -> None:
+        """Cull on the GPU or the CPU from the next frame: the renderer is built again for it."""
+        path = SETTINGS["cull"].check(path, PipelineError)
+        spec = dataclasses.replace(self._spec(), cull=path)
+        renderer = build_renderer(self.ctx, self.character, self.processor, spec)
+        try:
+            weapons = build_weapons(self.ctx, self.character, spec)  # culled where the bodies are
+        except BaseException:
+            renderer.release()
+            raise
+        self.stages.replace("renderer", renderer)
+        self.stages.replace("weapons", weapons)
+        self.config = dataclasses.replace(self.config, cull=path)
 
     def set_culling(self, on: bool) -> None:
         self.config = dataclasses.replace(self.config, culling=bool(on))
@@ -181,6 +198,8 @@ class CrowdPipeline(GLStage):
                 raise
             self.stages.replace("readback", readback)
             self.stages.replace("weapons", weapons)
+            if self.renderer.gpu is not None:
+                self.renderer.gpu.set_visibility(spec.armed)  # the weapons' GPU cull reads it
             if not spec.armed:
                 self.last.read = None
             self._set_palette_history(spec.history)
@@ -315,14 +334,20 @@ class CrowdPipeline(GLStage):
                 self._run("transfer")
         # Each body's palette: frame F - N where the weapon read-back is from that frame, else this one.
         row_offset = self.sync.row_offsets(None if read is None else read.frame, self.processor.row_offset) if self.agents else 0
-        with t.cpu("cull_lod"):
+        gpu_cull = self.renderer.gpu is not None and self.agents > 0
+        with t.cpu("cull_lod"), (t.gpu("cull") if gpu_cull else contextlib.nullcontext()):
+            # The CPU path culls and packs here; the GPU path packs and uploads every agent's record and
+            # dispatches the cull ("cull": the GPU time of the upload and the dispatch).
             view = self.renderer.prepare(self.camera, instances, row_offset)
         self._run("cull_lod")
+        if gpu_cull:
+            self._run("cull")
         agent_frames = None
         if self.weapons is not None:
             with t.cpu("attach"):
                 agent_frames = AgentFrames(instances.position, instances.yaw, instances.scale, self.camera.eye)
-                self.weapons.attach(self.sync.synced(read, self.agents), agent_frames, self.ai.weapon, view.visible)
+                self.weapons.attach(self.sync.synced(read, self.agents), agent_frames, self.ai.weapon, view.visible,
+                                    None if self.renderer.gpu is None else self.renderer.gpu.visible)
             self._run("attach")
         self.last = FrameState(f, view, read, row_offset, agent_frames)
         framebuffer.use()
@@ -333,7 +358,7 @@ class CrowdPipeline(GLStage):
                 if self.weapons is not None and self.weapons.last["weapons"]:
                     self.weapons.depth_pass(view.light_view_proj)
             self._run("shadow")
-        if self.renderer.last["instances"]:
+        if self.renderer.draws_anything(self.agents):
             with t.gpu("draw"):
                 self.renderer.color_pass(framebuffer, view, self.processor)
             self._run("draw")

@@ -9,7 +9,7 @@ baked), the AI's settings, the features it switches on (weapons, shadows, LOD, c
                    roles = { walk = "shamble", ... }, speed = { shamble = 1.2, ... } (playback speed),
                    loop = { attack = true, ... }
     [features]     the ``features`` settings (weapons, readback_latency, shadows, culling,
-                   lod_distances = [near, far], processor)
+                   lod_distances = [near, far], processor, cull)
     [ai]           the ``ai`` settings (crowd.sim.ai.AIConfig), e.g. runner_share = 0.3
     [camera]       eye = [x, y, z], target = [x, y, z], fov_y (degrees); absent: the default view
 
@@ -70,6 +70,7 @@ class Scene:
     culling: bool = DEFAULTS["culling"]
     lod_distances: tuple = DEFAULTS["lod_distances"]
     processor: str = DEFAULTS["processor"]
+    cull: str = DEFAULTS["cull"]
     camera: CameraSetting | None = None
 
     def with_overrides(self, source: str = "command line", **values) -> "Scene":
@@ -104,7 +105,7 @@ class Scene:
         return PipelineConfig(agents=self.agents, seed=self.seed, model=self.model, model_scale=self.model_scale, roles=dict(self.roles), bake_fps=self.bake_fps,
                               precision=self.precision, interpolation=self.interpolation, processor_path=self.processor, shadows=self.shadows, culling=self.culling,
                               lod_distances=tuple(self.lod_distances), ai=self.ai, weapons=self.weapons,
-                              readback_latency=self.readback_latency)
+                              readback_latency=self.readback_latency, cull=self.cull)
 
 
 # The keys of each table: the settings of its group, and the few structured keys only scenes have.

@@ -19,6 +19,7 @@ import numpy as np
 
 from .anim.bake import BakeError
 from .anim.processor import ProcessorError
+from .draw.render import RenderError
 from .draw.render import view_proj
 from .frame import CLIP, MASK, PHASE, WEIGHT, ForcedClip, LayerOverrides
 from .gl import GLStage
@@ -202,6 +203,13 @@ class CrowdSession(GLStage):
     def set_lod_distances(self, near: float, far: float) -> None:
         self.pipeline.set_lod_distances(*SETTINGS["lod_distances"].check((near, far), SessionError))
 
+    def set_cull_path(self, path: str) -> None:
+        """Cull, pick LODs and build the instance lists on the GPU or the CPU ("auto": the GPU where it can)."""
+        try:
+            self.pipeline.set_cull_path(SETTINGS["cull"].check(path, SessionError))
+        except RenderError as exc:
+            raise SessionError(str(exc)) from None
+
     def set_culling(self, on: bool) -> None:
         self.pipeline.set_culling(SETTINGS["culling"].check(on, SessionError))
 
@@ -234,7 +242,7 @@ class CrowdSession(GLStage):
             "interpolation": lambda v: self.rebake(bake.fps, bake.precision, v), "processor": self.set_processor_path,
             "shadows": self.set_shadows, "culling": self.set_culling, "weapons": self.set_weapons,
             "lod_distances": lambda v: self.set_lod_distances(*SETTINGS["lod_distances"].check(v, SessionError)),
-            "readback_latency": self.set_readback_latency,
+            "readback_latency": self.set_readback_latency, "cull": self.set_cull_path,
         }
         if name == "model_scale":
             SETTINGS[name].check(value, SessionError)
@@ -355,7 +363,7 @@ class CrowdSession(GLStage):
             roles=dict(p.config.roles), clip_speed=dict(p.clip_speed),
             clip_loop={k: v for k, v in bake_loops.items() if authored.get(k) != v}, ai=p.ai.config,
             weapons=p.config.weapons, readback_latency=p.latency, shadows=p.renderer.shadows, culling=p.renderer.culling,
-            lod_distances=tuple(p.renderer.lod_distances), processor=p.config.processor_path,
+            lod_distances=tuple(p.renderer.lod_distances), processor=p.config.processor_path, cull=p.config.cull,
             camera=CameraSetting(tuple(float(v) for v in cam.eye), tuple(float(v) for v in cam.target), float(cam.fov_y)))
 
     def save(self, path) -> Path | None:

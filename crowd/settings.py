@@ -214,6 +214,9 @@ _ALL = (
             label="LOD distances", low=0, open_low=True, slider=(1, 500)),
     Setting("processor", "features", "choice", "auto", "animation processor path: compute where GL 4.3 exists, else fragment",
             label="processor path", choices=("auto", "compute", "fragment")),
+    Setting("cull", "features", "choice", "auto",
+            "where culling, LOD picking and the per-draw instance lists are made: gpu (a compute pass and indirect draws, "
+            "GL 4.3) or cpu (numpy); auto: gpu where GL 4.3 exists", label="cull path", choices=("auto", "gpu", "cpu")),
     # the crowd's behaviour (crowd.sim.ai.AIConfig)
     _ai("substep", 1 / 60, "seconds, the longest simulation substep", low=0, open_low=True),
     _ai("max_dt", 0.25, "seconds: a longer frame is simulated as this long (the game slows, it does not explode)", low=0, high=10, open_low=True),

@@ -21,7 +21,7 @@ from .anim.bake import AnimationBake
 from .anim.processor import AnimationProcessor
 from .asset.model import Character
 from .draw.readback import SocketReadback
-from .draw.render import CrowdRenderer
+from .draw.render import CrowdRenderer, RenderError
 from .draw.weapons import WeaponRenderer
 from .frame import MAX_LAYERS
 from .settings import DEFAULTS
@@ -38,6 +38,7 @@ class StageSpec:
     lod_distances: tuple = DEFAULTS["lod_distances"]
     shadows: bool = DEFAULTS["shadows"]
     culling: bool = DEFAULTS["culling"]
+    cull: str = DEFAULTS["cull"]
     armed: bool = False  # somebody carries a weapon: the read-back stage and weapon meshes exist
     readback_latency: int = DEFAULTS["readback_latency"]
 
@@ -60,7 +61,16 @@ def build_processor(ctx: moderngl.Context, bake: AnimationBake, spec: StageSpec,
 
 def build_renderer(ctx: moderngl.Context, character: Character, processor: AnimationProcessor, spec: StageSpec) -> CrowdRenderer:
     return CrowdRenderer(ctx, character, processor.joint_count, processor.agents_per_row,
-                         lod_distances=spec.lod_distances, shadows=spec.shadows, culling=spec.culling)
+                         lod_distances=spec.lod_distances, shadows=spec.shadows, culling=spec.culling,
+                         cull_path=cull_path(ctx, spec.cull), weapons_visibility=spec.armed)
+
+
+def cull_path(ctx: moderngl.Context, asked: str) -> str:
+    """"gpu" or "cpu" for `asked` ("auto": gpu where the context runs compute shaders)."""
+    compute = ctx.version_code >= 430
+    if asked == "gpu" and not compute:
+        raise RenderError(f"the gpu cull path needs GL 4.3 compute shaders; this context is GL {ctx.version_code}")
+    return asked if asked != "auto" else ("gpu" if compute else "cpu")
 
 
 def build_readback(ctx: moderngl.Context, processor: AnimationProcessor, spec: StageSpec) -> SocketReadback | None:
@@ -68,7 +78,7 @@ def build_readback(ctx: moderngl.Context, processor: AnimationProcessor, spec: S
 
 
 def build_weapons(ctx: moderngl.Context, character: Character, spec: StageSpec) -> WeaponRenderer | None:
-    return WeaponRenderer(ctx, character, spec.shadows) if spec.armed else None
+    return WeaponRenderer(ctx, character, spec.shadows, gpu_cull=cull_path(ctx, spec.cull) == "gpu") if spec.armed else None
 
 
 @dataclass

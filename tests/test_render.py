@@ -93,7 +93,7 @@ def test_gpu_skinned_vertices_match_float64_skinning(gl_context, zombie):
                 continue
             mesh = meshes[(draw.piece, draw.lod)]
             world, normal = _capture(ctx, draw)
-            texel = np.frombuffer(draw.instances.read(), np.uint32).reshape(draw.count, 7)[:, 4]
+            texel = np.frombuffer(draw.instances.read(), np.uint32).reshape(draw.count, 8)[:, 4]
             agents = (texel >> 16) * proc.agents_per_row + (texel & 0xFFFF) // baked.joint_count
             w = mesh.weights.astype(np.float64) / mesh.weights.sum(axis=1, keepdims=True)
             p = np.concatenate([mesh.positions.astype(np.float64), np.ones((len(mesh.positions), 1))], axis=1)

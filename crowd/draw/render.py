@@ -5,8 +5,10 @@ Contract: ``CrowdRenderer.prepare(camera, instances, row_offset) -> FrameView``,
   each variation group ("head"), which piece it wears. Agent i's palette row is row i.
 - The processor must have written this frame's palette; every pass here only reads it.
 - One instanced draw per (mesh piece, LOD) with agents in it: visible agents are sorted into draws by
-  the LOD their distance picks and the pieces they wear. Culling is a vectorised sphere-frustum test
-  on the CPU.
+  the LOD their distance picks and the pieces they wear. Two cull paths behind this one interface:
+  "cpu", a vectorised sphere-frustum test and a sort in numpy (any GL 3.3 context), and "gpu" (GL 4.3,
+  crowd/draw/gpu_cull.py), where the CPU uploads every agent's record once and a compute pass culls,
+  picks LODs and fills per-draw lists that the passes draw with render_indirect.
 - Positions are camera-relative: the CPU subtracts the camera in float64 and the GPU only sees small
   float32 numbers, so agents 1e5 m from the origin do not jitter.
 - With shadows on, a depth pass from the sun reuses the same instance buffers and palette rows
@@ -29,6 +31,7 @@ from ..lighting import FOG_COLOR, LIGHTING, SUN_DIR
 from ..asset.model import PACKED_UV_SPAN, Character, SkinnedMesh
 from ..anim.processor import palette_texel
 from ..asset.vertex_cache import optimize_triangle_order
+from .gpu_cull import RECORD_DTYPE, GpuCull
 from .materials import TEXTURE_UNIT, MaterialTextures
 
 # Per-vertex record, 28 bytes: the position and one uvec4 (see shaders/skin.vert.glsl for why two
@@ -48,10 +51,12 @@ WIDE_UV_VERTEX_FORMAT = ("3f 4u 2f", "in_position", "in_packed", "in_uv")
 _LAYOUTS = {"": (VERTEX_DTYPE, VERTEX_FORMAT), "packed": (TEXTURED_VERTEX_DTYPE, TEXTURED_VERTEX_FORMAT),
             "wide": (WIDE_UV_VERTEX_DTYPE, WIDE_UV_VERTEX_FORMAT)}
 WEIGHT_STEP = 1.0 / 2046.0  # a stored weight is within half of this of the float weight
-# Per-instance record, 28 bytes: position relative to the camera and scale; palette texel of the agent's
-# joint 0 (x | y << 16), tint RGBA8, cos and sin of the heading as snorm16.
-INSTANCE_DTYPE = np.dtype([("position_scale", "<f4", 4), ("packed", "<u4", 3)])
-INSTANCE_FORMAT = ("4f 3u/i", "i_position_scale", "i_packed")
+# Per-instance record, 32 bytes: position relative to the camera and scale; palette texel of the agent's
+# joint 0 (x | y << 16), tint RGBA8, cos and sin of the heading as snorm16, and the variation choices
+# (4 bits a group, which only the GPU cull reads: the record is the GPU cull's agent record too).
+INSTANCE_DTYPE = RECORD_DTYPE
+INSTANCE_FORMAT = ("4f 3u 4x/i", "i_position_scale", "i_packed")
+CULL_PATHS = ("cpu", "gpu")
 DEFAULT_LOD_DISTANCES = DEFAULTS["lod_distances"]  # metres: LOD0 closer than the first, LOD1 to the second, LOD2 beyond
 
 
@@ -203,11 +208,17 @@ class CrowdRenderer(GLStage):
 
     def __init__(self, ctx: moderngl.Context, character: Character, joint_count: int, agents_per_row: int,
                  pieces: tuple[str, ...] | None = None, lod_distances=DEFAULT_LOD_DISTANCES, shadows: bool = True,
-                 shadow_size: int = 2048, culling: bool = True):
-        self._objects: dict[str, list] = {"meshes": [], "instances": [], "programs": [], "shadow_map": [], "ground": [], "textures": []}
+                 shadow_size: int = 2048, culling: bool = True, cull_path: str = "cpu", weapons_visibility: bool = False):
+        """`cull_path`: "cpu" or "gpu" (a GL 4.3 context; see the module docstring); with
+        `weapons_visibility` the GPU cull also writes each agent's visibility, for the weapons."""
+        self._objects: dict[str, list] = {"meshes": [], "instances": [], "programs": [], "shadow_map": [], "ground": [], "textures": [], "cull": []}
         self._programs: dict[tuple, moderngl.Program] = {}
         self.draws: list[_Draw] = []
         self.materials: MaterialTextures | None = None
+        self.gpu: GpuCull | None = None
+        if cull_path not in CULL_PATHS:
+            raise RenderError(f"cull path must be one of {', '.join(CULL_PATHS)}, got {cull_path!r}")
+        self.cull_path = cull_path
         self.ctx = ctx
         self.joint_count = joint_count
         self.agents_per_row = agents_per_row
@@ -225,12 +236,24 @@ class CrowdRenderer(GLStage):
         for m in sorted(meshes, key=lambda m: (m.lod, m.piece)):
             vbo = self._own("meshes", ctx.buffer(pack_vertices(m).tobytes()))
             ibo = self._own("meshes", ctx.buffer(optimize_triangle_order(m.indices, len(m.positions)).tobytes()))
-            inst = self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
+            # The CPU path's instance records, per draw; the GPU path draws from the cull's lists.
+            inst = self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize)) if cull_path == "cpu" else None
             box = tuple(float(x) for x in np.concatenate(uv_box(m.uvs))) if m.texture >= 0 else (0.0, 0.0, 1.0, 1.0)
             self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, vbo, ibo, inst, m.texture, uv_layout(m), box))
         # Only the textures a drawn piece uses reach the GPU, and none when no piece has one.
         used = {m.texture for m in meshes if m.texture >= 0}
         self.materials = self._own("textures", MaterialTextures(ctx, character.textures, used)) if used else None
+        if cull_path == "gpu":
+            common = [p for p in dict.fromkeys(d.piece for d in self.draws) if not self._piece_group[p]]
+            slot = {p: k for k, p in enumerate(common)}
+            for group, pieces in self.groups.items():
+                for choice, piece in enumerate(pieces):
+                    slot[piece] = len(slot)
+            self.gpu = self._own("cull", GpuCull(ctx, [(d.lod, slot[d.piece], d.triangles * 3) for d in self.draws], len(common),
+                                                 [len(p) for p in self.groups.values()], weapons_visibility))
+            for draw in self.draws:  # every draw reads its list out of the one list buffer (baseInstance)
+                draw.instances = self.gpu.lists
+            self._first_slot_draws = [k for k, d in enumerate(self.draws) if slot[d.piece] == 0]
         # A sphere around the bind pose, widened for poses that reach out or lie down (death).
         allpos = np.concatenate([m.positions for m in meshes]).astype(np.float64)
         lo, hi = allpos.min(axis=0), allpos.max(axis=0)
@@ -311,9 +334,11 @@ class CrowdRenderer(GLStage):
         return self._program(kind, skinned, draw.layout)
 
     def gpu_bytes(self) -> dict[str, int]:
-        out = {group: gpu_bytes(objs) for group, objs in self._objects.items() if group not in ("programs", "textures")}
+        out = {group: gpu_bytes(objs) for group, objs in self._objects.items() if group not in ("programs", "textures", "cull")}
         if self.materials is not None:
             out["textures"] = self.materials.gpu_bytes()
+        if self.gpu is not None:
+            out["cull"] = self.gpu.gpu_bytes()
         return out
 
     def release(self) -> None:
@@ -324,6 +349,7 @@ class CrowdRenderer(GLStage):
         self._programs.clear()
         self.draws = []
         self.materials = None
+        self.gpu = None
 
     # -- per frame
 
@@ -332,22 +358,32 @@ class CrowdRenderer(GLStage):
         return tuple(c ** (1 / 2.2) for c in FOG_COLOR)
 
     def prepare(self, camera: Camera, instances: Instances, row_offset=0) -> "FrameView":
-        """Cull, pick LODs, sort agents into draws and upload their records. Returns what every later
-        pass of this frame receives (the view and light matrices and the visible set).
+        """Cull, pick LODs, sort agents into draws and upload their records (the CPU path), or upload
+        every agent's record and dispatch the GPU cull that does the rest (the GPU path). Returns what
+        every later pass of this frame receives (the view and light matrices, and the visible set where
+        the CPU knows it: None on the GPU path).
         `row_offset` (an int, or one per agent) is the first palette row of the ring slot each agent's
         palette is read from (see AnimationProcessor.row_offset)."""
         camera.validate()
         instances.validate(self.groups)
         matrix = view_proj(camera)
-        n = len(instances)
+        light = self.light_view_proj(camera) if self.shadows else None
         eye = np.asarray(camera.eye, np.float64)
+        # Agents just outside the view may still cast shadows into it: widen their sphere.
+        margin = 3.0 if self.shadows else 0.0
+        if self.gpu is not None:
+            records = self._records(instances, eye, None, row_offset, variants=True)
+            self._gpu_last()  # before this frame's commands are reset
+            self.gpu.upload(records)
+            self.gpu.run(frustum_planes(matrix), np.array([*self.bound_center, self.bound_radius]), margin, self.lod_distances,
+                         self.lod_count, self.culling)
+            return FrameView(camera, matrix, light, None)
+        n = len(instances)
         rel = instances.position - eye[None]
         scale = instances.scale.astype(np.float64)
         centers = rel + self.bound_center[None] * scale[:, None]
         radii = self.bound_radius * scale
         if self.culling and n:
-            # Agents just outside the view may still cast shadows into it: widen their sphere.
-            margin = 3.0 if self.shadows else 0.0
             visible = sphere_visible(frustum_planes(matrix), centers, radii + margin)
         else:
             visible = np.ones(n, bool)
@@ -358,16 +394,7 @@ class CrowdRenderer(GLStage):
         # instances are one contiguous slice (a boolean mask per draw cost 12 passes over the crowd).
         shown = np.flatnonzero(visible).astype(np.uint32)
         lod = lod[shown]
-        records = np.empty(len(shown), INSTANCE_DTYPE)
-        records["position_scale"][:, :3] = rel[shown]
-        records["position_scale"][:, 3] = instances.scale[shown]
-        # Both fit 16 bits: x < 4096 (the palette width), and the processor keeps its rows under 65,536.
-        x, y = palette_texel(shown, 0, row_offset[shown] if np.ndim(row_offset) else row_offset, self.agents_per_row, self.joint_count)
-        records["packed"][:, 0] = x.astype(np.uint32) | (y.astype(np.uint32) << 16)
-        records["packed"][:, 1] = _rgba8(instances.tint[shown])
-        yaw = instances.yaw[shown]
-        heading = heading_snorm16(yaw)
-        records["packed"][:, 2] = heading[:, 0] | (heading[:, 1] << 16)
+        records = self._records(instances, eye, shown, row_offset, rel=rel)
         slices = {}  # group ("" for pieces every agent wears) → (records sorted by draw key, start offsets per key)
         for group in ["", *self.groups]:
             choices = len(self.groups[group]) if group else 1
@@ -397,7 +424,52 @@ class CrowdRenderer(GLStage):
                 draw.instances.orphan(INSTANCE_DTYPE.itemsize)
         self.last = {"triangles": triangles, "instances": instances_total, "visible": len(shown), "draws": draws,
                      "lod_counts": np.bincount(lod, minlength=self.lod_count).tolist()}
-        return FrameView(camera, matrix, self.light_view_proj(camera) if self.shadows else None, visible)
+        return FrameView(camera, matrix, light, visible)
+
+    def _records(self, instances: Instances, eye: np.ndarray, shown, row_offset, rel=None, variants: bool = False) -> np.ndarray:
+        """Instance records of the agents `shown` (None: all of them), as the shaders read them."""
+        idx = np.arange(len(instances), dtype=np.uint32) if shown is None else shown
+        records = np.empty(len(idx), INSTANCE_DTYPE)
+        position = instances.position if shown is None else instances.position[shown]
+        records["position_scale"][:, :3] = (position - eye[None]) if rel is None else rel[shown]
+        records["position_scale"][:, 3] = instances.scale if shown is None else instances.scale[shown]
+        offsets = row_offset if not np.ndim(row_offset) else (row_offset if shown is None else row_offset[shown])
+        # Both fit 16 bits: x < 4096 (the palette width), and the processor keeps its rows under 65,536.
+        x, y = palette_texel(idx, 0, offsets, self.agents_per_row, self.joint_count)
+        records["packed"][:, 0] = x.astype(np.uint32) | (y.astype(np.uint32) << 16)
+        records["packed"][:, 1] = _rgba8(instances.tint if shown is None else instances.tint[shown])
+        heading = heading_snorm16(instances.yaw if shown is None else instances.yaw[shown])
+        records["packed"][:, 2] = heading[:, 0] | (heading[:, 1] << 16)
+        choices = np.zeros(len(idx), np.uint32)
+        if variants:
+            for g, group in enumerate(self.groups):
+                v = instances.variant.get(group)
+                if v is not None:
+                    choices |= (v if shown is None else v[shown]).astype(np.uint32) << np.uint32(4 * g)
+        records["packed"][:, 3] = choices
+        return records
+
+    def _gpu_last(self) -> None:
+        """``last`` on the GPU path: the newest counts the GPU has handed back (a frame or two old)."""
+        counts = self.gpu.counts().astype(np.int64)
+        lod_counts = [0] * self.lod_count
+        for k in self._first_slot_draws:
+            lod_counts[self.draws[k].lod] += int(counts[k])
+        for draw, c in zip(self.draws, counts):
+            draw.count = int(c)
+        self.last = {"triangles": int(sum(c * d.triangles for c, d in zip(counts, self.draws))), "instances": int(counts.sum()),
+                     "visible": int(sum(lod_counts)), "draws": int(np.count_nonzero(counts)), "lod_counts": lod_counts}
+
+    def draws_anything(self, agents: int) -> bool:
+        """Whether this frame's passes have instances to draw (the GPU path cannot know: any agent may be)."""
+        return agents > 0 if self.gpu is not None else bool(self.last["instances"])
+
+    def _render(self, index: int, draw: _Draw, kind: str, skinned: bool) -> None:
+        vao = self._vao(draw, kind, skinned)
+        if self.gpu is not None:
+            vao.render_indirect(self.gpu.commands, moderngl.TRIANGLES, count=1, first=index)
+        elif draw.count:
+            vao.render(moderngl.TRIANGLES, instances=draw.count)
 
     def light_view_proj(self, camera: Camera) -> np.ndarray:
         """Orthographic sun view over the area around the camera's target (camera-relative)."""
@@ -420,9 +492,9 @@ class CrowdRenderer(GLStage):
         for layout in self._variants():
             prog = self._program("depth", True, layout)
             prog["u_view_proj"].write(gl_bytes(view.light_view_proj))
-            for draw in self.draws:
-                if draw.count and draw.layout == layout:
-                    self._vao(draw, "depth", True).render(moderngl.TRIANGLES, instances=draw.count)
+            for index, draw in enumerate(self.draws):
+                if draw.layout == layout:
+                    self._render(index, draw, "depth", True)
         return True
 
     def set_lighting(self, prog, view: "FrameView"):
@@ -444,13 +516,13 @@ class CrowdRenderer(GLStage):
                 prog = self._program("color", skinned, layout)
                 prog["u_view_proj"].write(gl_bytes(view.view_proj))
                 self.set_lighting(prog, view)
-                for draw in self.draws:
-                    if draw.count and draw.layout == layout:
+                for index, draw in enumerate(self.draws):
+                    if draw.layout == layout and (draw.count or self.gpu is not None):
                         if layout:
                             self.materials.bind(draw.texture, prog)
                         if layout == "packed":
                             prog["u_uv_box"] = draw.uv_box
-                        self._vao(draw, "color", skinned).render(moderngl.TRIANGLES, instances=draw.count)
+                        self._render(index, draw, "color", skinned)
         finally:
             if self.materials is not None:  # a sampler object left on its unit would override what binds there next
                 self.materials.unbind()
@@ -471,9 +543,10 @@ def _read_by(prog: moderngl.Program, layout: tuple) -> tuple:
     depth pass has no colour) become padding, so every variant shares the buffer's stride."""
     fmt, *names = layout
     per_instance = fmt.endswith("/i")
-    items = fmt.removesuffix("/i").split()
-    spec = " ".join(f if n in prog else _padding(f) for f, n in zip(items, names)) + ("/i" if per_instance else "")
-    return (spec, *[n for n in names if n in prog])
+    items, named = fmt.removesuffix("/i").split(), iter(names)
+    # An item ending in "x" is padding of the layout itself, with no attribute name.
+    spec = " ".join(f if f.endswith("x") else (f if (n := next(named)) in prog else _padding(f)) for f in items)
+    return (spec + ("/i" if per_instance else ""), *[n for n in names if n in prog])
 
 
 def _padding(fmt: str) -> str:

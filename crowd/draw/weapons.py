@@ -12,6 +12,12 @@ Per entry: weapon model = agent x (socket skinning matrix x socket bind) x inver
 vectorised; uploaded as float32 camera-relative 3x4 rows. An entry whose agent is unarmed now, or
 out of range, is dropped without touching the others. ``drawn`` keeps what was uploaded (agents,
 weapon indices, rows) so that the error of the frame as drawn can be measured.
+
+Culling: on the CPU cull path ``attach`` is given the visible set and uploads only those weapons. On the
+GPU path (``gpu_cull``) the CPU does not know it: every armed agent's weapon is uploaded with its
+owner, and a compute pass (shaders/weapon_cull.comp.glsl) keeps those whose agent the body cull marked
+visible, compacted per weapon mesh and counted in indirect commands, so a weapon is drawn exactly when
+its agent is. ``last["weapons"]`` then counts the weapons placed, of which the GPU draws the visible.
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ import moderngl
 import numpy as np
 
 from ..gl import GLObjects, GLStage, load_shader
+from .gpu_cull import COMMAND_DTYPE, GROUP_SIZE
 from ..asset.model import Character, RigidMesh
 from .render import gl_bytes, heading_snorm16, pack_colors, pack_normals
 
@@ -70,7 +77,7 @@ def pack_rigid(mesh: RigidMesh) -> np.ndarray:
 class WeaponRenderer(GLStage):
     """Owns the weapon meshes, their instance buffers and programs."""
 
-    def __init__(self, ctx: moderngl.Context, character: Character, shadows: bool):
+    def __init__(self, ctx: moderngl.Context, character: Character, shadows: bool, gpu_cull: bool = False):
         self._objects = GLObjects()
         self._meshes = []
         if not character.props or not character.sockets:
@@ -84,10 +91,19 @@ class WeaponRenderer(GLStage):
         # Per weapon mesh: the socket's skinning matrix times this gives the weapon in model space.
         self._socket_to_weapon = np.stack([self.socket_bind @ g for g in self.inverse_grip])
         self.grip_origin = np.stack([np.asarray(p.grip, np.float64)[:, 3] for p in character.props.values()])  # (W, 4)
+        self.gpu_cull = gpu_cull
+        if gpu_cull:
+            if len(self.names) > 16:
+                raise WeaponError(f"{len(self.names)} weapon meshes, more than the 16 the GPU cull lists")
+            self._cull = self._objects.add(ctx.compute_shader(load_shader("weapon_cull.comp.glsl")))
+            self._placed = self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
+            self._owner = self._objects.add(ctx.buffer(reserve=8))
+            self._shown = self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))  # every mesh's list, one buffer
+            self._commands = self._objects.add(ctx.buffer(reserve=len(self.names) * COMMAND_DTYPE.itemsize))
         for prop in character.props.values():
             vbo = self._objects.add(ctx.buffer(pack_rigid(prop.mesh).tobytes()))
             ibo = self._objects.add(ctx.buffer(np.asarray(prop.mesh.indices, np.uint32).tobytes()))
-            inst = self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
+            inst = self._shown if gpu_cull else self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
             self._meshes.append({"vbo": vbo, "ibo": ibo, "instances": inst, "count": 0, "vaos": {}, "triangles": prop.mesh.triangle_count})
         defines = {"SHADOWS": 1} if shadows else {}
         self._programs = {
@@ -143,8 +159,11 @@ class WeaponRenderer(GLStage):
         out[:, :, 3] += position.T
         return agents, weapon, out.transpose(1, 0, 2).astype(np.float32)
 
-    def attach(self, read, frames: AgentFrames, weapon_of_agent: np.ndarray, visible: np.ndarray | None = None) -> int:
-        """Place and upload this frame's weapons (none when `read` is None). Returns how many."""
+    def attach(self, read, frames: AgentFrames, weapon_of_agent: np.ndarray, visible: np.ndarray | None = None,
+               visibility=None) -> int:
+        """Place and upload this frame's weapons (none when `read` is None). Returns how many.
+        `visible`: the CPU cull's visible agents; `visibility`: on the GPU path, the body cull's
+        per-agent visibility buffer, which a compute pass filters the weapons by."""
         if read is None:
             agents, weapon, rows = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 4), np.float32)
         else:
@@ -153,6 +172,8 @@ class WeaponRenderer(GLStage):
                 shown = visible[agents]
                 agents, weapon, rows = agents[shown], weapon[shown], rows[shown]
         starts = np.searchsorted(weapon, np.arange(len(self.names) + 1))
+        if self.gpu_cull:
+            return self._attach_on_gpu(agents, weapon, rows, starts, visibility)
         for w, mesh in enumerate(self._meshes):
             chosen = rows[starts[w]:starts[w + 1]]
             mesh["count"] = len(chosen)
@@ -166,6 +187,47 @@ class WeaponRenderer(GLStage):
                      "triangles": sum(m["count"] * m["triangles"] for m in self._meshes)}
         return len(agents)
 
+    def _attach_on_gpu(self, agents, weapon, rows, starts, visibility) -> int:
+        if visibility is None:
+            raise WeaponError("the GPU weapon cull needs the body cull's visibility buffer")
+        k = len(agents)
+        size = max(rows.nbytes, INSTANCE_DTYPE.itemsize)
+        for buf in (self._placed, self._shown):
+            if buf.size != size:
+                buf.orphan(size)
+        commands = np.zeros(len(self.names), COMMAND_DTYPE)
+        commands["count"] = [m["triangles"] * 3 for m in self._meshes]
+        commands["base_instance"] = starts[:-1]
+        self._commands.write(commands.tobytes())
+        for w, mesh in enumerate(self._meshes):
+            mesh["count"] = int(starts[w + 1] - starts[w])  # placed: the GPU draws the visible of them
+        if k:
+            self._placed.write(rows.tobytes())
+            owner = np.stack([agents, weapon], axis=1).astype(np.uint32)
+            if self._owner.size != owner.nbytes:
+                self._owner.orphan(owner.nbytes)
+            self._owner.write(owner.tobytes())
+            self._cull["u_count"] = k
+            first = np.zeros(16, np.uint32)
+            first[: len(self.names)] = starts[:-1]
+            self._cull["u_start"].write(first.tobytes())
+            for binding, buf in enumerate((self._placed, self._owner, self._shown, self._commands, visibility)):
+                buf.bind_to_storage_buffer(binding)
+            self._cull.run(group_x=(k + GROUP_SIZE - 1) // GROUP_SIZE)
+            self.ctx.memory_barrier(0x00000001 | 0x00000040)  # the lists feed vertex attributes, the commands the draws
+        self.drawn = (agents, weapon, rows)
+        self.last = {"weapons": int(k), "draws": sum(1 for m in self._meshes if m["count"]),
+                     "triangles": sum(m["count"] * m["triangles"] for m in self._meshes)}
+        return k
+
+    def _render(self, w: int, mesh: dict, kind: str) -> None:
+        if not mesh["count"]:
+            return
+        if self.gpu_cull:
+            self._vao(mesh, kind).render_indirect(self._commands, moderngl.TRIANGLES, count=1, first=w)
+        else:
+            self._vao(mesh, kind).render(moderngl.TRIANGLES, instances=mesh["count"])
+
     def grip_points(self) -> np.ndarray:
         """(K, 3) float64: the grip point of each drawn weapon, through the float32 rows the GPU got."""
         agents, weapon, rows = self.drawn
@@ -174,9 +236,8 @@ class WeaponRenderer(GLStage):
     def depth_pass(self, light_view_proj: np.ndarray) -> None:
         prog = self._programs["depth"]
         prog["u_view_proj"].write(gl_bytes(light_view_proj))
-        for mesh in self._meshes:
-            if mesh["count"]:
-                self._vao(mesh, "depth").render(moderngl.TRIANGLES, instances=mesh["count"])
+        for w, mesh in enumerate(self._meshes):
+            self._render(w, mesh, "depth")
 
     def color_pass(self, framebuffer, view, renderer) -> None:
         """`view`: this frame's ``FrameView``; `renderer` lights the weapons as it lights the crowd."""
@@ -185,9 +246,8 @@ class WeaponRenderer(GLStage):
         prog = self._programs["color"]
         prog["u_view_proj"].write(gl_bytes(view.view_proj))
         renderer.set_lighting(prog, view)
-        for mesh in self._meshes:
-            if mesh["count"]:
-                self._vao(mesh, "color").render(moderngl.TRIANGLES, instances=mesh["count"])
+        for w, mesh in enumerate(self._meshes):
+            self._render(w, mesh, "color")
 
     def gpu_bytes(self) -> int:
         return self._objects.gpu_bytes()

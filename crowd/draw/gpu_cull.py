@@ -1,0 +1,188 @@
+"""The GPU-driven frame's cull, LOD and compaction (issue 19, points 1 and 2), for GL 4.3 contexts.
+
+Contract, used by ``CrowdRenderer`` when its cull path is "gpu":
+- ``upload(records)``: one buffer of every agent's 32-byte record (camera-relative position and scale,
+  palette texel, tint, heading, variation choices), written in one upload, with no per-agent Python
+  and no sort;
+- ``run(planes, ...)``: one compute dispatch (shaders/cull.comp.glsl) that culls each agent's sphere,
+  picks its LOD and appends its record to the list of each (piece, LOD) draw it is in, counting it in
+  that draw's DrawElementsIndirectCommand; the passes then draw with ``render_indirect``;
+- ``counts()``: the draws' instance counts as the CPU can know them without waiting: copied into a
+  ring of 3 small buffers behind fences and read once the GPU is done, so they trail the frame by a
+  frame or two (the stats and the panel use them; ``counts(wait=True)`` is for tests).
+
+Lists: draw d's list is records [d * capacity, (d + 1) * capacity) of one buffer, capacity being the
+agent count, so one atomic add per (agent, piece) places a record with no second pass; the commands'
+baseInstance points each draw at its list. The price is memory: draws x agents x 32 bytes (12 draws of
+the zombie at 1,000,000 agents: 384 MB), which ``gpu_bytes`` reports.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import moderngl
+import numpy as np
+
+from ..gl import Fence, GLObjects, GLStage, load_shader
+
+GROUP_SIZE = 256
+RECORD_DTYPE = np.dtype([("position_scale", "<f4", 4), ("packed", "<u4", 4)])
+COMMAND_DTYPE = np.dtype([("count", "<u4"), ("instances", "<u4"), ("first_index", "<u4"), ("base_vertex", "<i4"), ("base_instance", "<u4")])
+MAX_GROUPS = 8  # variation groups: 4 bits each in packed.w
+MAX_CHOICES = 16
+MAX_LOD_STEPS = 4
+COUNT_RING = 3
+
+
+class GpuCullError(ValueError):
+    """A crowd the GPU cull cannot take; the message is one line."""
+
+
+class GpuCull(GLStage):
+    """Owns the agent records, the per-draw lists, the indirect commands, the per-agent visibility
+    (only when `with_visible`: the weapons need it) and the ring the counts come back through."""
+
+    def __init__(self, ctx: moderngl.Context, draws: list[tuple[int, int, int]], common: int, group_choices: list[int],
+                 with_visible: bool):
+        """`draws`: per draw (LOD, slot, index count). Slots 0 .. common - 1 are the pieces every agent
+        wears; then each variation group's choices in turn (group g has group_choices[g])."""
+        self._objects = GLObjects()
+        self.ctx = ctx
+        if len(group_choices) > MAX_GROUPS or any(c > MAX_CHOICES for c in group_choices):
+            raise GpuCullError(f"the GPU cull takes up to {MAX_GROUPS} variation groups of up to {MAX_CHOICES} pieces, "
+                               f"this character has {len(group_choices)} groups of {', '.join(map(str, group_choices))}")
+        self.draw_count = len(draws)
+        self.index_counts = np.array([d[2] for d in draws], np.uint32)
+        self.common = common
+        self.group_slots = [common + int(sum(group_choices[:g])) for g in range(len(group_choices))]
+        self.slots = common + int(sum(group_choices))
+        lods = max(d[0] for d in draws) + 1
+        table = np.full(lods * self.slots, -1, np.int32)
+        for k, (lod, slot, _) in enumerate(draws):
+            table[lod * self.slots + slot] = k
+        self.program = self._objects.add(ctx.compute_shader(load_shader("cull.comp.glsl")))
+        self.draw_of = self._objects.add(ctx.buffer(table.tobytes()))
+        self.commands = self._objects.add(ctx.buffer(reserve=self.draw_count * COMMAND_DTYPE.itemsize))
+        self._ring = [self._objects.add(ctx.buffer(reserve=self.draw_count * COMMAND_DTYPE.itemsize)) for _ in range(COUNT_RING)]
+        self._pending: deque = deque()  # (ring slot, fence) of copies not yet read, oldest first
+        self._next = 0
+        self.latest = np.zeros(self.draw_count, np.uint32)
+        # Made once and re-sized in place (orphan keeps the GL name), so the vertex arrays built on
+        # the lists stay valid when the crowd grows or shrinks.
+        self.capacity = self.agents = 0
+        self.agents_buffer = self._objects.add(ctx.buffer(reserve=RECORD_DTYPE.itemsize))
+        self.lists = self._objects.add(ctx.buffer(reserve=RECORD_DTYPE.itemsize))
+        self.visible = None
+        self.set_visibility(with_visible)
+
+    def set_visibility(self, on: bool) -> None:
+        """Keep (or drop) the per-agent visibility the weapons' cull reads: it exists only with weapons."""
+        if on and self.visible is None:
+            self.visible = self._objects.add(self.ctx.buffer(reserve=max(self.capacity, 1) * 4))
+        elif not on and self.visible is not None:
+            self._objects.remove(self.visible)
+            self.visible.release()
+            self.visible = None
+
+    # -- storage
+
+    def resize(self, agents: int) -> None:
+        """Storage for `agents` (a record's worth for 0, which frees the rest); the same count keeps it."""
+        if agents == self.capacity:
+            return
+        self.capacity = agents
+        self.agents_buffer.orphan(max(agents, 1) * RECORD_DTYPE.itemsize)
+        self.lists.orphan(max(self.draw_count * agents, 1) * RECORD_DTYPE.itemsize)
+        if self.visible is not None:
+            self.visible.orphan(max(agents, 1) * 4)
+
+    # -- per frame
+
+    def upload(self, records: np.ndarray) -> None:
+        """This frame's agent records (RECORD_DTYPE), in one write; the commands start from zero."""
+        n = len(records)
+        self.resize(n)
+        self.agents = n
+        commands = np.zeros(self.draw_count, COMMAND_DTYPE)
+        commands["count"] = self.index_counts
+        commands["base_instance"] = np.arange(self.draw_count, dtype=np.uint32) * np.uint32(self.capacity)
+        self.commands.write(commands.tobytes())
+        if n:
+            self.agents_buffer.write(records.tobytes())
+
+    def run(self, planes: np.ndarray, bound: np.ndarray, margin: float, lod_start, lod_count: int, culling: bool) -> None:
+        """Cull the uploaded agents into the lists and commands (one dispatch)."""
+        n = self.agents
+        if n == 0:
+            return
+        p = self.program
+        p["u_planes"].write(np.ascontiguousarray(planes, np.float32).tobytes())
+        p["u_bound"] = tuple(float(x) for x in bound)
+        p["u_margin"] = float(margin)
+        starts = np.zeros(MAX_LOD_STEPS, np.float32)
+        starts[: len(lod_start)] = lod_start
+        p["u_lod_start"].write(starts.tobytes())
+        p["u_lod_steps"] = len(lod_start)
+        p["u_lod_count"] = int(lod_count)
+        p["u_culling"] = int(bool(culling))
+        p["u_agents"] = n
+        p["u_capacity"] = self.capacity
+        p["u_slots"] = self.slots
+        p["u_common"] = self.common
+        p["u_groups"] = len(self.group_slots)
+        if self.group_slots:
+            slots = np.zeros(MAX_GROUPS, np.int32)
+            slots[: len(self.group_slots)] = self.group_slots
+            p["u_group_slot"].write(slots.tobytes())
+        p["u_write_visible"] = int(self.visible is not None)
+        self.agents_buffer.bind_to_storage_buffer(0)
+        self.lists.bind_to_storage_buffer(1)
+        self.commands.bind_to_storage_buffer(2)
+        self.draw_of.bind_to_storage_buffer(3)
+        if self.visible is not None:
+            self.visible.bind_to_storage_buffer(4)
+        p.run(group_x=(n + GROUP_SIZE - 1) // GROUP_SIZE)
+        # The lists feed vertex attributes and the commands feed the draws: both written by the shader.
+        self.ctx.memory_barrier(0x00000001 | 0x00000040 | 0x00002000)  # VERTEX_ATTRIB_ARRAY | COMMAND | SHADER_STORAGE
+        self._copy_counts()
+
+    def _copy_counts(self) -> None:
+        """Queue this frame's commands for the CPU to read once the GPU has written them."""
+        if len(self._pending) == COUNT_RING:  # the oldest copy is unread: drop it rather than wait
+            _, fence = self._pending.popleft()
+            fence.release()
+        slot = self._next
+        self._next = (self._next + 1) % COUNT_RING
+        self.ctx.copy_buffer(self._ring[slot], self.commands)
+        self._pending.append((slot, Fence()))
+
+    def counts(self, wait: bool = False) -> np.ndarray:
+        """(draws,) instance counts of the newest frame the GPU has finished (every queued one with
+        `wait`); never waits otherwise."""
+        while self._pending:
+            slot, fence = self._pending[0]
+            if not wait and not fence.signaled():
+                break
+            if wait:
+                fence.wait()
+            self._pending.popleft()
+            fence.release()
+            self.latest = np.frombuffer(self._ring[slot].read(), COMMAND_DTYPE)["instances"].copy()
+        return self.latest
+
+    def visible_agents(self) -> np.ndarray:
+        """(N,) LOD + 1 of each agent, 0 where culled (synchronous: tests)."""
+        if self.visible is None:
+            raise GpuCullError("this cull keeps no per-agent visibility (no weapons)")
+        return np.frombuffer(self.visible.read(), np.uint32).copy()
+
+    def gpu_bytes(self) -> int:
+        return self._objects.gpu_bytes()
+
+    def release(self) -> None:
+        if hasattr(self, "_objects"):
+            for _, fence in getattr(self, "_pending", ()):
+                fence.release()
+            self._pending = deque()
+            self._objects.release()

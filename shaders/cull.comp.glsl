@@ -1,0 +1,64 @@
+#version 430
+// The GPU-driven frame's cull-and-LOD pass (crowd/draw/gpu_cull.py): one invocation per agent tests
+// its bounding sphere against the view frustum, picks its LOD from its distance, and appends its
+// instance record to the list of every (piece, LOD) draw it appears in, counting it in that draw's
+// indirect command. The colour and shadow passes then draw from those lists with render_indirect,
+// so the CPU neither culls, sorts nor packs per draw. The arithmetic is the CPU path's
+// (CrowdRenderer.prepare: sphere_visible, searchsorted on the LOD distances), in float32.
+layout(local_size_x = 256) in;
+
+struct Record {
+    vec4 position_scale;  // camera-relative origin, uniform scale
+    uvec4 fields;         // x: palette texel of joint 0 | y: tint | z: heading | w: variation choices, 4 bits a group
+};
+
+layout(std430, binding = 0) readonly buffer Agents { Record agents[]; };
+layout(std430, binding = 1) writeonly buffer Lists { Record lists[]; };  // draw d's list starts at d * u_capacity
+layout(std430, binding = 2) buffer Commands { uint commands[]; };        // DrawElementsIndirectCommand x draws
+layout(std430, binding = 3) readonly buffer DrawOf { int draw_of[]; };    // [lod * u_slots + slot] -> draw, or -1
+layout(std430, binding = 4) writeonly buffer Visible { uint visible[]; }; // per agent: 1 + LOD, 0 when culled
+
+uniform vec4 u_planes[6];   // inside: dot(n, p) + d >= 0 (camera-relative)
+uniform vec4 u_bound;       // xyz: the bind pose's sphere centre, w: its radius (both times the agent's scale)
+uniform float u_margin;     // metres added to each radius (agents just outside may shadow into view)
+uniform float u_lod_start[4];
+uniform int u_lod_steps;    // LOD distances in use
+uniform int u_lod_count;
+uniform int u_culling;
+uniform uint u_agents;
+uniform uint u_capacity;
+uniform int u_slots;        // slots per LOD in draw_of
+uniform int u_common;       // slots 0 .. u_common - 1: the pieces every agent wears
+uniform int u_groups;
+uniform int u_group_slot[8];  // group g's choice c is slot u_group_slot[g] + c
+uniform int u_write_visible;
+
+void emit(int draw, Record r) {
+    if (draw < 0) return;
+    uint k = atomicAdd(commands[draw * 5 + 1], 1u);
+    lists[uint(draw) * u_capacity + k] = r;
+}
+
+void main() {
+    uint i = gl_GlobalInvocationID.x;
+    if (i >= u_agents) return;
+    Record r = agents[i];
+    vec3 center = r.position_scale.xyz + u_bound.xyz * r.position_scale.w;
+    float radius = u_bound.w * r.position_scale.w + u_margin;
+    if (u_culling != 0) {
+        for (int p = 0; p < 6; ++p) {
+            if (dot(u_planes[p].xyz, center) + u_planes[p].w < -radius) {
+                if (u_write_visible != 0) visible[i] = 0u;
+                return;
+            }
+        }
+    }
+    float dist = length(center);
+    int lod = 0;
+    for (int k = 0; k < u_lod_steps; ++k) lod += int(dist >= u_lod_start[k]);
+    lod = min(lod, u_lod_count - 1);
+    int base = lod * u_slots;
+    for (int s = 0; s < u_common; ++s) emit(draw_of[base + s], r);
+    for (int g = 0; g < u_groups; ++g) emit(draw_of[base + u_group_slot[g] + int((r.fields.w >> uint(4 * g)) & 15u)], r);
+    if (u_write_visible != 0) visible[i] = uint(lod + 1);
+}

@@ -1,0 +1,180 @@
+"""Issue 19, points 1 and 2: the GPU-driven cull (a compute pass fills per-(piece, LOD) lists and
+indirect commands) against the float64 CPU test it replaces, on llvmpipe."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from crowd.anim.bake import bake
+from crowd.anim.processor import AnimationProcessor
+from crowd.draw.render import CrowdRenderer, RenderError, frustum_planes, sphere_visible, view_proj
+from crowd.frame import Camera, Instances
+from crowd.pipeline import CrowdPipeline, PipelineConfig
+from crowd.smoke import run_headless
+from crowd.stages import cull_path
+
+SIZE = (320, 180)
+LOD_DISTANCES = (14.0, 40.0)
+# float32 on the GPU against float64 here: a sphere this close to a plane, or a distance this close to
+# a LOD boundary, may land on either side (positions are camera-relative, within 200 m).
+BOUNDARY_M = 1e-3
+
+
+@pytest.fixture(scope="module")
+def stages(gl_context, zombie):
+    baked = bake(zombie.skeleton, zombie.clips)
+    proc = AnimationProcessor(gl_context, baked, 4)
+    made = {path: CrowdRenderer(gl_context, zombie, baked.joint_count, proc.agents_per_row, lod_distances=LOD_DISTANCES,
+                                shadows=True, culling=True, cull_path=path, weapons_visibility=True) for path in ("cpu", "gpu")}
+    yield made
+    for r in made.values():
+        r.release()
+    proc.release()
+
+
+def crowd(rng, n, renderer, camera):
+    """Agents scattered around the camera's view, a quarter of them put exactly on a frustum plane
+    (their sphere touching it from outside) and some exactly at a LOD distance."""
+    positions = np.column_stack([rng.uniform(-120, 120, n), np.zeros(n), rng.uniform(-120, 120, n)]) + camera.target * [1, 0, 1]
+    scale = rng.uniform(0.8, 1.25, n).astype(np.float32)
+    planes = frustum_planes(view_proj(camera))
+    eye = np.asarray(camera.eye, np.float64)
+    margin = 3.0 if renderer.shadows else 0.0
+    for k in range(0, n, 4):  # slide agent k along the plane's normal until its sphere touches the plane
+        plane = planes[k % 6]
+        center = positions[k] - eye + renderer.bound_center * scale[k]
+        gap = center @ plane[:3] + plane[3] + renderer.bound_radius * scale[k] + margin
+        positions[k] -= gap * plane[:3] / max(np.linalg.norm(plane[:3]), 1e-12)
+    for k in range(2, n, 16):  # and some at a LOD boundary
+        center = positions[k] - eye + renderer.bound_center * scale[k]
+        direction = center / np.linalg.norm(center)
+        positions[k] += direction * (LOD_DISTANCES[k % 2] - np.linalg.norm(center))
+    heads = rng.integers(0, len(renderer.groups["head"]), n)
+    return Instances(positions, rng.uniform(-np.pi, np.pi, n).astype(np.float32), scale, np.full((n, 4), 255, np.uint8), {"head": heads})
+
+
+def reference(renderer, camera, instances):
+    """float64: (visible, lod, signed distance to the nearest plane minus the radius, distance)."""
+    eye = np.asarray(camera.eye, np.float64)
+    scale = instances.scale.astype(np.float64)
+    centers = instances.position - eye + renderer.bound_center * scale[:, None]
+    radii = renderer.bound_radius * scale + (3.0 if renderer.shadows else 0.0)
+    planes = frustum_planes(view_proj(camera))
+    visible = sphere_visible(planes, centers, radii)
+    slack = np.min(centers @ planes[:, :3].T + planes[:, 3] + radii[:, None], axis=1)
+    dist = np.linalg.norm(centers, axis=1)
+    lod = np.minimum(np.searchsorted(np.asarray(LOD_DISTANCES), dist, side="right"), renderer.lod_count - 1)
+    return visible, lod, slack, dist
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_gpu_visible_set_and_lods_equal_the_float64_test(stages, seed):
+    rng = np.random.default_rng(seed)
+    gpu = stages["gpu"]
+    eye = np.array([rng.uniform(-50, 50), rng.uniform(2, 60), rng.uniform(-50, 50)]) + [1e5, 0, -3e4]  # far from the origin
+    camera = Camera(eye=eye, target=eye + [rng.uniform(-40, 40), -rng.uniform(1, 30), rng.uniform(-40, 40)],
+                    fov_y=float(rng.uniform(20, 90)), aspect=float(rng.uniform(0.5, 2.5)))
+    instances = crowd(rng, 3000, gpu, camera)
+    gpu.prepare(camera, instances)
+    got = gpu.gpu.visible_agents()
+    visible, lod, slack, dist = reference(gpu, camera, instances)
+    near_plane = np.abs(slack) < BOUNDARY_M
+    near_lod = np.min(np.abs(dist[:, None] - np.asarray(LOD_DISTANCES)[None]), axis=1) < BOUNDARY_M
+    assert near_plane.sum() > 50 and near_lod.sum() > 20  # the boundaries are exercised
+    assert np.array_equal((got > 0)[~near_plane], visible[~near_plane])
+    both = (got > 0) & visible & ~near_lod
+    assert np.array_equal(got[both] - 1, lod[both])
+    assert 0.05 < visible.mean() < 0.95
+
+
+def test_indirect_counts_equal_the_cpu_paths_counts(stages):
+    rng = np.random.default_rng(11)
+    camera = Camera(eye=np.array([0.0, 25.0, 60.0]), target=np.zeros(3), aspect=16 / 9)
+    instances = crowd(rng, 5000, stages["gpu"], camera)
+    stages["cpu"].prepare(camera, instances)
+    stages["gpu"].prepare(camera, instances)
+    counts = stages["gpu"].gpu.counts(wait=True)
+    cpu = np.array([d.count for d in stages["cpu"].draws])
+    assert [(d.piece, d.lod) for d in stages["cpu"].draws] == [(d.piece, d.lod) for d in stages["gpu"].draws]
+    # Agents within BOUNDARY_M of a plane or a LOD distance may be counted on either side.
+    _, _, slack, dist = reference(stages["gpu"], camera, instances)
+    doubtful = int(np.sum(np.abs(slack) < BOUNDARY_M) + np.sum(np.min(np.abs(dist[:, None] - np.asarray(LOD_DISTANCES)), axis=1) < BOUNDARY_M))
+    assert np.abs(counts.astype(int) - cpu).sum() <= 3 * doubtful  # each agent is in at most 3 draws (body, head, shirt)
+    assert cpu.sum() > 1000
+
+
+@pytest.mark.parametrize("features", [{}, {"culling": False}, {"shadows": False, "weapons": False}, {"agents": 1}])
+def test_the_picture_is_the_same_on_both_paths(gl_context, features):
+    config = {"agents": 120, "seed": 7, **features}
+    pictures = {path: run_headless(PipelineConfig(**config, cull=path), 3, SIZE, ctx=gl_context) for path in ("cpu", "gpu")}
+    assert np.array_equal(pictures["cpu"]["_image"], pictures["gpu"]["_image"])
+    # The GPU's counts trail by a frame or two; after 3 frames they are this crowd's.
+    assert pictures["gpu"]["last_frame"]["instances"] == pictures["cpu"]["last_frame"]["instances"]
+    assert ("cull" in pictures["gpu"]["passes_run"]) and ("cull" not in pictures["cpu"]["passes_run"])
+
+
+def test_no_gpu_cull_storage_on_the_cpu_path_and_none_for_the_visibility_without_weapons(gl_context):
+    cpu = run_headless(PipelineConfig(agents=50, cull="cpu"), 2, SIZE, ctx=gl_context)
+    assert "cull" not in cpu["gpu_bytes"]
+    with CrowdPipeline(gl_context, PipelineConfig(agents=50, cull="gpu", weapons=False)) as pipeline:
+        assert pipeline.renderer.gpu.visible is None
+    with CrowdPipeline(gl_context, PipelineConfig(agents=50, cull="gpu")) as pipeline:
+        assert pipeline.renderer.gpu.visible is not None
+
+
+def test_auto_picks_the_gpu_where_compute_exists_and_gpu_without_it_is_one_line():
+    class Context:
+        def __init__(self, version):
+            self.version_code = version
+
+    assert cull_path(Context(450), "auto") == "gpu" and cull_path(Context(330), "auto") == "cpu"
+    assert cull_path(Context(330), "cpu") == "cpu"
+    with pytest.raises(RenderError, match="the gpu cull path needs GL 4.3 compute shaders; this context is GL 330"):
+        cull_path(Context(330), "gpu")
+
+
+def test_resizing_the_gpu_cull_from_0_to_200000_and_back_leaks_nothing(gl_context):
+    from test_architecture import gl_census
+
+    before = gl_census()
+    with CrowdPipeline(gl_context, PipelineConfig(agents=0, cull="gpu", shadows=False)) as pipeline:
+        from crowd.gl import Offscreen
+
+        with Offscreen(gl_context, (64, 64)) as target:
+            pipeline.camera = Camera(eye=np.array([0.0, 300.0, 0.0]), target=np.array([0.0, 400.0, 0.1]))  # high, at the sky: all culled
+            for n in (0, 1, 200_000, 0):
+                pipeline.set_agent_count(n)
+                pipeline.frame(target.framebuffer, 1 / 30)
+                gl_context.finish()
+                cull = pipeline.renderer.gpu
+                assert cull.capacity == n and pipeline.renderer.gpu_bytes()["cull"] < 4096 + n * 32 * (1 + len(cull.index_counts)) + n * 4 + 64
+                assert int(cull.counts(wait=True).sum()) == 0
+            assert pipeline.renderer.gpu_bytes()["cull"] < 4096
+    assert gl_census() == before
+
+
+def test_a_weapon_is_drawn_exactly_when_its_agent_is(gl_context):
+    """A camera that sees part of the crowd: the GPU path draws as many weapons as the CPU path, which
+    uploads only the visible agents' weapons, and the pictures are the same."""
+    from crowd.gl import Offscreen
+    from crowd.smoke import FIXED_DT
+
+    camera = Camera(eye=np.array([6.0, 1.7, 6.0]), target=np.array([14.0, 1.0, 2.0]), aspect=SIZE[0] / SIZE[1])
+    drawn, pictures = {}, {}
+    for path in ("cpu", "gpu"):
+        with CrowdPipeline(gl_context, PipelineConfig(agents=300, seed=3, cull=path)) as pipeline, Offscreen(gl_context, SIZE) as target:
+            pipeline.camera = camera
+            for _ in range(4):
+                pipeline.frame(target.framebuffer, FIXED_DT)
+            gl_context.finish()
+            if path == "cpu":
+                drawn[path] = pipeline.weapons.last["weapons"]
+                placed = None
+            else:
+                commands = np.frombuffer(pipeline.weapons._commands.read(), np.uint32).reshape(-1, 5)
+                drawn[path] = int(commands[:, 1].sum())
+                placed = pipeline.weapons.last["weapons"]
+            pictures[path] = target.image()
+    assert 0 < drawn["gpu"] == drawn["cpu"] < placed  # some armed agents are out of view, and their weapons are not drawn
+    assert np.array_equal(pictures["cpu"], pictures["gpu"])
