@@ -15,7 +15,6 @@ Without armed agents there is no gather pass, no read-back buffer and a single p
 
 from __future__ import annotations
 
-import contextlib
 
 import dataclasses
 from collections import deque
@@ -334,13 +333,15 @@ class CrowdPipeline(GLStage):
                 self._run("transfer")
         # Each body's palette: frame F - N where the weapon read-back is from that frame, else this one.
         row_offset = self.sync.row_offsets(None if read is None else read.frame, self.processor.row_offset) if self.agents else 0
-        gpu_cull = self.renderer.gpu is not None and self.agents > 0
-        with t.cpu("cull_lod"), (t.gpu("cull") if gpu_cull else contextlib.nullcontext()):
-            # The CPU path culls and packs here; the GPU path packs and uploads every agent's record and
-            # dispatches the cull ("cull": the GPU time of the upload and the dispatch).
-            view = self.renderer.prepare(self.camera, instances, row_offset)
+        with t.cpu("cull_lod"):
+            # The CPU path culls and packs here; the GPU path packs every agent's record, and then
+            # uploads it and dispatches the cull ("cull": the GPU time of those two).
+            view = self.renderer.prepare(self.camera, instances, row_offset, cull_now=not self.agents)  # 0: frees the lists
+            if self.renderer.gpu is not None and self.agents:
+                with t.gpu("cull"):
+                    self.renderer.cull()
         self._run("cull_lod")
-        if gpu_cull:
+        if self.renderer.gpu is not None and self.agents:
             self._run("cull")
         agent_frames = None
         if self.weapons is not None:

@@ -391,10 +391,16 @@ class AnimationProcessor(GLStage):
             raise ProcessorError(f"layers are for {a.shape[0]} agents, the processor holds {self.agents}")
         if self.agents == 0:
             return
-        rows = self.palette_rows()
-        padded = np.zeros((rows * self.agents_per_row, self.layer_count, 4), np.float32)
-        padded[: self.agents] = a
-        self.layers_texture.write(padded.reshape(rows, self.agents_per_row * self.layer_count, 4).tobytes())
+        # Whole texture rows straight from the array (no padded copy), then the last, partial row.
+        per_row, width = self.agents_per_row, self.agents_per_row * self.layer_count
+        full = self.agents // per_row
+        if full:
+            self.layers_texture.write(a[: full * per_row], viewport=(0, 0, width, full))
+        rest = self.agents - full * per_row
+        if rest:
+            last = np.zeros((per_row, self.layer_count, 4), np.float32)
+            last[:rest] = a[full * per_row:]
+            self.layers_texture.write(last, viewport=(0, full, width, 1))
 
     def run(self) -> bool:
         """Write every agent's palette row in one dispatch or one draw. Returns False when nothing ran."""

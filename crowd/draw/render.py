@@ -357,13 +357,14 @@ class CrowdRenderer(GLStage):
     def clear_color() -> tuple[float, float, float]:
         return tuple(c ** (1 / 2.2) for c in FOG_COLOR)
 
-    def prepare(self, camera: Camera, instances: Instances, row_offset=0) -> "FrameView":
+    def prepare(self, camera: Camera, instances: Instances, row_offset=0, cull_now: bool = True) -> "FrameView":
         """Cull, pick LODs, sort agents into draws and upload their records (the CPU path), or upload
         every agent's record and dispatch the GPU cull that does the rest (the GPU path). Returns what
         every later pass of this frame receives (the view and light matrices, and the visible set where
         the CPU knows it: None on the GPU path).
         `row_offset` (an int, or one per agent) is the first palette row of the ring slot each agent's
-        palette is read from (see AnimationProcessor.row_offset)."""
+        palette is read from (see AnimationProcessor.row_offset). With `cull_now` False the GPU path
+        leaves the upload and dispatch to ``cull()``, so a caller can time the GPU's part alone."""
         camera.validate()
         instances.validate(self.groups)
         matrix = view_proj(camera)
@@ -372,11 +373,10 @@ class CrowdRenderer(GLStage):
         # Agents just outside the view may still cast shadows into it: widen their sphere.
         margin = 3.0 if self.shadows else 0.0
         if self.gpu is not None:
-            records = self._records(instances, eye, None, row_offset, variants=True)
             self._gpu_last()  # before this frame's commands are reset
-            self.gpu.upload(records)
-            self.gpu.run(frustum_planes(matrix), np.array([*self.bound_center, self.bound_radius]), margin, self.lod_distances,
-                         self.lod_count, self.culling)
+            self._pending = (self._all_records(instances, eye, row_offset), frustum_planes(matrix), margin)
+            if cull_now:
+                self.cull()
             return FrameView(camera, matrix, light, None)
         n = len(instances)
         rel = instances.position - eye[None]
@@ -394,7 +394,7 @@ class CrowdRenderer(GLStage):
         # instances are one contiguous slice (a boolean mask per draw cost 12 passes over the crowd).
         shown = np.flatnonzero(visible).astype(np.uint32)
         lod = lod[shown]
-        records = self._records(instances, eye, shown, row_offset, rel=rel)
+        records = self._records(instances, shown, row_offset, rel)
         slices = {}  # group ("" for pieces every agent wears) → (records sorted by draw key, start offsets per key)
         for group in ["", *self.groups]:
             choices = len(self.groups[group]) if group else 1
@@ -426,28 +426,56 @@ class CrowdRenderer(GLStage):
                      "lod_counts": np.bincount(lod, minlength=self.lod_count).tolist()}
         return FrameView(camera, matrix, light, visible)
 
-    def _records(self, instances: Instances, eye: np.ndarray, shown, row_offset, rel=None, variants: bool = False) -> np.ndarray:
-        """Instance records of the agents `shown` (None: all of them), as the shaders read them."""
-        idx = np.arange(len(instances), dtype=np.uint32) if shown is None else shown
-        records = np.empty(len(idx), INSTANCE_DTYPE)
-        position = instances.position if shown is None else instances.position[shown]
-        records["position_scale"][:, :3] = (position - eye[None]) if rel is None else rel[shown]
-        records["position_scale"][:, 3] = instances.scale if shown is None else instances.scale[shown]
-        offsets = row_offset if not np.ndim(row_offset) else (row_offset if shown is None else row_offset[shown])
+    def _records(self, instances: Instances, shown: np.ndarray, row_offset, rel: np.ndarray) -> np.ndarray:
+        """The CPU path's instance records of the visible agents `shown`, as the shaders read them."""
+        records = np.empty(len(shown), INSTANCE_DTYPE)
+        records["position_scale"][:, :3] = rel[shown]
+        records["position_scale"][:, 3] = instances.scale[shown]
         # Both fit 16 bits: x < 4096 (the palette width), and the processor keeps its rows under 65,536.
-        x, y = palette_texel(idx, 0, offsets, self.agents_per_row, self.joint_count)
+        x, y = palette_texel(shown, 0, row_offset[shown] if np.ndim(row_offset) else row_offset, self.agents_per_row, self.joint_count)
         records["packed"][:, 0] = x.astype(np.uint32) | (y.astype(np.uint32) << 16)
-        records["packed"][:, 1] = _rgba8(instances.tint if shown is None else instances.tint[shown])
-        heading = heading_snorm16(instances.yaw if shown is None else instances.yaw[shown])
+        records["packed"][:, 1] = _rgba8(instances.tint[shown])
+        heading = heading_snorm16(instances.yaw[shown])
         records["packed"][:, 2] = heading[:, 0] | (heading[:, 1] << 16)
-        choices = np.zeros(len(idx), np.uint32)
-        if variants:
-            for g, group in enumerate(self.groups):
-                v = instances.variant.get(group)
-                if v is not None:
-                    choices |= (v if shown is None else v[shown]).astype(np.uint32) << np.uint32(4 * g)
-        records["packed"][:, 3] = choices
+        records["packed"][:, 3] = 0  # the variation choices: only the GPU cull reads them (_all_records)
         return records
+
+    def _all_records(self, instances: Instances, eye: np.ndarray, row_offset) -> np.ndarray:
+        """Every agent's record for the GPU cull, written into arrays kept from frame to frame (the
+        same fields as ``_records``; the palette texels of agent i are a fixed base plus its ring
+        slot's first row, so only that addition runs per frame)."""
+        n = len(instances)
+        if getattr(self, "_scratch_n", -1) != n:
+            self._scratch_n = n
+            self._scratch = np.empty(n, INSTANCE_DTYPE)
+            x, y = palette_texel(np.arange(n), 0, 0, self.agents_per_row, self.joint_count)
+            self._texel_base = (x.astype(np.uint32) | (y.astype(np.uint32) << 16))
+        records, fields = self._scratch, self._scratch["packed"]
+        # The subtraction in float64 (agents far from the origin), rounded once into the record.
+        np.subtract(instances.position, eye[None], out=records["position_scale"][:, :3], casting="unsafe")
+        records["position_scale"][:, 3] = instances.scale
+        np.add(self._texel_base, np.asarray(row_offset, np.uint32) << np.uint32(16), out=fields[:, 0], casting="unsafe")
+        tint = instances.tint
+        fields[:, 1] = tint.view("<u4")[:, 0] if tint.dtype == np.uint8 and tint.flags.c_contiguous else _rgba8(tint)
+        heading = heading_snorm16(instances.yaw)
+        fields[:, 2] = heading[:, 0] | (heading[:, 1] << 16)
+        fields[:, 3] = 0
+        for g, group in enumerate(self.groups):
+            v = instances.variant.get(group)
+            if v is not None:
+                fields[:, 3] |= v.astype(np.uint32) << np.uint32(4 * g)
+        return records
+
+    def cull(self) -> bool:
+        """The GPU path's upload and cull for what `prepare(cull_now=False)` packed (one write, one
+        dispatch); False when there is nothing to do (the CPU path, or already done)."""
+        pending, self._pending = getattr(self, "_pending", None), None
+        if self.gpu is None or pending is None:
+            return False
+        records, planes, margin = pending
+        self.gpu.upload(records)
+        self.gpu.run(planes, np.array([*self.bound_center, self.bound_radius]), margin, self.lod_distances, self.lod_count, self.culling)
+        return True
 
     def _gpu_last(self) -> None:
         """``last`` on the GPU path: the newest counts the GPU has handed back (a frame or two old)."""
