@@ -193,6 +193,14 @@ def current_context_function(name: str, prototype):
     return prototype(address)
 
 
+def flush_function():
+    """glFlush of the current context (hand the queued commands to the GPU without waiting; moderngl
+    has only finish). Looked up per owner, as windows (GLX) and headless runs (EGL) load differently."""
+    import ctypes
+
+    return current_context_function("glFlush", ctypes.CFUNCTYPE(None))
+
+
 class Fence:
     """A GL sync object (glFenceSync, core since GL 3.2) that says whether the GPU has finished the
     commands submitted before it. moderngl has no fences, so the entry points come through

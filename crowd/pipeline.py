@@ -334,9 +334,10 @@ class CrowdPipeline(GLStage):
         # Each body's palette: frame F - N where the weapon read-back is from that frame, else this one.
         row_offset = self.sync.row_offsets(None if read is None else read.frame, self.processor.row_offset) if self.agents else 0
         with t.cpu("cull_lod"):
-            # The CPU path culls and packs here; the GPU path packs every agent's record, and then
-            # uploads it and dispatches the cull ("cull": the GPU time of those two).
-            view = self.renderer.prepare(self.camera, instances, row_offset, cull_now=not self.agents)  # 0: frees the lists
+            # The CPU path culls and packs here; the GPU path packs and uploads every agent's record and
+            # then dispatches the cull ("cull": its GPU time; a query around the upload would also count
+            # the CPU's copying while the GPU waits for it).
+            view = self.renderer.prepare(self.camera, instances, row_offset, cull_now=False)
             if self.renderer.gpu is not None and self.agents:
                 with t.gpu("cull"):
                     self.renderer.cull()

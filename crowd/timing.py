@@ -14,7 +14,7 @@ from contextlib import contextmanager
 import moderngl
 import numpy as np
 
-from .gl import GLStage
+from .gl import GLStage, flush_function
 
 RING = 3
 KEEP = 100_000  # samples kept per pass: a window left running for hours does not grow without bound
@@ -26,6 +26,7 @@ class PassTimer(GLStage):
         self.frame = 0
         self._queries: dict[str, list] = {}
         self._pending: list[tuple[int, str, object]] = []
+        self._flush = None  # glFlush, looked up on the first GPU pass
         self.samples: dict[str, deque] = {}
         self.clock: dict[str, str] = {}
         self.order: list[str] = []
@@ -57,6 +58,13 @@ class PassTimer(GLStage):
         query = ring[slot]
         with query:
             yield
+        # Flush (never wait): a timer query counts from when the GPU reaches its begin to when it reaches
+        # its end, so an end left in the driver's command buffer until something else flushes it counts
+        # the CPU work in between. The GPU cull's dispatch took 0.07 ms for 1,000,000 agents timed alone
+        # and read 194 ms in the frame, where the weapons' CPU placement came next.
+        if self._flush is None:
+            self._flush = flush_function()
+        self._flush()
         self._pending.append((self.frame, name, query))
 
     def end_frame(self, drain: bool = False) -> None:

@@ -32,6 +32,8 @@ COMMAND_DTYPE = np.dtype([("count", "<u4"), ("instances", "<u4"), ("first_index"
 MAX_GROUPS = 8  # variation groups: 4 bits each in packed.w
 MAX_CHOICES = 16
 MAX_LOD_STEPS = 4
+MAX_DRAWS = 256  # (piece, LOD) draws: the cull's shared counters (cull.comp.glsl)
+MAX_EMITS = 16  # draws one agent is in: its common pieces and one piece per variation group
 COUNT_RING = 3
 
 
@@ -52,6 +54,10 @@ class GpuCull(GLStage):
         if len(group_choices) > MAX_GROUPS or any(c > MAX_CHOICES for c in group_choices):
             raise GpuCullError(f"the GPU cull takes up to {MAX_GROUPS} variation groups of up to {MAX_CHOICES} pieces, "
                                f"this character has {len(group_choices)} groups of {', '.join(map(str, group_choices))}")
+        if common + len(group_choices) > MAX_EMITS:
+            raise GpuCullError(f"an agent wears {common + len(group_choices)} pieces, more than the {MAX_EMITS} the GPU cull lists")
+        if len(draws) > MAX_DRAWS:
+            raise GpuCullError(f"{len(draws)} (piece, LOD) draws, more than the {MAX_DRAWS} the GPU cull counts")
         self.draw_count = len(draws)
         self.index_counts = np.array([d[2] for d in draws], np.uint32)
         self.common = common
@@ -136,6 +142,7 @@ class GpuCull(GLStage):
             slots[: len(self.group_slots)] = self.group_slots
             p["u_group_slot"].write(slots.tobytes())
         p["u_write_visible"] = int(self.visible is not None)
+        p["u_draws"] = self.draw_count
         self.agents_buffer.bind_to_storage_buffer(0)
         self.lists.bind_to_storage_buffer(1)
         self.commands.bind_to_storage_buffer(2)

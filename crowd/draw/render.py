@@ -31,7 +31,7 @@ from ..lighting import FOG_COLOR, LIGHTING, SUN_DIR
 from ..asset.model import PACKED_UV_SPAN, Character, SkinnedMesh
 from ..anim.processor import palette_texel
 from ..asset.vertex_cache import optimize_triangle_order
-from .gpu_cull import RECORD_DTYPE, GpuCull
+from .gpu_cull import RECORD_DTYPE, GpuCull, GpuCullError
 from .materials import TEXTURE_UNIT, MaterialTextures
 
 # Per-vertex record, 28 bytes: the position and one uvec4 (see shaders/skin.vert.glsl for why two
@@ -249,8 +249,11 @@ class CrowdRenderer(GLStage):
             for group, pieces in self.groups.items():
                 for choice, piece in enumerate(pieces):
                     slot[piece] = len(slot)
-            self.gpu = self._own("cull", GpuCull(ctx, [(d.lod, slot[d.piece], d.triangles * 3) for d in self.draws], len(common),
-                                                 [len(p) for p in self.groups.values()], weapons_visibility))
+            try:
+                self.gpu = self._own("cull", GpuCull(ctx, [(d.lod, slot[d.piece], d.triangles * 3) for d in self.draws], len(common),
+                                                     [len(p) for p in self.groups.values()], weapons_visibility))
+            except GpuCullError as exc:
+                raise RenderError(f"{exc} (the cpu cull path has no such limit)") from None
             for draw in self.draws:  # every draw reads its list out of the one list buffer (baseInstance)
                 draw.instances = self.gpu.lists
             self._first_slot_draws = [k for k, d in enumerate(self.draws) if slot[d.piece] == 0]
@@ -364,7 +367,7 @@ class CrowdRenderer(GLStage):
         the CPU knows it: None on the GPU path).
         `row_offset` (an int, or one per agent) is the first palette row of the ring slot each agent's
         palette is read from (see AnimationProcessor.row_offset). With `cull_now` False the GPU path
-        leaves the upload and dispatch to ``cull()``, so a caller can time the GPU's part alone."""
+        uploads the records and leaves the dispatch to ``cull()``, so a caller can time the GPU's part alone."""
         camera.validate()
         instances.validate(self.groups)
         matrix = view_proj(camera)
@@ -374,7 +377,8 @@ class CrowdRenderer(GLStage):
         margin = 3.0 if self.shadows else 0.0
         if self.gpu is not None:
             self._gpu_last()  # before this frame's commands are reset
-            self._pending = (self._all_records(instances, eye, row_offset), frustum_planes(matrix), margin)
+            self.gpu.upload(self._all_records(instances, eye, row_offset))
+            self._pending = (frustum_planes(matrix), margin)
             if cull_now:
                 self.cull()
             return FrameView(camera, matrix, light, None)
@@ -467,13 +471,12 @@ class CrowdRenderer(GLStage):
         return records
 
     def cull(self) -> bool:
-        """The GPU path's upload and cull for what `prepare(cull_now=False)` packed (one write, one
-        dispatch); False when there is nothing to do (the CPU path, or already done)."""
+        """The GPU path's cull dispatch for what `prepare(cull_now=False)` uploaded; False when there
+        is nothing to do (the CPU path, or already done)."""
         pending, self._pending = getattr(self, "_pending", None), None
         if self.gpu is None or pending is None:
             return False
-        records, planes, margin = pending
-        self.gpu.upload(records)
+        planes, margin = pending
         self.gpu.run(planes, np.array([*self.bound_center, self.bound_radius]), margin, self.lod_distances, self.lod_count, self.culling)
         return True
 
