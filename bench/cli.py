@@ -251,9 +251,7 @@ def bench_frame(args) -> int:
                 pipeline.timer.end_frame(drain=True)
                 passes = pipeline.timer.medians()
                 ctx.finish()
-                if pipeline.renderer.gpu is not None:
-                    pipeline.renderer.gpu.counts(wait=True)
-                    pipeline.renderer._gpu_last()
+                pipeline.refresh_counts()
                 drawn = dict(pipeline.renderer.last)
                 weapons = dict(pipeline.weapons.last) if pipeline.weapons is not None else None
                 memory = pipeline.gpu_bytes()

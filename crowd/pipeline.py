@@ -15,7 +15,6 @@ Without armed agents there is no gather pass, no read-back buffer and a single p
 
 from __future__ import annotations
 
-
 import dataclasses
 from collections import deque
 from dataclasses import dataclass, field
@@ -374,6 +373,13 @@ class CrowdPipeline(GLStage):
         t.end_frame()
         self.frames += 1
         return self.last
+
+    def refresh_counts(self) -> None:
+        """Wait for the GPU cull's counts of every queued frame, so ``renderer.last`` and the weapons'
+        describe the last frame drawn (the end of a run: stats, benchmarks, tests; never inside a frame)."""
+        self.renderer.refresh_counts(wait=True)
+        if self.weapons is not None:
+            self.weapons.refresh_counts(wait=True)
 
     def pose_lag_ms(self) -> float:
         """Simulated time the drawn pose trails the simulation by: the last `latency` frames' steps."""

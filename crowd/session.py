@@ -19,8 +19,8 @@ import numpy as np
 
 from .anim.bake import BakeError
 from .anim.processor import ProcessorError
-from .draw.render import RenderError
-from .draw.render import view_proj
+from .draw.render import RenderError, view_proj
+from .draw.weapons import WeaponError
 from .frame import CLIP, MASK, PHASE, WEIGHT, ForcedClip, LayerOverrides
 from .gl import GLStage
 from .pipeline import CrowdPipeline
@@ -207,7 +207,7 @@ class CrowdSession(GLStage):
         """Cull, pick LODs and build the instance lists on the GPU or the CPU ("auto": the GPU where it can)."""
         try:
             self.pipeline.set_cull_path(SETTINGS["cull"].check(path, SessionError))
-        except RenderError as exc:
+        except (RenderError, WeaponError) as exc:
             raise SessionError(str(exc)) from None
 
     def set_culling(self, on: bool) -> None:

@@ -67,6 +67,7 @@ def run_headless(config: PipelineConfig, frames: int, size: tuple[int, int], scr
                 ctx.finish()
                 latency_ms.append((time.perf_counter() - t0) * 1e3)
             pipeline.timer.end_frame(drain=True)
+            pipeline.refresh_counts()  # the GPU cull's counts trail: these are the last frame's
             image = target.image()
             # The run's first frame compiles shaders: it is dropped from whichever half holds it.
             stats = collect_stats(ctx, pipeline, {"frame_period_ms": period_ms[1:] if len(period_ms) > 1 else period_ms,

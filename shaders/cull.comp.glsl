@@ -47,6 +47,7 @@ void main() {
     uint i = gl_GlobalInvocationID.x;
     uint local = gl_LocalInvocationIndex;
     for (uint d = local; d < uint(u_draws); d += gl_WorkGroupSize.x) s_count[d] = 0u;
+    memoryBarrierShared();
     barrier();
 
     int draws[MAX_EMITS];
@@ -75,10 +76,12 @@ void main() {
         }
         if (u_write_visible != 0) visible[i] = inside ? uint(lod + 1) : 0u;
     }
+    memoryBarrierShared();
     barrier();
     for (uint d = local; d < uint(u_draws); d += gl_WorkGroupSize.x) {
         s_base[d] = s_count[d] > 0u ? atomicAdd(commands[d * 5u + 1u], s_count[d]) : 0u;
     }
+    memoryBarrierShared();
     barrier();
     for (int e = 0; e < emits; ++e) {
         int d = draws[e];

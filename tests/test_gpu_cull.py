@@ -88,20 +88,92 @@ def test_gpu_visible_set_and_lods_equal_the_float64_test(stages, seed):
     assert 0.05 < visible.mean() < 0.95
 
 
-def test_indirect_counts_equal_the_cpu_paths_counts(stages):
+def _listed_agents(renderer, k, records):
+    """The agents in draw k's records (from each record's palette texel)."""
+    texel = records["packed"][:, 0]
+    return set(((texel >> 16) * renderer.agents_per_row + (texel & 0xFFFF) // renderer.joint_count).tolist())
+
+
+def test_each_draws_list_holds_the_agents_the_cpu_path_draws(stages):
+    """Draw by draw, the GPU's list holds exactly the agents the CPU path puts in that draw, but for
+    agents within BOUNDARY_M of a plane or a LOD distance; the counts in the commands match the lists."""
+    from crowd.draw.render import INSTANCE_DTYPE
+
     rng = np.random.default_rng(11)
     camera = Camera(eye=np.array([0.0, 25.0, 60.0]), target=np.zeros(3), aspect=16 / 9)
-    instances = crowd(rng, 5000, stages["gpu"], camera)
-    stages["cpu"].prepare(camera, instances)
-    stages["gpu"].prepare(camera, instances)
-    counts = stages["gpu"].gpu.counts(wait=True)
-    cpu = np.array([d.count for d in stages["cpu"].draws])
-    assert [(d.piece, d.lod) for d in stages["cpu"].draws] == [(d.piece, d.lod) for d in stages["gpu"].draws]
-    # Agents within BOUNDARY_M of a plane or a LOD distance may be counted on either side.
-    _, _, slack, dist = reference(stages["gpu"], camera, instances)
-    doubtful = int(np.sum(np.abs(slack) < BOUNDARY_M) + np.sum(np.min(np.abs(dist[:, None] - np.asarray(LOD_DISTANCES)), axis=1) < BOUNDARY_M))
-    assert np.abs(counts.astype(int) - cpu).sum() <= 3 * doubtful  # each agent is in at most 3 draws (body, head, shirt)
-    assert cpu.sum() > 1000
+    cpu, gpu = stages["cpu"], stages["gpu"]
+    instances = crowd(rng, 5000, gpu, camera)
+    cpu.prepare(camera, instances)
+    gpu.prepare(camera, instances)
+    counts = gpu.gpu.counts(wait=True)
+    assert [(d.piece, d.lod) for d in cpu.draws] == [(d.piece, d.lod) for d in gpu.draws]
+    _, _, slack, dist = reference(gpu, camera, instances)
+    doubtful = set(np.flatnonzero((np.abs(slack) < BOUNDARY_M) | (np.min(np.abs(dist[:, None] - np.asarray(LOD_DISTANCES)), axis=1) < BOUNDARY_M)).tolist())
+    lists = np.frombuffer(gpu.gpu.lists.read(), INSTANCE_DTYPE)
+    total = 0
+    for k, (c, g) in enumerate(zip(cpu.draws, gpu.draws)):
+        on_cpu = _listed_agents(cpu, k, np.frombuffer(c.instances.read(), INSTANCE_DTYPE)[: c.count]) if c.count else set()
+        on_gpu = _listed_agents(gpu, k, lists[k * gpu.gpu.capacity: k * gpu.gpu.capacity + int(counts[k])])
+        assert len(on_gpu) == int(counts[k])  # no agent twice in a list
+        assert on_cpu - doubtful == on_gpu - doubtful, (c.piece, c.lod)
+        total += len(on_cpu)
+    assert total > 1000 and len(doubtful) < 0.2 * len(instances)
+
+
+def test_the_stats_describe_the_last_frame_on_the_gpu_path(gl_context):
+    """The GPU's counts trail the frame; a run's stats wait for them: a 1-frame run counts its agents,
+    and a crowd resized to 0 counts none at once."""
+    from crowd.gl import Offscreen
+    from crowd.smoke import FIXED_DT
+
+    one = {path: run_headless(PipelineConfig(agents=120, seed=2, cull=path), 1, SIZE, ctx=gl_context) for path in ("cpu", "gpu")}
+    assert one["gpu"]["last_frame"] == one["cpu"]["last_frame"] and one["gpu"]["last_frame"]["instances"] > 0
+    four = {path: run_headless(PipelineConfig(agents=120, seed=2, cull=path), 4, SIZE, ctx=gl_context) for path in ("cpu", "gpu")}
+    assert four["gpu"]["weapons"]["drawn"] == four["cpu"]["weapons"]["drawn"] > 0  # read back 2 frames late: from frame 3
+    with CrowdPipeline(gl_context, PipelineConfig(agents=200, cull="gpu")) as pipeline, Offscreen(gl_context, SIZE) as target:
+        pipeline.camera = pipeline.default_camera(SIZE[0] / SIZE[1])
+        for _ in range(3):
+            pipeline.frame(target.framebuffer, FIXED_DT)
+        pipeline.set_agent_count(0)
+        pipeline.frame(target.framebuffer, FIXED_DT)
+        assert pipeline.renderer.last["instances"] == 0 and pipeline.renderer.last["triangles"] == 0
+
+
+def test_lists_past_what_a_shader_may_address_are_one_line(gl_context, monkeypatch):
+    from crowd.draw import gpu_cull
+
+    with CrowdPipeline(gl_context, PipelineConfig(agents=10, cull="gpu", weapons=False)) as pipeline:
+        monkeypatch.setattr(pipeline.renderer.gpu, "max_block", 1000)
+        pipeline.set_agent_count(50)
+        from crowd.gl import Offscreen
+
+        with Offscreen(gl_context, (32, 32)) as target, pytest.raises(RenderError, match=r"lists for 50 agents need [\d,]+ bytes, more than the 1,000 one shader storage block may hold on this GPU .*--cull cpu"):
+            pipeline.frame(target.framebuffer, 1 / 30)
+    assert gpu_cull.MAX_DRAWS >= 12
+
+
+def test_switching_the_cull_path_live_leaks_nothing(gl_context):
+    from test_architecture import gl_census
+
+    from crowd.session import CrowdSession, SessionError
+    from crowd.scene import Scene
+    from crowd.gl import Offscreen
+
+    before = gl_census()
+    with Offscreen(gl_context, SIZE) as target:
+        session = CrowdSession(gl_context, Scene(agents=60))
+        try:
+            for path, weapons in (("cpu", True), ("gpu", False), ("gpu", True), ("cpu", False), ("auto", True)):
+                session.set_cull_path(path)
+                session.set_weapons(weapons)
+                session.frame(target.framebuffer, 1 / 30)
+                assert (session.pipeline.renderer.gpu is not None) == (path != "cpu")
+                assert session.to_scene().cull == path
+            with pytest.raises(SessionError, match="cull"):
+                session.set_cull_path("sideways")
+        finally:
+            session.release()
+    assert gl_census() == before
 
 
 @pytest.mark.parametrize("features", [{}, {"culling": False}, {"shadows": False, "weapons": False}, {"agents": 1}])

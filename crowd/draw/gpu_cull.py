@@ -37,8 +37,57 @@ MAX_EMITS = 16  # draws one agent is in: its common pieces and one piece per var
 COUNT_RING = 3
 
 
+# glMemoryBarrier bits: what reads the shaders' writes (lists as vertex attributes, commands as
+# draws, storage reads, and buffer copies and reads such as the counts ring's).
+VERTEX_ATTRIB_ARRAY, COMMAND, BUFFER_UPDATE, SHADER_STORAGE = 0x1, 0x40, 0x200, 0x2000
+
+
 class GpuCullError(ValueError):
     """A crowd the GPU cull cannot take; the message is one line."""
+
+
+class CountRing:
+    """Instance counts of indirect commands, handed back to the CPU without waiting: each frame's
+    commands are copied into one of 3 small buffers behind a fence and read once the fence has
+    signalled, so they trail the frame by a frame or two. Used by the body and the weapon culls."""
+
+    def __init__(self, ctx: moderngl.Context, objects: GLObjects, commands: int):
+        self.ctx = ctx
+        self._ring = [objects.add(ctx.buffer(reserve=commands * COMMAND_DTYPE.itemsize)) for _ in range(COUNT_RING)]
+        self._pending: deque = deque()  # (ring slot, fence) not yet read, oldest first
+        self._next = 0
+        self.latest = np.zeros(commands, np.uint32)
+
+    def queue(self, commands: moderngl.Buffer) -> None:
+        if len(self._pending) == COUNT_RING:  # the oldest copy is unread: drop it rather than wait
+            self._pending.popleft()[1].release()
+        slot = self._next
+        self._next = (self._next + 1) % COUNT_RING
+        self.ctx.copy_buffer(self._ring[slot], commands)
+        self._pending.append((slot, Fence()))
+
+    def zero(self) -> None:
+        """Nothing to draw from now on (no agents): the counts are 0 at once."""
+        self.drop()
+        self.latest = np.zeros_like(self.latest)
+
+    def read(self, wait: bool = False) -> np.ndarray:
+        """The newest counts the GPU has finished (every queued frame's with `wait`)."""
+        while self._pending:
+            slot, fence = self._pending[0]
+            if not wait and not fence.signaled():
+                break
+            if wait:
+                fence.wait()
+            self._pending.popleft()
+            fence.release()
+            self.latest = np.frombuffer(self._ring[slot].read(), COMMAND_DTYPE)["instances"].copy()
+        return self.latest
+
+    def drop(self) -> None:
+        for _, fence in self._pending:
+            fence.release()
+        self._pending = deque()
 
 
 class GpuCull(GLStage):
@@ -70,10 +119,9 @@ class GpuCull(GLStage):
         self.program = self._objects.add(ctx.compute_shader(load_shader("cull.comp.glsl")))
         self.draw_of = self._objects.add(ctx.buffer(table.tobytes()))
         self.commands = self._objects.add(ctx.buffer(reserve=self.draw_count * COMMAND_DTYPE.itemsize))
-        self._ring = [self._objects.add(ctx.buffer(reserve=self.draw_count * COMMAND_DTYPE.itemsize)) for _ in range(COUNT_RING)]
-        self._pending: deque = deque()  # (ring slot, fence) of copies not yet read, oldest first
-        self._next = 0
-        self.latest = np.zeros(self.draw_count, np.uint32)
+        self.ring = CountRing(ctx, self._objects, self.draw_count)
+        self.max_block = int(ctx.info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE", 1 << 27))
+        self.max_groups = int(ctx.info.get("GL_MAX_COMPUTE_WORK_GROUP_COUNT", (65535,))[0])
         # Made once and re-sized in place (orphan keeps the GL name), so the vertex arrays built on
         # the lists stay valid when the crowd grows or shrinks.
         self.capacity = self.agents = 0
@@ -94,14 +142,27 @@ class GpuCull(GLStage):
     # -- storage
 
     def resize(self, agents: int) -> None:
-        """Storage for `agents` (a record's worth for 0, which frees the rest); the same count keeps it."""
+        """Storage for `agents` (a record's worth for 0, which frees the rest); the same count keeps it.
+        A crowd whose lists pass what this GPU lets one shader address, or its memory, is refused in
+        one line saying how many bytes it needed."""
         if agents == self.capacity:
             return
+        need = self.draw_count * agents * RECORD_DTYPE.itemsize
+        if need > self.max_block:
+            raise GpuCullError(f"the GPU cull's lists for {agents:,} agents need {need:,} bytes, more than the {self.max_block:,} "
+                               "one shader storage block may hold on this GPU")
+        if (agents + GROUP_SIZE - 1) // GROUP_SIZE > self.max_groups:
+            raise GpuCullError(f"{agents:,} agents need more than the {self.max_groups:,} work groups one dispatch may have")
+        self.ctx.error  # clear any earlier error, so the check below sees this allocation's
         self.capacity = agents
         self.agents_buffer.orphan(max(agents, 1) * RECORD_DTYPE.itemsize)
         self.lists.orphan(max(self.draw_count * agents, 1) * RECORD_DTYPE.itemsize)
         if self.visible is not None:
             self.visible.orphan(max(agents, 1) * 4)
+        if self.ctx.error == "GL_OUT_OF_MEMORY":
+            self.capacity = -1  # the next resize tries again
+            raise GpuCullError(f"the GPU ran out of memory for the GPU cull's {need + agents * RECORD_DTYPE.itemsize:,} bytes of lists "
+                               f"and records for {agents:,} agents")
 
     # -- per frame
 
@@ -116,6 +177,8 @@ class GpuCull(GLStage):
         self.commands.write(commands.tobytes())
         if n:
             self.agents_buffer.write(records.tobytes())
+        else:
+            self.ring.zero()
 
     def run(self, planes: np.ndarray, bound: np.ndarray, margin: float, lod_start, lod_count: int, culling: bool) -> None:
         """Cull the uploaded agents into the lists and commands (one dispatch)."""
@@ -151,32 +214,13 @@ class GpuCull(GLStage):
             self.visible.bind_to_storage_buffer(4)
         p.run(group_x=(n + GROUP_SIZE - 1) // GROUP_SIZE)
         # The lists feed vertex attributes and the commands feed the draws: both written by the shader.
-        self.ctx.memory_barrier(0x00000001 | 0x00000040 | 0x00002000)  # VERTEX_ATTRIB_ARRAY | COMMAND | SHADER_STORAGE
-        self._copy_counts()
-
-    def _copy_counts(self) -> None:
-        """Queue this frame's commands for the CPU to read once the GPU has written them."""
-        if len(self._pending) == COUNT_RING:  # the oldest copy is unread: drop it rather than wait
-            _, fence = self._pending.popleft()
-            fence.release()
-        slot = self._next
-        self._next = (self._next + 1) % COUNT_RING
-        self.ctx.copy_buffer(self._ring[slot], self.commands)
-        self._pending.append((slot, Fence()))
+        self.ctx.memory_barrier(VERTEX_ATTRIB_ARRAY | COMMAND | BUFFER_UPDATE | SHADER_STORAGE)
+        self.ring.queue(self.commands)
 
     def counts(self, wait: bool = False) -> np.ndarray:
         """(draws,) instance counts of the newest frame the GPU has finished (every queued one with
         `wait`); never waits otherwise."""
-        while self._pending:
-            slot, fence = self._pending[0]
-            if not wait and not fence.signaled():
-                break
-            if wait:
-                fence.wait()
-            self._pending.popleft()
-            fence.release()
-            self.latest = np.frombuffer(self._ring[slot].read(), COMMAND_DTYPE)["instances"].copy()
-        return self.latest
+        return self.ring.read(wait)
 
     def visible_agents(self) -> np.ndarray:
         """(N,) LOD + 1 of each agent, 0 where culled (synchronous: tests)."""
@@ -189,7 +233,6 @@ class GpuCull(GLStage):
 
     def release(self) -> None:
         if hasattr(self, "_objects"):
-            for _, fence in getattr(self, "_pending", ()):
-                fence.release()
-            self._pending = deque()
+            if hasattr(self, "ring"):
+                self.ring.drop()
             self._objects.release()

@@ -376,8 +376,11 @@ class CrowdRenderer(GLStage):
         # Agents just outside the view may still cast shadows into it: widen their sphere.
         margin = 3.0 if self.shadows else 0.0
         if self.gpu is not None:
-            self._gpu_last()  # before this frame's commands are reset
-            self.gpu.upload(self._all_records(instances, eye, row_offset))
+            try:
+                self.gpu.upload(self._all_records(instances, eye, row_offset))
+            except GpuCullError as exc:
+                raise RenderError(f"{exc} (the cpu cull path needs no lists: --cull cpu)") from None
+            self.refresh_counts()  # the newest frame the GPU has finished (none queued for 0 agents: 0)
             self._pending = (frustum_planes(matrix), margin)
             if cull_now:
                 self.cull()
@@ -480,9 +483,12 @@ class CrowdRenderer(GLStage):
         self.gpu.run(planes, np.array([*self.bound_center, self.bound_radius]), margin, self.lod_distances, self.lod_count, self.culling)
         return True
 
-    def _gpu_last(self) -> None:
-        """``last`` on the GPU path: the newest counts the GPU has handed back (a frame or two old)."""
-        counts = self.gpu.counts().astype(np.int64)
+    def refresh_counts(self, wait: bool = False) -> None:
+        """``last`` on the GPU path: the newest counts the GPU has handed back (a frame or two old;
+        `wait` finishes the frames queued: stats at the end of a run, tests). A no-op on the CPU path."""
+        if self.gpu is None:
+            return
+        counts = self.gpu.counts(wait).astype(np.int64)
         lod_counts = [0] * self.lod_count
         for k in self._first_slot_draws:
             lod_counts[self.draws[k].lod] += int(counts[k])

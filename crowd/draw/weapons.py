@@ -17,7 +17,8 @@ Culling: on the CPU cull path ``attach`` is given the visible set and uploads on
 GPU path (``gpu_cull``) the CPU does not know it: every armed agent's weapon is uploaded with its
 owner, and a compute pass (shaders/weapon_cull.comp.glsl) keeps those whose agent the body cull marked
 visible, compacted per weapon mesh and counted in indirect commands, so a weapon is drawn exactly when
-its agent is. ``last["weapons"]`` then counts the weapons placed, of which the GPU draws the visible.
+its agent is. ``last["weapons"]`` counts the weapons placed, ``last["drawn"]`` those drawn (on the GPU
+path as the GPU hands the counts back, a frame or two late; ``refresh_counts(wait=True)`` at a run's end).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import moderngl
 import numpy as np
 
 from ..gl import GLObjects, GLStage, load_shader
-from .gpu_cull import COMMAND_DTYPE, GROUP_SIZE
+from .gpu_cull import BUFFER_UPDATE, COMMAND, COMMAND_DTYPE, GROUP_SIZE, VERTEX_ATTRIB_ARRAY, CountRing
 from ..asset.model import Character, RigidMesh
 from .render import gl_bytes, heading_snorm16, pack_colors, pack_normals
 
@@ -100,6 +101,7 @@ class WeaponRenderer(GLStage):
             self._owner = self._objects.add(ctx.buffer(reserve=8))
             self._shown = self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))  # every mesh's list, one buffer
             self._commands = self._objects.add(ctx.buffer(reserve=len(self.names) * COMMAND_DTYPE.itemsize))
+            self._ring = CountRing(ctx, self._objects, len(self.names))
         for prop in character.props.values():
             vbo = self._objects.add(ctx.buffer(pack_rigid(prop.mesh).tobytes()))
             ibo = self._objects.add(ctx.buffer(np.asarray(prop.mesh.indices, np.uint32).tobytes()))
@@ -113,7 +115,7 @@ class WeaponRenderer(GLStage):
         if "u_shadow_map" in self._programs["color"]:
             self._programs["color"]["u_shadow_map"] = 3
         self.drawn = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 4), np.float32))
-        self.last = {"weapons": 0, "draws": 0, "triangles": 0}
+        self.last = {"weapons": 0, "drawn": 0, "draws": 0, "triangles": 0}
 
     def _vao(self, mesh: dict, kind: str) -> moderngl.VertexArray:
         if kind not in mesh["vaos"]:
@@ -183,7 +185,7 @@ class WeaponRenderer(GLStage):
             if len(chosen):
                 mesh["instances"].write(chosen.tobytes())
         self.drawn = (agents, weapon, rows)
-        self.last = {"weapons": int(len(agents)), "draws": sum(1 for m in self._meshes if m["count"]),
+        self.last = {"weapons": int(len(agents)), "drawn": int(len(agents)), "draws": sum(1 for m in self._meshes if m["count"]),
                      "triangles": sum(m["count"] * m["triangles"] for m in self._meshes)}
         return len(agents)
 
@@ -214,11 +216,22 @@ class WeaponRenderer(GLStage):
             for binding, buf in enumerate((self._placed, self._owner, self._shown, self._commands, visibility)):
                 buf.bind_to_storage_buffer(binding)
             self._cull.run(group_x=(k + GROUP_SIZE - 1) // GROUP_SIZE)
-            self.ctx.memory_barrier(0x00000001 | 0x00000040)  # the lists feed vertex attributes, the commands the draws
+            self.ctx.memory_barrier(VERTEX_ATTRIB_ARRAY | COMMAND | BUFFER_UPDATE)
+            self._ring.queue(self._commands)
+        else:
+            self._ring.zero()
         self.drawn = (agents, weapon, rows)
-        self.last = {"weapons": int(k), "draws": sum(1 for m in self._meshes if m["count"]),
-                     "triangles": sum(m["count"] * m["triangles"] for m in self._meshes)}
+        self.last = {"weapons": int(k)}
+        self.refresh_counts()
         return k
+
+    def refresh_counts(self, wait: bool = False) -> None:
+        """On the GPU path: what was drawn, from the newest counts handed back (`wait`: every queued frame's)."""
+        if not self.gpu_cull:
+            return
+        counts = self._ring.read(wait).astype(np.int64)
+        self.last.update(drawn=int(counts.sum()), draws=int(np.count_nonzero(counts)),
+                         triangles=int(sum(int(c) * m["triangles"] for c, m in zip(counts, self._meshes))))
 
     def _render(self, w: int, mesh: dict, kind: str) -> None:
         if not mesh["count"]:
@@ -253,5 +266,7 @@ class WeaponRenderer(GLStage):
         return self._objects.gpu_bytes()
 
     def release(self) -> None:
+        if getattr(self, "_ring", None) is not None:
+            self._ring.drop()
         self._objects.release()
         self._meshes = []
