@@ -24,6 +24,7 @@ AGENTS, TIME_SCALE, CROSSFADE = SETTINGS["agents"], SETTINGS["time_scale"], SETT
 CLIP_SPEED, WEIGHT, BAKE_FPS = SETTINGS["clip_speed"], SETTINGS["layer_weight"], SETTINGS["bake_fps"]
 LOD, LATENCY = SETTINGS["lod_distances"], SETTINGS["readback_latency"]
 PRECISIONS, INTERPOLATIONS = SETTINGS["precision"].choices, SETTINGS["interpolation"].choices
+CULL_PATHS = SETTINGS["cull"].choices
 
 HISTORY_SECONDS = 5.0
 LAYER_NAMES = ("idle", "walk", "run", "action")
@@ -50,7 +51,7 @@ class Panel:
         "agents": "set_agent_count", "seed": "set_seed", "crossfade": "set_crossfade", "time_scale": "set_time_scale",
         "pause": "set_paused", "step": "step_once", "clip_speed": "set_clip_speed", "clip_loop": "set_clip_loop",
         "play": "play", "weight": "set_weight", "rebake": "rebake", "measure_error": "measure_error", "lod": "set_lod_distances", "culling": "set_culling",
-        "shadows": "set_shadows", "weapons": "set_weapons", "latency": "set_readback_latency",
+        "shadows": "set_shadows", "weapons": "set_weapons", "latency": "set_readback_latency", "cull": "set_cull_path",
     }
 
     def apply(self, action: str, *args, **kwargs) -> bool:
@@ -222,6 +223,12 @@ class Panel:
         changed, on = imgui.checkbox("culling", p.renderer.culling)
         if changed:
             self.apply("culling", on)
+        imgui.same_line()
+        changed, index = imgui.combo("cull path", CULL_PATHS.index(p.config.cull), list(CULL_PATHS))
+        if changed:
+            self.apply("cull", CULL_PATHS[index])
+        imgui.same_line()
+        imgui.text(f"({p.renderer.cull_path})")
         changed, on = imgui.checkbox("shadows", p.renderer.shadows)
         if changed:
             self.apply("shadows", on)

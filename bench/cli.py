@@ -363,7 +363,7 @@ def main(argv=None) -> int:
     p.add_argument("--json", type=Path)
     p.set_defaults(run=bench_ai)
     p = sub.add_parser("frame", help="the whole headless frame: period (frames back to back, one finish) and latency (a finish per frame)")
-    p.add_argument("--agents", default="200,10000", help="comma-separated agent counts")
+    p.add_argument("--agents", default="1000,10000,100000,1000000", help="comma-separated agent counts (1,000,000 takes minutes on llvmpipe)")
     p.add_argument("--scene", type=Path, help="a scene file (default: the default scene)")
     p.add_argument("--size", default="1920x1080", help="frame size WxH")
     p.add_argument("--frames", type=int, default=100, help="frames per period measurement")

@@ -224,6 +224,9 @@ def test_panel_actions_go_through_the_session_and_report_refusals(session, tmp_p
     assert panel.apply("clip_speed", "idle", 0.5) and s.pipeline.clip_speed == {"idle": 0.5}
     assert not panel.apply("agents", -4) and "agent count" in panel.status and s.pipeline.agents == 30
     assert panel.apply("weight", 1, 0.3) and panel.status == ""
+    assert panel.apply("cull", "cpu") and s.pipeline.renderer.cull_path == "cpu"
+    assert not panel.apply("cull", "sideways") and "cull" in panel.status and s.pipeline.renderer.cull_path == "cpu"
     assert panel.apply("save") and "saved" in panel.status
     assert load_scene(tmp_path / "panel.toml").clip_speed == {"idle": 0.5}
+    assert load_scene(tmp_path / "panel.toml").cull == "cpu"
     assert panel.apply("save") and "panel.toml.bak" in panel.status
