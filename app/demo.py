@@ -18,7 +18,9 @@ def _parser() -> argparse.ArgumentParser:
     help come from there, so the command line, scene files and panel agree)."""
     from crowd.settings import SETTINGS, group
 
-    p = argparse.ArgumentParser(prog="crowd-demo", description="Zombie crowd demo: GPU animation processor and skinned instancing.")
+    # allow_abbrev off: with the schema's many flags a prefix such as --se or --re matched several.
+    p = argparse.ArgumentParser(prog="crowd-demo", description="Zombie crowd demo: GPU animation processor and skinned instancing.",
+                                allow_abbrev=False)
     p.add_argument("--headless", action="store_true", help="run offscreen through EGL even when a display exists")
     p.add_argument("--scene", type=Path, default=None, help="a scene file (TOML; see scenes/); flags given as well override it")
     p.add_argument("--screenshot", type=Path, default=None, help="PNG of the last frame (headless default out/demo.png)")

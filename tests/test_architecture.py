@@ -296,3 +296,12 @@ def test_session_stores_settings_as_the_schema_types_so_the_scene_saves(gl_conte
             session.set_weight(1.5, 0.5)
     finally:
         session.release()
+
+
+def test_the_demo_takes_no_abbreviated_flags():
+    """argparse's prefix matching made --se and --re mean one of several flags; a flag is spelled out."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-m", "app.demo", "--headless", "--se", "3"], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "unrecognized arguments: --se 3" in out.stderr and "Traceback" not in out.stderr

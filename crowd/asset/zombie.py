@@ -297,7 +297,6 @@ def _shirt_color(pos, u):
 def _build_body(div: int) -> SkinnedMesh:
     jc = len(JOINT_NAMES)
     J = JOINT_NAMES.index
-    p = _joint_positions()
     m = _MeshBuilder()
 
     # Torso: pelvis to the base of the neck, elliptic, thin at the waist, ribs showing.

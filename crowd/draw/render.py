@@ -580,10 +580,14 @@ def _read_by(prog: moderngl.Program, layout: tuple) -> tuple:
     depth pass has no colour) become padding, so every variant shares the buffer's stride."""
     fmt, *names = layout
     per_instance = fmt.endswith("/i")
-    items, named = fmt.removesuffix("/i").split(), iter(names)
-    # An item ending in "x" is padding of the layout itself, with no attribute name.
-    spec = " ".join(f if f.endswith("x") else (f if (n := next(named)) in prog else _padding(f)) for f in items)
-    return (spec + ("/i" if per_instance else ""), *[n for n in names if n in prog])
+    named = iter(names)
+    spec = []
+    for item in fmt.removesuffix("/i").split():
+        if item.endswith("x"):  # padding of the layout itself, with no attribute name
+            spec.append(item)
+        else:
+            spec.append(item if next(named) in prog else _padding(item))
+    return (" ".join(spec) + ("/i" if per_instance else ""), *[n for n in names if n in prog])
 
 
 def _padding(fmt: str) -> str:
