@@ -33,6 +33,7 @@ uniform int u_groups;
 uniform int u_group_slot[8];  // group g's choice c is slot u_group_slot[g] + c
 uniform int u_write_visible;
 uniform int u_draws;       // draws in the commands buffer
+uniform int u_lod_bias;    // 1 for the shadow lists: one LOD coarser than the colour pass picks
 
 // Appending with one global atomic per (agent, piece) serialises on the few counters every agent
 // hits (all of a far crowd is LOD2: 3 counters): on the H200 that cost 17 ms for 100,000 agents. So
@@ -66,7 +67,7 @@ void main() {
         if (inside) {
             float dist = length(center);
             for (int k = 0; k < u_lod_steps; ++k) lod += int(dist >= u_lod_start[k]);
-            lod = min(lod, u_lod_count - 1);
+            lod = min(lod + u_lod_bias, u_lod_count - 1);
             int base = lod * u_slots;
             for (int s = 0; s < u_common; ++s) draws[emits++] = draw_of[base + s];
             for (int g = 0; g < u_groups; ++g) draws[emits++] = draw_of[base + u_group_slot[g] + int((r.fields.w >> uint(4 * g)) & 15u)];

@@ -40,7 +40,7 @@ def crowd(rng, n, renderer, camera):
     scale = rng.uniform(0.8, 1.25, n).astype(np.float32)
     planes = frustum_planes(view_proj(camera))
     eye = np.asarray(camera.eye, np.float64)
-    margin = 3.0 if renderer.shadows else 0.0
+    margin = 0.0  # shadows have lists of their own: the colour cull needs no margin
     for k in range(0, n, 4):  # slide agent k along the plane's normal until its sphere touches the plane
         plane = planes[k % 6]
         center = positions[k] - eye + renderer.bound_center * scale[k]
@@ -59,7 +59,7 @@ def reference(renderer, camera, instances):
     eye = np.asarray(camera.eye, np.float64)
     scale = instances.scale.astype(np.float64)
     centers = instances.position - eye + renderer.bound_center * scale[:, None]
-    radii = renderer.bound_radius * scale + (3.0 if renderer.shadows else 0.0)
+    radii = renderer.bound_radius * scale
     planes = frustum_planes(view_proj(camera))
     visible = sphere_visible(planes, centers, radii)
     slack = np.min(centers @ planes[:, :3].T + planes[:, 3] + radii[:, None], axis=1)
@@ -250,3 +250,97 @@ def test_a_weapon_is_drawn_exactly_when_its_agent_is(gl_context):
             pictures[path] = target.image()
     assert 0 < drawn["gpu"] == drawn["cpu"] < placed  # some armed agents are out of view, and their weapons are not drawn
     assert np.array_equal(pictures["cpu"], pictures["gpu"])
+
+
+# -- shadows: lists of their own, culled against the sun's volume, one LOD coarser
+
+
+def _shadow_scene(gl_context, zombie, path, agents_x):
+    """One frame of agents standing at x = agents_x (z = 0) under a low sun from +x (shadows 6.7 m long
+    toward -x), seen by a camera whose view on the ground spans x from -15.7 to -2.3: the picture and the
+    renderer's counts."""
+    from crowd.gl import Offscreen
+    from crowd.frame import empty_layers
+
+    baked = bake(zombie.skeleton, zombie.clips)
+    n = len(agents_x)
+    with AnimationProcessor(gl_context, baked, 4) as proc, Offscreen(gl_context, SIZE) as target:
+        proc.resize(n)
+        layers = empty_layers(n, 4)
+        layers[:, 0, 2] = 1.0  # clip 0 at phase 0, weight 1
+        proc.process(layers)
+        renderer = CrowdRenderer(gl_context, zombie, baked.joint_count, proc.agents_per_row, lod_distances=LOD_DISTANCES,
+                                 shadows=True, culling=True, cull_path=path)
+        try:
+            renderer.sun_dir = np.array([1.0, 0.27, 0.0]) / np.linalg.norm([1.0, 0.27, 0.0])
+            camera = Camera(eye=np.array([-9.0, 14.0, 0.0]), target=np.array([-9.0, 0.0, -0.01]), fov_y=30.0, aspect=SIZE[0] / SIZE[1])
+            instances = Instances(np.column_stack([agents_x, np.zeros(n), np.zeros(n)]), np.zeros(n, np.float32),
+                                  np.ones(n, np.float32), np.full((n, 4), 255, np.uint8), {"head": np.zeros(n, np.int64)})
+            view = renderer.prepare(camera, instances)
+            fb = target.framebuffer
+            fb.use()
+            fb.clear(0.5, 0.5, 0.5, 1.0, depth=1.0)
+            renderer.shadow_pass(view, proc)
+            renderer.color_pass(fb, view, proc)
+            renderer.ground_pass(fb, view)
+            gl_context.finish()
+            renderer.refresh_counts(wait=True)
+            return target.image().astype(int), dict(renderer.last)
+        finally:
+            renderer.release()
+
+
+@pytest.mark.parametrize("path", ["cpu", "gpu"])
+def test_an_agent_outside_the_view_still_shadows_into_it(gl_context, zombie, path):
+    """The agent's sphere is several metres outside the view (the old 3 m margin would have dropped
+    it): it is not drawn, but its shadow darkens the ground in view."""
+    lit, lit_last = _shadow_scene(gl_context, zombie, path, np.array([200.0]))  # far away: no shadow in view
+    shaded, last = _shadow_scene(gl_context, zombie, path, np.array([3.0]))  # about 4 m right of the view
+    assert last["instances"] == 0 and last["shadow_instances"] == 3  # not drawn in colour; body, head, shirt in shadow
+    darker = (lit - shaded).max(axis=2) > 10
+    assert darker.mean() > 0.002 and not np.any((shaded - lit).max(axis=2) > 10)  # a shadow, and nothing brighter
+
+
+@pytest.mark.parametrize("shadows", [True, False])
+def test_shadow_lists_exist_only_with_shadows(gl_context, shadows):
+    for path in ("cpu", "gpu"):
+        with CrowdPipeline(gl_context, PipelineConfig(agents=20, cull=path, shadows=shadows, weapons=False)) as pipeline:
+            r = pipeline.renderer
+            if path == "gpu":
+                assert (r.gpu.shadow_lists is not None) == shadows
+            else:
+                assert all((d.shadow_instances is not None) == shadows for d in r.draws)
+
+
+def test_shadow_lists_are_the_sun_volumes_agents_one_lod_coarser(stages):
+    """Per draw, the GPU's shadow list holds the CPU path's (agents away from the boundaries), and each
+    agent casts its shadow from one LOD coarser than the colour pass would draw it (capped)."""
+    from crowd.draw.render import INSTANCE_DTYPE
+
+    rng = np.random.default_rng(5)
+    camera = Camera(eye=np.array([0.0, 12.0, 30.0]), target=np.zeros(3), aspect=16 / 9)
+    cpu, gpu = stages["cpu"], stages["gpu"]
+    instances = crowd(rng, 4000, gpu, camera)
+    cpu.prepare(camera, instances)
+    gpu.prepare(camera, instances)
+    shadow = gpu.gpu.shadow_counts(wait=True)
+    lists = np.frombuffer(gpu.gpu.shadow_lists.read(), INSTANCE_DTYPE)
+    eye = np.asarray(camera.eye, np.float64)
+    scale = instances.scale.astype(np.float64)
+    centers = instances.position - eye + gpu.bound_center * scale[:, None]
+    radii = gpu.bound_radius * scale
+    light = frustum_planes(gpu.light_view_proj(camera))
+    slack = np.min(centers @ light[:, :3].T + light[:, 3] + radii[:, None], axis=1)
+    dist = np.linalg.norm(centers, axis=1)
+    doubtful = set(np.flatnonzero((np.abs(slack) < BOUNDARY_M) | (np.min(np.abs(dist[:, None] - np.asarray(LOD_DISTANCES)), axis=1) < BOUNDARY_M)).tolist())
+    colour_lod = np.minimum(np.searchsorted(np.asarray(LOD_DISTANCES), dist, side="right"), 2)
+    casting = 0
+    for k, (c, g) in enumerate(zip(cpu.draws, gpu.draws)):
+        on_cpu = _listed_agents(cpu, k, np.frombuffer(c.shadow_instances.read(), INSTANCE_DTYPE)[: c.shadow_count]) if c.shadow_count else set()
+        on_gpu = _listed_agents(gpu, k, lists[k * gpu.gpu.capacity: k * gpu.gpu.capacity + int(shadow[k])])
+        assert on_cpu - doubtful == on_gpu - doubtful, (c.piece, c.lod)
+        for a in on_gpu - doubtful:
+            assert g.lod == min(colour_lod[a] + 1, 2)
+        casting += len(on_gpu)
+    assert casting > 100 and set(np.flatnonzero(slack < -BOUNDARY_M).tolist()).isdisjoint(
+        {a for k in range(len(gpu.draws)) for a in _listed_agents(gpu, k, lists[k * gpu.gpu.capacity: k * gpu.gpu.capacity + int(shadow[k])])})

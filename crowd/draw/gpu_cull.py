@@ -11,6 +11,10 @@ Contract, used by ``CrowdRenderer`` when its cull path is "gpu":
   ring of 3 small buffers behind fences and read once the GPU is done, so they trail the frame by a
   frame or two (the stats and the panel use them; ``counts(wait=True)`` is for tests).
 
+Shadows: with shadows on, a second dispatch over the same records culls against the sun's volume
+(the shadow map's orthographic box) into lists and commands of their own, one LOD coarser than the
+colour pass would pick (``run_shadow``); with shadows off they do not exist.
+
 Lists: draw d's list is records [d * capacity, (d + 1) * capacity) of one buffer, capacity being the
 agent count, so one atomic add per (agent, piece) places a record with no second pass; the commands'
 baseInstance points each draw at its list. The price is memory: draws x agents x 32 bytes (12 draws of
@@ -95,7 +99,7 @@ class GpuCull(GLStage):
     (only when `with_visible`: the weapons need it) and the ring the counts come back through."""
 
     def __init__(self, ctx: moderngl.Context, draws: list[tuple[int, int, int]], common: int, group_choices: list[int],
-                 with_visible: bool):
+                 with_visible: bool, with_shadow: bool = False):
         """`draws`: per draw (LOD, slot, index count). Slots 0 .. common - 1 are the pieces every agent
         wears; then each variation group's choices in turn (group g has group_choices[g])."""
         self._objects = GLObjects()
@@ -127,6 +131,11 @@ class GpuCull(GLStage):
         self.capacity = self.agents = 0
         self.agents_buffer = self._objects.add(ctx.buffer(reserve=RECORD_DTYPE.itemsize))
         self.lists = self._objects.add(ctx.buffer(reserve=RECORD_DTYPE.itemsize))
+        self.shadow_lists = self.shadow_commands = self.shadow_ring = None
+        if with_shadow:
+            self.shadow_lists = self._objects.add(ctx.buffer(reserve=RECORD_DTYPE.itemsize))
+            self.shadow_commands = self._objects.add(ctx.buffer(reserve=self.draw_count * COMMAND_DTYPE.itemsize))
+            self.shadow_ring = CountRing(ctx, self._objects, self.draw_count)
         self.visible = None
         self.set_visibility(with_visible)
 
@@ -147,7 +156,7 @@ class GpuCull(GLStage):
         one line saying how many bytes it needed."""
         if agents == self.capacity:
             return
-        need = self.draw_count * agents * RECORD_DTYPE.itemsize
+        need = self.draw_count * agents * RECORD_DTYPE.itemsize  # per list buffer (colour, and shadow)
         if need > self.max_block:
             raise GpuCullError(f"the GPU cull's lists for {agents:,} agents need {need:,} bytes, more than the {self.max_block:,} "
                                "one shader storage block may hold on this GPU")
@@ -157,6 +166,8 @@ class GpuCull(GLStage):
         self.capacity = agents
         self.agents_buffer.orphan(max(agents, 1) * RECORD_DTYPE.itemsize)
         self.lists.orphan(max(self.draw_count * agents, 1) * RECORD_DTYPE.itemsize)
+        if self.shadow_lists is not None:
+            self.shadow_lists.orphan(max(self.draw_count * agents, 1) * RECORD_DTYPE.itemsize)
         if self.visible is not None:
             self.visible.orphan(max(agents, 1) * 4)
         if self.ctx.error == "GL_OUT_OF_MEMORY":
@@ -175,13 +186,24 @@ class GpuCull(GLStage):
         commands["count"] = self.index_counts
         commands["base_instance"] = np.arange(self.draw_count, dtype=np.uint32) * np.uint32(self.capacity)
         self.commands.write(commands.tobytes())
+        if self.shadow_commands is not None:
+            self.shadow_commands.write(commands.tobytes())
         if n:
             self.agents_buffer.write(records.tobytes())
         else:
             self.ring.zero()
+            if self.shadow_ring is not None:
+                self.shadow_ring.zero()
 
     def run(self, planes: np.ndarray, bound: np.ndarray, margin: float, lod_start, lod_count: int, culling: bool) -> None:
-        """Cull the uploaded agents into the lists and commands (one dispatch)."""
+        """Cull the uploaded agents into the colour pass's lists and commands (one dispatch)."""
+        self._dispatch(self.lists, self.commands, self.ring, planes, bound, margin, lod_start, lod_count, culling, 0, self.visible)
+
+    def run_shadow(self, planes: np.ndarray, bound: np.ndarray, lod_start, lod_count: int, culling: bool) -> None:
+        """Cull the uploaded agents against the sun's volume into the shadow lists, one LOD coarser."""
+        self._dispatch(self.shadow_lists, self.shadow_commands, self.shadow_ring, planes, bound, 0.0, lod_start, lod_count, culling, 1, None)
+
+    def _dispatch(self, lists, commands, ring, planes, bound, margin, lod_start, lod_count, culling, lod_bias, visible) -> None:
         n = self.agents
         if n == 0:
             return
@@ -204,23 +226,28 @@ class GpuCull(GLStage):
             slots = np.zeros(MAX_GROUPS, np.int32)
             slots[: len(self.group_slots)] = self.group_slots
             p["u_group_slot"].write(slots.tobytes())
-        p["u_write_visible"] = int(self.visible is not None)
+        p["u_write_visible"] = int(visible is not None)
+        p["u_lod_bias"] = int(lod_bias)
         p["u_draws"] = self.draw_count
         self.agents_buffer.bind_to_storage_buffer(0)
-        self.lists.bind_to_storage_buffer(1)
-        self.commands.bind_to_storage_buffer(2)
+        lists.bind_to_storage_buffer(1)
+        commands.bind_to_storage_buffer(2)
         self.draw_of.bind_to_storage_buffer(3)
-        if self.visible is not None:
-            self.visible.bind_to_storage_buffer(4)
+        if visible is not None:
+            visible.bind_to_storage_buffer(4)
         p.run(group_x=(n + GROUP_SIZE - 1) // GROUP_SIZE)
         # The lists feed vertex attributes and the commands feed the draws: both written by the shader.
         self.ctx.memory_barrier(VERTEX_ATTRIB_ARRAY | COMMAND | BUFFER_UPDATE | SHADER_STORAGE)
-        self.ring.queue(self.commands)
+        ring.queue(commands)
 
     def counts(self, wait: bool = False) -> np.ndarray:
         """(draws,) instance counts of the newest frame the GPU has finished (every queued one with
         `wait`); never waits otherwise."""
         return self.ring.read(wait)
+
+    def shadow_counts(self, wait: bool = False) -> np.ndarray:
+        """As ``counts``, for the shadow lists (zeros without shadows)."""
+        return self.shadow_ring.read(wait) if self.shadow_ring is not None else np.zeros(self.draw_count, np.uint32)
 
     def visible_agents(self) -> np.ndarray:
         """(N,) LOD + 1 of each agent, 0 where culled (synchronous: tests)."""
@@ -235,4 +262,6 @@ class GpuCull(GLStage):
         if hasattr(self, "_objects"):
             if hasattr(self, "ring"):
                 self.ring.drop()
+            if getattr(self, "shadow_ring", None) is not None:
+                self.shadow_ring.drop()
             self._objects.release()

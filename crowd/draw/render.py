@@ -201,6 +201,8 @@ class _Draw:
     uv_box: tuple = (0.0, 0.0, 1.0, 1.0)  # corner and size of the texture coordinates' unorm16 box
     vaos: dict = field(default_factory=dict)  # program key → VertexArray
     count: int = 0
+    shadow_instances: moderngl.Buffer | None = None  # the CPU path's shadow list (shadows on)
+    shadow_count: int = 0
 
 
 class CrowdRenderer(GLStage):
@@ -240,6 +242,8 @@ class CrowdRenderer(GLStage):
             inst = self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize)) if cull_path == "cpu" else None
             box = tuple(float(x) for x in np.concatenate(uv_box(m.uvs))) if m.texture >= 0 else (0.0, 0.0, 1.0, 1.0)
             self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, vbo, ibo, inst, m.texture, uv_layout(m), box))
+            if cull_path == "cpu" and shadows:
+                self.draws[-1].shadow_instances = self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
         # Only the textures a drawn piece uses reach the GPU, and none when no piece has one.
         used = {m.texture for m in meshes if m.texture >= 0}
         self.materials = self._own("textures", MaterialTextures(ctx, character.textures, used)) if used else None
@@ -251,7 +255,7 @@ class CrowdRenderer(GLStage):
                     slot[piece] = len(slot)
             try:
                 self.gpu = self._own("cull", GpuCull(ctx, [(d.lod, slot[d.piece], d.triangles * 3) for d in self.draws], len(common),
-                                                     [len(p) for p in self.groups.values()], weapons_visibility))
+                                                     [len(p) for p in self.groups.values()], weapons_visibility, with_shadow=shadows))
             except GpuCullError as exc:
                 raise RenderError(f"{exc} (the cpu cull path has no such limit)") from None
             for draw in self.draws:  # every draw reads its list out of the one list buffer (baseInstance)
@@ -278,7 +282,7 @@ class CrowdRenderer(GLStage):
         self._ground_vbo = self._own("ground", ctx.buffer(quad.tobytes()))
         self._ground_vao = self._own("ground", ctx.vertex_array(ground_prog, [(self._ground_vbo, "2f", "in_position")]))
         self.sun_dir = np.array(SUN_DIR)
-        self.last = {"triangles": 0, "instances": 0, "visible": 0, "draws": 0, "lod_counts": [0] * self.lod_count}
+        self.last = {"triangles": 0, "instances": 0, "visible": 0, "draws": 0, "lod_counts": [0] * self.lod_count, "shadow_instances": 0}
 
     # -- resources
 
@@ -325,7 +329,11 @@ class CrowdRenderer(GLStage):
         key = (kind, skinned)
         if key not in draw.vaos:
             prog = self._draw_program(draw, kind, skinned)
-            content = [(draw.vbo, *_read_by(prog, _LAYOUTS[draw.layout][1])), (draw.instances, *_read_by(prog, INSTANCE_FORMAT))]
+            if kind == "depth":  # the shadow pass reads the shadow lists
+                instances = self.gpu.shadow_lists if self.gpu is not None else draw.shadow_instances
+            else:
+                instances = draw.instances
+            content = [(draw.vbo, *_read_by(prog, _LAYOUTS[draw.layout][1])), (instances, *_read_by(prog, INSTANCE_FORMAT))]
             draw.vaos[key] = self._own("programs", self.ctx.vertex_array(prog, content, index_buffer=draw.ibo, index_element_size=4))
         return draw.vaos[key]
 
@@ -373,15 +381,15 @@ class CrowdRenderer(GLStage):
         matrix = view_proj(camera)
         light = self.light_view_proj(camera) if self.shadows else None
         eye = np.asarray(camera.eye, np.float64)
-        # Agents just outside the view may still cast shadows into it: widen their sphere.
-        margin = 3.0 if self.shadows else 0.0
+        # Shadows come from lists of their own, culled against the sun's volume (an agent outside the
+        # view still shadows into it) one LOD coarser: the colour lists need no margin.
         if self.gpu is not None:
             try:
                 self.gpu.upload(self._all_records(instances, eye, row_offset))
             except GpuCullError as exc:
                 raise RenderError(f"{exc} (the cpu cull path needs no lists: --cull cpu)") from None
             self.refresh_counts()  # the newest frame the GPU has finished (none queued for 0 agents: 0)
-            self._pending = (frustum_planes(matrix), margin)
+            self._pending = (frustum_planes(matrix), None if light is None else frustum_planes(light))
             if cull_now:
                 self.cull()
             return FrameView(camera, matrix, light, None)
@@ -390,17 +398,31 @@ class CrowdRenderer(GLStage):
         scale = instances.scale.astype(np.float64)
         centers = rel + self.bound_center[None] * scale[:, None]
         radii = self.bound_radius * scale
-        if self.culling and n:
-            visible = sphere_visible(frustum_planes(matrix), centers, radii + margin)
-        else:
-            visible = np.ones(n, bool)
+        visible = sphere_visible(frustum_planes(matrix), centers, radii) if self.culling and n else np.ones(n, bool)
         dist = np.linalg.norm(centers, axis=1)
-        lod = np.searchsorted(np.asarray(self.lod_distances), dist, side="right")
-        lod = np.minimum(lod, self.lod_count - 1)
-        # Records for the visible agents only, sorted once per variation group so that each draw's
-        # instances are one contiguous slice (a boolean mask per draw cost 12 passes over the crowd).
+        lod = np.minimum(np.searchsorted(np.asarray(self.lod_distances), dist, side="right"), self.lod_count - 1)
         shown = np.flatnonzero(visible).astype(np.uint32)
-        lod = lod[shown]
+        counts = self._upload_lists(instances, shown, lod[shown], row_offset, rel, "instances")
+        self.last = {"triangles": int(sum(c * d.triangles for c, d in zip(counts, self.draws))), "instances": int(sum(counts)),
+                     "visible": len(shown), "draws": sum(1 for c in counts if c),
+                     "lod_counts": np.bincount(lod[shown], minlength=self.lod_count).tolist(), "shadow_instances": 0}
+        for draw, c in zip(self.draws, counts):
+            draw.count = c
+        if self.shadows:
+            lit = sphere_visible(frustum_planes(light), centers, radii) if self.culling and n else np.ones(n, bool)
+            casting = np.flatnonzero(lit).astype(np.uint32)
+            shadow_lod = np.minimum(lod[casting] + 1, self.lod_count - 1)
+            shadow_counts = self._upload_lists(instances, casting, shadow_lod, row_offset, rel, "shadow_instances")
+            for draw, c in zip(self.draws, shadow_counts):
+                draw.shadow_count = c
+            self.last["shadow_instances"] = int(sum(shadow_counts))
+        return FrameView(camera, matrix, light, visible)
+
+    def _upload_lists(self, instances: Instances, shown: np.ndarray, lod: np.ndarray, row_offset, rel: np.ndarray, buffer: str) -> list[int]:
+        """The CPU path's lists: the records of agents `shown` at LODs `lod`, sorted once per variation
+        group so that each draw's instances are one contiguous slice (a boolean mask per draw cost 12
+        passes over the crowd), written into each draw's `buffer` ("instances" or "shadow_instances").
+        Returns each draw's count."""
         records = self._records(instances, shown, row_offset, rel)
         slices = {}  # group ("" for pieces every agent wears) → (records sorted by draw key, start offsets per key)
         for group in ["", *self.groups]:
@@ -410,28 +432,20 @@ class CrowdRenderer(GLStage):
             order = np.argsort(key, kind="stable")  # a radix sort for 16-bit keys
             starts = np.concatenate([[0], np.cumsum(np.bincount(key, minlength=self.lod_count * choices))])
             slices[group] = (records[order], starts, choices)
-        triangles = 0
-        instances_total = 0
-        draws = 0
+        counts = []
         for draw in self.draws:
             group = self._piece_group[draw.piece]
             sorted_records, starts, choices = slices[group]
             k = draw.lod * choices + (self.groups[group].index(draw.piece) if group else 0)
             chosen = sorted_records[starts[k]:starts[k + 1]]
-            draw.count = len(chosen)
-            if draw.count:
-                data = chosen.tobytes()
-                if draw.instances.size != len(data):
-                    draw.instances.orphan(len(data))  # exact size: a smaller crowd frees what it no longer needs
-                draw.instances.write(data)
-                triangles += draw.count * draw.triangles
-                instances_total += draw.count
-                draws += 1
-            elif draw.instances.size != INSTANCE_DTYPE.itemsize:
-                draw.instances.orphan(INSTANCE_DTYPE.itemsize)
-        self.last = {"triangles": triangles, "instances": instances_total, "visible": len(shown), "draws": draws,
-                     "lod_counts": np.bincount(lod, minlength=self.lod_count).tolist()}
-        return FrameView(camera, matrix, light, visible)
+            target = getattr(draw, buffer)
+            size = max(chosen.nbytes, INSTANCE_DTYPE.itemsize)  # exact: a smaller crowd frees what it no longer needs
+            if target.size != size:
+                target.orphan(size)
+            if len(chosen):
+                target.write(chosen.tobytes())
+            counts.append(len(chosen))
+        return counts
 
     def _records(self, instances: Instances, shown: np.ndarray, row_offset, rel: np.ndarray) -> np.ndarray:
         """The CPU path's instance records of the visible agents `shown`, as the shaders read them."""
@@ -479,8 +493,11 @@ class CrowdRenderer(GLStage):
         pending, self._pending = getattr(self, "_pending", None), None
         if self.gpu is None or pending is None:
             return False
-        planes, margin = pending
-        self.gpu.run(planes, np.array([*self.bound_center, self.bound_radius]), margin, self.lod_distances, self.lod_count, self.culling)
+        planes, light_planes = pending
+        bound = np.array([*self.bound_center, self.bound_radius])
+        self.gpu.run(planes, bound, 0.0, self.lod_distances, self.lod_count, self.culling)
+        if light_planes is not None:
+            self.gpu.run_shadow(light_planes, bound, self.lod_distances, self.lod_count, self.culling)
         return True
 
     def refresh_counts(self, wait: bool = False) -> None:
@@ -494,19 +511,27 @@ class CrowdRenderer(GLStage):
             lod_counts[self.draws[k].lod] += int(counts[k])
         for draw, c in zip(self.draws, counts):
             draw.count = int(c)
+        shadow = self.gpu.shadow_counts(wait).astype(np.int64)
+        for draw, c in zip(self.draws, shadow):
+            draw.shadow_count = int(c)
         self.last = {"triangles": int(sum(c * d.triangles for c, d in zip(counts, self.draws))), "instances": int(counts.sum()),
-                     "visible": int(sum(lod_counts)), "draws": int(np.count_nonzero(counts)), "lod_counts": lod_counts}
+                     "visible": int(sum(lod_counts)), "draws": int(np.count_nonzero(counts)), "lod_counts": lod_counts,
+                     "shadow_instances": int(shadow.sum())}
 
     def draws_anything(self, agents: int) -> bool:
         """Whether this frame's passes have instances to draw (the GPU path cannot know: any agent may be)."""
         return agents > 0 if self.gpu is not None else bool(self.last["instances"])
 
     def _render(self, index: int, draw: _Draw, kind: str, skinned: bool) -> None:
+        """One draw of a pass: the colour pass from the colour lists, the depth pass from the shadow lists."""
         vao = self._vao(draw, kind, skinned)
         if self.gpu is not None:
-            vao.render_indirect(self.gpu.commands, moderngl.TRIANGLES, count=1, first=index)
-        elif draw.count:
-            vao.render(moderngl.TRIANGLES, instances=draw.count)
+            commands = self.gpu.shadow_commands if kind == "depth" else self.gpu.commands
+            vao.render_indirect(commands, moderngl.TRIANGLES, count=1, first=index)
+        else:
+            count = draw.shadow_count if kind == "depth" else draw.count
+            if count:
+                vao.render(moderngl.TRIANGLES, instances=count)
 
     def light_view_proj(self, camera: Camera) -> np.ndarray:
         """Orthographic sun view over the area around the camera's target (camera-relative)."""
