@@ -348,7 +348,7 @@ class CrowdPipeline(GLStage):
             with t.cpu("attach"):
                 agent_frames = AgentFrames(instances.position, instances.yaw, instances.scale, self.camera.eye)
                 self.weapons.attach(self.sync.synced(read, self.agents), agent_frames, self.ai.weapon, view.visible,
-                                    None if self.renderer.gpu is None else self.renderer.gpu.visible)
+                                    None if self.renderer.gpu is None else self.renderer.gpu.visible, view.casting)
             self._run("attach")
         self.last = FrameState(f, view, read, row_offset, agent_frames)
         framebuffer.use()
@@ -356,7 +356,7 @@ class CrowdPipeline(GLStage):
         if self.renderer.shadows:
             with t.gpu("shadow"):
                 self.renderer.shadow_pass(view, self.processor)
-                if self.weapons is not None and self.weapons.last["weapons"]:
+                if self.weapons is not None and self.weapons.casts_shadows():
                     self.weapons.depth_pass(view.light_view_proj)
             self._run("shadow")
         if self.renderer.draws_anything(self.agents):

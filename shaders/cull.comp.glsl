@@ -16,7 +16,7 @@ layout(std430, binding = 0) readonly buffer Agents { Record agents[]; };
 layout(std430, binding = 1) writeonly buffer Lists { Record lists[]; };  // draw d's list starts at d * u_capacity
 layout(std430, binding = 2) buffer Commands { uint commands[]; };        // DrawElementsIndirectCommand x draws
 layout(std430, binding = 3) readonly buffer DrawOf { int draw_of[]; };    // [lod * u_slots + slot] -> draw, or -1
-layout(std430, binding = 4) writeonly buffer Visible { uint visible[]; }; // per agent: 1 + LOD, 0 when culled
+layout(std430, binding = 4) buffer Visible { uint visible[]; };  // per agent: 1 + LOD (0: culled) | 0x10000 in the sun's volume
 
 uniform vec4 u_planes[6];   // inside: dot(n, p) + d >= 0 (camera-relative)
 uniform vec4 u_bound;       // xyz: the bind pose's sphere centre, w: its radius (both times the agent's scale)
@@ -31,7 +31,7 @@ uniform int u_slots;        // slots per LOD in draw_of
 uniform int u_common;       // slots 0 .. u_common - 1: the pieces every agent wears
 uniform int u_groups;
 uniform int u_group_slot[8];  // group g's choice c is slot u_group_slot[g] + c
-uniform int u_write_visible;
+uniform int u_write_visible;  // 1: the colour run writes 1 + LOD; 2: the shadow run marks the sun's volume
 uniform int u_draws;       // draws in the commands buffer
 uniform int u_lod_bias;    // 1 for the shadow lists: one LOD coarser than the colour pass picks
 
@@ -75,7 +75,8 @@ void main() {
                 if (draws[e] >= 0) slots[e] = atomicAdd(s_count[draws[e]], 1u);
             }
         }
-        if (u_write_visible != 0) visible[i] = inside ? uint(lod + 1) : 0u;
+        if (u_write_visible == 1) visible[i] = inside ? uint(lod + 1) : 0u;
+        else if (u_write_visible == 2 && inside) atomicOr(visible[i], 0x10000u);
     }
     memoryBarrierShared();
     barrier();

@@ -14,13 +14,14 @@ layout(std430, binding = 3) buffer Commands { uint commands[]; };
 layout(std430, binding = 4) readonly buffer Visible { uint visible[]; };  // per agent, from the body cull
 
 uniform uint u_count;
+uniform uint u_mask;  // 0xFFFF: the agent is drawn (the colour pass); 0x10000: it is in the sun's volume (the shadow pass)
 uniform uint u_start[16];
 
 void main() {
     uint k = gl_GlobalInvocationID.x;
     if (k >= u_count) return;
     uvec2 o = owner[k];
-    if (visible[o.x] == 0u) return;
+    if ((visible[o.x] & u_mask) == 0u) return;
     uint slot = atomicAdd(commands[o.y * 5u + 1u], 1u);
     shown[u_start[o.y] + slot] = placed[k];
 }

@@ -77,7 +77,7 @@ def test_gpu_visible_set_and_lods_equal_the_float64_test(stages, seed):
                     fov_y=float(rng.uniform(20, 90)), aspect=float(rng.uniform(0.5, 2.5)))
     instances = crowd(rng, 3000, gpu, camera)
     gpu.prepare(camera, instances)
-    got = gpu.gpu.visible_agents()
+    got = gpu.gpu.visible_agents() & 0xFFFF  # the low half: 1 + LOD, 0 where culled
     visible, lod, slack, dist = reference(gpu, camera, instances)
     near_plane = np.abs(slack) < BOUNDARY_M
     near_lod = np.min(np.abs(dist[:, None] - np.asarray(LOD_DISTANCES)[None]), axis=1) < BOUNDARY_M
@@ -344,3 +344,31 @@ def test_shadow_lists_are_the_sun_volumes_agents_one_lod_coarser(stages):
         casting += len(on_gpu)
     assert casting > 100 and set(np.flatnonzero(slack < -BOUNDARY_M).tolist()).isdisjoint(
         {a for k in range(len(gpu.draws)) for a in _listed_agents(gpu, k, lists[k * gpu.gpu.capacity: k * gpu.gpu.capacity + int(shadow[k])])})
+
+
+@pytest.mark.parametrize("path", ["cpu", "gpu"])
+def test_weapons_shadow_with_their_agents_not_with_the_view(gl_context, path):
+    """A camera that sees part of the crowd: the weapons' shadow pass draws the weapons of the agents
+    in the sun's volume (some out of view), the colour pass those of the agents drawn."""
+    from crowd.gl import Offscreen
+    from crowd.smoke import FIXED_DT
+
+    camera = Camera(eye=np.array([6.0, 1.7, 6.0]), target=np.array([14.0, 1.0, 2.0]), aspect=SIZE[0] / SIZE[1])
+    with CrowdPipeline(gl_context, PipelineConfig(agents=300, seed=3, cull=path)) as pipeline, Offscreen(gl_context, SIZE) as target:
+        pipeline.camera = camera
+        for _ in range(4):
+            pipeline.frame(target.framebuffer, FIXED_DT)
+        gl_context.finish()
+        w = pipeline.weapons
+        if path == "gpu":
+            colour = int(np.frombuffer(w._commands.read(), np.uint32).reshape(-1, 5)[:, 1].sum())
+            shadow = int(np.frombuffer(w._shadow_commands.read(), np.uint32).reshape(-1, 5)[:, 1].sum())
+            in_volume = pipeline.renderer.gpu.visible_agents() >= 0x10000
+        else:
+            colour = sum(m["count"] for m in w._meshes)
+            shadow = sum(m["shadow_count"] for m in w._meshes)
+            in_volume = pipeline.last.view.casting
+        armed = set(w.drawn[0].tolist())  # GPU path: every placed weapon's agent
+        assert shadow > 0 and colour > 0 and shadow != colour
+        if path == "gpu":  # every placed weapon whose agent is in the sun's volume, and no other
+            assert shadow == sum(1 for a in armed if in_volume[a])

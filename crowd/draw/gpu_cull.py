@@ -197,13 +197,16 @@ class GpuCull(GLStage):
 
     def run(self, planes: np.ndarray, bound: np.ndarray, margin: float, lod_start, lod_count: int, culling: bool) -> None:
         """Cull the uploaded agents into the colour pass's lists and commands (one dispatch)."""
-        self._dispatch(self.lists, self.commands, self.ring, planes, bound, margin, lod_start, lod_count, culling, 0, self.visible)
+        self._dispatch(self.lists, self.commands, self.ring, planes, bound, margin, lod_start, lod_count, culling, 0, self.visible, 1)
 
     def run_shadow(self, planes: np.ndarray, bound: np.ndarray, lod_start, lod_count: int, culling: bool) -> None:
-        """Cull the uploaded agents against the sun's volume into the shadow lists, one LOD coarser."""
-        self._dispatch(self.shadow_lists, self.shadow_commands, self.shadow_ring, planes, bound, 0.0, lod_start, lod_count, culling, 1, None)
+        """Cull the uploaded agents against the sun's volume into the shadow lists, one LOD coarser;
+        each agent in it gets bit 16 of its visibility (after ``run``, which clears it): the weapons'
+        shadow pass keeps the weapons of those agents."""
+        self._dispatch(self.shadow_lists, self.shadow_commands, self.shadow_ring, planes, bound, 0.0, lod_start, lod_count, culling, 1,
+                       self.visible, 2)
 
-    def _dispatch(self, lists, commands, ring, planes, bound, margin, lod_start, lod_count, culling, lod_bias, visible) -> None:
+    def _dispatch(self, lists, commands, ring, planes, bound, margin, lod_start, lod_count, culling, lod_bias, visible, mode) -> None:
         n = self.agents
         if n == 0:
             return
@@ -226,7 +229,7 @@ class GpuCull(GLStage):
             slots = np.zeros(MAX_GROUPS, np.int32)
             slots[: len(self.group_slots)] = self.group_slots
             p["u_group_slot"].write(slots.tobytes())
-        p["u_write_visible"] = int(visible is not None)
+        p["u_write_visible"] = mode if visible is not None else 0
         p["u_lod_bias"] = int(lod_bias)
         p["u_draws"] = self.draw_count
         self.agents_buffer.bind_to_storage_buffer(0)
@@ -250,7 +253,7 @@ class GpuCull(GLStage):
         return self.shadow_ring.read(wait) if self.shadow_ring is not None else np.zeros(self.draw_count, np.uint32)
 
     def visible_agents(self) -> np.ndarray:
-        """(N,) LOD + 1 of each agent, 0 where culled (synchronous: tests)."""
+        """(N,) LOD + 1 of each agent, 0 where culled, plus 0x10000 where it is in the sun's volume (synchronous: tests)."""
         if self.visible is None:
             raise GpuCullError("this cull keeps no per-agent visibility (no weapons)")
         return np.frombuffer(self.visible.read(), np.uint32).copy()

@@ -80,7 +80,8 @@ class FrameView:
     camera: Camera
     view_proj: np.ndarray  # float32 4x4, camera-relative
     light_view_proj: np.ndarray | None  # float32 4x4 of the sun's shadow map; None without shadows
-    visible: np.ndarray  # bool (N,): agents that survived culling
+    visible: np.ndarray | None  # bool (N,): agents that survived culling (None on the GPU cull path)
+    casting: np.ndarray | None = None  # bool (N,): agents in the sun's volume, whose shadows are drawn (CPU path, shadows on)
 
 
 def frustum_planes(view_proj: np.ndarray) -> np.ndarray:
@@ -416,7 +417,7 @@ class CrowdRenderer(GLStage):
             for draw, c in zip(self.draws, shadow_counts):
                 draw.shadow_count = c
             self.last["shadow_instances"] = int(sum(shadow_counts))
-        return FrameView(camera, matrix, light, visible)
+        return FrameView(camera, matrix, light, visible, lit if self.shadows else None)
 
     def _upload_lists(self, instances: Instances, shown: np.ndarray, lod: np.ndarray, row_offset, rel: np.ndarray, buffer: str) -> list[int]:
         """The CPU path's lists: the records of agents `shown` at LODs `lod`, sorted once per variation

@@ -17,7 +17,8 @@ Culling: on the CPU cull path ``attach`` is given the visible set and uploads on
 GPU path (``gpu_cull``) the CPU does not know it: every armed agent's weapon is uploaded with its
 owner, and a compute pass (shaders/weapon_cull.comp.glsl) keeps those whose agent the body cull marked
 visible, compacted per weapon mesh and counted in indirect commands, so a weapon is drawn exactly when
-its agent is. ``last["weapons"]`` counts the weapons placed, ``last["drawn"]`` those drawn (on the GPU
+its agent is. With shadows on, the shadow pass draws the weapons of the agents in the sun's volume
+(the body cull's shadow lists), from lists of their own on both paths. ``last["weapons"]`` counts the weapons placed, ``last["drawn"]`` those drawn (on the GPU
 path as the GPU hands the counts back, a frame or two late; ``refresh_counts(wait=True)`` at a run's end).
 """
 
@@ -102,11 +103,20 @@ class WeaponRenderer(GLStage):
             self._shown = self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))  # every mesh's list, one buffer
             self._commands = self._objects.add(ctx.buffer(reserve=len(self.names) * COMMAND_DTYPE.itemsize))
             self._ring = CountRing(ctx, self._objects, len(self.names))
+            self._shadow_shown = self._shadow_commands = None
+            if shadows:
+                self._shadow_shown = self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
+                self._shadow_commands = self._objects.add(ctx.buffer(reserve=len(self.names) * COMMAND_DTYPE.itemsize))
+        self.shadows = shadows
         for prop in character.props.values():
             vbo = self._objects.add(ctx.buffer(pack_rigid(prop.mesh).tobytes()))
             ibo = self._objects.add(ctx.buffer(np.asarray(prop.mesh.indices, np.uint32).tobytes()))
             inst = self._shown if gpu_cull else self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
-            self._meshes.append({"vbo": vbo, "ibo": ibo, "instances": inst, "count": 0, "vaos": {}, "triangles": prop.mesh.triangle_count})
+            shadow = None
+            if shadows:
+                shadow = self._shadow_shown if gpu_cull else self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
+            self._meshes.append({"vbo": vbo, "ibo": ibo, "instances": inst, "shadow_instances": shadow, "count": 0, "shadow_count": 0,
+                                 "vaos": {}, "triangles": prop.mesh.triangle_count})
         defines = {"SHADOWS": 1} if shadows else {}
         self._programs = {
             "color": self._objects.add(ctx.program(vertex_shader=load_shader("weapon.vert.glsl"), fragment_shader=load_shader("skin.frag.glsl", defines))),
@@ -121,7 +131,8 @@ class WeaponRenderer(GLStage):
         if kind not in mesh["vaos"]:
             prog = self._programs[kind]
             vertex = ("3f 2u", "in_position", "in_packed") if kind == "color" else ("3f 8x", "in_position")
-            mesh["vaos"][kind] = self._objects.add(self.ctx.vertex_array(prog, [(mesh["vbo"], *vertex), (mesh["instances"], "4f 4f 4f/i", "i_row0", "i_row1", "i_row2")],
+            instances = mesh["shadow_instances"] if kind == "depth" else mesh["instances"]
+            mesh["vaos"][kind] = self._objects.add(self.ctx.vertex_array(prog, [(mesh["vbo"], *vertex), (instances, "4f 4f 4f/i", "i_row0", "i_row1", "i_row2")],
                                                                  index_buffer=mesh["ibo"], index_element_size=4))
         return mesh["vaos"][kind]
 
@@ -162,47 +173,59 @@ class WeaponRenderer(GLStage):
         return agents, weapon, out.transpose(1, 0, 2).astype(np.float32)
 
     def attach(self, read, frames: AgentFrames, weapon_of_agent: np.ndarray, visible: np.ndarray | None = None,
-               visibility=None) -> int:
+               visibility=None, casting: np.ndarray | None = None) -> int:
         """Place and upload this frame's weapons (none when `read` is None). Returns how many.
-        `visible`: the CPU cull's visible agents; `visibility`: on the GPU path, the body cull's
-        per-agent visibility buffer, which a compute pass filters the weapons by."""
+        `visible` and `casting`: the CPU cull's agents drawn and agents in the sun's volume (their
+        weapons' shadows are drawn); `visibility`: on the GPU path, the body cull's per-agent
+        visibility buffer, which a compute pass filters the weapons by for both passes."""
         if read is None:
             agents, weapon, rows = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 4), np.float32)
         else:
             agents, weapon, rows = self.matrices(read, frames, np.asarray(weapon_of_agent))
-            if visible is not None:
-                shown = visible[agents]
-                agents, weapon, rows = agents[shown], weapon[shown], rows[shown]
-        starts = np.searchsorted(weapon, np.arange(len(self.names) + 1))
         if self.gpu_cull:
-            return self._attach_on_gpu(agents, weapon, rows, starts, visibility)
-        for w, mesh in enumerate(self._meshes):
-            chosen = rows[starts[w]:starts[w + 1]]
-            mesh["count"] = len(chosen)
-            size = max(chosen.nbytes, INSTANCE_DTYPE.itemsize)
-            if mesh["instances"].size != size:
-                mesh["instances"].orphan(size)
-            if len(chosen):
-                mesh["instances"].write(chosen.tobytes())
+            return self._attach_on_gpu(agents, weapon, rows, np.searchsorted(weapon, np.arange(len(self.names) + 1)), visibility)
+        if self.shadows:
+            lit = np.ones(len(agents), bool) if casting is None else casting[agents]
+            self._upload_cpu(weapon[lit], rows[lit], "shadow_instances", "shadow_count")
+        if visible is not None:
+            shown = visible[agents]
+            agents, weapon, rows = agents[shown], weapon[shown], rows[shown]
+        self._upload_cpu(weapon, rows, "instances", "count")
         self.drawn = (agents, weapon, rows)
         self.last = {"weapons": int(len(agents)), "drawn": int(len(agents)), "draws": sum(1 for m in self._meshes if m["count"]),
                      "triangles": sum(m["count"] * m["triangles"] for m in self._meshes)}
         return len(agents)
+
+    def _upload_cpu(self, weapon: np.ndarray, rows: np.ndarray, buffer: str, count: str) -> None:
+        """The CPU path: each mesh's rows (sorted by weapon) into its `buffer`, their number in `count`."""
+        starts = np.searchsorted(weapon, np.arange(len(self.names) + 1))
+        for w, mesh in enumerate(self._meshes):
+            chosen = rows[starts[w]:starts[w + 1]]
+            mesh[count] = len(chosen)
+            size = max(chosen.nbytes, INSTANCE_DTYPE.itemsize)
+            if mesh[buffer].size != size:
+                mesh[buffer].orphan(size)
+            if len(chosen):
+                mesh[buffer].write(chosen.tobytes())
 
     def _attach_on_gpu(self, agents, weapon, rows, starts, visibility) -> int:
         if visibility is None:
             raise WeaponError("the GPU weapon cull needs the body cull's visibility buffer")
         k = len(agents)
         size = max(rows.nbytes, INSTANCE_DTYPE.itemsize)
-        for buf in (self._placed, self._shown):
+        lists = [(self._shown, self._commands, 0xFFFF)]
+        if self._shadow_shown is not None:
+            lists.append((self._shadow_shown, self._shadow_commands, 0x10000))
+        for buf in (self._placed, *(shown for shown, _, _ in lists)):
             if buf.size != size:
                 buf.orphan(size)
         commands = np.zeros(len(self.names), COMMAND_DTYPE)
         commands["count"] = [m["triangles"] * 3 for m in self._meshes]
         commands["base_instance"] = starts[:-1]
-        self._commands.write(commands.tobytes())
+        for _, command_buffer, _ in lists:
+            command_buffer.write(commands.tobytes())
         for w, mesh in enumerate(self._meshes):
-            mesh["count"] = int(starts[w + 1] - starts[w])  # placed: the GPU draws the visible of them
+            mesh["count"] = mesh["shadow_count"] = int(starts[w + 1] - starts[w])  # placed: the GPU draws the visible of them
         if k:
             self._placed.write(rows.tobytes())
             owner = np.stack([agents, weapon], axis=1).astype(np.uint32)
@@ -213,9 +236,11 @@ class WeaponRenderer(GLStage):
             first = np.zeros(16, np.uint32)
             first[: len(self.names)] = starts[:-1]
             self._cull["u_start"].write(first.tobytes())
-            for binding, buf in enumerate((self._placed, self._owner, self._shown, self._commands, visibility)):
-                buf.bind_to_storage_buffer(binding)
-            self._cull.run(group_x=(k + GROUP_SIZE - 1) // GROUP_SIZE)
+            for shown, command_buffer, mask in lists:  # the colour pass's weapons, then the shadow pass's
+                self._cull["u_mask"] = mask
+                for binding, buf in enumerate((self._placed, self._owner, shown, command_buffer, visibility)):
+                    buf.bind_to_storage_buffer(binding)
+                self._cull.run(group_x=(k + GROUP_SIZE - 1) // GROUP_SIZE)
             self.ctx.memory_barrier(VERTEX_ATTRIB_ARRAY | COMMAND | BUFFER_UPDATE)
             self._ring.queue(self._commands)
         else:
@@ -233,13 +258,19 @@ class WeaponRenderer(GLStage):
         self.last.update(drawn=int(counts.sum()), draws=int(np.count_nonzero(counts)),
                          triangles=int(sum(int(c) * m["triangles"] for c, m in zip(counts, self._meshes))))
 
+    def casts_shadows(self) -> bool:
+        """Whether the shadow pass has weapons to draw (the agents in the sun's volume may be out of view)."""
+        return any(m["shadow_count"] for m in self._meshes)
+
     def _render(self, w: int, mesh: dict, kind: str) -> None:
-        if not mesh["count"]:
+        count = mesh["shadow_count"] if kind == "depth" else mesh["count"]
+        if not count:
             return
         if self.gpu_cull:
-            self._vao(mesh, kind).render_indirect(self._commands, moderngl.TRIANGLES, count=1, first=w)
+            commands = self._shadow_commands if kind == "depth" else self._commands
+            self._vao(mesh, kind).render_indirect(commands, moderngl.TRIANGLES, count=1, first=w)
         else:
-            self._vao(mesh, kind).render(moderngl.TRIANGLES, instances=mesh["count"])
+            self._vao(mesh, kind).render(moderngl.TRIANGLES, instances=count)
 
     def grip_points(self) -> np.ndarray:
         """(K, 3) float64: the grip point of each drawn weapon, through the float32 rows the GPU got."""
