@@ -656,19 +656,7 @@ class _Tree:
 
     def joint_above(self, node: int) -> int | None:
         """The nearest joint strictly above `node`, or None."""
-        chain, k = [], node
-        while k not in self._above:
-            chain.append(k)
-            p = self.parent.get(k)
-            if p is None or p in self.joints:
-                found = p
-                break
-            k = p
-        else:
-            found = self._above[k]
-        for k in chain:
-            self._above[k] = found
-        return found
+        return _nearest_joint_above(self.parent, self.joints, self._above, node)
 
     def run_matrix(self, node: int) -> np.ndarray:
         """For a non-joint node: the product of the locals from the top of its run of non-joint nodes
@@ -880,40 +868,44 @@ def _skin_joints(r: _Reader, k: int) -> list[int]:
     return joints
 
 
+def _memoised_walk(node: int, memo: dict, step) -> object:
+    """Where a chain of steps from `node` ends, remembered for every node on the way, so that walks
+    over a whole tree stay linear. `step(k)` is (the next node, None) to go on, or (None, the end)."""
+    chain, k = [], node
+    while k not in memo:
+        chain.append(k)
+        nxt, end = step(k)
+        if nxt is None:
+            break
+        k = nxt
+    else:
+        end = memo[k]
+    for k in chain:
+        memo[k] = end
+    return end
+
+
+def _nearest_joint_above(parent: dict[int, int], joints: set[int], memo: dict, node: int) -> int | None:
+    """The nearest node of `joints` strictly above `node` (None: it has none), memoised in `memo`."""
+    def step(k):
+        p = parent.get(k)
+        return (None, p) if p is None or p in joints else (p, None)
+
+    return _memoised_walk(node, memo, step)
+
+
 def _joint_tops(tree: _Tree, joints: set[int]) -> dict[int, int]:
     """For each joint: the top joint of its tree in the forest of `joints` (parent = the nearest joint
     above). Linear in the nodes walked; tree.joints and its memo are left alone."""
     above: dict[int, int | None] = {}
-
-    def joint_above(node: int) -> int | None:
-        chain, k = [], node
-        while k not in above:
-            chain.append(k)
-            p = tree.parent.get(k)
-            if p is None or p in joints:
-                found = p
-                break
-            k = p
-        else:
-            found = above[k]
-        for k in chain:
-            above[k] = found
-        return found
-
     top: dict[int, int] = {}
+
+    def step(k):
+        a = _nearest_joint_above(tree.parent, joints, above, k)
+        return (None, k) if a is None else (a, None)
+
     for j in joints:
-        chain, k = [], j
-        while k not in top:
-            chain.append(k)
-            a = joint_above(k)
-            if a is None:
-                found = k
-                break
-            k = a
-        else:
-            found = top[k]
-        for k in chain:
-            top[k] = found
+        _memoised_walk(j, top, step)
     return top
 
 
