@@ -337,21 +337,26 @@ class _Reader:
             data = self.blob
         elif not isinstance(uri, str):
             self.fail(f"{where}: uri must be a string, got {_show(uri)}")
-        elif uri.startswith("data:"):
-            head, comma, payload = uri.partition(",")
-            if not comma or not head.endswith(";base64"):
-                self.fail(f"{where} has a malformed data URI (glTF buffers are base64)")
-            self._charge_file(len(payload) * 3 // 4, f"{where}'s data URI")
-            try:
-                data = base64.b64decode(payload, validate=False)
-            except (binascii.Error, ValueError):
-                self.fail(f"{where} has a malformed data URI")
         else:
-            data = self._external(uri, where)
+            data = self.uri_bytes(uri, where, " (glTF buffers are base64)")
         if len(data) < byte_length:
             self.fail(f"{where} holds {len(data)} bytes, byteLength says {byte_length}")
         self._buffers[index] = data
         return data, byte_length
+
+    def uri_bytes(self, uri: str, where: str, base64_note: str = "") -> bytes:
+        """The bytes a buffer's or an image's uri names: a base64 data URI (counted against the file
+        budget), or a regular file inside the model's folder."""
+        if not uri.startswith("data:"):
+            return self._external(uri, where)
+        head, comma, payload = uri.partition(",")
+        if not comma or not head.endswith(";base64"):
+            self.fail(f"{where} has a malformed data URI{base64_note}")
+        self._charge_file(len(payload) * 3 // 4, f"{where}'s data URI")
+        try:
+            return base64.b64decode(payload, validate=False)
+        except (binascii.Error, ValueError):
+            self.fail(f"{where} has a malformed data URI")
 
     def _external(self, uri: str, where: str) -> bytes:
         folder = self.path.parent.resolve()
