@@ -403,7 +403,8 @@ class CrowdRenderer(GLStage):
         dist = np.linalg.norm(centers, axis=1)
         lod = np.minimum(np.searchsorted(np.asarray(self.lod_distances), dist, side="right"), self.lod_count - 1)
         shown = np.flatnonzero(visible).astype(np.uint32)
-        counts = self._upload_lists(instances, shown, lod[shown], row_offset, rel, "instances")
+        records = self._all_records(instances, eye, row_offset)  # once, for the colour and the shadow lists
+        counts = self._upload_lists(instances, records, shown, lod[shown], "instances")
         self.last = {"triangles": int(sum(c * d.triangles for c, d in zip(counts, self.draws))), "instances": int(sum(counts)),
                      "visible": len(shown), "draws": sum(1 for c in counts if c),
                      "lod_counts": np.bincount(lod[shown], minlength=self.lod_count).tolist(), "shadow_instances": 0}
@@ -413,18 +414,19 @@ class CrowdRenderer(GLStage):
             lit = sphere_visible(frustum_planes(light), centers, radii) if self.culling and n else np.ones(n, bool)
             casting = np.flatnonzero(lit).astype(np.uint32)
             shadow_lod = np.minimum(lod[casting] + 1, self.lod_count - 1)
-            shadow_counts = self._upload_lists(instances, casting, shadow_lod, row_offset, rel, "shadow_instances")
+            shadow_counts = self._upload_lists(instances, records, casting, shadow_lod, "shadow_instances")
             for draw, c in zip(self.draws, shadow_counts):
                 draw.shadow_count = c
             self.last["shadow_instances"] = int(sum(shadow_counts))
         return FrameView(camera, matrix, light, visible, lit if self.shadows else None)
 
-    def _upload_lists(self, instances: Instances, shown: np.ndarray, lod: np.ndarray, row_offset, rel: np.ndarray, buffer: str) -> list[int]:
+    def _upload_lists(self, instances: Instances, all_records: np.ndarray, shown: np.ndarray, lod: np.ndarray, buffer: str) -> list[int]:
         """The CPU path's lists: the records of agents `shown` at LODs `lod`, sorted once per variation
         group so that each draw's instances are one contiguous slice (a boolean mask per draw cost 12
         passes over the crowd), written into each draw's `buffer` ("instances" or "shadow_instances").
+        `all_records`: every agent's record (``_all_records``).
         Returns each draw's count."""
-        records = self._records(instances, shown, row_offset, rel)
+        records = all_records[shown]
         slices = {}  # group ("" for pieces every agent wears) → (records sorted by draw key, start offsets per key)
         for group in ["", *self.groups]:
             choices = len(self.groups[group]) if group else 1
@@ -448,24 +450,11 @@ class CrowdRenderer(GLStage):
             counts.append(len(chosen))
         return counts
 
-    def _records(self, instances: Instances, shown: np.ndarray, row_offset, rel: np.ndarray) -> np.ndarray:
-        """The CPU path's instance records of the visible agents `shown`, as the shaders read them."""
-        records = np.empty(len(shown), INSTANCE_DTYPE)
-        records["position_scale"][:, :3] = rel[shown]
-        records["position_scale"][:, 3] = instances.scale[shown]
-        # Both fit 16 bits: x < 4096 (the palette width), and the processor keeps its rows under 65,536.
-        x, y = palette_texel(shown, 0, row_offset[shown] if np.ndim(row_offset) else row_offset, self.agents_per_row, self.joint_count)
-        records["packed"][:, 0] = x.astype(np.uint32) | (y.astype(np.uint32) << 16)
-        records["packed"][:, 1] = _rgba8(instances.tint[shown])
-        heading = heading_snorm16(instances.yaw[shown])
-        records["packed"][:, 2] = heading[:, 0] | (heading[:, 1] << 16)
-        records["packed"][:, 3] = 0  # the variation choices: only the GPU cull reads them (_all_records)
-        return records
-
     def _all_records(self, instances: Instances, eye: np.ndarray, row_offset) -> np.ndarray:
-        """Every agent's record for the GPU cull, written into arrays kept from frame to frame (the
-        same fields as ``_records``; the palette texels of agent i are a fixed base plus its ring
-        slot's first row, so only that addition runs per frame)."""
+        """Every agent's instance record, as the shaders (and the GPU cull) read them, written into
+        arrays kept from frame to frame: the palette texels of agent i are a fixed base plus its ring
+        slot's first row, so only that addition runs per frame. Both texel halves fit 16 bits: x <
+        4096 (the palette width), and the processor keeps its rows under 65,536."""
         n = len(instances)
         if getattr(self, "_scratch_n", -1) != n:
             self._scratch_n = n
