@@ -88,6 +88,26 @@ def test_gpu_visible_set_and_lods_equal_the_float64_test(stages, seed):
     assert 0.05 < visible.mean() < 0.95
 
 
+def _doubtful(slack, dist) -> set:
+    """Agents within BOUNDARY_M of a plane or a LOD distance: either side is right for them."""
+    near_lod = np.min(np.abs(dist[:, None] - np.asarray(LOD_DISTANCES)), axis=1) < BOUNDARY_M
+    return set(np.flatnonzero((np.abs(slack) < BOUNDARY_M) | near_lod).tolist())
+
+
+def _gpu_lists(renderer, buffer, counts) -> list[set]:
+    """The agents in each draw's list of one of the GPU cull's list buffers."""
+    from crowd.draw.render import INSTANCE_DTYPE
+
+    records, cap = np.frombuffer(buffer.read(), INSTANCE_DTYPE), renderer.gpu.capacity
+    return [_listed_agents(renderer, k, records[k * cap: k * cap + int(c)]) for k, c in enumerate(counts)]
+
+
+def _cpu_list(renderer, k, buffer, count) -> set:
+    from crowd.draw.render import INSTANCE_DTYPE
+
+    return _listed_agents(renderer, k, np.frombuffer(buffer.read(), INSTANCE_DTYPE)[:count]) if count else set()
+
+
 def _listed_agents(renderer, k, records):
     """The agents in draw k's records (from each record's palette texel)."""
     texel = records["packed"][:, 0]
@@ -97,8 +117,6 @@ def _listed_agents(renderer, k, records):
 def test_each_draws_list_holds_the_agents_the_cpu_path_draws(stages):
     """Draw by draw, the GPU's list holds exactly the agents the CPU path puts in that draw, but for
     agents within BOUNDARY_M of a plane or a LOD distance; the counts in the commands match the lists."""
-    from crowd.draw.render import INSTANCE_DTYPE
-
     rng = np.random.default_rng(11)
     camera = Camera(eye=np.array([0.0, 25.0, 60.0]), target=np.zeros(3), aspect=16 / 9)
     cpu, gpu = stages["cpu"], stages["gpu"]
@@ -108,12 +126,10 @@ def test_each_draws_list_holds_the_agents_the_cpu_path_draws(stages):
     counts = gpu.gpu.counts(wait=True)
     assert [(d.piece, d.lod) for d in cpu.draws] == [(d.piece, d.lod) for d in gpu.draws]
     _, _, slack, dist = reference(gpu, camera, instances)
-    doubtful = set(np.flatnonzero((np.abs(slack) < BOUNDARY_M) | (np.min(np.abs(dist[:, None] - np.asarray(LOD_DISTANCES)), axis=1) < BOUNDARY_M)).tolist())
-    lists = np.frombuffer(gpu.gpu.lists.read(), INSTANCE_DTYPE)
+    doubtful = _doubtful(slack, dist)
     total = 0
-    for k, (c, g) in enumerate(zip(cpu.draws, gpu.draws)):
-        on_cpu = _listed_agents(cpu, k, np.frombuffer(c.instances.read(), INSTANCE_DTYPE)[: c.count]) if c.count else set()
-        on_gpu = _listed_agents(gpu, k, lists[k * gpu.gpu.capacity: k * gpu.gpu.capacity + int(counts[k])])
+    for k, (c, on_gpu) in enumerate(zip(cpu.draws, _gpu_lists(gpu, gpu.gpu.lists, counts))):
+        on_cpu = _cpu_list(cpu, k, c.instances, c.count)
         assert len(on_gpu) == int(counts[k])  # no agent twice in a list
         assert on_cpu - doubtful == on_gpu - doubtful, (c.piece, c.lod)
         total += len(on_cpu)
@@ -315,16 +331,13 @@ def test_shadow_lists_exist_only_with_shadows(gl_context, shadows):
 def test_shadow_lists_are_the_sun_volumes_agents_one_lod_coarser(stages):
     """Per draw, the GPU's shadow list holds the CPU path's (agents away from the boundaries), and each
     agent casts its shadow from one LOD coarser than the colour pass would draw it (capped)."""
-    from crowd.draw.render import INSTANCE_DTYPE
-
     rng = np.random.default_rng(5)
     camera = Camera(eye=np.array([0.0, 12.0, 30.0]), target=np.zeros(3), aspect=16 / 9)
     cpu, gpu = stages["cpu"], stages["gpu"]
     instances = crowd(rng, 4000, gpu, camera)
     cpu.prepare(camera, instances)
     gpu.prepare(camera, instances)
-    shadow = gpu.gpu.shadow_counts(wait=True)
-    lists = np.frombuffer(gpu.gpu.shadow_lists.read(), INSTANCE_DTYPE)
+    shadow_lists = _gpu_lists(gpu, gpu.gpu.shadow_lists, gpu.gpu.shadow_counts(wait=True))
     eye = np.asarray(camera.eye, np.float64)
     scale = instances.scale.astype(np.float64)
     centers = instances.position - eye + gpu.bound_center * scale[:, None]
@@ -332,18 +345,16 @@ def test_shadow_lists_are_the_sun_volumes_agents_one_lod_coarser(stages):
     light = frustum_planes(gpu.light_view_proj(camera))
     slack = np.min(centers @ light[:, :3].T + light[:, 3] + radii[:, None], axis=1)
     dist = np.linalg.norm(centers, axis=1)
-    doubtful = set(np.flatnonzero((np.abs(slack) < BOUNDARY_M) | (np.min(np.abs(dist[:, None] - np.asarray(LOD_DISTANCES)), axis=1) < BOUNDARY_M)).tolist())
+    doubtful = _doubtful(slack, dist)
     colour_lod = np.minimum(np.searchsorted(np.asarray(LOD_DISTANCES), dist, side="right"), 2)
     casting = 0
-    for k, (c, g) in enumerate(zip(cpu.draws, gpu.draws)):
-        on_cpu = _listed_agents(cpu, k, np.frombuffer(c.shadow_instances.read(), INSTANCE_DTYPE)[: c.shadow_count]) if c.shadow_count else set()
-        on_gpu = _listed_agents(gpu, k, lists[k * gpu.gpu.capacity: k * gpu.gpu.capacity + int(shadow[k])])
+    for k, (c, g, on_gpu) in enumerate(zip(cpu.draws, gpu.draws, shadow_lists)):
+        on_cpu = _cpu_list(cpu, k, c.shadow_instances, c.shadow_count)
         assert on_cpu - doubtful == on_gpu - doubtful, (c.piece, c.lod)
         for a in on_gpu - doubtful:
             assert g.lod == min(colour_lod[a] + 1, 2)
         casting += len(on_gpu)
-    assert casting > 100 and set(np.flatnonzero(slack < -BOUNDARY_M).tolist()).isdisjoint(
-        {a for k in range(len(gpu.draws)) for a in _listed_agents(gpu, k, lists[k * gpu.gpu.capacity: k * gpu.gpu.capacity + int(shadow[k])])})
+    assert casting > 100 and set(np.flatnonzero(slack < -BOUNDARY_M).tolist()).isdisjoint(set().union(*shadow_lists))
 
 
 @pytest.mark.parametrize("path", ["cpu", "gpu"])
