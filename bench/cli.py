@@ -74,7 +74,7 @@ def bench_scale(args) -> int:
     from crowd.anim.roles import bake_roles, match_roles
     from crowd.asset.gltf import load_character
     from crowd.frame import Instances
-    from crowd.gl import Offscreen, describe, headless_context
+    from crowd.gl import Offscreen, describe, has_compute, headless_context
     from crowd.settings import parse
     from crowd.stages import StageSpec, Stages, build_processor
 
@@ -85,7 +85,7 @@ def bench_scale(args) -> int:
     character = load_character(args.model)
     roles, _ = match_roles(character.clips)
     baked = bake_roles(character, roles)
-    compute = ctx.version_code >= 430
+    compute = has_compute(ctx)
     # The CPU cull path: its triangle count is known at once, and the draw itself is the same instanced
     # draw (the GPU path only adds the cull pass and reads the count from an indirect command).
     spec = StageSpec(layers=args.layers, processor_path="compute" if compute else "fragment", lod_distances=(1e9, 1e9),

@@ -27,6 +27,7 @@ from crowd import transforms as tf
 from crowd.anim.bake import bake
 from crowd.asset.model import Channel, Clip, Skeleton
 from crowd.frame import CLIP, PHASE, WEIGHT, empty_layers
+from crowd.gl import has_compute
 
 TARGET_MM = 1.0  # the default configuration's max shell error on the built-in zombie
 NUMERIC_MM = 0.01  # float32 arithmetic alone on a skeleton of a few joints, well inside 1 m
@@ -143,7 +144,7 @@ def long_chains(ctx, interpolation, fps, precision) -> dict:
     rng = np.random.default_rng(3)
     samples = accuracy.draw_samples(clips, rng, 50, 300)
     worst = 0.0
-    for path in ("compute", "fragment") if ctx.version_code >= 430 else ("fragment",):
+    for path in ("compute", "fragment") if has_compute(ctx) else ("fragment",):
         err = _gpu_error(ctx, skeleton, clips, samples.layers, interpolation, fps, precision, path)
         worst = max(worst, float(np.max(err)))
     return _case("64-joint chains", np.array([worst]), CHAIN_MM,

@@ -76,6 +76,12 @@ class GLUnavailable(RuntimeError):
     """No usable OpenGL context could be made; the message says why in one line."""
 
 
+def has_compute(ctx) -> bool:
+    """Whether the context runs compute shaders and storage buffers (GL 4.3): the compute processor
+    and the GPU cull need them; GL 3.3 contexts take the fragment processor and the CPU cull."""
+    return ctx.version_code >= 430
+
+
 def has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 

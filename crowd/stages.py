@@ -23,6 +23,7 @@ from .asset.model import Character
 from .draw.readback import SocketReadback
 from .draw.render import CrowdRenderer, RenderError
 from .draw.weapons import WeaponRenderer
+from .gl import has_compute
 from .frame import MAX_LAYERS
 from .settings import DEFAULTS
 
@@ -67,7 +68,7 @@ def build_renderer(ctx: moderngl.Context, character: Character, processor: Anima
 
 def cull_path(ctx: moderngl.Context, asked: str) -> str:
     """"gpu" or "cpu" for `asked` ("auto": gpu where the context runs compute shaders)."""
-    compute = ctx.version_code >= 430
+    compute = has_compute(ctx)
     if asked == "gpu" and not compute:
         raise RenderError(f"the gpu cull path needs GL 4.3 compute shaders; this context is GL {ctx.version_code}")
     return asked if asked != "auto" else ("gpu" if compute else "cpu")

@@ -46,7 +46,7 @@ import numpy as np
 from .. import transforms as tf
 from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, validate_layers, validate_masks
 from .bake import AnimationBake
-from ..gl import GLStage, gpu_bytes, load_shader
+from ..gl import GLStage, gpu_bytes, has_compute, load_shader
 from ..settings import DEFAULTS, SETTINGS
 from .reference import CANCELLED_NORM, REST_THRESHOLD, aligned_sign
 
@@ -233,8 +233,8 @@ class AnimationProcessor(GLStage):
         if np.any(bake.parents >= np.arange(jc)):
             raise ProcessorError("the hierarchy must list parents before their children")
         if path == "auto":
-            path = "compute" if ctx.version_code >= 430 else "fragment"
-        if path == "compute" and ctx.version_code < 430:
+            path = "compute" if has_compute(ctx) else "fragment"
+        if path == "compute" and not has_compute(ctx):
             raise ProcessorError(f"the compute path needs GL 4.3, this context has {ctx.version_code}")
         self.ctx = ctx
         self.bake = bake
