@@ -43,7 +43,9 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _metavar(setting) -> str:
-    return {"choice": "{" + ",".join(setting.choices) + "}", "pair": "NEAR,FAR", "rate": "FPS", "int": "N"}.get(setting.kind, "X")
+    if setting.kind == "ascending":
+        return ",".join(f"D{k + 1}" for k in range(len(setting.default)))
+    return {"choice": "{" + ",".join(setting.choices) + "}", "rate": "FPS", "int": "N"}.get(setting.kind, "X")
 
 
 def _show(value) -> str:

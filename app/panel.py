@@ -216,10 +216,9 @@ class Panel:
             e = s.bake_error
             imgui.text(f"shell error against float64: max {e['max_error_mm']:.3g} mm, p99 {e['p99_error_mm']:.3g} mm "
                        f"({e['poses']} poses, GPU)")
-        near, far = p.renderer.lod_distances
-        changed, (near, far) = imgui.drag_float2("LOD distances (m)", [near, far], 0.5, *LOD.slider)
+        changed, distances = imgui.drag_float3("LOD distances (m)", list(p.renderer.lod_distances), 0.5, *LOD.slider)
         if changed:
-            self.apply("lod", near, max(near, far))
+            self.apply("lod", *map(float, np.maximum.accumulate(distances)))  # dragging one past the next pushes the next along
         changed, on = imgui.checkbox("culling", p.renderer.culling)
         if changed:
             self.apply("culling", on)

@@ -88,7 +88,7 @@ def bench_scale(args) -> int:
     compute = has_compute(ctx)
     # The CPU cull path: its triangle count is known at once, and the draw itself is the same instanced
     # draw (the GPU path only adds the cull pass and reads the count from an indirect command).
-    spec = StageSpec(layers=args.layers, processor_path="compute" if compute else "fragment", lod_distances=(1e9, 1e9),
+    spec = StageSpec(layers=args.layers, processor_path="compute" if compute else "fragment", lod_distances=(1e9, 1e9, 1e9),
                      shadows=False, culling=False, cull="cpu")
     rng = np.random.default_rng(1)
     rows = []

@@ -175,7 +175,7 @@ class CrowdSide:
         # Leave out what the mode does not need: the walk alone, or the walk and the run.
         self.bake = bake_roles(character, {"walk": walk, "run": run if self.blend else None})
         self.layer_count = 2 if self.blend else 1
-        lod = spec["lod_distances"] if spec["mode"] == "walk_lod" else (1e9, 1e9)
+        lod = spec["lod_distances"] if spec["mode"] == "walk_lod" else (1e9, 1e9, 1e9)
         self.stages = Stages.build(self.ctx, character, self.bake, StageSpec(layers=self.layer_count, lod_distances=lod,
                                                                              shadows=False, culling=True))
         self.processor, self.renderer = self.stages.processor, self.stages.renderer

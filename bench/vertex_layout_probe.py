@@ -74,7 +74,7 @@ def main(argv=None) -> int:
     character = load_character(None)
     roles, _ = match_roles(character.clips)
     baked = bake_roles(character, roles)
-    spec = StageSpec(lod_distances=(1e9, 1e9), shadows=False, culling=False, cull="cpu")  # counts at once, its own instance buffers
+    spec = StageSpec(lod_distances=(1e9, 1e9, 1e9), shadows=False, culling=False, cull="cpu")  # counts at once, its own instance buffers
     own: list = []  # the probe's own programs, buffers and arrays, released however the run ends
     with Stages.build(ctx, character, baked, spec, args.agents) as stages, Offscreen(ctx, size) as target:
         proc, renderer, fb = stages.processor, stages.renderer, target.framebuffer

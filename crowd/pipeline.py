@@ -176,8 +176,8 @@ class CrowdPipeline(GLStage):
         self.config = dataclasses.replace(self.config, culling=bool(on))
         self.renderer.culling = bool(on)
 
-    def set_lod_distances(self, near: float, far: float) -> None:
-        distances = SETTINGS["lod_distances"].check((near, far), PipelineError)
+    def set_lod_distances(self, *distances: float) -> None:
+        distances = SETTINGS["lod_distances"].check(distances, PipelineError)
         self.config = dataclasses.replace(self.config, lod_distances=distances)
         self.renderer.lod_distances = distances
 
@@ -348,7 +348,7 @@ class CrowdPipeline(GLStage):
             with t.cpu("attach"):
                 agent_frames = AgentFrames(instances.position, instances.yaw, instances.scale, self.camera.eye)
                 self.weapons.attach(self.sync.synced(read, self.agents), agent_frames, self.ai.weapon, view.visible,
-                                    None if self.renderer.gpu is None else self.renderer.gpu.visible, view.casting)
+                                    None if self.renderer.gpu is None else self.renderer.gpu.visible, view.casting, view.lod)
             self._run("attach")
         self.last = FrameState(f, view, read, row_offset, agent_frames)
         framebuffer.use()

@@ -200,8 +200,9 @@ class CrowdSession(GLStage):
         self.bake_error = {**accuracy.summarise(errors), "poses": int(len(samples.layers))}
         return self.bake_error
 
-    def set_lod_distances(self, near: float, far: float) -> None:
-        self.pipeline.set_lod_distances(*SETTINGS["lod_distances"].check((near, far), SessionError))
+    def set_lod_distances(self, *distances: float) -> None:
+        """Metres from the camera where LOD1, LOD2 and LOD3 start."""
+        self.pipeline.set_lod_distances(*SETTINGS["lod_distances"].check(distances, SessionError))
 
     def set_cull_path(self, path: str) -> None:
         """Cull, pick LODs and build the instance lists on the GPU or the CPU ("auto": the GPU where it can)."""

@@ -34,7 +34,8 @@ class SettingError(ValueError):
 class Setting:
     name: str  # the scene file's key and the command line's --flag (with dashes)
     group: str
-    kind: str  # int, float, bool, choice, rate (fps or "source"), scale (a factor or "auto"), pair, size (WxH)
+    kind: str  # int, float, bool, choice, rate (fps or "source"), scale (a factor or "auto"), size (WxH),
+    #            ascending (as many numbers as the default, each no larger than the next)
     default: object
     help: str
     label: str = ""  # the words an error uses ("agent count"); the name when empty
@@ -62,8 +63,9 @@ class Setting:
             return f"{_num(self.low)} to {_num(self.high)} fps or {SOURCE_RATE!r}"
         if self.kind == "scale":
             return f"a factor from {self.low:g} to {self.high:g} or {AUTO_SCALE!r}"
-        if self.kind == "pair":
-            return f"two numbers above {_num(self.low)}, the first no larger than the second"
+        if self.kind == "ascending":
+            count = {2: "two", 3: "three", 4: "four"}.get(len(self.default), str(len(self.default)))
+            return f"{count} numbers above {_num(self.low)}, each no larger than the next"
         if self.kind == "size":
             return f"WxH with each side {_num(self.low)} to {_num(self.high)}"
         noun = "a whole number" if self.kind == "int" else "a number"
@@ -77,13 +79,13 @@ class Setting:
         return "a whole number" if self.kind == "int" else "a finite number"
 
     def reason(self, value) -> str:
-        shown = repr(list(value)) if isinstance(value, (list, tuple)) else repr(value)  # a TOML array and a flag's pair alike
+        shown = repr(list(value)) if isinstance(value, (list, tuple)) else repr(value)  # a TOML array and a flag's list alike
         if len(shown) > 40:  # a 400-digit number stays a readable line
             shown = f"{shown[:24]}... ({len(shown)} characters)"
         return f"{self.words} must be {self.rule()}, got {shown}"
 
     def check(self, value, error: type[Exception] = SettingError, source: str | None = None, shown=None):
-        """`value` as this setting's type (ints stay ints, floats become float, pairs tuples), or
+        """`value` as this setting's type (ints stay ints, floats become float, ascending lists tuples), or
         `error` raised with the one-line reason, after "source: " when a source is given. The reason
         names `shown` instead of the value when given (the text a person typed)."""
         ok = self._checked(value)
@@ -102,13 +104,13 @@ class Setting:
             return value if value == SOURCE_RATE else self._number(value, float)
         if k == "scale":
             return value if value == AUTO_SCALE else self._number(value, float)
-        if k == "pair":
-            if not isinstance(value, (list, tuple)) or len(value) != 2:
+        if k == "ascending":
+            if not isinstance(value, (list, tuple)) or len(value) != len(self.default):
                 return _BAD
-            pair = tuple(_real(v) for v in value)
-            if _BAD in pair or not self._above_low(pair[0]) or not pair[0] <= pair[1] or pair[1] > self.high:
+            numbers_ = tuple(_real(v) for v in value)
+            if _BAD in numbers_ or not self._above_low(numbers_[0]) or numbers_[-1] > self.high:
                 return _BAD
-            return pair
+            return numbers_ if all(a <= b for a, b in zip(numbers_, numbers_[1:])) else _BAD
         if k == "size":
             if not isinstance(value, (list, tuple)) or len(value) != 2 or not all(_whole(v) for v in value):
                 return _BAD
@@ -145,7 +147,7 @@ class Setting:
                 return t if t == AUTO_SCALE else _number_text(t)
             if self.kind == "bool":
                 return {"true": True, "on": True, "1": True, "false": False, "off": False, "0": False}.get(t.lower(), text)
-            if self.kind == "pair":
+            if self.kind == "ascending":
                 return tuple(_number_text(v) for v in t.split(","))
             if self.kind == "size":
                 w, sep, h = t.lower().partition("x")
@@ -210,7 +212,7 @@ _ALL = (
             label="readback latency", low=1, high=3, slider=(1, 3)),
     Setting("shadows", "features", "bool", True, "sun shadows (the shadow map and pass exist only when on)"),
     Setting("culling", "features", "bool", True, "frustum culling"),
-    Setting("lod_distances", "features", "pair", (14.0, 40.0), "metres from the camera where LOD1 and LOD2 start",
+    Setting("lod_distances", "features", "ascending", (14.0, 40.0, 90.0), "metres from the camera where LOD1, LOD2 and LOD3 start",
             label="LOD distances", low=0, open_low=True, slider=(1, 500)),
     Setting("processor", "features", "choice", "auto", "animation processor path: compute where GL 4.3 exists, else fragment",
             label="processor path", choices=("auto", "compute", "fragment")),

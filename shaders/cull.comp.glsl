@@ -16,7 +16,9 @@ layout(std430, binding = 0) readonly buffer Agents { Record agents[]; };
 layout(std430, binding = 1) writeonly buffer Lists { Record lists[]; };  // draw d's list starts at d * u_capacity
 layout(std430, binding = 2) buffer Commands { uint commands[]; };        // DrawElementsIndirectCommand x draws
 layout(std430, binding = 3) readonly buffer DrawOf { int draw_of[]; };    // [lod * u_slots + slot] -> draw, or -1
-layout(std430, binding = 4) buffer Visible { uint visible[]; };  // per agent: 1 + LOD (0: culled) | 0x10000 in the sun's volume
+// Per agent, for the weapons: bits 0-15 1 + its colour LOD (0: culled); bit 16 set where it is in the
+// sun's volume, with its shadow LOD in bits 17-20.
+layout(std430, binding = 4) buffer Visible { uint visible[]; };
 
 uniform vec4 u_planes[6];   // inside: dot(n, p) + d >= 0 (camera-relative)
 uniform vec4 u_bound;       // xyz: the bind pose's sphere centre, w: its radius (both times the agent's scale)
@@ -76,7 +78,7 @@ void main() {
             }
         }
         if (u_write_visible == 1) visible[i] = inside ? uint(lod + 1) : 0u;
-        else if (u_write_visible == 2 && inside) atomicOr(visible[i], 0x10000u);
+        else if (u_write_visible == 2 && inside) atomicOr(visible[i], 0x10000u | (uint(lod) << 17));
     }
     memoryBarrierShared();
     barrier();

@@ -60,7 +60,7 @@ def test_import_rules_catch_a_broken_rule(tmp_path):
 
 def test_every_setting_declares_type_bounds_default_and_help():
     for s in SETTINGS.values():
-        assert s.help and s.kind in ("int", "float", "bool", "choice", "rate", "scale", "pair", "size"), s.name
+        assert s.help and s.kind in ("int", "float", "bool", "choice", "rate", "scale", "ascending", "size"), s.name
         assert s.check(s.default) == s.default, s.name  # the default passes its own check
         if s.slider is not None:
             lo, hi = s.slider
@@ -77,8 +77,8 @@ def _out_of_range(s):
         return "nonsense"
     if s.kind == "rate":
         return s.high + 1
-    if s.kind == "pair":
-        return (5.0, 2.0)
+    if s.kind == "ascending":
+        return (5.0, 2.0) + tuple(s.default[2:])  # out of order
     if s.high < math.inf:
         return int(s.high) + 1 if s.kind == "int" else s.high + 1.0
     if s.low > -math.inf:

@@ -488,6 +488,31 @@ def test_singular_prop_grip_is_refused(tmp_path):
     refused(write_glb(tmp_path / "zombie.glb", doc, blob), f"node {grip} ('weapon_pipe_grip') (grip of prop 'pipe'): the matrix is singular")
 
 
+def _prop_lod_node(doc, prop: str, lod: int) -> int:
+    return next(i for i, n in enumerate(doc["nodes"]) if n.get("extras", {}).get("crowd", {}) == {"prop": prop, "lod": lod})
+
+
+def test_a_bad_prop_lod_is_refused_and_a_lone_one_left_out(tmp_path):
+    doc, blob = glb_parts()
+    node = _prop_lod_node(doc, "pipe", 1)
+    doc["nodes"][node]["extras"]["crowd"]["lod"] = "x"
+    refused(write_glb(tmp_path / "zombie.glb", doc, blob), f"node {node} ('weapon_pipe_lod1'): extras.crowd.lod must be a whole number from 0 to 15, got 'x'")
+    # Coarser meshes of a prop the file has no LOD0 mesh for: a warning, the other props kept.
+    doc, blob = glb_parts()
+    for k in (1, 2, 3):
+        doc["nodes"][_prop_lod_node(doc, "axe", k)]["extras"]["crowd"]["prop"] = "hammer"
+    # A gap (LOD2 missing): LOD1's mesh serves it.
+    gap, last = _prop_lod_node(doc, "pipe", 2), _prop_lod_node(doc, "pipe", 3)
+    doc["nodes"][last]["extras"]["crowd"]["prop"] = "spare"
+    doc["nodes"][gap]["extras"]["crowd"]["lod"] = 3
+    c = load_character(write_glb(tmp_path / "zombie.glb", doc, blob))
+    assert any("prop 'hammer': coarser LOD meshes but no LOD0 mesh; left out" in w for w in c.warnings)
+    assert any("prop 'spare'" in w for w in c.warnings)
+    assert set(c.props) == {"pipe", "axe"} and len(c.props["axe"].lods) == 1
+    pipe = c.props["pipe"].lods
+    assert len(pipe) == 4 and pipe[2] is pipe[1] and pipe[3].name == "weapon_pipe_lod2"
+
+
 @pytest.mark.parametrize("matrix, needle", [
     (lambda m: m.__setitem__((1, 0, 1), np.nan), "(inverseBindMatrices): matrix 1 holds NaN or infinity"),
     (lambda m: m.__setitem__((2, 3, 0), 0.5), "(inverseBindMatrices): matrix 2 is not affine"),

@@ -15,7 +15,7 @@ from crowd.smoke import run_headless
 from crowd.stages import cull_path
 
 SIZE = (320, 180)
-LOD_DISTANCES = (14.0, 40.0)
+LOD_DISTANCES = (14.0, 40.0, 90.0)
 # float32 on the GPU against float64 here: a sphere this close to a plane, or a distance this close to
 # a LOD boundary, may land on either side (positions are camera-relative, within 200 m).
 BOUNDARY_M = 1e-3
@@ -346,15 +346,46 @@ def test_shadow_lists_are_the_sun_volumes_agents_one_lod_coarser(stages):
     slack = np.min(centers @ light[:, :3].T + light[:, 3] + radii[:, None], axis=1)
     dist = np.linalg.norm(centers, axis=1)
     doubtful = _doubtful(slack, dist)
-    colour_lod = np.minimum(np.searchsorted(np.asarray(LOD_DISTANCES), dist, side="right"), 2)
+    colour_lod = np.minimum(np.searchsorted(np.asarray(LOD_DISTANCES), dist, side="right"), gpu.lod_count - 1)
     casting = 0
     for k, (c, g, on_gpu) in enumerate(zip(cpu.draws, gpu.draws, shadow_lists)):
         on_cpu = _cpu_list(cpu, k, c.shadow_instances, c.shadow_count)
         assert on_cpu - doubtful == on_gpu - doubtful, (c.piece, c.lod)
         for a in on_gpu - doubtful:
-            assert g.lod == min(colour_lod[a] + 1, 2)
+            assert g.lod == min(colour_lod[a] + 1, gpu.lod_count - 1)
         casting += len(on_gpu)
     assert casting > 100 and set(np.flatnonzero(slack < -BOUNDARY_M).tolist()).isdisjoint(set().union(*shadow_lists))
+
+
+def test_weapons_are_drawn_at_their_agents_lod_on_both_paths(gl_context):
+    """Per (weapon, LOD) draw, the GPU path draws exactly as many weapons as the CPU path, colour and
+    shadow; and the CPU path's are the visible armed agents at min(their LOD, the weapon's coarsest)."""
+    from crowd.gl import Offscreen
+    from crowd.smoke import FIXED_DT
+
+    counts = {}
+    for path in ("cpu", "gpu"):
+        config = PipelineConfig(agents=400, seed=5, cull=path, lod_distances=(6.0, 12.0, 20.0))
+        with CrowdPipeline(gl_context, config) as pipeline, Offscreen(gl_context, SIZE) as target:
+            pipeline.camera = Camera(eye=np.array([0.0, 2.0, 30.0]), target=np.array([0.0, 1.0, 0.0]), aspect=SIZE[0] / SIZE[1])
+            for _ in range(4):
+                pipeline.frame(target.framebuffer, FIXED_DT)
+            gl_context.finish()
+            pipeline.refresh_counts()
+            w = pipeline.weapons
+            if path == "gpu":
+                colour = np.frombuffer(w._commands.read(), np.uint32).reshape(-1, 5)[:, 1]
+                shadow = np.frombuffer(w._shadow_commands.read(), np.uint32).reshape(-1, 5)[:, 1]
+            else:
+                colour = np.array([m["count"] for m in w._meshes])
+                shadow = np.array([m["shadow_count"] for m in w._meshes])
+                agents, weapon, _ = w.drawn
+                lod = np.minimum(pipeline.last.view.lod[agents], w.lod_count - 1)
+                expected = np.bincount(weapon * w.lod_count + lod, minlength=len(w._meshes))
+                np.testing.assert_array_equal(colour, expected)
+                assert np.count_nonzero(colour) >= 4  # several LODs in play
+            counts[path] = (colour.tolist(), shadow.tolist())
+    assert counts["gpu"] == counts["cpu"]
 
 
 @pytest.mark.parametrize("path", ["cpu", "gpu"])

@@ -75,7 +75,7 @@ def test_gpu_skinned_vertices_match_float64_skinning(gl_context, zombie):
     proc.resize(AGENTS)
     proc.process(layers)
     palette = reference_palette(baked, layers)  # (N, J, 3, 4) float64
-    renderer = CrowdRenderer(ctx, zombie, baked.joint_count, proc.agents_per_row, lod_distances=(1e6, 2e6), shadows=False, culling=False)
+    renderer = CrowdRenderer(ctx, zombie, baked.joint_count, proc.agents_per_row, lod_distances=(1e6, 2e6, 3e6), shadows=False, culling=False)
     positions = np.column_stack([rng.uniform(-30, 30, AGENTS), np.zeros(AGENTS), rng.uniform(-30, 30, AGENTS)]) + [1e5, 0.0, -2e5]
     yaw = rng.uniform(-np.pi, np.pi, AGENTS).astype(np.float32)
     scale = rng.uniform(0.8, 1.25, AGENTS).astype(np.float32)

@@ -126,7 +126,7 @@ def test_rebake_and_features_live(session):
     assert s.pipeline.bake.fps == 30.0 and s.pipeline.bake.precision == "f16" and old_processor.planes == ()
     s.set_shadows(True)
     s.set_weapons(False)
-    s.set_lod_distances(5.0, 10.0)
+    s.set_lod_distances(5.0, 10.0, 20.0)
     s.set_culling(False)
     for _ in range(3):
         s.frame(fb, DT)
@@ -159,7 +159,7 @@ def test_rebake_interpolation_and_measured_error(session):
     s.frame(fb, DT)
     assert s.to_scene().interpolation == "qt_cubic" and s.to_scene().bake_fps == 15.0
     with pytest.raises(SessionError, match="LOD"):
-        s.set_lod_distances(10.0, 5.0)
+        s.set_lod_distances(10.0, 5.0, 20.0)
     with pytest.raises(SessionError, match="latency"):
         s.set_readback_latency(0)
 

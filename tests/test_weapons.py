@@ -103,7 +103,8 @@ def test_weapon_stays_in_the_hand_for_100_frames_while_clips_change(harness, cul
     assert armed_frames == 100 - p.latency
     assert worst <= ERROR_MM, f"{worst:.4f} mm"
     assert unsynced > 20.0  # the same check catches a body drawn from the wrong frame
-    assert len(set(p.ai.action.tolist())) > 1 and p.weapons.last["draws"] == 2  # actions played; both weapon meshes drawn
+    # Actions played; both weapons placed, each drawn in one (weapon, LOD) draw or more.
+    assert len(set(p.ai.action.tolist())) > 1 and len(set(p.weapons.drawn[1].tolist())) == 2 and p.weapons.last["draws"] >= 2
     assert "gather" in p.passes_run and "weapons" in p.passes_run and p.readback_stalls == 0
 
 

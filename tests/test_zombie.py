@@ -38,11 +38,12 @@ def test_meshes_lods_and_pieces(zombie):
         assert m.weights.shape[1] == 4
         np.testing.assert_allclose(m.weights.sum(1), 1.0, atol=1e-6)
         assert np.all(m.weights >= 0)
-    assert set(tris) == {0, 1, 2}
+    assert set(tris) == {0, 1, 2, 3}
     default = lambda lod: tris[lod]["body"] + tris[lod]["head_a"] + tris[lod]["shirt_torn"]
     assert default(0) >= 3000
     assert 0.18 < default(1) / default(0) < 0.32  # about 1/4
     assert 0.04 < default(2) / default(0) < 0.09  # about 1/16
+    assert 0.02 < default(3) / default(0) < 0.035  # about 1/36
     assert {"head_a", "head_b"} <= set(tris[0]) and "shirt_torn" in tris[0]
 
 
@@ -96,6 +97,18 @@ def test_props_have_grip_frames(zombie):
     for prop in zombie.props.values():
         assert prop.mesh.triangle_count > 50
         assert prop.grip.shape == (4, 4) and np.allclose(prop.grip[3], [0, 0, 0, 1])
+
+
+def test_props_have_a_mesh_per_body_lod_read_back_from_the_file(generated, zombie):
+    """Each weapon has one mesh per body LOD, coarser each time, and the file keeps all of them."""
+    body_lods = 1 + max(m.lod for m in zombie.meshes)
+    for name, prop in zombie.props.items():
+        tris = [m.triangle_count for m in prop.lods]
+        assert len(tris) == body_lods and all(a > b for a, b in zip(tris, tris[1:])), (name, tris)
+        assert tris[-1] <= 32  # a far agent's weapon: fewer triangles than its hand has pixels
+        for written, read in zip(generated.props[name].lods, prop.lods):
+            np.testing.assert_array_equal(written.indices, read.indices)
+            np.testing.assert_allclose(written.positions, read.positions, atol=1e-6)
 
 
 def test_round_trip_keeps_skeleton_meshes_and_keys(generated, zombie):

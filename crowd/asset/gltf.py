@@ -65,6 +65,7 @@ from __future__ import annotations
 
 import base64
 import binascii
+import dataclasses
 import json
 import struct
 from pathlib import Path
@@ -1214,6 +1215,7 @@ def _untextured(parts: list[RigidMesh]) -> RigidMesh | None:
 
 def _read_rigid(r: _Reader, tree: _Tree, new_index, factor: float, materials: Materials, warn: list[str]):
     attachments, props = [], {}
+    coarser: dict[str, dict[int, RigidMesh]] = {}  # prop → its LOD k >= 1 meshes (extras.crowd prop and lod)
     nodes = tree.nodes
     for ni, node in enumerate(nodes):
         extras = crowd_extras(node)
@@ -1223,6 +1225,11 @@ def _read_rigid(r: _Reader, tree: _Tree, new_index, factor: float, materials: Ma
                 if any(materials.has_texture(prim) for prim in r.list(r.item("meshes", node["mesh"]), "primitives", "") if isinstance(prim, dict)):
                     warn.append(f"prop {extras['prop']!r}: its texture is left out (props are drawn in their vertex and base colours)")
                 mesh = _untextured(parts)
+                lod = _mesh_extras(r, extras, r.node_where(ni))[1]
+                if lod > 0:
+                    if mesh is not None:
+                        coarser.setdefault(extras["prop"], {})[lod] = mesh
+                    continue
                 grip = np.eye(4)
                 for c in node.get("children") or []:
                     if crowd_extras(nodes[c]).get("grip") is not None:
@@ -1242,6 +1249,15 @@ def _read_rigid(r: _Reader, tree: _Tree, new_index, factor: float, materials: Ma
             offset = r.local(ni) if p == k else tree.run_matrix(p) @ r.local(ni)
             for part in _rigid_parts(r, node["mesh"], materials, warn):
                 attachments.append(Attachment(part, new_index[k], np.diag([factor, factor, factor, 1.0]) @ offset))
+    for name, by_lod in coarser.items():
+        if name not in props:
+            warn.append(f"prop {name!r}: coarser LOD meshes but no LOD0 mesh; left out")
+            continue
+        # LODs in order; a gap (LOD1 and LOD3 only) uses the next finer one in its place.
+        lods = [props[name].mesh]
+        for lod in range(1, max(by_lod) + 1):
+            lods.append(by_lod.get(lod, lods[-1]))
+        props[name] = dataclasses.replace(props[name], coarser=tuple(lods[1:]))
     return attachments, props
 
 

@@ -5,7 +5,8 @@ Layout, chosen so a standard viewer shows something sensible and the importer re
 - one skin; one mesh per (piece, LOD), each drawn by its own node;
 - scene 0 shows LOD0 with the first piece of each variation group; scenes "lod1", "lod2" show the
   lower LODs; scene "variants" holds the other variation pieces; scene "props" holds the props, each
-  with a child ``<name>_grip`` node for its grip frame;
+  with a child ``<name>_grip`` node for its grip frame; scene "prop_lods" holds their coarser meshes
+  (``extras.crowd`` prop and lod, in the prop's space);
 - base-colour textures as PNG images in the binary chunk, each with its sampler; a textured mesh has
   a material of its own (its base colour factor and texture) and TEXCOORD_0;
 - project-specific facts (piece, LOD, group, loop flag, phase markers, stride, socket, prop) live in
@@ -166,6 +167,10 @@ def character_to_gltf(character: Character) -> tuple[g.GLTF2, bytes]:
                                children=[len(gl.nodes) + 1]))
         props.append(len(gl.nodes) - 1)
         gl.nodes.append(g.Node(name=f"{prop.mesh.name}_grip", extras={"crowd": {"grip": name}}, **_trs_fields(*mat4_decompose(prop.grip)[:3])))
+        for lod, coarse in enumerate(prop.coarser, start=1):  # in the prop's space, placed through its grip
+            gl.meshes.append(g.Mesh(name=coarse.name, primitives=[_primitive(blob, coarse, None, _material(gl, coarse, 1))]))
+            gl.nodes.append(g.Node(name=coarse.name, mesh=len(gl.meshes) - 1, extras={"crowd": {"prop": name, "lod": lod}}))
+            scenes.setdefault("prop_lods", []).append(len(gl.nodes) - 1)
     if props:
         scenes["props"] = props
 
@@ -180,7 +185,7 @@ def character_to_gltf(character: Character) -> tuple[g.GLTF2, bytes]:
                                                     target=g.AnimationChannelTarget(node=1 + ch.joint, path=ch.path)))
         gl.animations.append(anim)
 
-    order = ["zombie"] + sorted(k for k in scenes if k.startswith("lod")) + ["variants", "props"]
+    order = ["zombie"] + sorted(k for k in scenes if k.startswith("lod")) + ["variants", "props", "prop_lods"]
     for name in order:
         if name in scenes:
             gl.scenes.append(g.Scene(name=name, nodes=scenes[name]))

@@ -291,6 +291,13 @@ class Prop:
 
     mesh: RigidMesh
     grip: np.ndarray  # float64 (4, 4)
+    # Coarser meshes in the same space, for LOD1, LOD2, ... of the agent holding it (the last one also
+    # serves every coarser LOD): a weapon as detailed as a far agent's whole body would double its draw.
+    coarser: tuple[RigidMesh, ...] = ()
+
+    @property
+    def lods(self) -> tuple[RigidMesh, ...]:
+        return (self.mesh, *self.coarser)
 
 
 @dataclass

@@ -100,7 +100,8 @@ def scale_character(character: Character, factor: float) -> Character:
         meshes=[dataclasses.replace(m, positions=(np.asarray(m.positions, np.float64) * f).astype(np.float32)) for m in character.meshes],
         clips=[clip(c) for c in character.clips],
         attachments=[dataclasses.replace(a, mesh=rigid(a.mesh), offset=moved(a.offset)) for a in character.attachments],
-        props={name: dataclasses.replace(p, mesh=rigid(p.mesh), grip=moved(p.grip)) for name, p in character.props.items()},
+        props={name: dataclasses.replace(p, mesh=rigid(p.mesh), grip=moved(p.grip), coarser=tuple(rigid(c) for c in p.coarser))
+               for name, p in character.props.items()},
         warnings=list(character.warnings))
 
 

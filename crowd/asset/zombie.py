@@ -30,7 +30,10 @@ from .model import Channel, Character, Clip, Prop, RigidMesh, Skeleton, SkinnedM
 
 ASSET_PATH = ASSET_DIR / "zombie.glb"
 SOURCE_FPS = 30  # clips are authored as keys at this rate; the bake resamples them
-LOD_DIVISORS = (1, 2, 4)  # rings and segments divided by this per LOD: ~1, 1/4, 1/16 of the triangles
+# Rings and segments divided by this per LOD: ~1, 1/4, 1/16 and 1/40 of the triangles. LOD3 is for the
+# far crowd (26 px tall at its default 90 m on the demo's 45-degree camera at 1080p), where the GPU's
+# triangle rate, not its shading, bounds the draw (docs/BENCHMARKS.md, "The coarse LOD").
+LOD_DIVISORS = (1, 2, 4, 8)
 
 # ------------------------------------------------------------------------------------------------
 # Skeleton: (name, parent, rest position in model space)
@@ -199,7 +202,9 @@ def _tube(
     displace=None,
     keep_quad=None,
 ):
-    """A closed tube along a polyline. radius_x/radius_y are functions of u in [0, 1] (elliptic sections)."""
+    """A closed tube along a polyline. radius_x/radius_y are functions of u in [0, 1] (elliptic sections).
+    A coarse LOD's division may ask for fewer than 3 sides, which would have no area: 3 is the floor."""
+    rings, segments = max(rings, 1), max(segments, 3)
     seg_len = np.linalg.norm(np.diff(spine_pts, axis=0), axis=1)
     arc = np.concatenate([[0.0], np.cumsum(seg_len)])
     u = np.linspace(0.0, 1.0, rings + 1)
@@ -314,7 +319,9 @@ def _build_body(div: int) -> SkinnedMesh:
 
     # Neck.
     pts = np.array([[0.0, 1.45, -0.015], [0.0, 1.55, -0.005], [0.0, 1.64, 0.0]])
-    _tube(m, pts, lambda u: 0.052, lambda u: 0.05, max(8 // div, 2), max(12 // div, 4), [J("chest"), J("neck"), J("head")],
+    # Neck and feet keep 2 rings of 4 sides down to LOD2; LOD3's (26 px tall) are one ring of 3 sides.
+    small = (max(8 // div, 2), max(12 // div, 4)) if div <= 4 else (1, 3)
+    _tube(m, pts, lambda u: 0.052, lambda u: 0.05, *small, [J("chest"), J("neck"), J("head")],
           [0.0, 0.05 / 0.19, 0.15 / 0.19, 1.0], [0.0, 0.15, 0.15], _skin_color, jc, cap_start=False, cap_end=False)
 
     for side, sx in (("l", 1.0), ("r", -1.0)):
@@ -336,7 +343,7 @@ def _build_body(div: int) -> SkinnedMesh:
         ft = np.array([[0.10 * sx, 0.055, -0.065], [0.10 * sx, 0.05, 0.02], [0.10 * sx, 0.035, 0.125], [0.10 * sx, 0.03, 0.19]])
         r_fw = lambda u: float(np.interp(u, [0, 0.15, 0.6, 1.0], [0.035, 0.045, 0.05, 0.03]))
         r_fh = lambda u: float(np.interp(u, [0, 0.15, 0.6, 1.0], [0.035, 0.045, 0.03, 0.02]))
-        _tube(m, ft, r_fw, r_fh, max(8 // div, 2), max(12 // div, 4), [J(f"foot_{side}"), J(f"toe_{side}")],
+        _tube(m, ft, r_fw, r_fh, *small, [J(f"foot_{side}"), J(f"toe_{side}")],
               [0.0, 0.19 / 0.256, 1.0], [0.0, 0.03 / 0.256], _foot_color, jc)
     return m.build("zombie_body", "body", 0, (1.0, 1.0, 1.0, 1.0))
 
@@ -345,7 +352,7 @@ def _build_head(div: int, variant: str) -> SkinnedMesh:
     jc = len(JOINT_NAMES)
     J = JOINT_NAMES.index
     m = _MeshBuilder()
-    rings, segs = 18 // div, 20 // div
+    rings, segs = max(18 // div, 3), max(20 // div, 4)  # at least two latitude rows of four: not a flat sliver
     # A deformed sphere; u runs from the chin (0) to the crown (1).
     lat = np.linspace(-math.pi / 2, math.pi / 2, rings + 1)[1:-1]
     lon = np.linspace(0.0, 2.0 * math.pi, segs, endpoint=False)
@@ -451,31 +458,38 @@ def _rigid_from_builder(m: _MeshBuilder, name: str, color) -> RigidMesh:
     return RigidMesh(name, sk.positions, sk.normals, sk.indices, sk.colors, color)
 
 
-def build_props() -> dict[str, Prop]:
+def _build_weapons(div: int) -> tuple[RigidMesh, RigidMesh]:
+    """The pipe and the axe, with rings and sides divided by `div` (the agent's LOD divisor)."""
     jc = 1
     one = lambda pos, u: np.concatenate([np.repeat(np.array([[0.35, 0.22, 0.15]]), pos.shape[0], 0), np.ones((pos.shape[0], 1))], 1)
+    suffix = f"_lod{LOD_DIVISORS.index(div)}" if div > 1 else ""
     m = _MeshBuilder()
     pipe = np.array([[0.0, -0.10, 0.0], [0.0, 0.80, 0.0]])
     rust = lambda pos, u: np.concatenate([(np.array([0.42, 0.25, 0.16]) * (0.75 + 0.25 * _noise(9, pos[:, 1] * 40.0))[:, None]), np.ones((pos.shape[0], 1))], 1)
-    _tube(m, pipe, lambda u: 0.017, lambda u: 0.017, 8, 12, [0], [0.0, 1.0], [0.0], rust, jc)
+    _tube(m, pipe, lambda u: 0.017, lambda u: 0.017, 8 // div, 12 // div, [0], [0.0, 1.0], [0.0], rust, jc)
     elbow = np.array([[0.0, 0.78, 0.0], [0.0, 0.80, 0.02], [0.0, 0.80, 0.10]])
-    _tube(m, elbow, lambda u: 0.02, lambda u: 0.02, 4, 12, [0], [0.0, 1.0], [0.0], rust, jc)
-    pipe_mesh = _rigid_from_builder(m, "weapon_pipe", (1.0, 1.0, 1.0, 1.0))
+    _tube(m, elbow, lambda u: 0.02, lambda u: 0.02, 4 // div, 12 // div, [0], [0.0, 1.0], [0.0], rust, jc)
+    pipe_mesh = _rigid_from_builder(m, "weapon_pipe" + suffix, (1.0, 1.0, 1.0, 1.0))
 
     m = _MeshBuilder()
     handle = np.array([[0.0, -0.12, 0.0], [0.0, 0.62, 0.0]])
-    _tube(m, handle, lambda u: 0.018 + 0.004 * u, lambda u: 0.015 + 0.003 * u, 8, 10, [0], [0.0, 1.0], [0.0], one, jc)
+    _tube(m, handle, lambda u: 0.018 + 0.004 * u, lambda u: 0.015 + 0.003 * u, 8 // div, 10 // div, [0], [0.0, 1.0], [0.0], one, jc)
     # The head: a wedge blade pointing +Z (the blade faces where the palm's thumb side points).
     steel = lambda pos, u: np.concatenate([np.repeat(np.array([[0.55, 0.57, 0.6]]), pos.shape[0], 0), np.ones((pos.shape[0], 1))], 1)
     blade = np.array([[0.0, 0.56, -0.04], [0.0, 0.58, 0.06], [0.0, 0.56, 0.16]])
-    _tube(m, blade, lambda u: 0.012 - 0.009 * u, lambda u: 0.06 + 0.06 * u, 6, 8, [0], [0.0, 1.0], [0.0], steel, jc)
-    axe_mesh = _rigid_from_builder(m, "weapon_axe", (1.0, 1.0, 1.0, 1.0))
+    _tube(m, blade, lambda u: 0.012 - 0.009 * u, lambda u: 0.06 + 0.06 * u, 6 // div, 8 // div, [0], [0.0, 1.0], [0.0], steel, jc)
+    return pipe_mesh, _rigid_from_builder(m, "weapon_axe" + suffix, (1.0, 1.0, 1.0, 1.0))
+
+
+def build_props() -> dict[str, Prop]:
+    """The weapons at every LOD divisor: a far agent's weapon has as few triangles as its hand."""
+    (pipe_mesh, axe_mesh), *coarser = [_build_weapons(div) for div in LOD_DIVISORS]
     # Grip frames: where the fist closes on the handle, in the prop's own space.
     pipe_grip = np.eye(4)
     pipe_grip[1, 3] = 0.02
     axe_grip = np.eye(4)
     axe_grip[1, 3] = 0.0
-    return {"pipe": Prop(pipe_mesh, pipe_grip), "axe": Prop(axe_mesh, axe_grip)}
+    return {"pipe": Prop(pipe_mesh, pipe_grip, tuple(c[0] for c in coarser)), "axe": Prop(axe_mesh, axe_grip, tuple(c[1] for c in coarser))}
 
 
 # ------------------------------------------------------------------------------------------------

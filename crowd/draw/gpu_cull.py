@@ -189,7 +189,7 @@ class GpuCull(GLStage):
         if self.shadow_commands is not None:
             self.shadow_commands.write(commands.tobytes())
         if n:
-            self.agents_buffer.write(records.tobytes())
+            self.agents_buffer.write(records)  # the array itself (contiguous): no copy of 32 bytes an agent
         else:
             self.ring.zero()
             if self.shadow_ring is not None:
@@ -253,7 +253,8 @@ class GpuCull(GLStage):
         return self.shadow_ring.read(wait) if self.shadow_ring is not None else np.zeros(self.draw_count, np.uint32)
 
     def visible_agents(self) -> np.ndarray:
-        """(N,) LOD + 1 of each agent, 0 where culled, plus 0x10000 where it is in the sun's volume (synchronous: tests)."""
+        """(N,) LOD + 1 of each agent, 0 where culled, plus 0x10000 | shadow LOD << 17 where it is in the
+        sun's volume (synchronous: tests)."""
         if self.visible is None:
             raise GpuCullError("this cull keeps no per-agent visibility (no weapons)")
         return np.frombuffer(self.visible.read(), np.uint32).copy()

@@ -82,6 +82,7 @@ class FrameView:
     light_view_proj: np.ndarray | None  # float32 4x4 of the sun's shadow map; None without shadows
     visible: np.ndarray | None  # bool (N,): agents that survived culling (None on the GPU cull path)
     casting: np.ndarray | None = None  # bool (N,): agents in the sun's volume, whose shadows are drawn (CPU path, shadows on)
+    lod: np.ndarray | None = None  # int (N,): each agent's colour LOD (CPU path; its weapon's LOD follows it)
 
 
 def frustum_planes(view_proj: np.ndarray) -> np.ndarray:
@@ -418,7 +419,7 @@ class CrowdRenderer(GLStage):
             for draw, c in zip(self.draws, shadow_counts):
                 draw.shadow_count = c
             self.last["shadow_instances"] = int(sum(shadow_counts))
-        return FrameView(camera, matrix, light, visible, lit if self.shadows else None)
+        return FrameView(camera, matrix, light, visible, lit if self.shadows else None, lod)
 
     def _upload_lists(self, instances: Instances, all_records: np.ndarray, shown: np.ndarray, lod: np.ndarray, buffer: str) -> list[int]:
         """The CPU path's lists: the records of agents `shown` at LODs `lod`, sorted once per variation
@@ -462,8 +463,11 @@ class CrowdRenderer(GLStage):
             x, y = palette_texel(np.arange(n), 0, 0, self.agents_per_row, self.joint_count)
             self._texel_base = (x.astype(np.uint32) | (y.astype(np.uint32) << 16))
         records, fields = self._scratch, self._scratch["packed"]
-        # The subtraction in float64 (agents far from the origin), rounded once into the record.
-        np.subtract(instances.position, eye[None], out=records["position_scale"][:, :3], casting="unsafe")
+        # The subtraction in float64 (agents far from the origin), rounded once into the record; a column
+        # at a time, which is 3 times as fast as numpy's (N, 3) into strided (N, 3) broadcast.
+        position = records["position_scale"]
+        for c in range(3):
+            np.subtract(instances.position[:, c], eye[c], out=position[:, c], casting="unsafe")
         records["position_scale"][:, 3] = instances.scale
         np.add(self._texel_base, np.asarray(row_offset, np.uint32) << np.uint32(16), out=fields[:, 0], casting="unsafe")
         tint = instances.tint

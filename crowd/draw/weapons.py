@@ -1,5 +1,6 @@
 """Attach stage: weapons placed on the CPU from read-back socket matrices, drawn one instanced draw per
-weapon mesh.
+(weapon, LOD) mesh. A weapon is drawn at its agent's LOD (the prop's coarsest where it has fewer), and
+its shadow one LOD coarser, as the body's is.
 
 Contract: ``attach(read, agents_frame, weapon_of_agent)``:
 - ``read`` (readback.SocketRead): socket skinning-matrix rows of some frame's armed agents;
@@ -16,8 +17,8 @@ weapon indices, rows) so that the error of the frame as drawn can be measured.
 Culling: on the CPU cull path ``attach`` is given the visible set and uploads only those weapons. On the
 GPU path (``gpu_cull``) the CPU does not know it: every armed agent's weapon is uploaded with its
 owner, and a compute pass (shaders/weapon_cull.comp.glsl) keeps those whose agent the body cull marked
-visible, compacted per weapon mesh and counted in indirect commands, so a weapon is drawn exactly when
-its agent is. With shadows on, the shadow pass draws the weapons of the agents in the sun's volume
+visible, compacted per (weapon, LOD) mesh and counted in indirect commands, so a weapon is drawn exactly
+when its agent is, at its agent's LOD. With shadows on, the shadow pass draws the weapons of the agents in the sun's volume
 (the body cull's shadow lists), from lists of their own on both paths. ``last["weapons"]`` counts the weapons placed, ``last["drawn"]`` those drawn (on the GPU
 path as the GPU hands the counts back, a frame or two late; ``refresh_counts(wait=True)`` at a run's end).
 """
@@ -94,6 +95,8 @@ class WeaponRenderer(GLStage):
         self._socket_to_weapon = np.stack([self.socket_bind @ g for g in self.inverse_grip])
         self.grip_origin = np.stack([np.asarray(p.grip, np.float64)[:, 3] for p in character.props.values()])  # (W, 4)
         self.gpu_cull = gpu_cull
+        self.lod_count = max(len(p.lods) for p in character.props.values())
+        draws = len(self.names) * self.lod_count  # draw w * lod_count + lod: weapon w at that LOD
         if gpu_cull:
             if len(self.names) > 16:
                 raise WeaponError(f"{len(self.names)} weapon meshes, more than the 16 the GPU cull lists")
@@ -101,22 +104,24 @@ class WeaponRenderer(GLStage):
             self._placed = self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
             self._owner = self._objects.add(ctx.buffer(reserve=8))
             self._shown = self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))  # every mesh's list, one buffer
-            self._commands = self._objects.add(ctx.buffer(reserve=len(self.names) * COMMAND_DTYPE.itemsize))
-            self._ring = CountRing(ctx, self._objects, len(self.names))
+            self._commands = self._objects.add(ctx.buffer(reserve=draws * COMMAND_DTYPE.itemsize))
+            self._ring = CountRing(ctx, self._objects, draws)
             self._shadow_shown = self._shadow_commands = None
             if shadows:
                 self._shadow_shown = self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
-                self._shadow_commands = self._objects.add(ctx.buffer(reserve=len(self.names) * COMMAND_DTYPE.itemsize))
+                self._shadow_commands = self._objects.add(ctx.buffer(reserve=draws * COMMAND_DTYPE.itemsize))
         self.shadows = shadows
         for prop in character.props.values():
-            vbo = self._objects.add(ctx.buffer(pack_rigid(prop.mesh).tobytes()))
-            ibo = self._objects.add(ctx.buffer(np.asarray(prop.mesh.indices, np.uint32).tobytes()))
-            inst = self._shown if gpu_cull else self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
-            shadow = None
-            if shadows:
-                shadow = self._shadow_shown if gpu_cull else self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
-            self._meshes.append({"vbo": vbo, "ibo": ibo, "instances": inst, "shadow_instances": shadow, "count": 0, "shadow_count": 0,
-                                 "vaos": {}, "triangles": prop.mesh.triangle_count})
+            lods = prop.lods + (prop.lods[-1],) * (self.lod_count - len(prop.lods))
+            for lod, mesh in enumerate(lods):
+                vbo = self._objects.add(ctx.buffer(pack_rigid(mesh).tobytes()))
+                ibo = self._objects.add(ctx.buffer(np.asarray(mesh.indices, np.uint32).tobytes()))
+                inst = self._shown if gpu_cull else self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
+                shadow = None
+                if shadows:
+                    shadow = self._shadow_shown if gpu_cull else self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
+                self._meshes.append({"vbo": vbo, "ibo": ibo, "instances": inst, "shadow_instances": shadow, "count": 0, "shadow_count": 0,
+                                     "vaos": {}, "triangles": mesh.triangle_count, "lod": lod})
         defines = {"SHADOWS": 1} if shadows else {}
         self._programs = {
             "color": self._objects.add(ctx.program(vertex_shader=load_shader("weapon.vert.glsl"), fragment_shader=load_shader("skin.frag.glsl", defines))),
@@ -173,34 +178,39 @@ class WeaponRenderer(GLStage):
         return agents, weapon, out.transpose(1, 0, 2).astype(np.float32)
 
     def attach(self, read, frames: AgentFrames, weapon_of_agent: np.ndarray, visible: np.ndarray | None = None,
-               visibility=None, casting: np.ndarray | None = None) -> int:
+               visibility=None, casting: np.ndarray | None = None, lod: np.ndarray | None = None) -> int:
         """Place and upload this frame's weapons (none when `read` is None). Returns how many.
-        `visible` and `casting`: the CPU cull's agents drawn and agents in the sun's volume (their
-        weapons' shadows are drawn); `visibility`: on the GPU path, the body cull's per-agent
-        visibility buffer, which a compute pass filters the weapons by for both passes."""
+        `visible`, `casting` and `lod`: the CPU cull's agents drawn, agents in the sun's volume (their
+        weapons' shadows are drawn) and each agent's colour LOD (None: LOD0); `visibility`: on the GPU
+        path, the body cull's per-agent visibility and LODs, which a compute pass filters the weapons
+        by for both passes."""
         if read is None:
             agents, weapon, rows = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 4), np.float32)
         else:
             agents, weapon, rows = self.matrices(read, frames, np.asarray(weapon_of_agent))
         if self.gpu_cull:
             return self._attach_on_gpu(agents, weapon, rows, np.searchsorted(weapon, np.arange(len(self.names) + 1)), visibility)
+        agent_lod = np.zeros(len(agents), np.int64) if lod is None else np.asarray(lod, np.int64)[agents]
         if self.shadows:
             lit = np.ones(len(agents), bool) if casting is None else casting[agents]
-            self._upload_cpu(weapon[lit], rows[lit], "shadow_instances", "shadow_count")
+            self._upload_cpu(weapon[lit], agent_lod[lit] + 1, rows[lit], "shadow_instances", "shadow_count")
         if visible is not None:
             shown = visible[agents]
-            agents, weapon, rows = agents[shown], weapon[shown], rows[shown]
-        self._upload_cpu(weapon, rows, "instances", "count")
+            agents, weapon, rows, agent_lod = agents[shown], weapon[shown], rows[shown], agent_lod[shown]
+        self._upload_cpu(weapon, agent_lod, rows, "instances", "count")
         self.drawn = (agents, weapon, rows)
         self.last = {"weapons": int(len(agents)), "drawn": int(len(agents)), "draws": sum(1 for m in self._meshes if m["count"]),
                      "triangles": sum(m["count"] * m["triangles"] for m in self._meshes)}
         return len(agents)
 
-    def _upload_cpu(self, weapon: np.ndarray, rows: np.ndarray, buffer: str, count: str) -> None:
-        """The CPU path: each mesh's rows (sorted by weapon) into its `buffer`, their number in `count`."""
-        starts = np.searchsorted(weapon, np.arange(len(self.names) + 1))
-        for w, mesh in enumerate(self._meshes):
-            chosen = rows[starts[w]:starts[w + 1]]
+    def _upload_cpu(self, weapon: np.ndarray, lod: np.ndarray, rows: np.ndarray, buffer: str, count: str) -> None:
+        """The CPU path: each (weapon, LOD) mesh's rows into its `buffer`, their number in `count`."""
+        key = weapon * self.lod_count + np.minimum(lod, self.lod_count - 1)
+        order = np.argsort(key, kind="stable")
+        rows = rows[order]
+        starts = np.searchsorted(key[order], np.arange(len(self._meshes) + 1))
+        for d, mesh in enumerate(self._meshes):
+            chosen = rows[starts[d]:starts[d + 1]]
             mesh[count] = len(chosen)
             size = max(chosen.nbytes, INSTANCE_DTYPE.itemsize)
             if mesh[buffer].size != size:
@@ -209,35 +219,39 @@ class WeaponRenderer(GLStage):
                 mesh[buffer].write(chosen.tobytes())
 
     def _attach_on_gpu(self, agents, weapon, rows, starts, visibility) -> int:
+        """Every placed weapon uploaded once; the weapon cull writes each into its (weapon, LOD) range:
+        LOD l's lists follow one another, each `k` long, weapon w's part of each starting at starts[w]."""
         if visibility is None:
             raise WeaponError("the GPU weapon cull needs the body cull's visibility buffer")
         k = len(agents)
-        size = max(rows.nbytes, INSTANCE_DTYPE.itemsize)
-        lists = [(self._shown, self._commands, 0xFFFF)]
+        lists = [(self._shown, self._commands, 0)]
         if self._shadow_shown is not None:
-            lists.append((self._shadow_shown, self._shadow_commands, 0x10000))
-        for buf in (self._placed, *(shown for shown, _, _ in lists)):
-            if buf.size != size:
-                buf.orphan(size)
-        commands = np.zeros(len(self.names), COMMAND_DTYPE)
+            lists.append((self._shadow_shown, self._shadow_commands, 1))
+        for buf, size in ((self._placed, rows.nbytes), *((shown, rows.nbytes * self.lod_count) for shown, _, _ in lists)):
+            if buf.size != max(size, INSTANCE_DTYPE.itemsize):
+                buf.orphan(max(size, INSTANCE_DTYPE.itemsize))
+        commands = np.zeros(len(self._meshes), COMMAND_DTYPE)
         commands["count"] = [m["triangles"] * 3 for m in self._meshes]
-        commands["base_instance"] = starts[:-1]
+        lod = np.arange(len(self._meshes)) % self.lod_count
+        commands["base_instance"] = lod * k + np.repeat(starts[:-1], self.lod_count)
         for _, command_buffer, _ in lists:
             command_buffer.write(commands.tobytes())
-        for w, mesh in enumerate(self._meshes):
-            mesh["count"] = mesh["shadow_count"] = int(starts[w + 1] - starts[w])  # placed: the GPU draws the visible of them
+        for d, mesh in enumerate(self._meshes):  # placed: the GPU draws the visible of them
+            w = d // self.lod_count
+            mesh["count"] = mesh["shadow_count"] = int(starts[w + 1] - starts[w])
         if k:
-            self._placed.write(rows.tobytes())
+            self._placed.write(np.ascontiguousarray(rows))
             owner = np.stack([agents, weapon], axis=1).astype(np.uint32)
             if self._owner.size != owner.nbytes:
                 self._owner.orphan(owner.nbytes)
             self._owner.write(owner.tobytes())
             self._cull["u_count"] = k
+            self._cull["u_lod_count"] = self.lod_count
             first = np.zeros(16, np.uint32)
             first[: len(self.names)] = starts[:-1]
             self._cull["u_start"].write(first.tobytes())
-            for shown, command_buffer, mask in lists:  # the colour pass's weapons, then the shadow pass's
-                self._cull["u_mask"] = mask
+            for shown, command_buffer, shadow in lists:  # the colour pass's weapons, then the shadow pass's
+                self._cull["u_shadow"] = shadow
                 for binding, buf in enumerate((self._placed, self._owner, shown, command_buffer, visibility)):
                     buf.bind_to_storage_buffer(binding)
                 self._cull.run(group_x=(k + GROUP_SIZE - 1) // GROUP_SIZE)
@@ -262,13 +276,13 @@ class WeaponRenderer(GLStage):
         """Whether the shadow pass has weapons to draw (the agents in the sun's volume may be out of view)."""
         return any(m["shadow_count"] for m in self._meshes)
 
-    def _render(self, w: int, mesh: dict, kind: str) -> None:
+    def _render(self, d: int, mesh: dict, kind: str) -> None:
         count = mesh["shadow_count"] if kind == "depth" else mesh["count"]
         if not count:
             return
         if self.gpu_cull:
             commands = self._shadow_commands if kind == "depth" else self._commands
-            self._vao(mesh, kind).render_indirect(commands, moderngl.TRIANGLES, count=1, first=w)
+            self._vao(mesh, kind).render_indirect(commands, moderngl.TRIANGLES, count=1, first=d)
         else:
             self._vao(mesh, kind).render(moderngl.TRIANGLES, instances=count)
 
@@ -280,8 +294,8 @@ class WeaponRenderer(GLStage):
     def depth_pass(self, light_view_proj: np.ndarray) -> None:
         prog = self._programs["depth"]
         prog["u_view_proj"].write(gl_bytes(light_view_proj))
-        for w, mesh in enumerate(self._meshes):
-            self._render(w, mesh, "depth")
+        for d, mesh in enumerate(self._meshes):
+            self._render(d, mesh, "depth")
 
     def color_pass(self, framebuffer, view, renderer) -> None:
         """`view`: this frame's ``FrameView``; `renderer` lights the weapons as it lights the crowd."""
@@ -290,8 +304,8 @@ class WeaponRenderer(GLStage):
         prog = self._programs["color"]
         prog["u_view_proj"].write(gl_bytes(view.view_proj))
         renderer.set_lighting(prog, view)
-        for w, mesh in enumerate(self._meshes):
-            self._render(w, mesh, "color")
+        for d, mesh in enumerate(self._meshes):
+            self._render(d, mesh, "color")
 
     def gpu_bytes(self) -> int:
         return self._objects.gpu_bytes()
