@@ -273,6 +273,30 @@ def bench_frame(args) -> int:
     return 0
 
 
+def bench_lod(args) -> int:
+    """Silhouette IoU of each coarser LOD against LOD0 at its switch distance (bench/lod_silhouette.py)."""
+    from crowd.asset.gltf import load_character
+    from crowd.settings import DEFAULTS, parse
+
+    from .lod_silhouette import silhouette_iou
+
+    character = load_character(args.model)
+    distances = parse("lod_distances", args.lod_distances) if args.lod_distances else DEFAULTS["lod_distances"]
+    size = parse("size", args.size)
+    rows = silhouette_iou(character, distances, size)
+    print(f"{character.name}: silhouettes at {size[0]}x{size[1]}, 45-degree camera, {rows[0]['views'] if rows else 0} views per LOD")
+    print(f"{'LOD':>4} {'from m':>7} {'height px':>10} {'triangles':>14} {'IoU min / mean (samples)':>25} {'(pixels)':>16}")
+    for r in rows:
+        print(f"{r['lod']:>4} {r['distance_m']:>7g} {r['height_px']:>10.1f} {r['triangles']:>6} / {r['triangles_lod0']:<6} "
+              f"{r['iou_min']:>16.4f} / {r['iou_mean']:.4f} {r['pixel_iou_min']:>9.4f} / {r['pixel_iou_mean']:.4f}")
+    if args.json:
+        from crowd.files import atomic_write_bytes
+
+        atomic_write_bytes(Path(args.json), json.dumps({"model": str(args.model or "built-in zombie"), "size": list(size),
+                                                        "lod_distances": list(distances), "rows": rows}, indent=1).encode())
+    return 0
+
+
 def bench_readback(args) -> int:
     """A 10,000-agent crowd (the AI running, the scripted player striking) in which the first k agents
     are armed. Frames are submitted back to back without glFinish, as a window would, so the read of
@@ -371,6 +395,12 @@ def main(argv=None) -> int:
     p.add_argument("--warmup", type=int, default=10, help="frames before measuring (shaders compile, buffers grow)")
     p.add_argument("--json", type=Path, help="write the rows here")
     p.set_defaults(run=bench_frame)
+    p = sub.add_parser("lod", help="silhouette IoU of each coarser LOD against LOD0 at its switch distance (float64, CPU)")
+    p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
+    p.add_argument("--lod-distances", help="D1,D2,D3 (default: the settings' default)")
+    p.add_argument("--size", default="1920x1080", help="frame size WxH the camera draws")
+    p.add_argument("--json", type=Path)
+    p.set_defaults(run=bench_lod)
     p = sub.add_parser("readback", help="weapon socket gather, transfer and wait against armed agents; sync vs unsync error")
     p.add_argument("--agents", type=int, default=10000)
     p.add_argument("--armed", default="0,100,1000,10000")

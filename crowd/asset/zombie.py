@@ -203,8 +203,16 @@ def _tube(
     keep_quad=None,
 ):
     """A closed tube along a polyline. radius_x/radius_y are functions of u in [0, 1] (elliptic sections).
-    A coarse LOD's division may ask for fewer than 3 sides, which would have no area: 3 is the floor."""
+    A coarse LOD's division may ask for fewer than 3 sides, which would have no area: 3 is the floor.
+    A polygon inscribed in the section is narrower than it, so a far LOD's limbs thinned and its
+    silhouette shrank: tubes of 8 sides or fewer are widened to the section's mean width over every
+    view direction (its perimeter / pi: x 1.21 for 3 sides, 1.11 for 4, 1.05 for 6); LOD0's 10 to 24
+    sides are as modelled. Widening to the section's area instead (x 1.56 for 3) overshot: LOD2's
+    silhouette IoU went down (bench/lod_silhouette.py, docs/BENCHMARKS.md)."""
     rings, segments = max(rings, 1), max(segments, 3)
+    if segments <= 8:
+        widen = math.pi / (segments * math.sin(math.pi / segments))
+        radius_x, radius_y = (lambda f: lambda u: widen * f(u))(radius_x), (lambda f: lambda u: widen * f(u))(radius_y)
     seg_len = np.linalg.norm(np.diff(spine_pts, axis=0), axis=1)
     arc = np.concatenate([[0.0], np.cumsum(seg_len)])
     u = np.linspace(0.0, 1.0, rings + 1)
