@@ -84,9 +84,11 @@ def main(argv=None) -> int:
             rng = np.random.default_rng(1)
             layers = random_layers(n, 4, len(baked.clips), rng)
             proc.process(layers)
+            if proc.slot_layers * proc.history != 1:
+                raise SystemExit(f"the probe's shader reads layer 0 only: {n:,} agents need {proc.slot_layers * proc.history} palette layers")
             for plane in proc.planes:
                 data = np.frombuffer(plane.read(), np.float32).astype(np.float16)
-                tex = ctx.texture(plane.size, 4, data.tobytes(), dtype="f2")
+                tex = ctx.texture_array(plane.size, 4, data.tobytes(), dtype="f2")
                 tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
                 half_planes.append(tex)
                 own.append(tex)

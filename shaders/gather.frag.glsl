@@ -3,10 +3,8 @@
 // texture, so the CPU reads 48 bytes per weapon instead of the whole palette. Entry e sits at
 // (3 * (e % ENTRIES_PER_ROW) + plane, e / ENTRIES_PER_ROW): the three rows of its skinning matrix side
 // by side, so the target read row by row is the entries' (3, 4) matrices one after the other.
-uniform usampler2D u_entries;  // per entry: palette texel of the socket joint, x | y << 16
-uniform sampler2D u_palette0;
-uniform sampler2D u_palette1;
-uniform sampler2D u_palette2;
+uniform usampler2D u_entries;  // per entry: the palette texel code of the socket joint (palette.glsl)
+#include "palette.glsl"
 out vec4 o_row;
 
 void main() {
@@ -14,7 +12,7 @@ void main() {
     int column = p.x / 3;
     int plane = p.x - 3 * column;
     uint t = texelFetch(u_entries, ivec2(column, p.y), 0).r;
-    ivec2 texel = ivec2(int(t & 0xFFFFu), int(t >> 16));
+    ivec3 texel = palette_texel(t);
     // A copy, bit for bit: the weapon must use exactly the matrix the body is skinned with.
     if (plane == 0) {
         o_row = texelFetch(u_palette0, texel, 0);

@@ -5,11 +5,12 @@
 #include "processor_common.glsl"
 
 layout(local_size_x = 256) in;
-layout(rgba32f, binding = 0) uniform writeonly image2D u_palette0;
-layout(rgba32f, binding = 1) uniform writeonly image2D u_palette1;
-layout(rgba32f, binding = 2) uniform writeonly image2D u_palette2;
+layout(rgba32f, binding = 0) uniform writeonly image2DArray u_palette0;
+layout(rgba32f, binding = 1) uniform writeonly image2DArray u_palette1;
+layout(rgba32f, binding = 2) uniform writeonly image2DArray u_palette2;
 uniform int u_agents_per_group;
-uniform int u_row_offset;  // first row of the palette ring slot this run writes
+uniform int u_row_offset;    // first palette row (counted across layers) of the ring slot this run writes
+uniform int u_palette_rows;  // texture rows per layer
 
 shared vec4 s_local0[256];
 shared vec4 s_local1[256];
@@ -38,7 +39,9 @@ void main() {
         p = parent_of(p);
     }
     m = compose(m, stored_affine(joint, 0));  // row 0 holds the inverse bind pose
-    ivec2 texel = ivec2((agent % u_agents_per_row) * u_joints + joint, agent / u_agents_per_row + u_row_offset);
+    int y = agent / u_agents_per_row + u_row_offset;
+    int layer = y / u_palette_rows;
+    ivec3 texel = ivec3((agent % u_agents_per_row) * u_joints + joint, y - layer * u_palette_rows, layer);
     imageStore(u_palette0, texel, m.r0);
     imageStore(u_palette1, texel, m.r1);
     imageStore(u_palette2, texel, m.r2);

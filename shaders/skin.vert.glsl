@@ -37,12 +37,10 @@ in uvec4 in_packed;    // x: normal, snorm10 x3 | y: joints, 4 x u8 (by descendi
                        // z: weights 1-3 as unorm10 of 2w (weight 0 = 1 - the rest) | w: colour, RGBA8
 
 in vec4 i_position_scale;  // agent origin relative to the camera (float64 on the CPU, then float32), uniform scale
-in uvec3 i_packed;         // x: palette texel of joint 0 (x | y << 16) | y: tint, RGBA8 | z: cos, sin of the heading, snorm16 x2
+in uvec3 i_packed;         // x: palette texel code of joint 0 (palette.glsl) | y: tint, RGBA8 | z: cos, sin of the heading, snorm16 x2
 
 uniform mat4 u_view_proj;  // camera-relative: the camera sits at the origin
-uniform sampler2D u_palette0;
-uniform sampler2D u_palette1;
-uniform sampler2D u_palette2;
+#include "palette.glsl"
 
 #ifndef DEPTH_ONLY
 out vec3 v_world;      // camera-relative
@@ -67,21 +65,21 @@ void main() {
     vec3 skinned = position;
     vec3 normal = bind_normal;
 #else
-    ivec2 base = ivec2(i_packed.x & 0xFFFFu, i_packed.x >> 16);
+    ivec3 base = palette_texel(i_packed.x);  // an agent's joints sit side by side in one row of one layer
     ivec4 joints = ivec4((uvec4(in_packed.y) >> uvec4(0u, 8u, 16u, 24u)) & 0xFFu);
     vec3 w123 = vec3((uvec3(in_packed.z) >> uvec3(0u, 10u, 20u)) & 0x3FFu) / 2046.0;
     float w0 = 1.0 - (w123.x + w123.y + w123.z);
     // Weights are sorted: nearly every vertex of a game character has one or two influences, so the
     // first two bones are fetched unconditionally and the third and fourth only where their weight is
     // not zero.
-    ivec2 t0 = base + ivec2(joints.x, 0);
-    ivec2 t1 = base + ivec2(joints.y, 0);
+    ivec3 t0 = base + ivec3(joints.x, 0, 0);
+    ivec3 t1 = base + ivec3(joints.y, 0, 0);
     vec4 r0 = w0 * texelFetch(u_palette0, t0, 0) + w123.x * texelFetch(u_palette0, t1, 0);
     vec4 r1 = w0 * texelFetch(u_palette1, t0, 0) + w123.x * texelFetch(u_palette1, t1, 0);
     vec4 r2 = w0 * texelFetch(u_palette2, t0, 0) + w123.x * texelFetch(u_palette2, t1, 0);
     if (w123.y > 0.0) {
-        ivec2 t2 = base + ivec2(joints.z, 0);
-        ivec2 t3 = base + ivec2(joints.w, 0);
+        ivec3 t2 = base + ivec3(joints.z, 0, 0);
+        ivec3 t3 = base + ivec3(joints.w, 0, 0);
         r0 += w123.y * texelFetch(u_palette0, t2, 0) + w123.z * texelFetch(u_palette0, t3, 0);
         r1 += w123.y * texelFetch(u_palette1, t2, 0) + w123.z * texelFetch(u_palette1, t3, 0);
         r2 += w123.y * texelFetch(u_palette2, t2, 0) + w123.z * texelFetch(u_palette2, t3, 0);

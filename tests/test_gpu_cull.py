@@ -111,7 +111,7 @@ def _cpu_list(renderer, k, buffer, count) -> set:
 def _listed_agents(renderer, k, records):
     """The agents in draw k's records (from each record's palette texel)."""
     texel = records["packed"][:, 0]
-    return set(((texel >> 16) * renderer.agents_per_row + (texel & 0xFFFF) // renderer.joint_count).tolist())
+    return set(((texel >> 12) * renderer.agents_per_row + (texel & 0xFFF) // renderer.joint_count).tolist())
 
 
 def test_each_draws_list_holds_the_agents_the_cpu_path_draws(stages):

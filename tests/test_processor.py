@@ -300,11 +300,52 @@ def test_history_keeps_the_palettes_of_earlier_runs(gl_context, zombie, zombie_b
         with pytest.raises(ProcessorError):
             proc.row_offset(1)
         proc.set_history(2)
-        assert proc.planes[0].height == 2 * proc.palette_rows() and proc.runs == 0
+        assert proc.planes[0].layers * proc.planes[0].height == 2 * proc.palette_rows() and proc.runs == 0
     finally:
         proc.release()
     with pytest.raises(ProcessorError, match="palette history"):
         AnimationProcessor(gl_context, zombie_bake, 1, history=5)
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_a_palette_taller_than_a_texture_spans_layers(gl_context, zombie_bake, monkeypatch, path):
+    """With the driver's texture size cut to 2 rows, 1,000 agents (6 palette rows) take 3 layers a ring
+    slot, 12 for a history of 4: every age reads back bit for bit what a one-layer palette holds, the
+    partial last row included; the texel codes readers use address the same texels."""
+    from crowd.anim import processor as module
+
+    rng = np.random.default_rng(5)
+    n = 1000
+    runs = [random_layers(rng, n, 2, len(zombie_bake.clips)) for _ in range(5)]
+    palettes = {}
+    for limit in (None, 2):
+        if limit is not None:
+            monkeypatch.setattr(module, "palette_limits", lambda ctx: (limit, 256))
+        with AnimationProcessor(gl_context, zombie_bake, 2, path=path, history=4) as proc:
+            proc.resize(n)
+            for layers in runs:
+                proc.process(layers)
+            palettes[limit] = [proc.read_palette(age) for age in range(4)]
+            if limit is not None:
+                assert (proc.layer_rows, proc.slot_layers, proc.planes[0].layers) == (2, 3, 12)
+                agents = rng.integers(0, n, 50)
+                offsets = np.array([proc.row_offset(age) for age in rng.integers(0, 4, 50)])
+                rows = proc.read_rows(agents, 7, offsets)
+                ages = [[proc.row_offset(a) for a in range(4)].index(o) for o in offsets]
+                np.testing.assert_array_equal(rows, np.stack([palettes[None][a][i, 7] for a, i in zip(ages, agents)]))
+    for age in range(4):
+        np.testing.assert_array_equal(palettes[2][age], palettes[None][age])
+
+
+def test_a_palette_past_the_layer_limit_is_refused_in_one_line(gl_context, zombie_bake, monkeypatch):
+    from crowd.anim import processor as module
+
+    monkeypatch.setattr(module, "palette_limits", lambda ctx: (2, 8))
+    with AnimationProcessor(gl_context, zombie_bake, 2, history=4) as proc:
+        with pytest.raises(ProcessorError, match="1,000 agents with a palette history of 4 need 12 palette layers of 2 rows, more than this GPU's 8 layers"):
+            proc.resize(1000)
+        proc.resize(300)  # what fits still does
+        assert proc.agents == 300
 
 
 def test_auto_path_follows_the_context(gl_context, zombie_bake):

@@ -42,11 +42,12 @@ def test_packed_weights_decode_to_the_float_weights(zombie):
         assert np.all(decoded >= 0.0)
 
 
-def _capture(ctx, draw):
+def _capture(ctx, draw, proc):
     """v_world and v_normal of every vertex of every instance of one draw (instance-major)."""
     prog = ctx.program(vertex_shader=load_shader("skin.vert.glsl"), varyings=["v_world", "v_normal"])
     for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
         prog[name] = unit
+    proc.bind_palette(0, prog)
     prog["u_view_proj"].write(np.eye(4, dtype=np.float32).tobytes())
     vao = ctx.vertex_array(prog, [(draw.vbo, *_read_by(prog, VERTEX_FORMAT)), (draw.instances, *_read_by(prog, INSTANCE_FORMAT))])
     vertices = draw.vbo.size // VERTEX_DTYPE.itemsize
@@ -92,9 +93,9 @@ def test_gpu_skinned_vertices_match_float64_skinning(gl_context, zombie):
             if not draw.count:
                 continue
             mesh = meshes[(draw.piece, draw.lod)]
-            world, normal = _capture(ctx, draw)
+            world, normal = _capture(ctx, draw, proc)
             texel = np.frombuffer(draw.instances.read(), np.uint32).reshape(draw.count, 8)[:, 4]
-            agents = (texel >> 16) * proc.agents_per_row + (texel & 0xFFFF) // baked.joint_count
+            agents = (texel >> 12) * proc.agents_per_row + (texel & 0xFFF) // baked.joint_count
             w = mesh.weights.astype(np.float64) / mesh.weights.sum(axis=1, keepdims=True)
             p = np.concatenate([mesh.positions.astype(np.float64), np.ones((len(mesh.positions), 1))], axis=1)
             for k, a in enumerate(agents):

@@ -108,6 +108,30 @@ def test_weapon_stays_in_the_hand_for_100_frames_while_clips_change(harness, cul
     assert "gather" in p.passes_run and "weapons" in p.passes_run and p.readback_stalls == 0
 
 
+@pytest.mark.parametrize("cull", ["cpu", "gpu"])
+def test_a_palette_spanning_layers_draws_the_same_frame(harness, monkeypatch, cull):
+    """The palette of 400 agents cut into one-row layers (3 rows a ring slot, 9 layers for a latency
+    of 2): the bodies, the weapons (read back through texel codes) and the shadows are drawn exactly
+    as from one layer, and each weapon stays in its hand."""
+    from crowd.anim import processor as module
+
+    pictures, errors = [], []
+    for limit in (None, 1):
+        if limit is not None:
+            monkeypatch.setattr(module, "palette_limits", lambda ctx: (limit, 256))
+        h = harness(agents=400, shadows=True, cull=cull, ai=AIConfig(half_extent=12.0, armed_share=0.7))
+        for _ in range(8):
+            h.frame()
+        p = h.pipeline
+        if limit is not None:
+            assert p.processor.slot_layers == 3 and p.processor.planes[0].layers == 9
+        pictures.append(h.fb.read())
+        errors.append(p.weapon_error_mm())
+        h.release()
+    assert pictures[0] == pictures[1]
+    assert errors[0] is not None and max(errors) <= ERROR_MM
+
+
 @pytest.mark.parametrize("latency", [1, 2, 3])
 def test_each_latency_reads_and_draws_frame_f_minus_n(harness, latency):
     h = harness(readback_latency=latency)

@@ -19,12 +19,18 @@ input ``layers``: float32 (N, L, 4) with L = the processor's layer count (1..4);
   instead sums the dual quaternions); a joint whose masked weights add up to less than REST_THRESHOLD
   times S takes the rest pose. Then the hierarchy is concatenated and multiplied by the inverse bind.
 
-output: the palette, three RGBA32F textures ("planes") holding rows 0, 1 and 2 of each 3x4 skinning
-  matrix. Agent a, joint j lives at texel ((a % agents_per_row) * J + j, a // agents_per_row) of each
-  plane: one palette row per agent, several agents side by side in a texture row so that 65,536 agents
-  fit a texture no GPU refuses. The GL 3.3 path needs the planes: multiple render targets write the
+output: the palette, three RGBA32F array textures ("planes") holding rows 0, 1 and 2 of each 3x4
+  skinning matrix. Agent a, joint j lives at texel ((a % agents_per_row) * J + j, y) of each plane,
+  with y = a // agents_per_row + the ring slot's first row: one palette row per agent, several agents
+  side by side in a texture row (under 4096 texels wide). Palette rows are counted across the planes'
+  layers, ``layer_rows`` to a layer (shaders/palette.glsl): row y is texture row y % layer_rows of
+  layer y // layer_rows. A layer is as tall as one ring slot needs, up to the driver's texture size,
+  and a slot taller than that spans several layers, so a million agents fit wherever the memory does
+  (a 2D texture stopped at 16,384 rows on llvmpipe: 2.9 million agents of 23 joints, or 262,000 with a
+  history of 4 and 64 joints). The GL 3.3 path needs the planes: multiple render targets write the
   same pixel of several attachments, so the three texels of a joint sit at one coordinate of three
   textures. The compute path writes the same planes, so the renderers do not care which path ran.
+  Readers address a texel by one code, x | y << 12 (``texel_code``), so y may reach 2^20 rows.
 
 history: with ``history`` = H > 1 the planes hold H palettes stacked vertically (a ring): each run
   writes the next slot, and the palettes of the H - 1 runs before stay readable. The weapons' readback
@@ -62,7 +68,7 @@ INTERPOLATIONS = SETTINGS["interpolation"].choices
 DEFAULT_INTERPOLATION = DEFAULTS["interpolation"]  # chosen by crowd-bench error: see docs/BENCHMARKS.md
 # Agents side by side in one palette texture row: keeps textures under 4096 texels wide, a size every
 # GL 3.3+ driver we target accepts (GL_MAX_TEXTURE_SIZE is 16384 on llvmpipe, 32768 on NVIDIA).
-MAX_TEXTURE_WIDTH = 4096
+MAX_TEXTURE_WIDTH = 1 << 12
 MAX_HISTORY = SETTINGS["readback_latency"].high + 1  # palettes kept: the latest and one per frame of read-back latency
 
 
@@ -70,11 +76,26 @@ class ProcessorError(ValueError):
     """Bad processor input; the message is one line."""
 
 
+TEXEL_ROW_SHIFT = 12  # a texel code is x | y << 12: x < MAX_TEXTURE_WIDTH = 2^12, y < 2^20 palette rows
+MAX_PALETTE_ROWS = 1 << (32 - TEXEL_ROW_SHIFT)
+
+
 def palette_texel(agents, joints, row_offset, agents_per_row: int, joint_count: int) -> tuple[np.ndarray, np.ndarray]:
     """(x, y) int64 texel of joint(s) `joints` of `agents` in a palette plane, in the ring slot that
-    starts at row `row_offset` (an int, or one per agent). The one statement of the palette layout."""
+    starts at row `row_offset` (an int, or one per agent); y counts rows across layers. The one
+    statement of the palette layout."""
     agents = np.asarray(agents, np.int64)
     return (agents % agents_per_row) * joint_count + np.asarray(joints, np.int64), agents // agents_per_row + np.asarray(row_offset, np.int64)
+
+
+def palette_limits(ctx: moderngl.Context) -> tuple[int, int]:
+    """(texture rows a palette layer may have, layers an array texture may have) on this context."""
+    return int(ctx.info.get("GL_MAX_TEXTURE_SIZE", 16384)), int(ctx.info.get("GL_MAX_ARRAY_TEXTURE_LAYERS", 256))
+
+
+def texel_code(x, y) -> np.ndarray:
+    """uint32 code of palette texels (x, y), as shaders/palette.glsl reads it."""
+    return np.asarray(x, np.uint32) | (np.asarray(y, np.uint32) << np.uint32(TEXEL_ROW_SHIFT))
 
 
 def check_interpolation(interpolation) -> str:
@@ -248,6 +269,8 @@ class AnimationProcessor(GLStage):
         self.agents = 0
         self.history = _check_history(history)
         self.runs = 0  # runs since the palette was last (re)allocated: slots older than this hold nothing
+        self.layer_rows = 1  # texture rows per layer of the planes
+        self.slot_layers = 1  # layers one ring slot spans
 
         dtype = "f4" if bake.precision == "f32" else "f2"
         self.anim_texture = self._texture("animation", (2 * jc, bake.rows), 4, bake.texels, dtype)
@@ -268,7 +291,8 @@ class AnimationProcessor(GLStage):
         if path == "compute":
             self.program = ctx.compute_shader(load_shader("processor.comp.glsl", defines))
         else:
-            self.program = ctx.program(vertex_shader=load_shader("processor.vert.glsl"), fragment_shader=load_shader("processor.frag.glsl", defines))
+            self.program = ctx.program(vertex_shader=load_shader("processor.vert.glsl"), geometry_shader=load_shader("processor.geom.glsl"),
+                                       fragment_shader=load_shader("processor.frag.glsl", defines))
         samplers = {"u_anim": 0, "u_parents": 1, "u_clips": 2, "u_layers": 3, "u_anim_scale": 4, "u_masks": 5}
         for name, unit in samplers.items():
             if name in self.program:
@@ -288,7 +312,7 @@ class AnimationProcessor(GLStage):
     # -- resources
 
     def _texture(self, group, size, components, data, dtype):
-        tex = self.ctx.texture(size, components, np.ascontiguousarray(data).tobytes(), dtype=dtype)
+        tex = self.ctx.texture(size, components, None if data is None else np.ascontiguousarray(data).tobytes(), dtype=dtype)
         tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self._own[group].append(tex)
         return tex
@@ -303,18 +327,19 @@ class AnimationProcessor(GLStage):
         self._own[group] = []
 
     def palette_rows(self, agents: int | None = None) -> int:
+        """Palette rows the agents fill (one ring slot's)."""
         n = self.agents if agents is None else agents
         return math.ceil(n / self.agents_per_row)
 
-    def palette_size(self) -> tuple[int, int]:
-        """(width, height) of one palette; the planes are `history` palettes high."""
-        return (self.agents_per_row * self.joint_count, self.palette_rows())
+    def slot_rows(self) -> int:
+        """Palette rows from one ring slot's start to the next's: its layers' rows."""
+        return self.slot_layers * self.layer_rows
 
     def row_offset(self, age: int = 0) -> int:
-        """First texture row of the palette written `age` runs ago (0: the latest run)."""
+        """First palette row (counted across layers) of the palette written `age` runs ago (0: the latest run)."""
         if not 0 <= age < min(self.history, max(self.runs, 1)):
             raise ProcessorError(f"no palette from {age} runs ago (history {self.history}, {self.runs} runs since allocation)")
-        return ((self.runs - 1 - age) % self.history) * self.palette_rows()
+        return ((self.runs - 1 - age) % self.history) * self.slot_rows()
 
     def set_history(self, history: int) -> None:
         """Keep `history` palettes (1 to MAX_HISTORY); the planes are reallocated, so older runs are lost."""
@@ -336,51 +361,85 @@ class AnimationProcessor(GLStage):
 
     def _allocate(self, agents: int) -> None:
         rows = self.palette_rows(agents)
-        height = rows * self.history
-        # The driver's texture size (16,384 on llvmpipe, 32,768 on NVIDIA), and instance records address
-        # palette rows in 16 bits.
-        limit = min(int(self.ctx.info.get("GL_MAX_TEXTURE_SIZE", 16384)), 1 << 16)
-        if height > limit:
-            raise ProcessorError(f"{agents} agents with a palette history of {self.history} need {height} texture rows, more than {limit}")
+        limit, max_layers = palette_limits(self.ctx)
+        layer_rows = max(1, min(rows, limit))
+        slot_layers = max(1, math.ceil(rows / layer_rows))
+        layers = slot_layers * self.history
+        width = self.agents_per_row * self.joint_count
+        if layers > max_layers or layers * layer_rows > MAX_PALETTE_ROWS:
+            raise ProcessorError(f"{agents:,} agents with a palette history of {self.history} need {layers} palette layers of "
+                                 f"{layer_rows:,} rows, more than this GPU's {max_layers} layers or the {MAX_PALETTE_ROWS:,} rows a texel code addresses")
         self._release_group("palette")
         self._release_group("layers")
         self.planes, self.layers_texture, self._framebuffer = (), None, None
         self.agents = agents
         self.runs = 0
+        self.layer_rows, self.slot_layers = layer_rows, slot_layers
         if agents == 0:
             return  # no agents: no palette, no layer texture, no pass
-        width = self.agents_per_row * self.joint_count
-        self.planes = tuple(self._texture("palette", (width, height), 4, np.zeros((height, width, 4), np.float32), "f4") for _ in range(3))
-        self.layers_texture = self._texture("layers", (self.agents_per_row * self.layer_count, rows), 4, np.zeros((rows, self.agents_per_row * self.layer_count, 4), np.float32), "f4")
-        if self.path == "fragment":
+        need = 3 * width * layer_rows * layers * 16 + width // self.joint_count * self.layer_count * rows * 16
+        self.ctx.error  # clear an earlier error, so the check below sees these allocations'
+        try:
+            self.planes = tuple(self._array("palette", (width, layer_rows, layers)) for _ in range(3))
+            self.layers_texture = self._texture("layers", (self.agents_per_row * self.layer_count, rows), 4, None, "f4")
+            # A layered framebuffer over the planes: it clears every layer at once (texels no run wrote
+            # read as 0, not as whatever the memory held), and the fragment path renders through it.
             fb = self.ctx.framebuffer(color_attachments=list(self.planes))
             self._own["palette"].append(fb)
+        except moderngl.Error as exc:
+            self._release_group("palette")
+            self._release_group("layers")
+            self.planes, self.layers_texture, self.agents = (), None, 0
+            raise ProcessorError(f"the palette for {agents:,} agents ({need:,} bytes) could not be made: {exc}") from None
+        if self.ctx.error == "GL_OUT_OF_MEMORY":
+            self._release_group("palette")
+            self._release_group("layers")
+            self.planes, self.layers_texture, self.agents = (), None, 0
+            raise ProcessorError(f"the GPU ran out of memory for the palette of {agents:,} agents: {need:,} bytes were needed")
+        fb.clear(0.0, 0.0, 0.0, 0.0)
+        if self.path == "fragment":
             self._framebuffer = fb
         self._update_quad()
 
+    def _array(self, group, size):
+        tex = self.ctx.texture_array(size, 4, dtype="f4")
+        tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        self._own[group].append(tex)
+        return tex
+
     def _update_quad(self):
-        """Fragment path: the quad over full palette rows plus the partial last row, in one buffer."""
+        """Fragment path: per layer of a ring slot, the quad over its full palette rows, plus the
+        partial last row of the last layer, in one buffer (x, y in the layer's NDC, z the layer)."""
         if self.path != "fragment":
             return
-        if self._quad is None:
-            self._quad = self.ctx.buffer(reserve=12 * 2 * 4)
-            self._quad_vao = self.ctx.vertex_array(self.program, [(self._quad, "2f", "in_position")])
-            self._own["processor_quad"] += [self._quad_vao, self._quad]
-        width, height = self.palette_size()
+        width, height = self.agents_per_row * self.joint_count, self.layer_rows
         full, partial = divmod(self.agents, self.agents_per_row)
-        rects = []
-        if full:
-            rects.append((0, 0, width, full))
+        rects = []  # (layer, x0, y0, x1, y1) in texels of that layer
+        for layer in range(self.slot_layers):
+            first = layer * height
+            rows = min(full - first, height)
+            if rows > 0:
+                rects.append((layer, 0, 0, width, rows))
         if partial:
-            rects.append((0, full, partial * self.joint_count, full + 1))
+            layer, row = divmod(full, height)
+            rects.append((layer, 0, row, partial * self.joint_count, row + 1))
         verts = []
-        for x0, y0, x1, y1 in rects:
+        for layer, x0, y0, x1, y1 in rects:
             a, b = 2.0 * x0 / width - 1.0, 2.0 * x1 / width - 1.0
             c, d = 2.0 * y0 / height - 1.0, 2.0 * y1 / height - 1.0
-            verts += [(a, c), (b, c), (b, d), (a, c), (b, d), (a, d)]
+            verts += [(a, c, layer), (b, c, layer), (b, d, layer), (a, c, layer), (b, d, layer), (a, d, layer)]
         self._quad_vertices = len(verts)
+        data = np.asarray(verts, dtype=np.float32).tobytes()
+        if self._quad is None or self._quad.size < max(len(data), 1):
+            if self._quad is not None:
+                self._own["processor_quad"] = []
+                self._quad_vao.release()
+                self._quad.release()
+            self._quad = self.ctx.buffer(reserve=max(len(data), 18 * 4))
+            self._quad_vao = self.ctx.vertex_array(self.program, [(self._quad, "3f", "in_position")])
+            self._own["processor_quad"] += [self._quad_vao, self._quad]
         if verts:
-            self._quad.write(np.asarray(verts, dtype=np.float32).tobytes())
+            self._quad.write(data)
 
     # -- the pass
 
@@ -410,8 +469,10 @@ class AnimationProcessor(GLStage):
         self.parents_texture.use(1)
         self.clips_texture.use(2)
         self.layers_texture.use(3)
-        offset = (self.runs % self.history) * self.palette_rows()  # the ring slot this run writes
-        self._set("u_row_offset", offset)
+        slot = self.runs % self.history  # the ring slot this run writes
+        self._set("u_row_offset", slot * self.slot_rows())
+        self._set("u_first_layer", slot * self.slot_layers)
+        self._set("u_palette_rows", self.layer_rows)
         if self.scale_texture is not None:
             self.scale_texture.use(4)
         if self.masks_texture is not None:
@@ -426,7 +487,7 @@ class AnimationProcessor(GLStage):
             # Later passes read the palette through texelFetch (and the readback through pack buffers).
             self.ctx.memory_barrier(moderngl.TEXTURE_FETCH_BARRIER_BIT | moderngl.PIXEL_BUFFER_BARRIER_BIT | moderngl.TEXTURE_UPDATE_BARRIER_BIT)
         else:
-            self._framebuffer.viewport = (0, offset, *self.palette_size())  # this run's slot of the ring
+            self._framebuffer.viewport = (0, 0, self.agents_per_row * self.joint_count, self.layer_rows)
             self._framebuffer.use()
             self.ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND | moderngl.CULL_FACE)
             self._quad_vao.render(moderngl.TRIANGLES, vertices=self._quad_vertices)
@@ -444,10 +505,14 @@ class AnimationProcessor(GLStage):
         self.bake.clips[clip] = dataclasses.replace(self.bake.clips[clip], loop=bool(loop))
         self.clips_texture.write(np.ascontiguousarray(self.bake.clip_table).tobytes())
 
-    def bind_palette(self, first_unit: int) -> None:
-        """Bind the three planes (every palette of the history; instance records say which rows)."""
+    def bind_palette(self, first_unit: int, *programs) -> None:
+        """Bind the three planes (every palette of the history; texel codes say which rows) and tell
+        `programs` (those that read them through shaders/palette.glsl) how many rows a layer holds."""
         for i, plane in enumerate(self.planes):
             plane.use(first_unit + i)
+        for prog in programs:
+            if "u_palette_rows" in prog:
+                prog["u_palette_rows"] = self.layer_rows
 
     def read_palette(self, age: int = 0) -> np.ndarray:
         """(N, J, 3, 4) float32 skinning matrix rows of the palette written `age` runs ago, read back
@@ -461,8 +526,8 @@ class AnimationProcessor(GLStage):
         return np.stack(planes, axis=2)
 
     def _read_planes(self) -> list[np.ndarray]:
-        """The three planes, every palette of the history, as (height, width, 4) float32 (synchronous)."""
-        return [np.frombuffer(p.read(), np.float32).reshape(p.height, p.width, 4) for p in self.planes]
+        """The three planes, every palette of the history, as (palette rows, width, 4) float32 (synchronous)."""
+        return [np.frombuffer(p.read(), np.float32).reshape(p.layers * p.height, p.width, 4) for p in self.planes]
 
     def read_rows(self, agents: np.ndarray, joint: int, row_offsets: np.ndarray) -> np.ndarray:
         """(K, 3, 4) float32 skinning matrix rows of one joint of some agents, each from the palette

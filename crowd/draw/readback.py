@@ -30,7 +30,7 @@ import numpy as np
 
 from ..gl import Fence, GLStage, gpu_bytes, load_shader
 from ..settings import SETTINGS
-from ..anim.processor import palette_texel
+from ..anim.processor import palette_texel, texel_code
 
 RING = SETTINGS["readback_latency"].high  # one slot per frame of the longest read-back latency
 ENTRIES_PER_ROW = 1024  # gather texture: 3 x 1024 texels wide, one row per 1,024 entries
@@ -136,10 +136,10 @@ class SocketReadback(GLStage):
         width = min(count, ENTRIES_PER_ROW)
         texel_x, texel_y = palette_texel(agents, joints, processor.row_offset(0), self.agents_per_row, self.joint_count)
         packed = np.zeros(rows * width, np.uint32)
-        packed[:count] = texel_x | (texel_y << 16)
+        packed[:count] = texel_code(texel_x, texel_y)
         self._entries.write(packed.tobytes(), viewport=(0, 0, width, rows))
         with timer.gpu("gather") if timer is not None else nullcontext():
-            processor.bind_palette(0)
+            processor.bind_palette(0, self.program)
             self._entries.use(3)
             self._fbo.viewport = (0, 0, 3 * width, rows)
             self._fbo.use()

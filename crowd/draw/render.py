@@ -29,7 +29,7 @@ from ..gl import GLStage, gpu_bytes, load_shader
 from ..settings import DEFAULTS, SETTINGS
 from ..lighting import FOG_COLOR, LIGHTING, SUN_DIR
 from ..asset.model import PACKED_UV_SPAN, Character, SkinnedMesh
-from ..anim.processor import palette_texel
+from ..anim.processor import palette_texel, texel_code
 from ..asset.vertex_cache import optimize_triangle_order
 from .gpu_cull import RECORD_DTYPE, GpuCull, GpuCullError
 from .materials import TEXTURE_UNIT, MaterialTextures
@@ -52,7 +52,7 @@ _LAYOUTS = {"": (VERTEX_DTYPE, VERTEX_FORMAT), "packed": (TEXTURED_VERTEX_DTYPE,
             "wide": (WIDE_UV_VERTEX_DTYPE, WIDE_UV_VERTEX_FORMAT)}
 WEIGHT_STEP = 1.0 / 2046.0  # a stored weight is within half of this of the float weight
 # Per-instance record, 32 bytes: position relative to the camera and scale; palette texel of the agent's
-# joint 0 (x | y << 16), tint RGBA8, cos and sin of the heading as snorm16, and the variation choices
+# joint 0 (its texel code, anim.processor.texel_code), tint RGBA8, cos and sin of the heading as snorm16, and the variation choices
 # (4 bits a group, which only the GPU cull reads: the record is the GPU cull's agent record too).
 INSTANCE_DTYPE = RECORD_DTYPE
 INSTANCE_FORMAT = ("4f 3u 4x/i", "i_position_scale", "i_packed")
@@ -453,15 +453,15 @@ class CrowdRenderer(GLStage):
 
     def _all_records(self, instances: Instances, eye: np.ndarray, row_offset) -> np.ndarray:
         """Every agent's instance record, as the shaders (and the GPU cull) read them, written into
-        arrays kept from frame to frame: the palette texels of agent i are a fixed base plus its ring
-        slot's first row, so only that addition runs per frame. Both texel halves fit 16 bits: x <
-        4096 (the palette width), and the processor keeps its rows under 65,536."""
+        arrays kept from frame to frame: the palette texel code of agent i is a fixed base plus its ring
+        slot's first row, so only that addition runs per frame (the processor keeps x under 4096 and
+        its rows under 2^20: texel_code)."""
         n = len(instances)
         if getattr(self, "_scratch_n", -1) != n:
             self._scratch_n = n
             self._scratch = np.empty(n, INSTANCE_DTYPE)
             x, y = palette_texel(np.arange(n), 0, 0, self.agents_per_row, self.joint_count)
-            self._texel_base = (x.astype(np.uint32) | (y.astype(np.uint32) << 16))
+            self._texel_base = texel_code(x, y)
         records, fields = self._scratch, self._scratch["packed"]
         # The subtraction in float64 (agents far from the origin), rounded once into the record; a column
         # at a time, which is 3 times as fast as numpy's (N, 3) into strided (N, 3) broadcast.
@@ -469,7 +469,7 @@ class CrowdRenderer(GLStage):
         for c in range(3):
             np.subtract(instances.position[:, c], eye[c], out=position[:, c], casting="unsafe")
         records["position_scale"][:, 3] = instances.scale
-        np.add(self._texel_base, np.asarray(row_offset, np.uint32) << np.uint32(16), out=fields[:, 0], casting="unsafe")
+        np.add(self._texel_base, texel_code(0, row_offset), out=fields[:, 0], casting="unsafe")
         tint = instances.tint
         fields[:, 1] = tint.view("<u4")[:, 0] if tint.dtype == np.uint8 and tint.flags.c_contiguous else _rgba8(tint)
         heading = heading_snorm16(instances.yaw)
@@ -544,9 +544,9 @@ class CrowdRenderer(GLStage):
         self._shadow_fbo.clear(depth=1.0)
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE)
-        processor.bind_palette(0)
         for layout in self._variants():
             prog = self._program("depth", True, layout)
+            processor.bind_palette(0, prog)
             prog["u_view_proj"].write(gl_bytes(view.light_view_proj))
             for index, draw in enumerate(self.draws):
                 if draw.layout == layout:
@@ -565,11 +565,11 @@ class CrowdRenderer(GLStage):
         framebuffer.use()
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE)
-        if skinned:
-            processor.bind_palette(0)
         try:
             for layout in self._variants():
                 prog = self._program("color", skinned, layout)
+                if skinned:
+                    processor.bind_palette(0, prog)
                 prog["u_view_proj"].write(gl_bytes(view.view_proj))
                 self.set_lighting(prog, view)
                 for index, draw in enumerate(self.draws):

@@ -26,9 +26,9 @@ in vec4 i_tint;
 #endif
 
 uniform mat4 u_view_proj;
-uniform sampler2D u_palette0;
-uniform sampler2D u_palette1;
-uniform sampler2D u_palette2;
+uniform sampler2DArray u_palette0;  // the probe's crowd fits one layer (vertex_layout_probe.py checks)
+uniform sampler2DArray u_palette1;
+uniform sampler2DArray u_palette2;
 
 out vec3 v_world;
 out vec3 v_normal;
@@ -45,7 +45,7 @@ void main() {
     vec3 w123 = vec3((uvec3(in_packed.z) >> uvec3(0u, 10u, 20u)) & 0x3FFu) / 2046.0;
     vec4 weights = vec4(1.0 - (w123.x + w123.y + w123.z), w123);
     vec4 color = unpack_rgba8(in_packed.w) * unpack_rgba8(i_packed.y);
-    ivec2 base = ivec2(i_packed.x & 0xFFFFu, i_packed.x >> 16);
+    ivec3 base = ivec3(i_packed.x & 0xFFFu, i_packed.x >> 12, 0);
     vec2 cs = vec2(ivec2(uvec2(i_packed.z) << uvec2(16u, 0u)) >> 16) / 32767.0;
     float c = cs.x, s = cs.y, scale = i_position_scale.w;
     vec3 origin = i_position_scale.xyz;
@@ -54,7 +54,7 @@ void main() {
     ivec4 joints = ivec4(in_joints);
     vec4 weights = in_weights;
     vec4 color = in_color * i_tint;
-    ivec2 base = ivec2(i_palette);
+    ivec3 base = ivec3(i_palette, 0);
     float c = cos(i_yaw_scale.x), s = sin(i_yaw_scale.x), scale = i_yaw_scale.y;
     vec3 origin = i_position;
 #endif
@@ -66,10 +66,10 @@ void main() {
     color.r += 1e-30 * float(joints.x) * weights.x;  // too small to change a pixel, but the compiler must read both
 #endif
 #else
-    ivec2 t0 = base + ivec2(joints.x, 0);
-    ivec2 t1 = base + ivec2(joints.y, 0);
-    ivec2 t2 = base + ivec2(joints.z, 0);
-    ivec2 t3 = base + ivec2(joints.w, 0);
+    ivec3 t0 = base + ivec3(joints.x, 0, 0);
+    ivec3 t1 = base + ivec3(joints.y, 0, 0);
+    ivec3 t2 = base + ivec3(joints.z, 0, 0);
+    ivec3 t3 = base + ivec3(joints.w, 0, 0);
 #if defined(ONE_BONE)
     vec4 r0 = texelFetch(u_palette0, t0, 0), r1 = texelFetch(u_palette1, t0, 0), r2 = texelFetch(u_palette2, t0, 0);
 #else
