@@ -50,7 +50,7 @@ class Panel:
     ACTIONS = {
         "agents": "set_agent_count", "seed": "set_seed", "crossfade": "set_crossfade", "time_scale": "set_time_scale",
         "pause": "set_paused", "step": "step_once", "clip_speed": "set_clip_speed", "clip_loop": "set_clip_loop",
-        "play": "play", "weight": "set_weight", "rebake": "rebake", "measure_error": "measure_error", "lod": "set_lod_distances", "culling": "set_culling",
+        "play": "play", "weight": "set_weight", "rebake": "rebake", "measure_error": "measure_error", "lod": "set_lod_distances", "culling": "set_culling", "occlusion": "set_occlusion",
         "shadows": "set_shadows", "weapons": "set_weapons", "latency": "set_readback_latency", "cull": "set_cull_path",
     }
 
@@ -222,6 +222,10 @@ class Panel:
         changed, on = imgui.checkbox("culling", p.renderer.culling)
         if changed:
             self.apply("culling", on)
+        imgui.same_line()
+        changed, on = imgui.checkbox("occlusion", p.config.occlusion)
+        if changed:
+            self.apply("occlusion", on)
         imgui.same_line()
         changed, index = imgui.combo("cull path", CULL_PATHS.index(p.config.cull), list(CULL_PATHS))
         if changed:

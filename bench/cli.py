@@ -290,7 +290,7 @@ def _replay_gpu_passes(ctx, pipeline, framebuffer, count: int) -> dict:
                 with timer.gpu("shadow"):
                     renderer.shadow_pass(view, pipeline.processor)
                     if weapons is not None and weapons.casts_shadows():
-                        weapons.depth_pass(view.light_view_proj)
+                        weapons.depth_pass(view, renderer)
             with timer.gpu("draw"):
                 renderer.color_pass(framebuffer, view, pipeline.processor)
             if weapons is not None and weapons.last["weapons"]:

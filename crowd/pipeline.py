@@ -54,6 +54,7 @@ class PipelineConfig:
     processor_path: str = DEFAULTS["processor"]
     shadows: bool = DEFAULTS["shadows"]
     culling: bool = DEFAULTS["culling"]
+    occlusion: bool = DEFAULTS["occlusion"]  # against the previous frame's depth pyramid (the gpu cull path)
     lod_distances: tuple = DEFAULTS["lod_distances"]
     ai: AIConfig = field(default_factory=AIConfig)
     origin: tuple = (0.0, 0.0)  # world centre (x, z) in metres; float64 all the way to the camera subtraction
@@ -136,7 +137,7 @@ class CrowdPipeline(GLStage):
         c = self.config
         return StageSpec(layers=LAYERS, masks=upper_body_mask(self.character.skeleton), processor_path=c.processor_path,
                          interpolation=c.interpolation, lod_distances=c.lod_distances, shadows=c.shadows, culling=c.culling,
-                         armed=self.readback is not None if armed is None else armed, readback_latency=self.latency, cull=c.cull)
+                         occlusion=c.occlusion, armed=self.readback is not None if armed is None else armed, readback_latency=self.latency, cull=c.cull)
 
     # -- run-time settings: the panel and the command line both come through these
 
@@ -175,6 +176,11 @@ class CrowdPipeline(GLStage):
     def set_culling(self, on: bool) -> None:
         self.config = dataclasses.replace(self.config, culling=bool(on))
         self.renderer.culling = bool(on)
+
+    def set_occlusion(self, on: bool) -> None:
+        """Occlusion culling on (the depth pyramid appears, on the gpu cull path) or off (it goes)."""
+        self.config = dataclasses.replace(self.config, occlusion=bool(on))
+        self.renderer.set_occlusion(bool(on))
 
     def set_lod_distances(self, *distances: float) -> None:
         distances = SETTINGS["lod_distances"].check(distances, PipelineError)
@@ -336,6 +342,9 @@ class CrowdPipeline(GLStage):
             # The CPU path culls and packs here; the GPU path packs and uploads every agent's record and
             # then dispatches the cull ("cull": its GPU time; a query around the upload would also count
             # the CPU's copying while the GPU waits for it).
+            # The shadow cascades cover the AI's world square (crowd.draw.shadows), known without a pass over the agents.
+            half, centre = self.ai.half_extent, self.ai.origin
+            self.renderer.crowd_box = (np.array([centre[0] - half, 0.0, centre[1] - half]), np.array([centre[0] + half, 0.0, centre[1] + half]))
             view = self.renderer.prepare(self.camera, instances, row_offset, cull_now=False)
             if self.renderer.gpu is not None and self.agents:
                 with t.gpu("cull"):
@@ -357,7 +366,7 @@ class CrowdPipeline(GLStage):
             with t.gpu("shadow"):
                 self.renderer.shadow_pass(view, self.processor)
                 if self.weapons is not None and self.weapons.casts_shadows():
-                    self.weapons.depth_pass(view.light_view_proj)
+                    self.weapons.depth_pass(view, self.renderer)
             self._run("shadow")
         if self.renderer.draws_anything(self.agents):
             with t.gpu("draw"):
@@ -370,6 +379,10 @@ class CrowdPipeline(GLStage):
         with t.gpu("ground"):
             self.renderer.ground_pass(framebuffer, view)
         self._run("ground")
+        if self.renderer.pyramid is not None and self.agents:
+            with t.gpu("hiz"):  # the next frame's occlusion test reads this frame's depth
+                self.renderer.capture_depth(framebuffer, view)
+            self._run("hiz")
         t.end_frame()
         self.frames += 1
         return self.last

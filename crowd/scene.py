@@ -8,8 +8,8 @@ baked), the AI's settings, the features it switches on (weapons, shadows, LOD, c
     [clips]        the ``clips`` settings (bake_fps, precision, interpolation), and
                    roles = { walk = "shamble", ... }, speed = { shamble = 1.2, ... } (playback speed),
                    loop = { attack = true, ... }
-    [features]     the ``features`` settings (weapons, readback_latency, shadows, culling,
-                   lod_distances = [near, far], processor, cull)
+    [features]     the ``features`` settings (weapons, readback_latency, shadows, culling, occlusion,
+                   lod_distances = [d1, d2, d3], processor, cull)
     [ai]           the ``ai`` settings (crowd.sim.ai.AIConfig), e.g. runner_share = 0.3
     [camera]       eye = [x, y, z], target = [x, y, z], fov_y (degrees); absent: the default view
 
@@ -68,6 +68,7 @@ class Scene:
     readback_latency: int = DEFAULTS["readback_latency"]
     shadows: bool = DEFAULTS["shadows"]
     culling: bool = DEFAULTS["culling"]
+    occlusion: bool = DEFAULTS["occlusion"]
     lod_distances: tuple = DEFAULTS["lod_distances"]
     processor: str = DEFAULTS["processor"]
     cull: str = DEFAULTS["cull"]
@@ -76,7 +77,7 @@ class Scene:
     def with_overrides(self, source: str = "command line", **values) -> "Scene":
         """A copy with the given settings replaced (None leaves one as it is), each checked as a file's
         would be, an error naming its command-line flag ("--agents: ..."): names are the TOML keys (agents, seed, model,
-        roles, bake_fps, precision, processor, shadows, culling, weapons, readback_latency, lod_distances,
+        roles, bake_fps, precision, processor, shadows, culling, occlusion, weapons, readback_latency, lod_distances,
         and the AI's). Roles are merged into the scene's."""
         data = scene_to_dict(self)
         for key, value in values.items():
@@ -104,7 +105,7 @@ class Scene:
     def pipeline_config(self) -> PipelineConfig:
         return PipelineConfig(agents=self.agents, seed=self.seed, model=self.model, model_scale=self.model_scale, roles=dict(self.roles), bake_fps=self.bake_fps,
                               precision=self.precision, interpolation=self.interpolation, processor_path=self.processor, shadows=self.shadows, culling=self.culling,
-                              lod_distances=tuple(self.lod_distances), ai=self.ai, weapons=self.weapons,
+                              occlusion=self.occlusion, lod_distances=tuple(self.lod_distances), ai=self.ai, weapons=self.weapons,
                               readback_latency=self.readback_latency, cull=self.cull)
 
 

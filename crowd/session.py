@@ -214,6 +214,9 @@ class CrowdSession(GLStage):
     def set_culling(self, on: bool) -> None:
         self.pipeline.set_culling(SETTINGS["culling"].check(on, SessionError))
 
+    def set_occlusion(self, on: bool) -> None:
+        self.pipeline.set_occlusion(SETTINGS["occlusion"].check(on, SessionError))
+
     def set_shadows(self, on: bool) -> None:
         self.pipeline.set_shadows(SETTINGS["shadows"].check(on, SessionError))
 
@@ -241,7 +244,7 @@ class CrowdSession(GLStage):
             "agents": self.set_agent_count, "seed": self.set_seed, "time_scale": self.set_time_scale,
             "bake_fps": lambda v: self.rebake(v, bake.precision), "precision": lambda v: self.rebake(bake.fps, v),
             "interpolation": lambda v: self.rebake(bake.fps, bake.precision, v), "processor": self.set_processor_path,
-            "shadows": self.set_shadows, "culling": self.set_culling, "weapons": self.set_weapons,
+            "shadows": self.set_shadows, "culling": self.set_culling, "occlusion": self.set_occlusion, "weapons": self.set_weapons,
             "lod_distances": lambda v: self.set_lod_distances(*SETTINGS["lod_distances"].check(v, SessionError)),
             "readback_latency": self.set_readback_latency, "cull": self.set_cull_path,
         }
@@ -363,7 +366,7 @@ class CrowdSession(GLStage):
             interpolation=p.processor.interpolation,
             roles=dict(p.config.roles), clip_speed=dict(p.clip_speed),
             clip_loop={k: v for k, v in bake_loops.items() if authored.get(k) != v}, ai=p.ai.config,
-            weapons=p.config.weapons, readback_latency=p.latency, shadows=p.renderer.shadows, culling=p.renderer.culling,
+            weapons=p.config.weapons, readback_latency=p.latency, shadows=p.renderer.shadows, culling=p.renderer.culling, occlusion=p.config.occlusion,
             lod_distances=tuple(p.renderer.lod_distances), processor=p.config.processor_path, cull=p.config.cull,
             camera=CameraSetting(tuple(float(v) for v in cam.eye), tuple(float(v) for v in cam.target), float(cam.fov_y)))
 

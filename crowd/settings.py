@@ -212,6 +212,8 @@ _ALL = (
             label="readback latency", low=1, high=3, slider=(1, 3)),
     Setting("shadows", "features", "bool", True, "sun shadows (the shadow map and pass exist only when on)"),
     Setting("culling", "features", "bool", True, "frustum culling"),
+    Setting("occlusion", "features", "bool", False,
+            "occlusion culling against the previous frame's depth pyramid (the gpu cull path; docs/BENCHMARKS.md says where it pays)"),
     Setting("lod_distances", "features", "ascending", (14.0, 40.0, 90.0), "metres from the camera where LOD1, LOD2 and LOD3 start",
             label="LOD distances", low=0, open_low=True, slider=(1, 500)),
     Setting("processor", "features", "choice", "auto", "animation processor path: compute where GL 4.3 exists, else fragment",

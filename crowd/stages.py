@@ -39,6 +39,7 @@ class StageSpec:
     lod_distances: tuple = DEFAULTS["lod_distances"]
     shadows: bool = DEFAULTS["shadows"]
     culling: bool = DEFAULTS["culling"]
+    occlusion: bool = DEFAULTS["occlusion"]
     cull: str = DEFAULTS["cull"]
     armed: bool = False  # somebody carries a weapon: the read-back stage and weapon meshes exist
     readback_latency: int = DEFAULTS["readback_latency"]
@@ -63,7 +64,7 @@ def build_processor(ctx: moderngl.Context, bake: AnimationBake, spec: StageSpec,
 def build_renderer(ctx: moderngl.Context, character: Character, processor: AnimationProcessor, spec: StageSpec) -> CrowdRenderer:
     return CrowdRenderer(ctx, character, processor.joint_count, processor.agents_per_row,
                          lod_distances=spec.lod_distances, shadows=spec.shadows, culling=spec.culling,
-                         cull_path=cull_path(ctx, spec.cull), weapons_visibility=spec.armed)
+                         cull_path=cull_path(ctx, spec.cull), weapons_visibility=spec.armed, occlusion=spec.occlusion)
 
 
 def cull_path(ctx: moderngl.Context, asked: str) -> str:

@@ -7,22 +7,32 @@ uniform vec3 u_ground_color;
 uniform vec3 u_fog_color;
 uniform float u_fog_density;
 #ifdef SHADOWS
+// CASCADES tiles side by side in one depth texture (crowd/draw/shadows.py): a fragment takes the
+// first cascade whose tile holds it, with its PCF kernel inside the tile.
 uniform sampler2DShadow u_shadow_map;
-uniform mat4 u_light_view_proj;  // camera-relative, like the positions
+uniform mat4 u_light_view_proj[CASCADES];  // camera-relative, like the positions
+uniform float u_shadow_texel[CASCADES];    // metres a texel covers
+uniform float u_shadow_bias[CASCADES];     // depth bias, in the tile's depth units
 #endif
 
 float sun_visibility(vec3 world, vec3 n) {
 #ifdef SHADOWS
-    // Slope-scaled offset along the normal against acne, then a 3x3 PCF.
-    vec4 l = u_light_view_proj * vec4(world + n * 0.03, 1.0);
-    vec3 uvz = l.xyz / l.w * 0.5 + 0.5;
-    if (any(lessThan(uvz, vec3(0.0))) || any(greaterThan(uvz, vec3(1.0)))) return 1.0;
+    float tile = 1.0 / float(CASCADES);
     vec2 texel = 1.0 / vec2(textureSize(u_shadow_map, 0));
-    float lit = 0.0;
-    for (int y = -1; y <= 1; ++y)
-        for (int x = -1; x <= 1; ++x)
-            lit += texture(u_shadow_map, vec3(uvz.xy + vec2(x, y) * texel, uvz.z - 0.0015));
-    return lit / 9.0;
+    for (int k = 0; k < CASCADES; ++k) {
+        // Offset along the normal by 1.5 texels of this cascade against acne, then a 3x3 PCF.
+        vec4 l = u_light_view_proj[k] * vec4(world + n * (1.5 * u_shadow_texel[k]), 1.0);
+        vec3 uvz = l.xyz / l.w * 0.5 + 0.5;
+        float edge = 2.0 * texel.y;  // the kernel's reach, in tile units (tiles are square)
+        if (any(lessThan(uvz, vec3(edge, edge, 0.0))) || any(greaterThan(uvz, vec3(1.0 - edge, 1.0 - edge, 1.0)))) continue;
+        vec2 uv = vec2((uvz.x + float(k)) * tile, uvz.y);
+        float lit = 0.0;
+        for (int y = -1; y <= 1; ++y)
+            for (int x = -1; x <= 1; ++x)
+                lit += texture(u_shadow_map, vec3(uv + vec2(x, y) * texel, uvz.z - u_shadow_bias[k]));
+        return lit / 9.0;
+    }
+    return 1.0;
 #else
     return 1.0;
 #endif

@@ -15,7 +15,9 @@ layout(std430, binding = 3) buffer Commands { uint commands[]; };         // dra
 layout(std430, binding = 4) readonly buffer Visible { uint visible[]; };  // per agent, from the body cull
 
 uniform uint u_count;
-uniform uint u_shadow;     // 0: the colour pass's weapons (agents drawn); 1: the shadow pass's (agents in the sun's volume)
+uniform uint u_shadow;     // 0: the colour pass's weapons (agents drawn); 1 + k: shadow cascade k's (agents in its volume)
+uniform uint u_list_base;  // entries before this run's lists (a cascade's: k * lods * u_count)
+uniform uint u_command_base;  // commands before this run's
 uniform uint u_lod_count;  // LODs per weapon
 uniform uint u_start[16];
 
@@ -24,8 +26,8 @@ void main() {
     if (k >= u_count) return;
     uvec2 o = owner[k];
     uint v = visible[o.x];
-    if ((v & (u_shadow == 0u ? 0xFFFFu : 0x10000u)) == 0u) return;
-    uint lod = min(u_shadow == 0u ? (v & 0xFFFFu) - 1u : (v >> 17) & 15u, u_lod_count - 1u);
-    uint slot = atomicAdd(commands[(o.y * u_lod_count + lod) * 5u + 1u], 1u);
-    shown[lod * u_count + u_start[o.y] + slot] = placed[k];
+    if ((v & (u_shadow == 0u ? 0xFFFFu : 0x8000u << u_shadow)) == 0u) return;  // bit 16 + k: in cascade k's volume
+    uint lod = min(u_shadow == 0u ? (v & 0xFFFFu) - 1u : (v >> 20) & 15u, u_lod_count - 1u);
+    uint slot = atomicAdd(commands[(u_command_base + o.y * u_lod_count + lod) * 5u + 1u], 1u);
+    shown[u_list_base + lod * u_count + u_start[o.y] + slot] = placed[k];
 }

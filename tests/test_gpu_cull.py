@@ -94,12 +94,13 @@ def _doubtful(slack, dist) -> set:
     return set(np.flatnonzero((np.abs(slack) < BOUNDARY_M) | near_lod).tolist())
 
 
-def _gpu_lists(renderer, buffer, counts) -> list[set]:
-    """The agents in each draw's list of one of the GPU cull's list buffers."""
+def _gpu_lists(renderer, buffer, counts, first: int = 0) -> list[set]:
+    """The agents in each draw's list of one of the GPU cull's list buffers (a shadow cascade's lists
+    start `first` lists in)."""
     from crowd.draw.render import INSTANCE_DTYPE
 
     records, cap = np.frombuffer(buffer.read(), INSTANCE_DTYPE), renderer.gpu.capacity
-    return [_listed_agents(renderer, k, records[k * cap: k * cap + int(c)]) for k, c in enumerate(counts)]
+    return [_listed_agents(renderer, k, records[(first + k) * cap: (first + k) * cap + int(c)]) for k, c in enumerate(counts)]
 
 
 def _cpu_list(renderer, k, buffer, count) -> set:
@@ -312,7 +313,8 @@ def test_an_agent_outside_the_view_still_shadows_into_it(gl_context, zombie, pat
     it): it is not drawn, but its shadow darkens the ground in view."""
     lit, lit_last = _shadow_scene(gl_context, zombie, path, np.array([200.0]))  # far away: no shadow in view
     shaded, last = _shadow_scene(gl_context, zombie, path, np.array([3.0]))  # about 4 m right of the view
-    assert last["instances"] == 0 and last["shadow_instances"] == 3  # not drawn in colour; body, head, shirt in shadow
+    # Not drawn in colour; body, head and shirt in the shadow lists of one cascade or both.
+    assert last["instances"] == 0 and last["shadow_instances"] in (3, 6)
     darker = (lit - shaded).max(axis=2) > 10
     assert darker.mean() > 0.002 and not np.any((shaded - lit).max(axis=2) > 10)  # a shadow, and nothing brighter
 
@@ -325,36 +327,43 @@ def test_shadow_lists_exist_only_with_shadows(gl_context, shadows):
             if path == "gpu":
                 assert (r.gpu.shadow_lists is not None) == shadows
             else:
-                assert all((d.shadow_instances is not None) == shadows for d in r.draws)
+                assert all(bool(d.shadow_instances) == shadows for d in r.draws)
 
 
-def test_shadow_lists_are_the_sun_volumes_agents_one_lod_coarser(stages):
-    """Per draw, the GPU's shadow list holds the CPU path's (agents away from the boundaries), and each
-    agent casts its shadow from one LOD coarser than the colour pass would draw it (capped)."""
+def test_shadow_lists_are_each_cascades_agents_one_lod_coarser(stages):
+    """Per cascade and draw, the GPU's shadow list holds the CPU path's (agents away from the
+    boundaries) and no agent outside the cascade's box; each agent casts its shadow from one LOD
+    coarser than the colour pass would draw it (capped)."""
     rng = np.random.default_rng(5)
     camera = Camera(eye=np.array([0.0, 12.0, 30.0]), target=np.zeros(3), aspect=16 / 9)
     cpu, gpu = stages["cpu"], stages["gpu"]
     instances = crowd(rng, 4000, gpu, camera)
     cpu.prepare(camera, instances)
     gpu.prepare(camera, instances)
-    shadow_lists = _gpu_lists(gpu, gpu.gpu.shadow_lists, gpu.gpu.shadow_counts(wait=True))
+    counts = gpu.gpu.shadow_counts(wait=True)
     eye = np.asarray(camera.eye, np.float64)
     scale = instances.scale.astype(np.float64)
     centers = instances.position - eye + gpu.bound_center * scale[:, None]
     radii = gpu.bound_radius * scale
-    light = frustum_planes(gpu.light_view_proj(camera))
-    slack = np.min(centers @ light[:, :3].T + light[:, 3] + radii[:, None], axis=1)
     dist = np.linalg.norm(centers, axis=1)
-    doubtful = _doubtful(slack, dist)
     colour_lod = np.minimum(np.searchsorted(np.asarray(LOD_DISTANCES), dist, side="right"), gpu.lod_count - 1)
-    casting = 0
-    for k, (c, g, on_gpu) in enumerate(zip(cpu.draws, gpu.draws, shadow_lists)):
-        on_cpu = _cpu_list(cpu, k, c.shadow_instances, c.shadow_count)
-        assert on_cpu - doubtful == on_gpu - doubtful, (c.piece, c.lod)
-        for a in on_gpu - doubtful:
-            assert g.lod == min(colour_lod[a] + 1, gpu.lod_count - 1)
-        casting += len(on_gpu)
-    assert casting > 100 and set(np.flatnonzero(slack < -BOUNDARY_M).tolist()).isdisjoint(set().union(*shadow_lists))
+    per_cascade = []
+    for cascade, matrix in enumerate(gpu.light_cascades(camera, instances).view_proj):
+        shadow_lists = _gpu_lists(gpu, gpu.gpu.shadow_lists, counts[cascade], first=cascade * len(gpu.draws))
+        light = frustum_planes(matrix)
+        slack = np.min(centers @ light[:, :3].T + light[:, 3] + radii[:, None], axis=1)
+        doubtful = _doubtful(slack, dist)
+        casting = 0
+        for k, (c, g, on_gpu) in enumerate(zip(cpu.draws, gpu.draws, shadow_lists)):
+            on_cpu = _cpu_list(cpu, k, c.shadow_instances[cascade], c.shadow_counts[cascade])
+            assert on_cpu - doubtful == on_gpu - doubtful, (cascade, c.piece, c.lod)
+            for a in on_gpu - doubtful:
+                assert g.lod == min(colour_lod[a] + 1, gpu.lod_count - 1)
+            casting += len(on_gpu)
+        assert set(np.flatnonzero(slack < -BOUNDARY_M).tolist()).isdisjoint(set().union(*shadow_lists))
+        per_cascade.append(casting)
+    # The near cascade holds the agents around the target; the crowd's cascade holds more of them.
+    assert 100 < per_cascade[0] < per_cascade[1]
 
 
 def test_weapons_are_drawn_at_their_agents_lod_on_both_paths(gl_context):
@@ -378,7 +387,7 @@ def test_weapons_are_drawn_at_their_agents_lod_on_both_paths(gl_context):
                 shadow = np.frombuffer(w._shadow_commands.read(), np.uint32).reshape(-1, 5)[:, 1]
             else:
                 colour = np.array([m["count"] for m in w._meshes])
-                shadow = np.array([m["shadow_count"] for m in w._meshes])
+                shadow = np.array([m["shadow_counts"] for m in w._meshes]).T.reshape(-1)  # cascade-major, as the GPU's
                 agents, weapon, _ = w.drawn
                 lod = np.minimum(pipeline.last.view.lod[agents], w.lod_count - 1)
                 expected = np.bincount(weapon * w.lod_count + lod, minlength=len(w._meshes))
@@ -402,15 +411,18 @@ def test_weapons_shadow_with_their_agents_not_with_the_view(gl_context, path):
             pipeline.frame(target.framebuffer, FIXED_DT)
         gl_context.finish()
         w = pipeline.weapons
+        from crowd.draw.shadows import CASCADES
+
         if path == "gpu":
             colour = int(np.frombuffer(w._commands.read(), np.uint32).reshape(-1, 5)[:, 1].sum())
-            shadow = int(np.frombuffer(w._shadow_commands.read(), np.uint32).reshape(-1, 5)[:, 1].sum())
-            in_volume = pipeline.renderer.gpu.visible_agents() >= 0x10000
+            per_cascade = np.frombuffer(w._shadow_commands.read(), np.uint32).reshape(CASCADES, -1, 5)[:, :, 1].sum(axis=1)
+            visible = pipeline.renderer.gpu.visible_agents()
         else:
             colour = sum(m["count"] for m in w._meshes)
-            shadow = sum(m["shadow_count"] for m in w._meshes)
-            in_volume = pipeline.last.view.casting
+            per_cascade = np.sum([m["shadow_counts"] for m in w._meshes], axis=0)
+        shadow = int(per_cascade.sum())
         armed = set(w.drawn[0].tolist())  # GPU path: every placed weapon's agent
         assert shadow > 0 and colour > 0 and shadow != colour
-        if path == "gpu":  # every placed weapon whose agent is in the sun's volume, and no other
-            assert shadow == sum(1 for a in armed if in_volume[a])
+        if path == "gpu":  # per cascade: every placed weapon whose agent is in its volume, and no other
+            for k in range(CASCADES):
+                assert per_cascade[k] == sum(1 for a in armed if visible[a] & (0x10000 << k))

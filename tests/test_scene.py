@@ -20,13 +20,15 @@ SIZE = (160, 90)
 
 def test_shipped_scenes_load_and_the_horde_is_the_default():
     names = sorted(p.name for p in SCENE_DIR.glob("*.toml"))
-    assert names == ["horde.toml", "stress_10k.toml", "unarmed_small.toml"]
+    assert names == ["dense_horde.toml", "horde.toml", "stress_10k.toml", "unarmed_small.toml"]
     horde = load_scene(SCENE_DIR / "horde.toml")
     assert horde.pipeline_config() == PipelineConfig()  # the CLI without --scene runs the same crowd
     stress = load_scene(SCENE_DIR / "stress_10k.toml")
     assert stress.agents == 10_000 and stress.weapons
     small = load_scene(SCENE_DIR / "unarmed_small.toml")
     assert small.agents == 24 and not small.weapons and small.camera is not None and small.ai.half_extent == 10.0
+    dense = load_scene(SCENE_DIR / "dense_horde.toml")
+    assert dense.occlusion and dense.ai.area_per_agent == 0.8 and dense.camera.eye[1] == 1.7
 
 
 def test_save_round_trips_atomically_and_keeps_a_backup(tmp_path):

@@ -11,9 +11,9 @@ Contract, used by ``CrowdRenderer`` when its cull path is "gpu":
   ring of 3 small buffers behind fences and read once the GPU is done, so they trail the frame by a
   frame or two (the stats and the panel use them; ``counts(wait=True)`` is for tests).
 
-Shadows: with shadows on, a second dispatch over the same records culls against the sun's volume
-(the shadow map's orthographic box) into lists and commands of their own, one LOD coarser than the
-colour pass would pick (``run_shadow``); with shadows off they do not exist.
+Shadows: with shadows on, one more dispatch per shadow cascade (crowd.draw.shadows) culls the same
+records against that cascade's orthographic box into lists and commands of its own, one LOD coarser
+than the colour pass would pick (``run_shadow``); with shadows off they do not exist.
 
 Lists: draw d's list is records [d * capacity, (d + 1) * capacity) of one buffer, capacity being the
 agent count, so one atomic add per (agent, piece) places a record with no second pass; the commands'
@@ -99,7 +99,7 @@ class GpuCull(GLStage):
     (only when `with_visible`: the weapons need it) and the ring the counts come back through."""
 
     def __init__(self, ctx: moderngl.Context, draws: list[tuple[int, int, int]], common: int, group_choices: list[int],
-                 with_visible: bool, with_shadow: bool = False):
+                 with_visible: bool, shadow_cascades: int = 0):
         """`draws`: per draw (LOD, slot, index count). Slots 0 .. common - 1 are the pieces every agent
         wears; then each variation group's choices in turn (group g has group_choices[g])."""
         self._objects = GLObjects()
@@ -131,11 +131,12 @@ class GpuCull(GLStage):
         self.capacity = self.agents = 0
         self.agents_buffer = self._objects.add(ctx.buffer(reserve=RECORD_DTYPE.itemsize))
         self.lists = self._objects.add(ctx.buffer(reserve=RECORD_DTYPE.itemsize))
+        self.cascades = shadow_cascades  # cascade k's lists and commands follow cascade k - 1's
         self.shadow_lists = self.shadow_commands = self.shadow_ring = None
-        if with_shadow:
+        if shadow_cascades:
             self.shadow_lists = self._objects.add(ctx.buffer(reserve=RECORD_DTYPE.itemsize))
-            self.shadow_commands = self._objects.add(ctx.buffer(reserve=self.draw_count * COMMAND_DTYPE.itemsize))
-            self.shadow_ring = CountRing(ctx, self._objects, self.draw_count)
+            self.shadow_commands = self._objects.add(ctx.buffer(reserve=shadow_cascades * self.draw_count * COMMAND_DTYPE.itemsize))
+            self.shadow_ring = CountRing(ctx, self._objects, shadow_cascades * self.draw_count)
         self.visible = None
         self.set_visibility(with_visible)
 
@@ -156,7 +157,7 @@ class GpuCull(GLStage):
         one line saying how many bytes it needed."""
         if agents == self.capacity:
             return
-        need = self.draw_count * agents * RECORD_DTYPE.itemsize  # per list buffer (colour, and shadow)
+        need = self.draw_count * agents * RECORD_DTYPE.itemsize * max(self.cascades, 1)  # the largest list buffer
         if need > self.max_block:
             raise GpuCullError(f"the GPU cull's lists for {agents:,} agents need {need:,} bytes, more than the {self.max_block:,} "
                                "one shader storage block may hold on this GPU")
@@ -167,12 +168,13 @@ class GpuCull(GLStage):
         self.agents_buffer.orphan(max(agents, 1) * RECORD_DTYPE.itemsize)
         self.lists.orphan(max(self.draw_count * agents, 1) * RECORD_DTYPE.itemsize)
         if self.shadow_lists is not None:
-            self.shadow_lists.orphan(max(self.draw_count * agents, 1) * RECORD_DTYPE.itemsize)
+            self.shadow_lists.orphan(max(self.cascades * self.draw_count * agents, 1) * RECORD_DTYPE.itemsize)
         if self.visible is not None:
             self.visible.orphan(max(agents, 1) * 4)
         if self.ctx.error == "GL_OUT_OF_MEMORY":
             self.capacity = -1  # the next resize tries again
-            raise GpuCullError(f"the GPU ran out of memory for the GPU cull's {need + agents * RECORD_DTYPE.itemsize:,} bytes of lists "
+            lists = self.draw_count * agents * RECORD_DTYPE.itemsize * (1 + self.cascades)
+            raise GpuCullError(f"the GPU ran out of memory for the GPU cull's {lists + agents * RECORD_DTYPE.itemsize:,} bytes of lists "
                                f"and records for {agents:,} agents")
 
     # -- per frame
@@ -187,7 +189,9 @@ class GpuCull(GLStage):
         commands["base_instance"] = np.arange(self.draw_count, dtype=np.uint32) * np.uint32(self.capacity)
         self.commands.write(commands.tobytes())
         if self.shadow_commands is not None:
-            self.shadow_commands.write(commands.tobytes())
+            shadow = np.tile(commands, self.cascades)
+            shadow["base_instance"] = np.arange(self.cascades * self.draw_count, dtype=np.uint32) * np.uint32(self.capacity)
+            self.shadow_commands.write(shadow.tobytes())
         if n:
             self.agents_buffer.write(records)  # the array itself (contiguous): no copy of 32 bytes an agent
         else:
@@ -195,22 +199,33 @@ class GpuCull(GLStage):
             if self.shadow_ring is not None:
                 self.shadow_ring.zero()
 
-    def run(self, planes: np.ndarray, bound: np.ndarray, margin: float, lod_start, lod_count: int, culling: bool) -> None:
-        """Cull the uploaded agents into the colour pass's lists and commands (one dispatch)."""
-        self._dispatch(self.lists, self.commands, self.ring, planes, bound, margin, lod_start, lod_count, culling, 0, self.visible, 1)
+    def run(self, planes: np.ndarray, bound: np.ndarray, margin: float, lod_start, lod_count: int, culling: bool,
+            occlusion=None) -> None:
+        """Cull the uploaded agents into the colour pass's lists and commands (one dispatch);
+        `occlusion`: (the previous frame's DepthPyramid, this frame's eye) to test them against too."""
+        self._dispatch(self.lists, self.commands, self.ring, planes, bound, margin, lod_start, lod_count, culling, 0, self.visible, 1,
+                       occlusion=occlusion)
 
     def run_shadow(self, planes: np.ndarray, bound: np.ndarray, lod_start, lod_count: int, culling: bool) -> None:
-        """Cull the uploaded agents against the sun's volume into the shadow lists, one LOD coarser;
-        each agent in it gets bit 16 of its visibility (after ``run``, which clears it): the weapons'
-        shadow pass keeps the weapons of those agents."""
-        self._dispatch(self.shadow_lists, self.shadow_commands, self.shadow_ring, planes, bound, 0.0, lod_start, lod_count, culling, 1,
-                       self.visible, 2)
+        """Cull the uploaded agents against each cascade's box (`planes` (cascades, 6, 4)) into that
+        cascade's shadow lists, one LOD coarser; each agent in cascade k's box gets bit 16 + k of its
+        visibility (after ``run``, which clears it): the weapons' shadow pass keeps their weapons."""
+        for k, cascade_planes in enumerate(planes):
+            self._dispatch(self.shadow_lists, self.shadow_commands, None, cascade_planes, bound, 0.0, lod_start, lod_count, culling, 1,
+                           self.visible, 2, cascade=k)
+        if self.agents:
+            self.shadow_ring.queue(self.shadow_commands)
 
-    def _dispatch(self, lists, commands, ring, planes, bound, margin, lod_start, lod_count, culling, lod_bias, visible, mode) -> None:
+    def _dispatch(self, lists, commands, ring, planes, bound, margin, lod_start, lod_count, culling, lod_bias, visible, mode,
+                  cascade: int = 0, occlusion=None) -> None:
         n = self.agents
         if n == 0:
             return
         p = self.program
+        if occlusion is not None and culling:
+            occlusion[0].bind(p, occlusion[1])
+        else:
+            p["u_occlusion"] = 0
         p["u_planes"].write(np.ascontiguousarray(planes, np.float32).tobytes())
         p["u_bound"] = tuple(float(x) for x in bound)
         p["u_margin"] = float(margin)
@@ -232,6 +247,8 @@ class GpuCull(GLStage):
         p["u_write_visible"] = mode if visible is not None else 0
         p["u_lod_bias"] = int(lod_bias)
         p["u_draws"] = self.draw_count
+        p["u_cascade"] = cascade
+        p["u_list_base"] = cascade * self.draw_count
         self.agents_buffer.bind_to_storage_buffer(0)
         lists.bind_to_storage_buffer(1)
         commands.bind_to_storage_buffer(2)
@@ -241,7 +258,8 @@ class GpuCull(GLStage):
         p.run(group_x=(n + GROUP_SIZE - 1) // GROUP_SIZE)
         # The lists feed vertex attributes and the commands feed the draws: both written by the shader.
         self.ctx.memory_barrier(VERTEX_ATTRIB_ARRAY | COMMAND | BUFFER_UPDATE | SHADER_STORAGE)
-        ring.queue(commands)
+        if ring is not None:
+            ring.queue(commands)
 
     def counts(self, wait: bool = False) -> np.ndarray:
         """(draws,) instance counts of the newest frame the GPU has finished (every queued one with
@@ -249,12 +267,14 @@ class GpuCull(GLStage):
         return self.ring.read(wait)
 
     def shadow_counts(self, wait: bool = False) -> np.ndarray:
-        """As ``counts``, for the shadow lists (zeros without shadows)."""
-        return self.shadow_ring.read(wait) if self.shadow_ring is not None else np.zeros(self.draw_count, np.uint32)
+        """As ``counts``, for the shadow lists: (cascades, draws) (none without shadows)."""
+        if self.shadow_ring is None:
+            return np.zeros((0, self.draw_count), np.uint32)
+        return self.shadow_ring.read(wait).reshape(self.cascades, self.draw_count)
 
     def visible_agents(self) -> np.ndarray:
-        """(N,) LOD + 1 of each agent, 0 where culled, plus 0x10000 | shadow LOD << 17 where it is in the
-        sun's volume (synchronous: tests)."""
+        """(N,) LOD + 1 of each agent, 0 where culled, plus bit 16 + k where it is in shadow cascade k's
+        volume and then its shadow LOD << 20 (synchronous: tests)."""
         if self.visible is None:
             raise GpuCullError("this cull keeps no per-agent visibility (no weapons)")
         return np.frombuffer(self.visible.read(), np.uint32).copy()

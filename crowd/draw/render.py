@@ -33,6 +33,8 @@ from ..anim.processor import palette_texel, texel_code
 from ..asset.vertex_cache import optimize_triangle_order
 from .gpu_cull import RECORD_DTYPE, GpuCull, GpuCullError
 from .materials import TEXTURE_UNIT, MaterialTextures
+from .occlusion import DepthPyramid
+from .shadows import CASCADES, Cascades, cascades
 
 # Per-vertex record, 28 bytes: the position and one uvec4 (see shaders/skin.vert.glsl for why two
 # attributes). packed[0]: normal as three snorm10; packed[1]: joints, 4 x u8 by descending weight;
@@ -79,9 +81,9 @@ class FrameView:
 
     camera: Camera
     view_proj: np.ndarray  # float32 4x4, camera-relative
-    light_view_proj: np.ndarray | None  # float32 4x4 of the sun's shadow map; None without shadows
+    shadow: Cascades | None  # the sun's shadow cascades (their light matrices); None without shadows
     visible: np.ndarray | None  # bool (N,): agents that survived culling (None on the GPU cull path)
-    casting: np.ndarray | None = None  # bool (N,): agents in the sun's volume, whose shadows are drawn (CPU path, shadows on)
+    casting: np.ndarray | None = None  # bool (cascades, N): agents in each cascade's volume, whose shadows it draws (CPU path, shadows on)
     lod: np.ndarray | None = None  # int (N,): each agent's colour LOD (CPU path; its weapon's LOD follows it)
 
 
@@ -203,8 +205,8 @@ class _Draw:
     uv_box: tuple = (0.0, 0.0, 1.0, 1.0)  # corner and size of the texture coordinates' unorm16 box
     vaos: dict = field(default_factory=dict)  # program key → VertexArray
     count: int = 0
-    shadow_instances: moderngl.Buffer | None = None  # the CPU path's shadow list (shadows on)
-    shadow_count: int = 0
+    shadow_instances: list = field(default_factory=list)  # the CPU path's shadow lists, one per cascade (shadows on)
+    shadow_counts: list = field(default_factory=list)  # instances in each cascade's shadow list
 
 
 class CrowdRenderer(GLStage):
@@ -212,10 +214,14 @@ class CrowdRenderer(GLStage):
 
     def __init__(self, ctx: moderngl.Context, character: Character, joint_count: int, agents_per_row: int,
                  pieces: tuple[str, ...] | None = None, lod_distances=DEFAULT_LOD_DISTANCES, shadows: bool = True,
-                 shadow_size: int = 2048, culling: bool = True, cull_path: str = "cpu", weapons_visibility: bool = False):
+                 shadow_size: int = 2048, culling: bool = True, cull_path: str = "cpu", weapons_visibility: bool = False,
+                 occlusion: bool = False):
         """`cull_path`: "cpu" or "gpu" (a GL 4.3 context; see the module docstring); with
-        `weapons_visibility` the GPU cull also writes each agent's visibility, for the weapons."""
-        self._objects: dict[str, list] = {"meshes": [], "instances": [], "programs": [], "shadow_map": [], "ground": [], "textures": [], "cull": []}
+        `weapons_visibility` the GPU cull also writes each agent's visibility, for the weapons; with
+        `occlusion` (the gpu path) it also drops agents hidden in the previous frame's depth."""
+        self._objects: dict[str, list] = {"meshes": [], "instances": [], "programs": [], "shadow_map": [], "ground": [], "textures": [], "cull": [],
+                                          "occlusion": []}
+        self.pyramid: DepthPyramid | None = None
         self._programs: dict[tuple, moderngl.Program] = {}
         self.draws: list[_Draw] = []
         self.materials: MaterialTextures | None = None
@@ -244,8 +250,10 @@ class CrowdRenderer(GLStage):
             inst = self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize)) if cull_path == "cpu" else None
             box = tuple(float(x) for x in np.concatenate(uv_box(m.uvs))) if m.texture >= 0 else (0.0, 0.0, 1.0, 1.0)
             self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, vbo, ibo, inst, m.texture, uv_layout(m), box))
-            if cull_path == "cpu" and shadows:
-                self.draws[-1].shadow_instances = self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
+            if shadows:
+                self.draws[-1].shadow_counts = [0] * CASCADES
+                if cull_path == "cpu":
+                    self.draws[-1].shadow_instances = [self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize)) for _ in range(CASCADES)]
         # Only the textures a drawn piece uses reach the GPU, and none when no piece has one.
         used = {m.texture for m in meshes if m.texture >= 0}
         self.materials = self._own("textures", MaterialTextures(ctx, character.textures, used)) if used else None
@@ -257,7 +265,7 @@ class CrowdRenderer(GLStage):
                     slot[piece] = len(slot)
             try:
                 self.gpu = self._own("cull", GpuCull(ctx, [(d.lod, slot[d.piece], d.triangles * 3) for d in self.draws], len(common),
-                                                     [len(p) for p in self.groups.values()], weapons_visibility, with_shadow=shadows))
+                                                     [len(p) for p in self.groups.values()], weapons_visibility, CASCADES if shadows else 0))
             except GpuCullError as exc:
                 raise RenderError(f"{exc} (the cpu cull path has no such limit)") from None
             for draw in self.draws:  # every draw reads its list out of the one list buffer (baseInstance)
@@ -272,8 +280,8 @@ class CrowdRenderer(GLStage):
         self.shadow_size = int(shadow_size)
         self.shadow_map = None
         self._shadow_fbo = None
-        if shadows:
-            self.shadow_map = self._own("shadow_map", ctx.depth_texture((self.shadow_size, self.shadow_size)))
+        if shadows:  # one tile per cascade, side by side (crowd.draw.shadows)
+            self.shadow_map = self._own("shadow_map", ctx.depth_texture((CASCADES * self.shadow_size, self.shadow_size)))
             self.shadow_map.compare_func = "<="
             self.shadow_map.filter = (moderngl.LINEAR, moderngl.LINEAR)
             self.shadow_map.repeat_x = self.shadow_map.repeat_y = False
@@ -284,6 +292,8 @@ class CrowdRenderer(GLStage):
         self._ground_vbo = self._own("ground", ctx.buffer(quad.tobytes()))
         self._ground_vao = self._own("ground", ctx.vertex_array(ground_prog, [(self._ground_vbo, "2f", "in_position")]))
         self.sun_dir = np.array(SUN_DIR)
+        self.crowd_box: tuple[np.ndarray, np.ndarray] | None = None  # world (lo, hi) the agents stand in; None: measured each frame
+        self.set_occlusion(occlusion)
         self.last = {"triangles": 0, "instances": 0, "visible": 0, "draws": 0, "lod_counts": [0] * self.lod_count, "shadow_instances": 0}
 
     # -- resources
@@ -300,7 +310,7 @@ class CrowdRenderer(GLStage):
             return self._programs[key]
         defines = {}
         if self.shadows:
-            defines["SHADOWS"] = 1
+            defines.update(SHADOWS=1, CASCADES=CASCADES)
         if kind == "ground":
             prog = self.ctx.program(vertex_shader=load_shader("ground.vert.glsl"), fragment_shader=load_shader("ground.frag.glsl", defines))
         else:
@@ -327,12 +337,12 @@ class CrowdRenderer(GLStage):
         self._programs[key] = self._own("programs", prog)
         return prog
 
-    def _vao(self, draw: _Draw, kind: str, skinned: bool) -> moderngl.VertexArray:
-        key = (kind, skinned)
+    def _vao(self, draw: _Draw, kind: str, skinned: bool, cascade: int = 0) -> moderngl.VertexArray:
+        key = (kind, skinned, cascade)
         if key not in draw.vaos:
             prog = self._draw_program(draw, kind, skinned)
-            if kind == "depth":  # the shadow pass reads the shadow lists
-                instances = self.gpu.shadow_lists if self.gpu is not None else draw.shadow_instances
+            if kind == "depth":  # the shadow pass reads the shadow lists (the GPU path's: one buffer, by baseInstance)
+                instances = self.gpu.shadow_lists if self.gpu is not None else draw.shadow_instances[cascade]
             else:
                 instances = draw.instances
             content = [(draw.vbo, *_read_by(prog, _LAYOUTS[draw.layout][1])), (instances, *_read_by(prog, INSTANCE_FORMAT))]
@@ -346,12 +356,29 @@ class CrowdRenderer(GLStage):
     def _draw_program(self, draw: _Draw, kind: str, skinned: bool) -> moderngl.Program:
         return self._program(kind, skinned, draw.layout)
 
+    def set_occlusion(self, on: bool) -> None:
+        """Keep (or drop) the depth pyramid occlusion culling tests against; the cpu path has none."""
+        if on and self.gpu is not None and self.pyramid is None:
+            self.pyramid = DepthPyramid(self.ctx)
+            self._own("occlusion", self.pyramid)
+        elif not on and self.pyramid is not None:
+            self._objects["occlusion"].remove(self.pyramid)
+            self.pyramid.release()
+            self.pyramid = None
+
+    def capture_depth(self, framebuffer, view: "FrameView") -> None:
+        """After the frame's colour passes: its depth into the pyramid the next frame's cull tests against."""
+        if self.pyramid is not None:
+            self.pyramid.capture(framebuffer, view.view_proj, view.camera.eye)
+
     def gpu_bytes(self) -> dict[str, int]:
-        out = {group: gpu_bytes(objs) for group, objs in self._objects.items() if group not in ("programs", "textures", "cull")}
+        out = {group: gpu_bytes(objs) for group, objs in self._objects.items() if group not in ("programs", "textures", "cull", "occlusion")}
         if self.materials is not None:
             out["textures"] = self.materials.gpu_bytes()
         if self.gpu is not None:
             out["cull"] = self.gpu.gpu_bytes()
+        if self.pyramid is not None:
+            out["occlusion"] = self.pyramid.gpu_bytes()
         return out
 
     def release(self) -> None:
@@ -363,6 +390,7 @@ class CrowdRenderer(GLStage):
         self.draws = []
         self.materials = None
         self.gpu = None
+        self.pyramid = None
 
     # -- per frame
 
@@ -381,7 +409,7 @@ class CrowdRenderer(GLStage):
         camera.validate()
         instances.validate(self.groups)
         matrix = view_proj(camera)
-        light = self.light_view_proj(camera) if self.shadows else None
+        shadow = self.light_cascades(camera, instances) if self.shadows else None
         eye = np.asarray(camera.eye, np.float64)
         # Shadows come from lists of their own, culled against the sun's volume (an agent outside the
         # view still shadows into it) one LOD coarser: the colour lists need no margin.
@@ -391,10 +419,10 @@ class CrowdRenderer(GLStage):
             except GpuCullError as exc:
                 raise RenderError(f"{exc} (the cpu cull path needs no lists: --cull cpu)") from None
             self.refresh_counts()  # the newest frame the GPU has finished (none queued for 0 agents: 0)
-            self._pending = (frustum_planes(matrix), None if light is None else frustum_planes(light))
+            self._pending = (frustum_planes(matrix), None if shadow is None else np.stack([frustum_planes(m) for m in shadow.view_proj]), eye)
             if cull_now:
                 self.cull()
-            return FrameView(camera, matrix, light, None)
+            return FrameView(camera, matrix, shadow, None)
         n = len(instances)
         rel = instances.position - eye[None]
         scale = instances.scale.astype(np.float64)
@@ -411,20 +439,24 @@ class CrowdRenderer(GLStage):
                      "lod_counts": np.bincount(lod[shown], minlength=self.lod_count).tolist(), "shadow_instances": 0}
         for draw, c in zip(self.draws, counts):
             draw.count = c
+        lit = None
         if self.shadows:
-            lit = sphere_visible(frustum_planes(light), centers, radii) if self.culling and n else np.ones(n, bool)
-            casting = np.flatnonzero(lit).astype(np.uint32)
-            shadow_lod = np.minimum(lod[casting] + 1, self.lod_count - 1)
-            shadow_counts = self._upload_lists(instances, records, casting, shadow_lod, "shadow_instances")
-            for draw, c in zip(self.draws, shadow_counts):
-                draw.shadow_count = c
-            self.last["shadow_instances"] = int(sum(shadow_counts))
-        return FrameView(camera, matrix, light, visible, lit if self.shadows else None, lod)
+            lit = np.stack([sphere_visible(frustum_planes(m), centers, radii) if self.culling and n else np.ones(n, bool)
+                            for m in shadow.view_proj])
+            shadow_lod = np.minimum(lod + 1, self.lod_count - 1)
+            for k, in_cascade in enumerate(lit):
+                casting = np.flatnonzero(in_cascade).astype(np.uint32)
+                counts = self._upload_lists(instances, records, casting, shadow_lod[casting], "shadow_instances", k)
+                for draw, c in zip(self.draws, counts):
+                    draw.shadow_counts[k] = c
+                self.last["shadow_instances"] += int(sum(counts))
+        return FrameView(camera, matrix, shadow, visible, lit, lod)
 
-    def _upload_lists(self, instances: Instances, all_records: np.ndarray, shown: np.ndarray, lod: np.ndarray, buffer: str) -> list[int]:
+    def _upload_lists(self, instances: Instances, all_records: np.ndarray, shown: np.ndarray, lod: np.ndarray, buffer: str,
+                      cascade: int = 0) -> list[int]:
         """The CPU path's lists: the records of agents `shown` at LODs `lod`, sorted once per variation
         group so that each draw's instances are one contiguous slice (a boolean mask per draw cost 12
-        passes over the crowd), written into each draw's `buffer` ("instances" or "shadow_instances").
+        passes over the crowd), written into each draw's `buffer` ("instances", or "shadow_instances" of that `cascade`).
         `all_records`: every agent's record (``_all_records``).
         Returns each draw's count."""
         records = all_records[shown]
@@ -442,7 +474,7 @@ class CrowdRenderer(GLStage):
             sorted_records, starts, choices = slices[group]
             k = draw.lod * choices + (self.groups[group].index(draw.piece) if group else 0)
             chosen = sorted_records[starts[k]:starts[k + 1]]
-            target = getattr(draw, buffer)
+            target = draw.instances if buffer == "instances" else draw.shadow_instances[cascade]
             size = max(chosen.nbytes, INSTANCE_DTYPE.itemsize)  # exact: a smaller crowd frees what it no longer needs
             if target.size != size:
                 target.orphan(size)
@@ -487,9 +519,10 @@ class CrowdRenderer(GLStage):
         pending, self._pending = getattr(self, "_pending", None), None
         if self.gpu is None or pending is None:
             return False
-        planes, light_planes = pending
+        planes, light_planes, eye = pending  # the view's planes, each cascade's, and the eye
         bound = np.array([*self.bound_center, self.bound_radius])
-        self.gpu.run(planes, bound, 0.0, self.lod_distances, self.lod_count, self.culling)
+        self.gpu.run(planes, bound, 0.0, self.lod_distances, self.lod_count, self.culling,
+                     occlusion=None if self.pyramid is None else (self.pyramid, eye))
         if light_planes is not None:
             self.gpu.run_shadow(light_planes, bound, self.lod_distances, self.lod_count, self.culling)
         return True
@@ -505,9 +538,9 @@ class CrowdRenderer(GLStage):
             lod_counts[self.draws[k].lod] += int(counts[k])
         for draw, c in zip(self.draws, counts):
             draw.count = int(c)
-        shadow = self.gpu.shadow_counts(wait).astype(np.int64)
-        for draw, c in zip(self.draws, shadow):
-            draw.shadow_count = int(c)
+        shadow = self.gpu.shadow_counts(wait).astype(np.int64)  # (cascades, draws)
+        for d, draw in enumerate(self.draws):
+            draw.shadow_counts = [int(c) for c in shadow[:, d]]
         self.last = {"triangles": int(sum(c * d.triangles for c, d in zip(counts, self.draws))), "instances": int(counts.sum()),
                      "visible": int(sum(lod_counts)), "draws": int(np.count_nonzero(counts)), "lod_counts": lod_counts,
                      "shadow_instances": int(shadow.sum())}
@@ -516,41 +549,53 @@ class CrowdRenderer(GLStage):
         """Whether this frame's passes have instances to draw (the GPU path cannot know: any agent may be)."""
         return agents > 0 if self.gpu is not None else bool(self.last["instances"])
 
-    def _render(self, index: int, draw: _Draw, kind: str, skinned: bool) -> None:
-        """One draw of a pass: the colour pass from the colour lists, the depth pass from the shadow lists."""
-        vao = self._vao(draw, kind, skinned)
+    def _render(self, index: int, draw: _Draw, kind: str, skinned: bool, cascade: int = 0) -> None:
+        """One draw of a pass: the colour pass from the colour lists, the depth pass from the shadow
+        lists of `cascade`."""
+        vao = self._vao(draw, kind, skinned, cascade if self.gpu is None else 0)
         if self.gpu is not None:
             commands = self.gpu.shadow_commands if kind == "depth" else self.gpu.commands
-            vao.render_indirect(commands, moderngl.TRIANGLES, count=1, first=index)
+            vao.render_indirect(commands, moderngl.TRIANGLES, count=1, first=index + (cascade * len(self.draws) if kind == "depth" else 0))
         else:
-            count = draw.shadow_count if kind == "depth" else draw.count
+            count = draw.shadow_counts[cascade] if kind == "depth" else draw.count
             if count:
                 vao.render(moderngl.TRIANGLES, instances=count)
 
-    def light_view_proj(self, camera: Camera) -> np.ndarray:
-        """Orthographic sun view over the area around the camera's target (camera-relative)."""
-        target = np.asarray(camera.target, np.float64) - np.asarray(camera.eye, np.float64)
-        reach = float(np.clip(np.linalg.norm(target) * 1.2, 12.0, 60.0))
-        center = glm.vec3(*target.astype(np.float32))
-        sun = glm.vec3(*self.sun_dir.astype(np.float32))
-        view = glm.lookAt(center + sun * (reach * 2.0), center, glm.vec3(0.0, 1.0, 0.0))
-        proj = glm.ortho(-reach, reach, -reach, reach, 0.1, reach * 4.0)
-        return np.array(proj * view, dtype=np.float32).reshape(4, 4)
+    def light_cascades(self, camera: Camera, instances: Instances | None = None) -> Cascades:
+        """The sun's shadow cascades for this camera (crowd.draw.shadows), over ``crowd_box`` where the
+        pipeline set it (the AI's world), else over the box `instances` stand in."""
+        box = self.crowd_box
+        some = instances is not None and len(instances) > 0
+        if box is None:
+            pos = instances.position if some else np.zeros((1, 3))
+            box = (pos.min(axis=0), pos.max(axis=0))
+        top = float(self.bound_center[1] + self.bound_radius) * (float(np.max(instances.scale)) if some else 1.0)
+        lo, hi = np.asarray(box[0], np.float64).copy(), np.asarray(box[1], np.float64).copy()
+        hi[1] = max(hi[1], lo[1] + top)  # as tall as an agent's bound
+        return cascades(camera, self.sun_dir, (lo, hi), self.shadow_size)
+
+    def shadow_tiles(self, view: "FrameView"):
+        """(cascade, light matrix) for each cascade, the shadow framebuffer's viewport on its tile."""
+        for k, matrix in enumerate(view.shadow.view_proj):
+            self._shadow_fbo.viewport = (k * self.shadow_size, 0, self.shadow_size, self.shadow_size)
+            yield k, matrix
 
     def shadow_pass(self, view: "FrameView", processor) -> bool:
         if not self.shadows:
             return False
         self._shadow_fbo.use()
+        self._shadow_fbo.viewport = (0, 0, *self.shadow_map.size)
         self._shadow_fbo.clear(depth=1.0)
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE)
-        for layout in self._variants():
-            prog = self._program("depth", True, layout)
-            processor.bind_palette(0, prog)
-            prog["u_view_proj"].write(gl_bytes(view.light_view_proj))
-            for index, draw in enumerate(self.draws):
-                if draw.layout == layout:
-                    self._render(index, draw, "depth", True)
+        for k, matrix in self.shadow_tiles(view):
+            for layout in self._variants():
+                prog = self._program("depth", True, layout)
+                processor.bind_palette(0, prog)
+                prog["u_view_proj"].write(gl_bytes(matrix))
+                for index, draw in enumerate(self.draws):
+                    if draw.layout == layout:
+                        self._render(index, draw, "depth", True, k)
         return True
 
     def set_lighting(self, prog, view: "FrameView"):
@@ -558,7 +603,9 @@ class CrowdRenderer(GLStage):
             if name in prog:
                 prog[name] = value
         if self.shadows and "u_light_view_proj" in prog:
-            prog["u_light_view_proj"].write(gl_bytes(view.light_view_proj))
+            prog["u_light_view_proj"].write(b"".join(gl_bytes(m) for m in view.shadow.view_proj))
+            prog["u_shadow_texel"].write(view.shadow.texel_m.tobytes())
+            prog["u_shadow_bias"].write(view.shadow.depth_bias.tobytes())
             self.shadow_map.use(3)
 
     def color_pass(self, framebuffer, view: "FrameView", processor, skinned: bool = True) -> None:

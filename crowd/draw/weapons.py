@@ -32,6 +32,7 @@ from ..gl import GLObjects, GLStage, load_shader
 from .gpu_cull import BUFFER_UPDATE, COMMAND, COMMAND_DTYPE, GROUP_SIZE, VERTEX_ATTRIB_ARRAY, CountRing
 from ..asset.model import Character, RigidMesh
 from .render import gl_bytes, heading_snorm16, pack_colors, pack_normals
+from .shadows import CASCADES
 
 VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("packed", "<u4", 2)])
 INSTANCE_DTYPE = np.dtype([("rows", "<f4", (3, 4))])
@@ -96,7 +97,7 @@ class WeaponRenderer(GLStage):
         self.grip_origin = np.stack([np.asarray(p.grip, np.float64)[:, 3] for p in character.props.values()])  # (W, 4)
         self.gpu_cull = gpu_cull
         self.lod_count = max(len(p.lods) for p in character.props.values())
-        draws = len(self.names) * self.lod_count  # draw w * lod_count + lod: weapon w at that LOD
+        draws = self.draw_count = len(self.names) * self.lod_count  # draw w * lod_count + lod: weapon w at that LOD
         if gpu_cull:
             if len(self.names) > 16:
                 raise WeaponError(f"{len(self.names)} weapon meshes, more than the 16 the GPU cull lists")
@@ -109,7 +110,7 @@ class WeaponRenderer(GLStage):
             self._shadow_shown = self._shadow_commands = None
             if shadows:
                 self._shadow_shown = self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
-                self._shadow_commands = self._objects.add(ctx.buffer(reserve=draws * COMMAND_DTYPE.itemsize))
+                self._shadow_commands = self._objects.add(ctx.buffer(reserve=CASCADES * draws * COMMAND_DTYPE.itemsize))
         self.shadows = shadows
         for prop in character.props.values():
             lods = prop.lods + (prop.lods[-1],) * (self.lod_count - len(prop.lods))
@@ -117,12 +118,13 @@ class WeaponRenderer(GLStage):
                 vbo = self._objects.add(ctx.buffer(pack_rigid(mesh).tobytes()))
                 ibo = self._objects.add(ctx.buffer(np.asarray(mesh.indices, np.uint32).tobytes()))
                 inst = self._shown if gpu_cull else self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
-                shadow = None
+                shadow = []  # per cascade: the CPU path's lists (the GPU path's are one buffer, by baseInstance)
                 if shadows:
-                    shadow = self._shadow_shown if gpu_cull else self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
-                self._meshes.append({"vbo": vbo, "ibo": ibo, "instances": inst, "shadow_instances": shadow, "count": 0, "shadow_count": 0,
-                                     "vaos": {}, "triangles": mesh.triangle_count, "lod": lod})
-        defines = {"SHADOWS": 1} if shadows else {}
+                    shadow = [self._shadow_shown if gpu_cull else self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
+                              for _ in range(CASCADES)]
+                self._meshes.append({"vbo": vbo, "ibo": ibo, "instances": inst, "shadow_instances": shadow, "count": 0,
+                                     "shadow_counts": [0] * CASCADES, "vaos": {}, "triangles": mesh.triangle_count, "lod": lod})
+        defines = {"SHADOWS": 1, "CASCADES": CASCADES} if shadows else {}
         self._programs = {
             "color": self._objects.add(ctx.program(vertex_shader=load_shader("weapon.vert.glsl"), fragment_shader=load_shader("skin.frag.glsl", defines))),
             "depth": self._objects.add(ctx.program(vertex_shader=load_shader("weapon.vert.glsl", {"DEPTH_ONLY": 1}), fragment_shader=load_shader("depth.frag.glsl"))),
@@ -132,14 +134,14 @@ class WeaponRenderer(GLStage):
         self.drawn = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 4), np.float32))
         self.last = {"weapons": 0, "drawn": 0, "draws": 0, "triangles": 0}
 
-    def _vao(self, mesh: dict, kind: str) -> moderngl.VertexArray:
-        if kind not in mesh["vaos"]:
+    def _vao(self, mesh: dict, kind: str, cascade: int = 0) -> moderngl.VertexArray:
+        if (kind, cascade) not in mesh["vaos"]:
             prog = self._programs[kind]
             vertex = ("3f 2u", "in_position", "in_packed") if kind == "color" else ("3f 8x", "in_position")
-            instances = mesh["shadow_instances"] if kind == "depth" else mesh["instances"]
-            mesh["vaos"][kind] = self._objects.add(self.ctx.vertex_array(prog, [(mesh["vbo"], *vertex), (instances, "4f 4f 4f/i", "i_row0", "i_row1", "i_row2")],
-                                                                 index_buffer=mesh["ibo"], index_element_size=4))
-        return mesh["vaos"][kind]
+            instances = mesh["shadow_instances"][cascade] if kind == "depth" else mesh["instances"]
+            mesh["vaos"][kind, cascade] = self._objects.add(self.ctx.vertex_array(
+                prog, [(mesh["vbo"], *vertex), (instances, "4f 4f 4f/i", "i_row0", "i_row1", "i_row2")], index_buffer=mesh["ibo"], index_element_size=4))
+        return mesh["vaos"][kind, cascade]
 
     def matrices(self, read, frames: AgentFrames, weapon_of_agent: np.ndarray):
         """(agents, weapon indices, (K, 3, 4) float32 camera-relative weapon model rows, as uploaded)
@@ -180,8 +182,9 @@ class WeaponRenderer(GLStage):
     def attach(self, read, frames: AgentFrames, weapon_of_agent: np.ndarray, visible: np.ndarray | None = None,
                visibility=None, casting: np.ndarray | None = None, lod: np.ndarray | None = None) -> int:
         """Place and upload this frame's weapons (none when `read` is None). Returns how many.
-        `visible`, `casting` and `lod`: the CPU cull's agents drawn, agents in the sun's volume (their
-        weapons' shadows are drawn) and each agent's colour LOD (None: LOD0); `visibility`: on the GPU
+        `visible`, `casting` and `lod`: the CPU cull's agents drawn, agents in each shadow cascade's
+        volume ((cascades, N): their weapons' shadows are drawn there) and each agent's colour LOD
+        (None: LOD0); `visibility`: on the GPU
         path, the body cull's per-agent visibility and LODs, which a compute pass filters the weapons
         by for both passes."""
         if read is None:
@@ -192,8 +195,9 @@ class WeaponRenderer(GLStage):
             return self._attach_on_gpu(agents, weapon, rows, np.searchsorted(weapon, np.arange(len(self.names) + 1)), visibility)
         agent_lod = np.zeros(len(agents), np.int64) if lod is None else np.asarray(lod, np.int64)[agents]
         if self.shadows:
-            lit = np.ones(len(agents), bool) if casting is None else casting[agents]
-            self._upload_cpu(weapon[lit], agent_lod[lit] + 1, rows[lit], "shadow_instances", "shadow_count")
+            for k in range(CASCADES):
+                lit = np.ones(len(agents), bool) if casting is None else casting[k][agents]
+                self._upload_cpu(weapon[lit], agent_lod[lit] + 1, rows[lit], "shadow_instances", "shadow_counts", k)
         if visible is not None:
             shown = visible[agents]
             agents, weapon, rows, agent_lod = agents[shown], weapon[shown], rows[shown], agent_lod[shown]
@@ -203,42 +207,51 @@ class WeaponRenderer(GLStage):
                      "triangles": sum(m["count"] * m["triangles"] for m in self._meshes)}
         return len(agents)
 
-    def _upload_cpu(self, weapon: np.ndarray, lod: np.ndarray, rows: np.ndarray, buffer: str, count: str) -> None:
-        """The CPU path: each (weapon, LOD) mesh's rows into its `buffer`, their number in `count`."""
+    def _upload_cpu(self, weapon: np.ndarray, lod: np.ndarray, rows: np.ndarray, buffer: str, count: str, cascade: int | None = None) -> None:
+        """The CPU path: each (weapon, LOD) mesh's rows into its `buffer`, their number in `count`
+        (the shadow lists' of one `cascade`)."""
         key = weapon * self.lod_count + np.minimum(lod, self.lod_count - 1)
         order = np.argsort(key, kind="stable")
         rows = rows[order]
         starts = np.searchsorted(key[order], np.arange(len(self._meshes) + 1))
         for d, mesh in enumerate(self._meshes):
             chosen = rows[starts[d]:starts[d + 1]]
-            mesh[count] = len(chosen)
+            target = mesh[buffer] if cascade is None else mesh[buffer][cascade]
+            if cascade is None:
+                mesh[count] = len(chosen)
+            else:
+                mesh[count][cascade] = len(chosen)
             size = max(chosen.nbytes, INSTANCE_DTYPE.itemsize)
-            if mesh[buffer].size != size:
-                mesh[buffer].orphan(size)
+            if target.size != size:
+                target.orphan(size)
             if len(chosen):
-                mesh[buffer].write(chosen.tobytes())
+                target.write(chosen.tobytes())
 
     def _attach_on_gpu(self, agents, weapon, rows, starts, visibility) -> int:
         """Every placed weapon uploaded once; the weapon cull writes each into its (weapon, LOD) range:
-        LOD l's lists follow one another, each `k` long, weapon w's part of each starting at starts[w]."""
+        LOD l's lists follow one another, each `k` long, weapon w's part of each starting at starts[w];
+        the shadow lists hold one such set per cascade, one after the other."""
         if visibility is None:
             raise WeaponError("the GPU weapon cull needs the body cull's visibility buffer")
         k = len(agents)
-        lists = [(self._shown, self._commands, 0)]
-        if self._shadow_shown is not None:
-            lists.append((self._shadow_shown, self._shadow_commands, 1))
-        for buf, size in ((self._placed, rows.nbytes), *((shown, rows.nbytes * self.lod_count) for shown, _, _ in lists)):
-            if buf.size != max(size, INSTANCE_DTYPE.itemsize):
+        sets = 1 + (CASCADES if self._shadow_shown is not None else 0)  # the colour lists, then each cascade's
+        for buf, size in ((self._placed, rows.nbytes), (self._shown, rows.nbytes * self.lod_count),
+                          (self._shadow_shown, rows.nbytes * self.lod_count * (sets - 1))):
+            if buf is not None and buf.size != max(size, INSTANCE_DTYPE.itemsize):
                 buf.orphan(max(size, INSTANCE_DTYPE.itemsize))
         commands = np.zeros(len(self._meshes), COMMAND_DTYPE)
         commands["count"] = [m["triangles"] * 3 for m in self._meshes]
         lod = np.arange(len(self._meshes)) % self.lod_count
         commands["base_instance"] = lod * k + np.repeat(starts[:-1], self.lod_count)
-        for _, command_buffer, _ in lists:
-            command_buffer.write(commands.tobytes())
+        self._commands.write(commands.tobytes())
+        if sets > 1:
+            shadow = np.tile(commands, CASCADES)
+            shadow["base_instance"] += np.repeat(np.arange(CASCADES, dtype=np.uint32) * np.uint32(self.lod_count * k), len(self._meshes))
+            self._shadow_commands.write(shadow.tobytes())
         for d, mesh in enumerate(self._meshes):  # placed: the GPU draws the visible of them
             w = d // self.lod_count
-            mesh["count"] = mesh["shadow_count"] = int(starts[w + 1] - starts[w])
+            mesh["count"] = int(starts[w + 1] - starts[w])
+            mesh["shadow_counts"] = [mesh["count"]] * CASCADES
         if k:
             self._placed.write(np.ascontiguousarray(rows))
             owner = np.stack([agents, weapon], axis=1).astype(np.uint32)
@@ -250,8 +263,11 @@ class WeaponRenderer(GLStage):
             first = np.zeros(16, np.uint32)
             first[: len(self.names)] = starts[:-1]
             self._cull["u_start"].write(first.tobytes())
-            for shown, command_buffer, shadow in lists:  # the colour pass's weapons, then the shadow pass's
-                self._cull["u_shadow"] = shadow
+            for run in range(sets):  # the colour pass's weapons, then each shadow cascade's
+                shown, command_buffer = (self._shown, self._commands) if run == 0 else (self._shadow_shown, self._shadow_commands)
+                self._cull["u_shadow"] = run  # 0: colour; 1 + k: cascade k
+                self._cull["u_list_base"] = max(run - 1, 0) * self.lod_count * k
+                self._cull["u_command_base"] = max(run - 1, 0) * len(self._meshes)
                 for binding, buf in enumerate((self._placed, self._owner, shown, command_buffer, visibility)):
                     buf.bind_to_storage_buffer(binding)
                 self._cull.run(group_x=(k + GROUP_SIZE - 1) // GROUP_SIZE)
@@ -274,28 +290,31 @@ class WeaponRenderer(GLStage):
 
     def casts_shadows(self) -> bool:
         """Whether the shadow pass has weapons to draw (the agents in the sun's volume may be out of view)."""
-        return any(m["shadow_count"] for m in self._meshes)
+        return any(any(m["shadow_counts"]) for m in self._meshes)
 
-    def _render(self, d: int, mesh: dict, kind: str) -> None:
-        count = mesh["shadow_count"] if kind == "depth" else mesh["count"]
+    def _render(self, d: int, mesh: dict, kind: str, cascade: int = 0) -> None:
+        count = mesh["shadow_counts"][cascade] if kind == "depth" else mesh["count"]
         if not count:
             return
         if self.gpu_cull:
             commands = self._shadow_commands if kind == "depth" else self._commands
-            self._vao(mesh, kind).render_indirect(commands, moderngl.TRIANGLES, count=1, first=d)
+            first = d + (cascade * len(self._meshes) if kind == "depth" else 0)
+            self._vao(mesh, kind).render_indirect(commands, moderngl.TRIANGLES, count=1, first=first)
         else:
-            self._vao(mesh, kind).render(moderngl.TRIANGLES, instances=count)
+            self._vao(mesh, kind, cascade if kind == "depth" else 0).render(moderngl.TRIANGLES, instances=count)
 
     def grip_points(self) -> np.ndarray:
         """(K, 3) float64: the grip point of each drawn weapon, through the float32 rows the GPU got."""
         agents, weapon, rows = self.drawn
         return np.einsum("kij,kj->ki", rows.astype(np.float64), self.grip_origin[weapon])
 
-    def depth_pass(self, light_view_proj: np.ndarray) -> None:
+    def depth_pass(self, view, renderer) -> None:
+        """Into each shadow cascade's tile (``renderer.shadow_tiles``), after the crowd's shadow pass."""
         prog = self._programs["depth"]
-        prog["u_view_proj"].write(gl_bytes(light_view_proj))
-        for d, mesh in enumerate(self._meshes):
-            self._render(d, mesh, "depth")
+        for k, matrix in renderer.shadow_tiles(view):
+            prog["u_view_proj"].write(gl_bytes(matrix))
+            for d, mesh in enumerate(self._meshes):
+                self._render(d, mesh, "depth", k)
 
     def color_pass(self, framebuffer, view, renderer) -> None:
         """`view`: this frame's ``FrameView``; `renderer` lights the weapons as it lights the crowd."""
