@@ -76,8 +76,8 @@ def silhouette_iou(character: Character, lod_distances, size: tuple[int, int] = 
             base += len(m.positions)
         skinned[lod] = (np.concatenate(points, axis=1), np.concatenate(tris), sum(len(t) for t in tris))
     rows = []
-    for lod in lods[1:]:
-        distance = float(lod_distances[min(lod, len(lod_distances)) - 1])
+    for lod in [k for k in lods[1:] if k <= len(lod_distances)]:  # the colour LODs (a coarser one casts shadows only)
+        distance = float(lod_distances[lod - 1])
         metres_per_sample = 2.0 * distance * math.tan(math.radians(fov_y) / 2.0) / size[1] / SAMPLES
         ious, pixel_ious, height = [], [], 0.0
         for pose in range(matrices.shape[0]):

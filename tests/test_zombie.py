@@ -38,7 +38,8 @@ def test_meshes_lods_and_pieces(zombie):
         assert m.weights.shape[1] == 4
         np.testing.assert_allclose(m.weights.sum(1), 1.0, atol=1e-6)
         assert np.all(m.weights >= 0)
-    assert set(tris) == {0, 1, 2, 3}
+    assert set(tris) == {0, 1, 2, 3, 4}
+    assert tris[4] == {"body": 16}  # LOD4: the shadow proxy, one column
     default = lambda lod: tris[lod]["body"] + tris[lod]["head_a"] + tris[lod]["shirt_torn"]
     assert default(0) >= 3000
     assert 0.18 < default(1) / default(0) < 0.32  # about 1/4
@@ -100,8 +101,9 @@ def test_props_have_grip_frames(zombie):
 
 
 def test_props_have_a_mesh_per_body_lod_read_back_from_the_file(generated, zombie):
-    """Each weapon has one mesh per body LOD, coarser each time, and the file keeps all of them."""
-    body_lods = 1 + max(m.lod for m in zombie.meshes)
+    """Each weapon has one mesh per colour LOD of the body, coarser each time (the body's LOD4 casts
+    shadows only, its weapon from LOD3's), and the file keeps all of them."""
+    body_lods = 1 + max(m.lod for m in zombie.meshes if m.piece != "body" or m.lod < 4)
     for name, prop in zombie.props.items():
         tris = [m.triangle_count for m in prop.lods]
         assert len(tris) == body_lods and all(a > b for a, b in zip(tris, tris[1:])), (name, tris)

@@ -449,6 +449,22 @@ def _build_shirt(div: int) -> SkinnedMesh:
     return m.build("zombie_shirt_torn", "shirt_torn", 0, (1.0, 1.0, 1.0, 1.0))
 
 
+def _build_shadow_proxy() -> SkinnedMesh:
+    """LOD4, for shadows only: a four-sided column from the ankles to the crown, skinned to the hips,
+    chest and head, 16 triangles. The far shadow cascade has texels of about half a metre (crowd.draw.shadows),
+    where this casts the shadow the whole figure would; the colour pass never reaches LOD4 (three LOD
+    distances), and an agent at LOD3 casts its shadow one LOD coarser, from this."""
+    jc = len(JOINT_NAMES)
+    J = JOINT_NAMES.index
+    m = _MeshBuilder()
+    pts = np.array([[0.0, 0.05, 0.0], [0.0, 0.95, 0.0], [0.0, 1.45, -0.02], [0.0, 1.78, 0.0]])
+    width = lambda u: float(np.interp(u, [0.0, 0.5, 0.8, 1.0], [0.16, 0.17, 0.22, 0.09]))
+    depth = lambda u: float(np.interp(u, [0.0, 0.5, 0.8, 1.0], [0.10, 0.11, 0.11, 0.10]))
+    _tube(m, pts, width, depth, 2, 4, [J("hips"), J("chest"), J("head")], [0.0, 0.5, 0.85, 1.0], [0.0, 0.08, 0.05], _skin_color, jc,
+          cap_start=False, cap_end=False)
+    return m.build("zombie_body", "body", 0, (1.0, 1.0, 1.0, 1.0))
+
+
 def build_meshes() -> list[SkinnedMesh]:
     meshes = []
     for lod, div in enumerate(LOD_DIVISORS):
@@ -457,7 +473,10 @@ def build_meshes() -> list[SkinnedMesh]:
             mesh.lod = lod
             mesh.name = f"{mesh.name}_lod{lod}"
             meshes.append(mesh)
-    return meshes
+    proxy = _build_shadow_proxy()
+    proxy.lod = len(LOD_DIVISORS)
+    proxy.name = f"{proxy.name}_lod{proxy.lod}"
+    return meshes + [proxy]
 
 
 # ------------------------------------------------------------------------------------------------
