@@ -112,19 +112,21 @@ _DTYPE_BYTES = {"f1": 1, "u1": 1, "f2": 2, "u2": 2, "i2": 2, "f4": 4, "u4": 4, "
 
 
 def gpu_bytes(objects) -> int:
-    """Bytes of GPU memory held by the textures and buffers among `objects` (other objects count 0)."""
+    """Bytes of GPU memory held by the textures, renderbuffers and buffers among `objects` (other
+    objects count 0). A texture whose ``extra`` says {"mipmapped": True} counts its chain down to 1x1."""
     total = 0
     for obj in objects:
-        if isinstance(obj, moderngl.Texture):
-            total += obj.width * obj.height * obj.components * _DTYPE_BYTES[obj.dtype]
-        elif isinstance(obj, moderngl.TextureArray):
-            w, h, layers = obj.size
+        if isinstance(obj, (moderngl.Texture, moderngl.TextureArray)):
+            w, h = obj.width, obj.height
             texels = w * h
-            if isinstance(obj.extra, dict) and obj.extra.get("mipmapped"):  # the whole chain down to 1x1
+            if isinstance(obj.extra, dict) and obj.extra.get("mipmapped"):
                 while w > 1 or h > 1:
                     w, h = max(w // 2, 1), max(h // 2, 1)
                     texels += w * h
+            layers = obj.layers if isinstance(obj, moderngl.TextureArray) else 1
             total += texels * layers * obj.components * _DTYPE_BYTES[obj.dtype]
+        elif isinstance(obj, moderngl.Renderbuffer):
+            total += obj.width * obj.height * obj.components * _DTYPE_BYTES[obj.dtype]
         elif isinstance(obj, moderngl.Buffer):
             total += obj.size
     return total

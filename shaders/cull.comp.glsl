@@ -23,6 +23,7 @@ layout(std430, binding = 4) buffer Visible { uint visible[]; };
 uniform vec4 u_planes[6];   // inside: dot(n, p) + d >= 0 (camera-relative)
 uniform vec4 u_bound;       // xyz: the bind pose's sphere centre, w: its radius (both times the agent's scale)
 uniform float u_margin;     // metres added to each radius (agents just outside may shadow into view)
+uniform float u_reach;      // a shadow cascade's: agents whose sphere starts farther from the eye cast nothing into it
 uniform float u_lod_start[4];
 uniform int u_lod_steps;    // LOD distances in use
 uniform int u_lod_count;
@@ -103,6 +104,7 @@ void main() {
         bool inside = true;
         if (u_culling != 0) {
             for (int p = 0; p < 6; ++p) inside = inside && dot(u_planes[p].xyz, center) + u_planes[p].w >= -radius;
+            inside = inside && length(center) - radius <= u_reach;
             if (inside && u_occlusion != 0) inside = !occluded(center, radius);
         }
         int lod = 0;

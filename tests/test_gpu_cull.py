@@ -348,10 +348,12 @@ def test_shadow_lists_are_each_cascades_agents_one_lod_coarser(stages):
     dist = np.linalg.norm(centers, axis=1)
     colour_lod = np.minimum(np.searchsorted(np.asarray(LOD_DISTANCES), dist, side="right"), gpu.lod_count - 1)
     per_cascade = []
-    for cascade, matrix in enumerate(gpu.light_cascades(camera, instances).view_proj):
+    shadow = gpu.light_cascades(camera, instances)
+    for cascade, (matrix, reach) in enumerate(zip(shadow.view_proj, shadow.reach_m)):
         shadow_lists = _gpu_lists(gpu, gpu.gpu.shadow_lists, counts[cascade], first=cascade * len(gpu.draws))
         light = frustum_planes(matrix)
-        slack = np.min(centers @ light[:, :3].T + light[:, 3] + radii[:, None], axis=1)
+        # Inside the cascade's box, and near enough to the eye to shadow what it covers.
+        slack = np.minimum(np.min(centers @ light[:, :3].T + light[:, 3] + radii[:, None], axis=1), float(reach) - (dist - radii))
         doubtful = _doubtful(slack, dist)
         casting = 0
         for k, (c, g, on_gpu) in enumerate(zip(cpu.draws, gpu.draws, shadow_lists)):
@@ -364,6 +366,29 @@ def test_shadow_lists_are_each_cascades_agents_one_lod_coarser(stages):
         per_cascade.append(casting)
     # The near cascade holds the agents around the target; the crowd's cascade holds more of them.
     assert 100 < per_cascade[0] < per_cascade[1]
+
+
+def test_agents_past_the_fog_cast_nothing_into_the_far_cascade(stages):
+    """The far cascade ends where fog leaves a tenth of a shadow's contrast: an agent in view well past
+    that distance is in neither path's far shadow list, one in view nearer is, in both."""
+    camera = Camera(eye=np.array([0.0, 30.0, 0.0]), target=np.array([0.0, 0.0, -400.0]), aspect=16 / 9, far=3000.0)
+    for path in ("cpu", "gpu"):
+        r = stages[path]
+        r.crowd_box = (np.array([-50.0, 0.0, -1500.0]), np.array([50.0, 0.0, 0.0]))
+        found = []
+        for z in (-300.0, -1200.0):
+            instances = Instances(np.array([[0.0, 0.0, z]]), np.zeros(1, np.float32), np.ones(1, np.float32),
+                                  np.full((1, 4), 255, np.uint8), {"head": np.zeros(1, np.int64)})
+            view = r.prepare(camera, instances)
+            r.refresh_counts(wait=True)
+            far = sum(d.shadow_counts[1] for d in r.draws)
+            assert (view.visible is None or view.visible[0]) and r.last["visible"] == 1
+            found.append(far)
+            if view.casting is not None:
+                assert bool(view.casting[1][0]) == (far > 0)
+        r.crowd_box = None
+        assert found[0] > 0 and found[1] == 0, (path, found)
+        assert r.light_cascades(camera).reach_m[1] < 700.0
 
 
 def test_weapons_are_drawn_at_their_agents_lod_on_both_paths(gl_context):

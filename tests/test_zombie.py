@@ -44,7 +44,8 @@ def test_meshes_lods_and_pieces(zombie):
     assert default(0) >= 3000
     assert 0.18 < default(1) / default(0) < 0.32  # about 1/4
     assert 0.04 < default(2) / default(0) < 0.09  # about 1/16
-    assert 0.02 < default(3) / default(0) < 0.035  # about 1/36
+    # LOD3: each head choice's whole figure merged into one mesh under the head's piece name.
+    assert set(tris[3]) == {"head_a", "head_b"} and 0.02 < tris[3]["head_a"] / default(0) < 0.035  # about 1/39
     assert {"head_a", "head_b"} <= set(tris[0]) and "shirt_torn" in tris[0]
 
 

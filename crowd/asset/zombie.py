@@ -17,6 +17,7 @@ the handle along +Y; each has a ``*_grip`` node whose frame is placed onto the s
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -465,11 +466,26 @@ def _build_shadow_proxy() -> SkinnedMesh:
     return m.build("zombie_body", "body", 0, (1.0, 1.0, 1.0, 1.0))
 
 
+def _merged(parts: list[SkinnedMesh], like: SkinnedMesh) -> SkinnedMesh:
+    """`parts` as one mesh that stands in for the piece `like` (its name, piece and group)."""
+    starts = np.cumsum([0] + [len(p.positions) for p in parts])
+    return dataclasses.replace(
+        like, positions=np.concatenate([p.positions for p in parts]), normals=np.concatenate([p.normals for p in parts]),
+        joints=np.concatenate([p.joints for p in parts]), weights=np.concatenate([p.weights for p in parts]),
+        colors=np.concatenate([p.colors for p in parts]), indices=np.concatenate([p.indices + k for p, k in zip(parts, starts)]).astype(np.uint32))
+
+
 def build_meshes() -> list[SkinnedMesh]:
     meshes = []
     for lod, div in enumerate(LOD_DIVISORS):
-        for build in (_build_body, lambda d: _build_head(d, "head_a"), lambda d: _build_head(d, "head_b"), _build_shirt):
-            mesh = build(div)
+        built = [build(div) for build in (_build_body, lambda d: _build_head(d, "head_a"), lambda d: _build_head(d, "head_b"), _build_shirt)]
+        if div == LOD_DIVISORS[-1]:
+            # LOD3 (the far crowd): each head choice's whole figure as one mesh under the head's piece
+            # name, so a far agent is one instance of one draw, not three. The H200 draws many small
+            # instances below its triangle rate (docs/BENCHMARKS.md, "The coarse LOD").
+            body, head_a, head_b, shirt = built
+            built = [_merged([body, head, shirt], head) for head in (head_a, head_b)]
+        for mesh in built:
             mesh.lod = lod
             mesh.name = f"{mesh.name}_lod{lod}"
             meshes.append(mesh)

@@ -206,18 +206,19 @@ class GpuCull(GLStage):
         self._dispatch(self.lists, self.commands, self.ring, planes, bound, margin, lod_start, lod_count, culling, 0, self.visible, 1,
                        occlusion=occlusion)
 
-    def run_shadow(self, planes: np.ndarray, bound: np.ndarray, lod_start, lod_count: int, culling: bool) -> None:
+    def run_shadow(self, planes: np.ndarray, bound: np.ndarray, lod_start, lod_count: int, culling: bool, reach=None) -> None:
         """Cull the uploaded agents against each cascade's box (`planes` (cascades, 6, 4)) into that
         cascade's shadow lists, one LOD coarser; each agent in cascade k's box gets bit 16 + k of its
-        visibility (after ``run``, which clears it): the weapons' shadow pass keeps their weapons."""
+        visibility (after ``run``, which clears it): the weapons' shadow pass keeps their weapons.
+        `reach` (cascades,): metres from the eye past which an agent casts nothing into that cascade."""
         for k, cascade_planes in enumerate(planes):
             self._dispatch(self.shadow_lists, self.shadow_commands, None, cascade_planes, bound, 0.0, lod_start, lod_count, culling, 1,
-                           self.visible, 2, cascade=k)
+                           self.visible, 2, cascade=k, reach=np.inf if reach is None else float(reach[k]))
         if self.agents:
             self.shadow_ring.queue(self.shadow_commands)
 
     def _dispatch(self, lists, commands, ring, planes, bound, margin, lod_start, lod_count, culling, lod_bias, visible, mode,
-                  cascade: int = 0, occlusion=None) -> None:
+                  cascade: int = 0, occlusion=None, reach: float = np.inf) -> None:
         n = self.agents
         if n == 0:
             return
@@ -229,6 +230,7 @@ class GpuCull(GLStage):
         p["u_planes"].write(np.ascontiguousarray(planes, np.float32).tobytes())
         p["u_bound"] = tuple(float(x) for x in bound)
         p["u_margin"] = float(margin)
+        p["u_reach"] = float(min(reach, 3.0e38))  # float32's largest: "no limit"
         starts = np.zeros(MAX_LOD_STEPS, np.float32)
         starts[: len(lod_start)] = lod_start
         p["u_lod_start"].write(starts.tobytes())

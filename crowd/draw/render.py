@@ -270,7 +270,15 @@ class CrowdRenderer(GLStage):
                 raise RenderError(f"{exc} (the cpu cull path has no such limit)") from None
             for draw in self.draws:  # every draw reads its list out of the one list buffer (baseInstance)
                 draw.instances = self.gpu.lists
-            self._first_slot_draws = [k for k, d in enumerate(self.draws) if slot[d.piece] == 0]
+            # The draws that count each visible agent once, per LOD: its first common piece where that
+            # LOD has it, else the choices of its first variation group (a LOD may merge the pieces
+            # into one mesh per choice, as the built-in zombie's LOD3 does).
+            self._counting_draws = []
+            for lod in range(self.lod_count):
+                at = [(k, d) for k, d in enumerate(self.draws) if d.lod == lod]
+                first = [k for k, d in at if slot[d.piece] == 0 and not self._piece_group[d.piece]]
+                group = next(iter(self.groups), None)
+                self._counting_draws += first or [k for k, d in at if group is not None and self._piece_group[d.piece] == group]
         # A sphere around the bind pose, widened for poses that reach out or lie down (death).
         allpos = np.concatenate([m.positions for m in meshes]).astype(np.float64)
         lo, hi = allpos.min(axis=0), allpos.max(axis=0)
@@ -419,7 +427,7 @@ class CrowdRenderer(GLStage):
             except GpuCullError as exc:
                 raise RenderError(f"{exc} (the cpu cull path needs no lists: --cull cpu)") from None
             self.refresh_counts()  # the newest frame the GPU has finished (none queued for 0 agents: 0)
-            self._pending = (frustum_planes(matrix), None if shadow is None else np.stack([frustum_planes(m) for m in shadow.view_proj]), eye)
+            self._pending = (frustum_planes(matrix), None if shadow is None else (np.stack([frustum_planes(m) for m in shadow.view_proj]), shadow.reach_m), eye)
             if cull_now:
                 self.cull()
             return FrameView(camera, matrix, shadow, None)
@@ -441,8 +449,8 @@ class CrowdRenderer(GLStage):
             draw.count = c
         lit = None
         if self.shadows:
-            lit = np.stack([sphere_visible(frustum_planes(m), centers, radii) if self.culling and n else np.ones(n, bool)
-                            for m in shadow.view_proj])
+            lit = np.stack([sphere_visible(frustum_planes(m), centers, radii) & (dist - radii <= reach) if self.culling and n else np.ones(n, bool)
+                            for m, reach in zip(shadow.view_proj, shadow.reach_m)])
             shadow_lod = np.minimum(lod + 1, self.lod_count - 1)
             for k, in_cascade in enumerate(lit):
                 casting = np.flatnonzero(in_cascade).astype(np.uint32)
@@ -519,12 +527,12 @@ class CrowdRenderer(GLStage):
         pending, self._pending = getattr(self, "_pending", None), None
         if self.gpu is None or pending is None:
             return False
-        planes, light_planes, eye = pending  # the view's planes, each cascade's, and the eye
+        planes, light_planes, eye = pending  # the view's planes, (each cascade's planes, reach), the eye
         bound = np.array([*self.bound_center, self.bound_radius])
         self.gpu.run(planes, bound, 0.0, self.lod_distances, self.lod_count, self.culling,
                      occlusion=None if self.pyramid is None else (self.pyramid, eye))
         if light_planes is not None:
-            self.gpu.run_shadow(light_planes, bound, self.lod_distances, self.lod_count, self.culling)
+            self.gpu.run_shadow(light_planes[0], bound, self.lod_distances, self.lod_count, self.culling, light_planes[1])
         return True
 
     def refresh_counts(self, wait: bool = False) -> None:
@@ -534,7 +542,7 @@ class CrowdRenderer(GLStage):
             return
         counts = self.gpu.counts(wait).astype(np.int64)
         lod_counts = [0] * self.lod_count
-        for k in self._first_slot_draws:
+        for k in self._counting_draws:
             lod_counts[self.draws[k].lod] += int(counts[k])
         for draw, c in zip(self.draws, counts):
             draw.count = int(c)
@@ -572,7 +580,7 @@ class CrowdRenderer(GLStage):
         top = float(self.bound_center[1] + self.bound_radius) * (float(np.max(instances.scale)) if some else 1.0)
         lo, hi = np.asarray(box[0], np.float64).copy(), np.asarray(box[1], np.float64).copy()
         hi[1] = max(hi[1], lo[1] + top)  # as tall as an agent's bound
-        return cascades(camera, self.sun_dir, (lo, hi), self.shadow_size)
+        return cascades(camera, self.sun_dir, (lo, hi), self.shadow_size, LIGHTING["u_fog_density"])
 
     def shadow_tiles(self, view: "FrameView"):
         """(cascade, light matrix) for each cascade, the shadow framebuffer's viewport on its tile."""

@@ -9,9 +9,9 @@ size needs. Two cascades:
   earlier versions covered (a texel of 6 cm at most with 2,048 texels), so the zombies near the
   camera look as they did;
 - cascade 1, the visible crowd: the part of the crowd's box (the AI's world square, as tall as an
-  agent) inside the view frustum, cut at the frustum's far plane or at the crowd's farthest corner,
-  whichever is nearer. From the demo camera at 100,000 agents it is about 1.3 km across (a texel of
-  0.6 m): far zombies get a shadow at their feet, which a 60 m map left out entirely.
+  agent) inside the view frustum, cut at the frustum's far plane, at the crowd's farthest corner or
+  where the fog leaves a tenth of a shadow's contrast (576 m), whichever is nearest: far zombies get
+  a shadow at their feet, which a 60 m map left out entirely.
 
 A fragment takes the first cascade whose tile holds it (shaders/lighting.glsl). Each box is as deep
 as the crowd's box seen from the sun, so every agent that can shadow a point in it is drawn into it;
@@ -31,6 +31,7 @@ from ..frame import Camera
 CASCADES = 2
 NEAR_REACH = (12.0, 60.0)  # metres: cascade 0's half width, 1.2 times the distance to the target within these
 SIZE_STEP = 1.05
+FOG_CONTRAST = 0.1  # the far cascade ends where fog leaves this share of a shadow's contrast
 
 
 @dataclass(frozen=True)
@@ -38,6 +39,7 @@ class Cascades:
     view_proj: np.ndarray  # float32 (C, 4, 4), camera-relative
     texel_m: np.ndarray  # float32 (C,): the world size of one texel of each tile
     depth_bias: np.ndarray  # float32 (C,): in each tile's depth units (0..1), two texels' worth of slope
+    reach_m: np.ndarray  # float32 (C,): agents whose sphere starts farther than this from the eye cast nothing into the cascade
 
 
 def _look(sun: np.ndarray) -> np.ndarray:
@@ -76,9 +78,11 @@ def _frustum_corners(camera: Camera, far: float) -> np.ndarray:
     return np.asarray(out)
 
 
-def cascades(camera: Camera, sun_dir, crowd_box: tuple[np.ndarray, np.ndarray], tile: int) -> Cascades:
+def cascades(camera: Camera, sun_dir, crowd_box: tuple[np.ndarray, np.ndarray], tile: int, fog_density: float = 0.0) -> Cascades:
     """The light matrices of both cascades for this camera; `crowd_box` is the world box (lo, hi)
-    float64 every agent stands in, `tile` the texels of a tile's side."""
+    float64 every agent stands in, `tile` the texels of a tile's side; with `fog_density` (per metre,
+    shaders/lighting.glsl's exponential fog) the far cascade ends where fog leaves a tenth of a
+    shadow's contrast (576 m at the default 0.004), so agents past it cast nothing."""
     eye = np.asarray(camera.eye, np.float64)
     rotation = _look(np.asarray(sun_dir, np.float64))
     lo, hi = (np.asarray(v, np.float64) - eye for v in crowd_box)
@@ -88,7 +92,14 @@ def cascades(camera: Camera, sun_dir, crowd_box: tuple[np.ndarray, np.ndarray], 
     reach = float(np.clip(np.linalg.norm(target) * 1.2, *NEAR_REACH))
     target_light = rotation @ target
     boxes = [(target_light[:2] - reach, target_light[:2] + reach)]
-    far = float(min(camera.far, np.max(np.linalg.norm(box, axis=1))))
+    fogged = np.log(1.0 / FOG_CONTRAST) / fog_density if fog_density > 0 else np.inf
+    far = float(min(camera.far, np.max(np.linalg.norm(box, axis=1)), fogged))
+    # A caster's shadow ends at most its height times the sun's run over rise from it: one farther than
+    # that beyond the far cascade's end shadows nothing the cascade covers. The light-space box alone
+    # kept 96 % of the demo camera's 100,000 agents as casters, the sun being low.
+    sun = np.asarray(sun_dir, np.float64) / np.linalg.norm(sun_dir)
+    shadow_run = float(hi[1] - lo[1]) * np.sqrt(max(1.0 - sun[1] ** 2, 0.0)) / max(sun[1], 0.05)
+    caster_reach = np.array([np.inf, far + shadow_run], np.float32)
     corners = _frustum_corners(camera, max(far, camera.near * 2.0)) @ rotation.T
     seen_lo = np.maximum(corners[:, :2].min(axis=0), box_light[:, :2].min(axis=0))
     seen_hi = np.minimum(corners[:, :2].max(axis=0), box_light[:, :2].max(axis=0))
@@ -114,4 +125,4 @@ def cascades(camera: Camera, sun_dir, crowd_box: tuple[np.ndarray, np.ndarray], 
         matrices.append(_ortho(b_lo, b_hi) @ view)
         texels.append(texel)
         biases.append(2.0 * texel / (z_hi - z_lo))
-    return Cascades(np.asarray(matrices, np.float32), np.asarray(texels, np.float32), np.asarray(biases, np.float32))
+    return Cascades(np.asarray(matrices, np.float32), np.asarray(texels, np.float32), np.asarray(biases, np.float32), caster_reach)
