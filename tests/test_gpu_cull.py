@@ -180,12 +180,17 @@ def test_switching_the_cull_path_live_leaks_nothing(gl_context):
     with Offscreen(gl_context, SIZE) as target:
         session = CrowdSession(gl_context, Scene(agents=60))
         try:
-            for path, weapons in (("cpu", True), ("gpu", False), ("gpu", True), ("cpu", False), ("auto", True)):
+            for path, weapons, occlusion in (("cpu", True, True), ("gpu", False, True), ("gpu", True, False), ("cpu", False, False),
+                                             ("auto", True, True), ("auto", True, False)):
                 session.set_cull_path(path)
                 session.set_weapons(weapons)
+                session.set_occlusion(occlusion)
                 session.frame(target.framebuffer, 1 / 30)
-                assert (session.pipeline.renderer.gpu is not None) == (path != "cpu")
-                assert session.to_scene().cull == path
+                session.frame(target.framebuffer, 1 / 30)
+                renderer = session.pipeline.renderer
+                assert (renderer.gpu is not None) == (path != "cpu")
+                assert (renderer.pyramid is not None) == (occlusion and renderer.gpu is not None)
+                assert session.to_scene().cull == path and session.to_scene().occlusion == occlusion
             with pytest.raises(SessionError, match="cull"):
                 session.set_cull_path("sideways")
         finally:
@@ -227,7 +232,7 @@ def test_resizing_the_gpu_cull_from_0_to_200000_and_back_leaks_nothing(gl_contex
     from test_architecture import gl_census
 
     before = gl_census()
-    with CrowdPipeline(gl_context, PipelineConfig(agents=0, cull="gpu", shadows=False)) as pipeline:
+    with CrowdPipeline(gl_context, PipelineConfig(agents=0, cull="gpu", shadows=False, occlusion=True)) as pipeline:
         from crowd.gl import Offscreen
 
         with Offscreen(gl_context, (64, 64)) as target:
