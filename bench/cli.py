@@ -330,6 +330,32 @@ def bench_lod(args) -> int:
     return 0
 
 
+def bench_vertex_cache(args) -> int:
+    """The hand-written triangle order against meshoptimizer's (bench/vertex_cache_compare.py)."""
+    try:
+        import meshoptimizer  # noqa: F401
+    except ImportError:
+        print("crowd-bench vertex-cache: meshoptimizer is not importable (it ships no wheel: build its sdist, see docs/BENCHMARKS.md)",
+              file=sys.stderr)
+        return 2
+    from crowd.asset.gltf import load_character
+
+    from .vertex_cache_compare import compare
+
+    out = compare(load_character(args.model))
+    print(f"{'mesh':<26} {'tris':>6}  shaded per triangle, batches of 32: source / hand / meshoptimizer")
+    for r in out["meshes"]:
+        print(f"{r['mesh']:<26} {r['triangles']:>6}  " + " / ".join(f"{r[k]['batch32_shaded_per_triangle']:.4f}" for k in ("source", "hand", "meshoptimizer")))
+    t = out["total"]
+    print("all meshes (per triangle): " + ", ".join(f"{k} {t[k]['batch32_shaded_per_triangle']:.4f} (FIFO-32 {t[k]['fifo32_misses_per_triangle']:.4f})"
+                                                 for k in ("source", "hand", "meshoptimizer")) + f"; ms {t['ms']}")
+    if args.json:
+        from crowd.files import atomic_write_bytes
+
+        atomic_write_bytes(Path(args.json), json.dumps(out, indent=1).encode())
+    return 0
+
+
 def bench_readback(args) -> int:
     """A 10,000-agent crowd (the AI running, the scripted player striking) in which the first k agents
     are armed. Frames are submitted back to back without glFinish, as a window would, so the read of
@@ -434,6 +460,10 @@ def main(argv=None) -> int:
     p.add_argument("--size", default="1920x1080", help="frame size WxH the camera draws")
     p.add_argument("--json", type=Path)
     p.set_defaults(run=bench_lod)
+    p = sub.add_parser("vertex-cache", help="the hand-written triangle order against meshoptimizer's (needs meshoptimizer built)")
+    p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
+    p.add_argument("--json", type=Path)
+    p.set_defaults(run=bench_vertex_cache)
     p = sub.add_parser("readback", help="weapon socket gather, transfer and wait against armed agents; sync vs unsync error")
     p.add_argument("--agents", type=int, default=10000)
     p.add_argument("--armed", default="0,100,1000,10000")

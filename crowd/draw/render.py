@@ -30,7 +30,7 @@ from ..settings import DEFAULTS, SETTINGS
 from ..lighting import FOG_COLOR, LIGHTING, SUN_DIR
 from ..asset.model import PACKED_UV_SPAN, Character, SkinnedMesh
 from ..anim.processor import palette_texel, texel_code
-from ..asset.vertex_cache import optimize_triangle_order
+from ..asset.vertex_cache import best_triangle_order
 from .gpu_cull import RECORD_DTYPE, GpuCull, GpuCullError
 from .materials import TEXTURE_UNIT, MaterialTextures
 from .occlusion import DepthPyramid
@@ -245,7 +245,7 @@ class CrowdRenderer(GLStage):
         self._piece_group = {m.piece: m.group for m in meshes}
         for m in sorted(meshes, key=lambda m: (m.lod, m.piece)):
             vbo = self._own("meshes", ctx.buffer(pack_vertices(m).tobytes()))
-            ibo = self._own("meshes", ctx.buffer(optimize_triangle_order(m.indices, len(m.positions)).tobytes()))
+            ibo = self._own("meshes", ctx.buffer(best_triangle_order(m.indices, len(m.positions)).tobytes()))
             # The CPU path's instance records, per draw; the GPU path draws from the cull's lists.
             inst = self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize)) if cull_path == "cpu" else None
             box = tuple(float(x) for x in np.concatenate(uv_box(m.uvs))) if m.texture >= 0 else (0.0, 0.0, 1.0, 1.0)

@@ -31,6 +31,7 @@ import numpy as np
 from ..gl import GLObjects, GLStage, load_shader
 from .gpu_cull import BUFFER_UPDATE, COMMAND, COMMAND_DTYPE, GROUP_SIZE, VERTEX_ATTRIB_ARRAY, CountRing
 from ..asset.model import Character, RigidMesh
+from ..asset.vertex_cache import best_triangle_order
 from .render import gl_bytes, heading_snorm16, pack_colors, pack_normals
 from .shadows import CASCADES
 
@@ -116,7 +117,7 @@ class WeaponRenderer(GLStage):
             lods = prop.lods + (prop.lods[-1],) * (self.lod_count - len(prop.lods))
             for lod, mesh in enumerate(lods):
                 vbo = self._objects.add(ctx.buffer(pack_rigid(mesh).tobytes()))
-                ibo = self._objects.add(ctx.buffer(np.asarray(mesh.indices, np.uint32).tobytes()))
+                ibo = self._objects.add(ctx.buffer(best_triangle_order(mesh.indices, len(mesh.positions)).tobytes()))
                 inst = self._shown if gpu_cull else self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
                 shadow = []  # per cascade: the CPU path's lists (the GPU path's are one buffer, by baseInstance)
                 if shadows:
