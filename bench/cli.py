@@ -356,6 +356,36 @@ def bench_vertex_cache(args) -> int:
     return 0
 
 
+def bench_compaction(args) -> int:
+    """The GPU cull's list compaction by shared-memory atomics (the runtime's) and by a prefix sum."""
+    from crowd.gl import describe, has_compute, headless_context
+    from crowd.pipeline import CrowdPipeline
+    from crowd.scene import Scene
+
+    from .compaction_probe import measure
+
+    ctx = headless_context()
+    if not has_compute(ctx):
+        print("crowd-bench compaction: the GPU cull needs GL 4.3 compute shaders", file=sys.stderr)
+        return 2
+    info = describe(ctx)
+    rows = []
+    print(f"{info['gl_renderer']} | the demo camera, default scene without weapons | median of {args.repeats} runs")
+    for n in [int(x) for x in args.agents.split(",")]:
+        with CrowdPipeline(ctx, Scene().with_overrides(agents=n, weapons=False, cull="gpu").pipeline_config()) as pipeline:
+            pipeline.camera = pipeline.default_camera(16 / 9)
+            row = measure(ctx, pipeline, args.repeats)
+        rows.append(row)
+        print(f"{n:>8} agents, {row['listed']:>8} listed, same lists: {row['same_lists']}, atomics {row['ms']['atomics']:.4f} ms, "
+              f"prefix sum {row['ms']['prefix_sum']:.4f} ms")
+    if args.json:
+        from crowd.files import atomic_write_bytes
+
+        atomic_write_bytes(Path(args.json), json.dumps({"device": info["gl_renderer"], "rows": rows}, indent=1).encode())
+    ctx.release()
+    return 0 if all(r["same_lists"] for r in rows) else 1
+
+
 def bench_readback(args) -> int:
     """A 10,000-agent crowd (the AI running, the scripted player striking) in which the first k agents
     are armed. Frames are submitted back to back without glFinish, as a window would, so the read of
@@ -464,6 +494,11 @@ def main(argv=None) -> int:
     p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
     p.add_argument("--json", type=Path)
     p.set_defaults(run=bench_vertex_cache)
+    p = sub.add_parser("compaction", help="the GPU cull's lists compacted by atomics and by a prefix sum: same lists, GPU ms")
+    p.add_argument("--agents", default="10000,100000,1000000")
+    p.add_argument("--repeats", type=int, default=40)
+    p.add_argument("--json", type=Path)
+    p.set_defaults(run=bench_compaction)
     p = sub.add_parser("readback", help="weapon socket gather, transfer and wait against armed agents; sync vs unsync error")
     p.add_argument("--agents", type=int, default=10000)
     p.add_argument("--armed", default="0,100,1000,10000")

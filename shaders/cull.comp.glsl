@@ -7,82 +7,12 @@
 // (CrowdRenderer.prepare: sphere_visible, searchsorted on the LOD distances), in float32.
 layout(local_size_x = 256) in;
 
-struct Record {
-    vec4 position_scale;  // camera-relative origin, uniform scale
-    uvec4 fields;         // x: palette texel of joint 0 | y: tint | z: heading | w: variation choices, 4 bits a group
-};
-
-layout(std430, binding = 0) readonly buffer Agents { Record agents[]; };
-layout(std430, binding = 1) writeonly buffer Lists { Record lists[]; };  // draw d's list starts at (u_list_base + d) * u_capacity
-layout(std430, binding = 2) buffer Commands { uint commands[]; };        // DrawElementsIndirectCommand x draws
-layout(std430, binding = 3) readonly buffer DrawOf { int draw_of[]; };    // [lod * u_slots + slot] -> draw, or -1
-// Per agent, for the weapons: bits 0-15 1 + its colour LOD (0: culled); bit 16 + k set where it is in
-// shadow cascade k's volume, with its shadow LOD in bits 20-23.
-layout(std430, binding = 4) buffer Visible { uint visible[]; };
-
-uniform vec4 u_planes[6];   // inside: dot(n, p) + d >= 0 (camera-relative)
-uniform vec4 u_bound;       // xyz: the bind pose's sphere centre, w: its radius (both times the agent's scale)
-uniform float u_margin;     // metres added to each radius (agents just outside may shadow into view)
-uniform float u_reach;      // a shadow cascade's: agents whose sphere starts farther from the eye cast nothing into it
-uniform float u_lod_start[4];
-uniform int u_lod_steps;    // LOD distances in use
-uniform int u_lod_count;
-uniform int u_culling;
-uniform uint u_agents;
-uniform uint u_capacity;
-uniform int u_slots;        // slots per LOD in draw_of
-uniform int u_common;       // slots 0 .. u_common - 1: the pieces every agent wears
-uniform int u_groups;
-uniform int u_group_slot[8];  // group g's choice c is slot u_group_slot[g] + c
-uniform int u_write_visible;  // 1: the colour run writes 1 + LOD; 2: a shadow run marks its cascade's volume
-uniform int u_cascade;       // the shadow run's cascade
-uniform int u_list_base;     // draws before this run's in the lists and commands (a cascade's: cascade * draws)
-uniform int u_draws;       // draws in the commands buffer
-uniform int u_lod_bias;    // 1 for the shadow lists: one LOD coarser than the colour pass picks
-// Occlusion (crowd/draw/occlusion.py): the previous frame's depth pyramid and the camera it was drawn from.
-uniform int u_occlusion;
-uniform sampler2D u_hiz;
-uniform mat4 u_hiz_view_proj;
-uniform vec3 u_hiz_eye_delta;  // this frame's eye minus the pyramid's: positions relative to the pyramid's eye
-uniform ivec2 u_hiz_size;      // level 0, in texels
-uniform int u_hiz_levels;
+#include "cull_common.glsl"
 
 // Appending with one global atomic per (agent, piece) serialises on the few counters every agent
 // hits (all of a far crowd is LOD2: 3 counters): on the H200 that cost 17 ms for 100,000 agents. So
 // each work group counts its agents per draw in shared memory, reserves its range of each list with
 // one global atomic per draw it touches, and then writes its records into the ranges.
-const int MAX_DRAWS = 256;  // draws the shared counters hold (CrowdRenderer checks)
-const int MAX_EMITS = 16;   // draws one agent can be in: its common pieces and one piece per group
-// Whether the sphere's bounding box lies behind what the previous frame drew there: its nearest depth
-// behind the farthest depth of the pyramid texels under its screen rectangle, at the level where
-// the rectangle spans at most 2 x 2 of them. A box reaching behind the camera, or out of the
-// pyramid's view, is not occluded.
-bool occluded(vec3 center, float radius) {
-    vec3 c = center + u_hiz_eye_delta;
-    vec2 lo = vec2(1.0), hi = vec2(-1.0);
-    float nearest = 1.0;
-    for (int k = 0; k < 8; ++k) {
-        vec3 corner = c + radius * vec3((k & 1) != 0 ? 1.0 : -1.0, (k & 2) != 0 ? 1.0 : -1.0, (k & 4) != 0 ? 1.0 : -1.0);
-        vec4 q = u_hiz_view_proj * vec4(corner, 1.0);
-        if (q.w <= 1e-3) return false;
-        vec3 ndc = q.xyz / q.w;
-        lo = min(lo, ndc.xy);
-        hi = max(hi, ndc.xy);
-        nearest = min(nearest, ndc.z * 0.5 + 0.5);
-    }
-    if (any(lessThan(hi, vec2(-1.0))) || any(greaterThan(lo, vec2(1.0)))) return false;
-    vec2 a = (clamp(lo, -1.0, 1.0) * 0.5 + 0.5) * vec2(u_hiz_size);
-    vec2 b = (clamp(hi, -1.0, 1.0) * 0.5 + 0.5) * vec2(u_hiz_size);
-    float extent = max(b.x - a.x, b.y - a.y);
-    int level = clamp(int(ceil(log2(max(extent, 1.0)))), 0, u_hiz_levels - 1);
-    ivec2 size = max(u_hiz_size >> level, ivec2(1));
-    ivec2 ta = clamp(ivec2(a) >> level, ivec2(0), size - 1);
-    ivec2 tb = clamp(ivec2(b) >> level, ivec2(0), size - 1);
-    float farthest = max(max(texelFetch(u_hiz, ta, level).r, texelFetch(u_hiz, ivec2(tb.x, ta.y), level).r),
-                         max(texelFetch(u_hiz, ivec2(ta.x, tb.y), level).r, texelFetch(u_hiz, tb, level).r));
-    return nearest > farthest;
-}
-
 shared uint s_count[MAX_DRAWS];
 shared uint s_base[MAX_DRAWS];
 
@@ -98,29 +28,10 @@ void main() {
     int emits = 0;
     Record r;
     if (i < u_agents) {
-        r = agents[i];
-        vec3 center = r.position_scale.xyz + u_bound.xyz * r.position_scale.w;
-        float radius = u_bound.w * r.position_scale.w + u_margin;
-        bool inside = true;
-        if (u_culling != 0) {
-            for (int p = 0; p < 6; ++p) inside = inside && dot(u_planes[p].xyz, center) + u_planes[p].w >= -radius;
-            inside = inside && length(center) - radius <= u_reach;
-            if (inside && u_occlusion != 0) inside = !occluded(center, radius);
+        emits = agent_draws(i, r, draws);
+        for (int e = 0; e < emits; ++e) {
+            if (draws[e] >= 0) slots[e] = atomicAdd(s_count[draws[e]], 1u);
         }
-        int lod = 0;
-        if (inside) {
-            float dist = length(center);
-            for (int k = 0; k < u_lod_steps; ++k) lod += int(dist >= u_lod_start[k]);
-            lod = min(lod + u_lod_bias, u_lod_count - 1);
-            int base = lod * u_slots;
-            for (int s = 0; s < u_common; ++s) draws[emits++] = draw_of[base + s];
-            for (int g = 0; g < u_groups; ++g) draws[emits++] = draw_of[base + u_group_slot[g] + int((r.fields.w >> uint(4 * g)) & 15u)];
-            for (int e = 0; e < emits; ++e) {
-                if (draws[e] >= 0) slots[e] = atomicAdd(s_count[draws[e]], 1u);
-            }
-        }
-        if (u_write_visible == 1) visible[i] = inside ? uint(lod + 1) : 0u;
-        else if (u_write_visible == 2 && inside) atomicOr(visible[i], (0x10000u << uint(u_cascade)) | (uint(lod) << 20));
     }
     memoryBarrierShared();
     barrier();
