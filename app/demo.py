@@ -34,8 +34,10 @@ def _parser() -> argparse.ArgumentParser:
     for table, title in titles.items():
         g = p.add_argument_group(title)
         for s in group(table).values():
-            if s.kind == "bool":  # every switch is on by default; the flag turns it off for this run
+            if s.kind == "bool" and s.default:  # a switch on by default: the flag turns it off for this run
                 g.add_argument("--no-" + s.flag[2:], dest=s.name, action="store_const", const="false", default=None, help=f"no {s.help}")
+            elif s.kind == "bool":  # off by default (occlusion culling): the flag turns it on
+                g.add_argument(s.flag, dest=s.name, action="store_const", const="true", default=None, help=s.help)
             else:
                 g.add_argument(s.flag, dest=s.name, default=None, metavar=_metavar(s),
                                help=f"{s.help} ({s.rule()}; default: the scene's, {_show(s.default)})")
