@@ -11,8 +11,12 @@ Contract: ``CrowdRenderer.prepare(camera, instances, row_offset) -> FrameView``,
   picks LODs and fills per-draw lists that the passes draw with render_indirect.
 - Positions are camera-relative: the CPU subtracts the camera in float64 and the GPU only sees small
   float32 numbers, so agents 1e5 m from the origin do not jitter.
-- With shadows on, a depth pass from the sun reuses the same instance buffers and palette rows
-  (process once, use in every pass). With shadows off, the shadow map does not exist.
+- With shadows on, a depth pass draws each of the sun's cascades (crowd/draw/shadows.py) into its tile
+  of one shadow map, from shadow lists of its own, culled against that cascade's box one LOD coarser,
+  with the same palette rows (process once, use in every pass). With shadows off, neither the shadow
+  map nor the shadow lists exist.
+- With occlusion on (the gpu path), the colour cull also drops agents hidden in the previous frame's
+  depth pyramid (crowd/draw/occlusion.py), which ``capture_depth`` builds after the colour passes.
 """
 
 from __future__ import annotations

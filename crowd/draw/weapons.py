@@ -18,8 +18,8 @@ Culling: on the CPU cull path ``attach`` is given the visible set and uploads on
 GPU path (``gpu_cull``) the CPU does not know it: every armed agent's weapon is uploaded with its
 owner, and a compute pass (shaders/weapon_cull.comp.glsl) keeps those whose agent the body cull marked
 visible, compacted per (weapon, LOD) mesh and counted in indirect commands, so a weapon is drawn exactly
-when its agent is, at its agent's LOD. With shadows on, the shadow pass draws the weapons of the agents in the sun's volume
-(the body cull's shadow lists), from lists of their own on both paths. ``last["weapons"]`` counts the weapons placed, ``last["drawn"]`` those drawn (on the GPU
+when its agent is, at its agent's LOD. With shadows on, each shadow cascade's tile gets the weapons of
+the agents in that cascade's volume (the body cull's shadow lists), from lists of their own on both paths. ``last["weapons"]`` counts the weapons placed, ``last["drawn"]`` those drawn (on the GPU
 path as the GPU hands the counts back, a frame or two late; ``refresh_counts(wait=True)`` at a run's end).
 """
 
@@ -98,7 +98,7 @@ class WeaponRenderer(GLStage):
         self.grip_origin = np.stack([np.asarray(p.grip, np.float64)[:, 3] for p in character.props.values()])  # (W, 4)
         self.gpu_cull = gpu_cull
         self.lod_count = max(len(p.lods) for p in character.props.values())
-        draws = self.draw_count = len(self.names) * self.lod_count  # draw w * lod_count + lod: weapon w at that LOD
+        draws = len(self.names) * self.lod_count  # draw w * lod_count + lod: weapon w at that LOD
         if gpu_cull:
             if len(self.names) > 16:
                 raise WeaponError(f"{len(self.names)} weapon meshes, more than the 16 the GPU cull lists")
@@ -185,9 +185,8 @@ class WeaponRenderer(GLStage):
         """Place and upload this frame's weapons (none when `read` is None). Returns how many.
         `visible`, `casting` and `lod`: the CPU cull's agents drawn, agents in each shadow cascade's
         volume ((cascades, N): their weapons' shadows are drawn there) and each agent's colour LOD
-        (None: LOD0); `visibility`: on the GPU
-        path, the body cull's per-agent visibility and LODs, which a compute pass filters the weapons
-        by for both passes."""
+        (None: LOD0); `visibility`: on the GPU path, the body cull's per-agent visibility and LODs,
+        which a compute pass filters the weapons by for both passes."""
         if read is None:
             agents, weapon, rows = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 4), np.float32)
         else:
