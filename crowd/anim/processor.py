@@ -69,7 +69,6 @@ DEFAULT_INTERPOLATION = DEFAULTS["interpolation"]  # chosen by crowd-bench error
 # Agents side by side in one palette texture row: keeps textures under 4096 texels wide, a size every
 # GL 3.3+ driver we target accepts (GL_MAX_TEXTURE_SIZE is 16384 on llvmpipe, 32768 on NVIDIA).
 MAX_TEXTURE_WIDTH = 1 << 12
-LAYER_RING = 3  # layer textures written in turn (AnimationProcessor.upload says why)
 MAX_HISTORY = SETTINGS["readback_latency"].high + 1  # palettes kept: the latest and one per frame of read-back latency
 
 
@@ -304,8 +303,6 @@ class AnimationProcessor(GLStage):
         self._set("u_rest_row", bake.rest_row)
         self._set("u_row_offset", 0)
         self.layers_texture = None
-        self._layer_ring: list = []
-        self._uploads = 0
         self.planes: tuple = ()
         self._framebuffer = None
         self._quad = None
@@ -384,14 +381,7 @@ class AnimationProcessor(GLStage):
         self.ctx.error  # clear an earlier error, so the check below sees these allocations'
         try:
             self.planes = tuple(self._array("palette", (width, layer_rows, layers)) for _ in range(3))
-            # A ring of layer textures, written in turn: the GPU may still be reading the last two frames'
-            # (the window runs up to 2 frames ahead), and writing a texture it reads made the driver
-            # wait or copy: 6.4 MB of layers took 0.66 ms to write alone on the H200 host and about
-            # 2.5 ms more in the frame (docs/BENCHMARKS.md, "The render side's CPU").
-            zeros = np.zeros((rows, self.agents_per_row * self.layer_count, 4), np.float32)  # weight 0: the rest pose until an upload
-            self._layer_ring = [self._texture("layers", (self.agents_per_row * self.layer_count, rows), 4, zeros, "f4")
-                                for _ in range(LAYER_RING)]
-            self.layers_texture = self._layer_ring[0]
+            self.layers_texture = self._texture("layers", (self.agents_per_row * self.layer_count, rows), 4, None, "f4")
             # A layered framebuffer over the planes: it clears every layer at once (texels no run wrote
             # read as 0, not as whatever the memory held), and the fragment path renders through it.
             fb = self.ctx.framebuffer(color_attachments=list(self.planes))
@@ -460,10 +450,7 @@ class AnimationProcessor(GLStage):
             raise ProcessorError(f"layers are for {a.shape[0]} agents, the processor holds {self.agents}")
         if self.agents == 0:
             return
-        # Whole texture rows straight from the array (no padded copy), then the last, partial row, into
-        # the ring's next texture (the one run() reads from now on).
-        self._uploads += 1
-        self.layers_texture = self._layer_ring[self._uploads % LAYER_RING]
+        # Whole texture rows straight from the array (no padded copy), then the last, partial row.
         per_row, width = self.agents_per_row, self.agents_per_row * self.layer_count
         full = self.agents // per_row
         if full:
