@@ -381,7 +381,8 @@ class AnimationProcessor(GLStage):
         self.ctx.error  # clear an earlier error, so the check below sees these allocations'
         try:
             self.planes = tuple(self._array("palette", (width, layer_rows, layers)) for _ in range(3))
-            self.layers_texture = self._texture("layers", (self.agents_per_row * self.layer_count, rows), 4, None, "f4")
+            zeros = np.zeros((rows, self.agents_per_row * self.layer_count, 4), np.float32)  # weight 0 (the rest pose) until an upload
+            self.layers_texture = self._texture("layers", (self.agents_per_row * self.layer_count, rows), 4, zeros, "f4")
             # A layered framebuffer over the planes: it clears every layer at once (texels no run wrote
             # read as 0, not as whatever the memory held), and the fragment path renders through it.
             fb = self.ctx.framebuffer(color_attachments=list(self.planes))
