@@ -70,3 +70,4 @@ def test_closing_the_window_ends_the_run_with_its_stats(display, tmp_path):
     result = json.loads(out.stdout.strip().splitlines()[-1])
     assert result["frames"] in (3, 4)  # pyglet sets is_closing at the next event poll
     assert result["nan"] == 0 and result["written"] and result["markers_bytes"] > 0
+    assert result["hiz"] and result["visible"] > 0  # occlusion culling ran on the window's depth, and left the crowd in view

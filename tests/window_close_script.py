@@ -22,6 +22,8 @@ def render_then_close(window, dt=None):
 
 window_module.render_frame = render_then_close
 stats_path = Path(sys.argv[1]) / "stats.json"
-stats = window_module.run_window(Scene(agents=30, ai=AIConfig(half_extent=9.0)), (400, 300), None, None, stats_path, None)
+# Occlusion on: its depth pyramid copies the window's own framebuffer, which lists no attachments.
+stats = window_module.run_window(Scene(agents=30, occlusion=True, ai=AIConfig(half_extent=9.0)), (400, 300), None, None, stats_path, None)
 print(json.dumps({"frames": stats["window"]["frames"], "nan": stats["nan_count"], "written": stats_path.exists(),
-                  "markers_bytes": stats["gpu_bytes"]["markers"]}))
+                  "markers_bytes": stats["gpu_bytes"]["markers"], "hiz": "hiz" in stats["passes_run"],
+                  "visible": stats["last_frame"]["visible"]}))

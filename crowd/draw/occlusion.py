@@ -70,7 +70,7 @@ class DepthPyramid(GLStage):
 
     def capture(self, framebuffer: moderngl.Framebuffer, view_proj: np.ndarray, eye) -> None:
         size = tuple(framebuffer.size)
-        colours = len(framebuffer.color_attachments)
+        colours = len(framebuffer.color_attachments or ()) or 1  # the window's framebuffer lists none: it has one
         if (size, colours) != (self.size, self.colours):
             self._allocate(size, colours)
         self.ctx.copy_framebuffer(self.fbo, framebuffer)
