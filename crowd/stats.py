@@ -86,7 +86,7 @@ def collect_stats(ctx: moderngl.Context, pipeline, timings: dict[str, list], siz
         "nan_count": pipeline.processor.nan_rows(),
         "python": platform.python_version(),
         "moderngl": moderngl.__version__,
-        "warnings": pipeline.character.warnings + pipeline.bake.warnings + pipeline.role_notes,
+        "warnings": pipeline.character.warnings + pipeline.bake.warnings + pipeline.role_notes + _occlusion_note(pipeline),
     })
     stats.update(pipeline_stats(pipeline))
     return stats
@@ -94,3 +94,9 @@ def collect_stats(ctx: moderngl.Context, pipeline, timings: dict[str, list], siz
 
 def write_stats(path: Path, stats: dict) -> None:
     atomic_write_bytes(Path(path), (json.dumps(stats, indent=2) + "\n").encode())
+
+
+def _occlusion_note(pipeline) -> list[str]:
+    """Why occlusion culling stopped, where it did (a depth that could not be copied)."""
+    pyramid = pipeline.renderer.pyramid
+    return [pyramid.unusable] if pyramid is not None and pyramid.unusable else []

@@ -92,3 +92,37 @@ def test_the_cpu_path_and_a_toggle_leave_no_pyramid(compute):
         p.frame(target.framebuffer, 1 / 60)
         p.frame(target.framebuffer, 1 / 60)
         assert p.gpu_bytes()["occlusion"] > 0
+
+
+def test_a_depth_that_cannot_be_copied_turns_occlusion_off_and_culls_nothing(compute):
+    """Where the blit fails (a depth format the copy cannot take), the pyramid says why and the cull
+    tests nothing against it: the crowd is drawn as with occlusion off."""
+    from crowd.draw.occlusion import DepthPyramid
+
+    class FailingBlit:
+        def __init__(self, ctx):
+            self._ctx, self.calls = ctx, 0
+
+        def __getattr__(self, name):
+            return getattr(self._ctx, name)
+
+        @property
+        def error(self):
+            self.calls += 1
+            return "GL_INVALID_OPERATION" if self.calls == 2 else "GL_NO_ERROR"  # the read after the blit
+
+    off, _, _ = _run(compute, False)
+    original = DepthPyramid.capture
+
+    def failing(self, framebuffer, view_proj, eye):
+        if not isinstance(self.ctx, FailingBlit):
+            self.ctx = FailingBlit(self.ctx)
+        return original(self, framebuffer, view_proj, eye)
+
+    DepthPyramid.capture = failing
+    try:
+        on, _, facts = _run(compute, True)
+    finally:
+        DepthPyramid.capture = original
+    assert "could not be copied (GL_INVALID_OPERATION)" in facts["pyramid"].unusable
+    assert on["visible"] == off["visible"]

@@ -47,6 +47,7 @@ class DepthPyramid(GLStage):
         self.levels: list[tuple[int, int]] = []
         self.view_proj: np.ndarray | None = None  # the camera the pyramid holds, None before the first capture
         self.eye: np.ndarray | None = None
+        self.unusable: str | None = None  # why the frame's depth could not be copied (then nothing is culled)
 
     def _allocate(self, size: tuple[int, int], colours: int) -> None:
         self._sized.release()
@@ -73,7 +74,17 @@ class DepthPyramid(GLStage):
         colours = len(framebuffer.color_attachments or ()) or 1  # the window's framebuffer lists none: it has one
         if (size, colours) != (self.size, self.colours):
             self._allocate(size, colours)
+        if self.unusable is not None:
+            return
+        self.ctx.error  # clear an earlier error, so the check below sees the blit's
         self.ctx.copy_framebuffer(self.fbo, framebuffer)
+        error = self.ctx.error
+        if error != "GL_NO_ERROR":
+            # A framebuffer whose depth format differs from the copy's cannot be blitted: testing
+            # against what the copy holds would hide visible agents, so occlusion culling stops.
+            self.unusable = f"occlusion culling is off: this framebuffer's depth could not be copied ({error})"
+            self.view_proj = None
+            return
         p = self.program
         finer = size
         for level, (w, h) in enumerate(self.levels):
@@ -93,7 +104,7 @@ class DepthPyramid(GLStage):
 
     def bind(self, program, eye) -> bool:
         """Point the cull's occlusion uniforms at the pyramid; False (no test this frame) before the first capture."""
-        if self.view_proj is None:
+        if self.view_proj is None or self.unusable is not None:
             program["u_occlusion"] = 0
             return False
         self.pyramid.use(HIZ_UNIT)
