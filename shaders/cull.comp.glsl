@@ -13,28 +13,14 @@ layout(local_size_x = 256) in;
 // hits (all of a far crowd is LOD2: 3 counters): on the H200 that cost 17 ms for 100,000 agents. So
 // each work group counts its agents per draw in shared memory, reserves its range of each list with
 // one global atomic per draw it touches, and then writes its records into the ranges.
-shared uint s_count[MAX_DRAWS];
 shared uint s_base[MAX_DRAWS];
 
 void main() {
-    uint i = gl_GlobalInvocationID.x;
     uint local = gl_LocalInvocationIndex;
-    for (uint d = local; d < uint(u_draws); d += gl_WorkGroupSize.x) s_count[d] = 0u;
-    memoryBarrierShared();
-    barrier();
-
+    Record r;
     int draws[MAX_EMITS];
     uint slots[MAX_EMITS];
-    int emits = 0;
-    Record r;
-    if (i < u_agents) {
-        emits = agent_draws(i, r, draws);
-        for (int e = 0; e < emits; ++e) {
-            if (draws[e] >= 0) slots[e] = atomicAdd(s_count[draws[e]], 1u);
-        }
-    }
-    memoryBarrierShared();
-    barrier();
+    int emits = count_in_group(r, draws, slots);
     for (uint d = local; d < uint(u_draws); d += gl_WorkGroupSize.x) {
         s_base[d] = s_count[d] > 0u ? atomicAdd(commands[(uint(u_list_base) + d) * 5u + 1u], s_count[d]) : 0u;
     }

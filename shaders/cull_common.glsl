@@ -99,3 +99,25 @@ int agent_draws(uint i, out Record r, out int draws[MAX_EMITS]) {
     else if (u_write_visible == 2 && inside) atomicOr(visible[i], (0x10000u << uint(u_cascade)) | (uint(lod) << 20));
     return emits;
 }
+
+shared uint s_count[MAX_DRAWS];  // per draw: the agents of this work group in it
+
+// This invocation's agent: its record, its draws and its slot among this work group's agents in each
+// of them, counted in shared memory (s_count holds the group's counts after). Every invocation of
+// the work group calls it, as it holds barriers.
+int count_in_group(out Record r, out int draws[MAX_EMITS], out uint slots[MAX_EMITS]) {
+    uint i = gl_GlobalInvocationID.x;
+    for (uint d = gl_LocalInvocationIndex; d < uint(u_draws); d += gl_WorkGroupSize.x) s_count[d] = 0u;
+    memoryBarrierShared();
+    barrier();
+    int emits = 0;
+    if (i < u_agents) {
+        emits = agent_draws(i, r, draws);
+        for (int e = 0; e < emits; ++e) {
+            if (draws[e] >= 0) slots[e] = atomicAdd(s_count[draws[e]], 1u);
+        }
+    }
+    memoryBarrierShared();
+    barrier();
+    return emits;
+}

@@ -103,6 +103,15 @@ def _gpu_lists(renderer, buffer, counts, first: int = 0) -> list[set]:
     return [_listed_agents(renderer, k, records[(first + k) * cap: (first + k) * cap + int(c)]) for k, c in enumerate(counts)]
 
 
+def _prepared_on_both_paths(stages, camera, seed: int, agents: int):
+    """(cpu renderer, gpu renderer, instances): one crowd() culled and listed by both paths."""
+    cpu, gpu = stages["cpu"], stages["gpu"]
+    instances = crowd(np.random.default_rng(seed), agents, gpu, camera)
+    cpu.prepare(camera, instances)
+    gpu.prepare(camera, instances)
+    return cpu, gpu, instances
+
+
 def _cpu_list(renderer, k, buffer, count) -> set:
     from crowd.draw.render import INSTANCE_DTYPE
 
@@ -118,12 +127,8 @@ def _listed_agents(renderer, k, records):
 def test_each_draws_list_holds_the_agents_the_cpu_path_draws(stages):
     """Draw by draw, the GPU's list holds exactly the agents the CPU path puts in that draw, but for
     agents within BOUNDARY_M of a plane or a LOD distance; the counts in the commands match the lists."""
-    rng = np.random.default_rng(11)
     camera = Camera(eye=np.array([0.0, 25.0, 60.0]), target=np.zeros(3), aspect=16 / 9)
-    cpu, gpu = stages["cpu"], stages["gpu"]
-    instances = crowd(rng, 5000, gpu, camera)
-    cpu.prepare(camera, instances)
-    gpu.prepare(camera, instances)
+    cpu, gpu, instances = _prepared_on_both_paths(stages, camera, seed=11, agents=5000)
     counts = gpu.gpu.counts(wait=True)
     assert [(d.piece, d.lod) for d in cpu.draws] == [(d.piece, d.lod) for d in gpu.draws]
     _, _, slack, dist = reference(gpu, camera, instances)
@@ -339,12 +344,8 @@ def test_shadow_lists_are_each_cascades_agents_one_lod_coarser(stages):
     """Per cascade and draw, the GPU's shadow list holds the CPU path's (agents away from the
     boundaries) and no agent outside the cascade's box; each agent casts its shadow from one LOD
     coarser than the colour pass would draw it (capped)."""
-    rng = np.random.default_rng(5)
     camera = Camera(eye=np.array([0.0, 12.0, 30.0]), target=np.zeros(3), aspect=16 / 9)
-    cpu, gpu = stages["cpu"], stages["gpu"]
-    instances = crowd(rng, 4000, gpu, camera)
-    cpu.prepare(camera, instances)
-    gpu.prepare(camera, instances)
+    cpu, gpu, instances = _prepared_on_both_paths(stages, camera, seed=5, agents=4000)
     counts = gpu.gpu.shadow_counts(wait=True)
     eye = np.asarray(camera.eye, np.float64)
     scale = instances.scale.astype(np.float64)

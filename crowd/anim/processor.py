@@ -369,9 +369,7 @@ class AnimationProcessor(GLStage):
         if layers > max_layers or layers * layer_rows > MAX_PALETTE_ROWS:
             raise ProcessorError(f"{agents:,} agents with a palette history of {self.history} need {layers} palette layers of "
                                  f"{layer_rows:,} rows, more than this GPU's {max_layers} layers or the {MAX_PALETTE_ROWS:,} rows a texel code addresses")
-        self._release_group("palette")
-        self._release_group("layers")
-        self.planes, self.layers_texture, self._framebuffer = (), None, None
+        self._drop_palette()
         self.agents = agents
         self.runs = 0
         self.layer_rows, self.slot_layers = layer_rows, slot_layers
@@ -379,6 +377,7 @@ class AnimationProcessor(GLStage):
             return  # no agents: no palette, no layer texture, no pass
         need = 3 * width * layer_rows * layers * 16 + width // self.joint_count * self.layer_count * rows * 16
         self.ctx.error  # clear an earlier error, so the check below sees these allocations'
+        failure = None
         try:
             self.planes = tuple(self._array("palette", (width, layer_rows, layers)) for _ in range(3))
             zeros = np.zeros((rows, self.agents_per_row * self.layer_count, 4), np.float32)  # weight 0 (the rest pose) until an upload
@@ -388,19 +387,23 @@ class AnimationProcessor(GLStage):
             fb = self.ctx.framebuffer(color_attachments=list(self.planes))
             self._own["palette"].append(fb)
         except moderngl.Error as exc:
-            self._release_group("palette")
-            self._release_group("layers")
-            self.planes, self.layers_texture, self.agents = (), None, 0
-            raise ProcessorError(f"the palette for {agents:,} agents ({need:,} bytes) could not be made: {exc}") from None
-        if self.ctx.error == "GL_OUT_OF_MEMORY":
-            self._release_group("palette")
-            self._release_group("layers")
-            self.planes, self.layers_texture, self.agents = (), None, 0
-            raise ProcessorError(f"the GPU ran out of memory for the palette of {agents:,} agents: {need:,} bytes were needed")
+            failure = f"the palette for {agents:,} agents ({need:,} bytes) could not be made: {exc}"
+        if failure is None and self.ctx.error == "GL_OUT_OF_MEMORY":
+            failure = f"the GPU ran out of memory for the palette of {agents:,} agents: {need:,} bytes were needed"
+        if failure is not None:
+            self._drop_palette()
+            self.agents = 0
+            raise ProcessorError(failure)
         fb.clear(0.0, 0.0, 0.0, 0.0)
         if self.path == "fragment":
             self._framebuffer = fb
         self._update_quad()
+
+    def _drop_palette(self) -> None:
+        """Release the palette planes, their framebuffer and the layer texture (the bake's textures stay)."""
+        self._release_group("palette")
+        self._release_group("layers")
+        self.planes, self.layers_texture, self._framebuffer = (), None, None
 
     def _array(self, group, size):
         tex = self.ctx.texture_array(size, 4, dtype="f4")

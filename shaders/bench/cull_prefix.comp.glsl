@@ -13,7 +13,6 @@ layout(std430, binding = 5) buffer GroupCounts { uint group_counts[]; };  // [gr
 uniform int u_phase;
 uniform uint u_work_groups;
 
-shared uint s_count[MAX_DRAWS];
 shared uint s_scan[256];
 
 void scan_draw(uint d, uint local) {
@@ -45,23 +44,11 @@ void main() {
         scan_draw(gl_WorkGroupID.x, local);
         return;
     }
-    uint i = gl_GlobalInvocationID.x;
     uint group = gl_WorkGroupID.x;
-    for (uint d = local; d < uint(u_draws); d += gl_WorkGroupSize.x) s_count[d] = 0u;
-    memoryBarrierShared();
-    barrier();
+    Record r;
     int draws[MAX_EMITS];
     uint slots[MAX_EMITS];
-    int emits = 0;
-    Record r;
-    if (i < u_agents) {
-        emits = agent_draws(i, r, draws);
-        for (int e = 0; e < emits; ++e) {
-            if (draws[e] >= 0) slots[e] = atomicAdd(s_count[draws[e]], 1u);
-        }
-    }
-    memoryBarrierShared();
-    barrier();
+    int emits = count_in_group(r, draws, slots);
     if (u_phase == 0) {
         for (uint d = local; d < uint(u_draws); d += gl_WorkGroupSize.x) group_counts[group * uint(u_draws) + d] = s_count[d];
         return;
