@@ -162,7 +162,9 @@ def bench_ai(args) -> int:
     from crowd.sim.ai import CrowdAI, PlayerScript, motion_for
     from crowd.asset.gltf import load_character
     from crowd.anim.roles import bake_roles, match_roles
+    from crowd.allocator import keep_freed_memory
 
+    keep_freed_memory()  # as the frame loop runs (crowd.allocator)
     character = load_character(args.model)
     roles, _ = match_roles(character.clips)
     baked = bake_roles(character, roles)

@@ -23,6 +23,7 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
+from .allocator import keep_freed_memory
 from .anim.processor import AnimationProcessor, palette_joint_positions
 from .anim.roles import bake_roles, match_roles
 from .asset.gltf import load_character
@@ -77,6 +78,7 @@ class FrameState:
 
 class CrowdPipeline(GLStage):
     def __init__(self, ctx: moderngl.Context, config: PipelineConfig):
+        keep_freed_memory()  # the frame's numpy temporaries reuse memory instead of faulting it in anew (crowd.allocator)
         self.stages = Stages()  # nothing yet: a failure before the build below releases nothing
         self.timer = PassTimer(ctx)
         SETTINGS["agents"].check(config.agents, PipelineError)

@@ -134,8 +134,26 @@ def pack_colors(colors: np.ndarray | None, base_color, count: int) -> np.ndarray
 
 
 def heading_snorm16(yaw: np.ndarray) -> np.ndarray:
-    """(N,) headings → (N, 2) uint32 snorm16 fields of cos and sin, as instance records carry them."""
-    return np.stack([_snorm(np.cos(yaw), 16), _snorm(np.sin(yaw), 16)], axis=1)
+    """(N,) headings → (N, 2) int16 snorm16 cos and sin, as instance records carry them."""
+    out = np.empty((len(yaw), 2), np.int16)
+    write_heading(yaw, out.view(np.uint32)[:, 0])
+    return out
+
+
+def write_heading(yaw: np.ndarray, out: np.ndarray) -> None:
+    """(N,) headings → the records' (N,) uint32 heading field `out` (a strided column is fine): snorm16
+    cos in the low half, sin in the high half. In float32 and in place, written straight into the two
+    halves: |cos|, |sin| <= 1 need no clamp, and float32's error (a few 1e-8) is far below the
+    snorm16 step (3.1e-5). The float64 version with its temporaries took 1.3 of the 2.3 ms that
+    packing 100,000 records took on the dev container."""
+    yaw = np.asarray(yaw, np.float32)
+    halves = out.view(np.int16).reshape(-1, 2) if out.flags.c_contiguous else out[:, None].view(np.int16)
+    scratch = np.empty(len(yaw), np.float32)
+    for half, f in enumerate((np.cos, np.sin)):
+        f(yaw, out=scratch)
+        np.multiply(scratch, np.float32(32767.0), out=scratch)
+        np.rint(scratch, out=scratch)
+        halves[:, half] = scratch
 
 
 def uv_layout(mesh: SkinnedMesh) -> str:
@@ -516,8 +534,7 @@ class CrowdRenderer(GLStage):
         np.add(self._texel_base, texel_code(0, row_offset), out=fields[:, 0], casting="unsafe")
         tint = instances.tint
         fields[:, 1] = tint.view("<u4")[:, 0] if tint.dtype == np.uint8 and tint.flags.c_contiguous else _rgba8(tint)
-        heading = heading_snorm16(instances.yaw)
-        fields[:, 2] = heading[:, 0] | (heading[:, 1] << 16)
+        write_heading(instances.yaw, fields[:, 2])
         fields[:, 3] = 0
         for g, group in enumerate(self.groups):
             v = instances.variant.get(group)

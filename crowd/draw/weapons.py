@@ -59,7 +59,7 @@ class AgentFrames:
         """(position float32 (M, 3), scale float64 (M,), cos_sin float64 (M, 2)) of those agents."""
         rel = (self._position[agents] - self._eye[None]).astype(np.float32)
         yaw = self._yaw[agents]
-        cs = heading_snorm16(yaw).astype(np.uint16).view(np.int16)
+        cs = heading_snorm16(yaw)
         return rel, self._scale[agents].astype(np.float64), cs.astype(np.float64) / 32767.0
 
     def points(self, agents: np.ndarray, model_points: np.ndarray) -> np.ndarray:
