@@ -358,8 +358,9 @@ class CrowdPipeline(GLStage):
         if self.weapons is not None:
             with t.cpu("attach"):
                 agent_frames = AgentFrames(instances.position, instances.yaw, instances.scale, self.camera.eye)
+                gpu = self.renderer.gpu
                 self.weapons.attach(self.sync.synced(read, self.agents), agent_frames, self.ai.weapon, view.visible,
-                                    None if self.renderer.gpu is None else self.renderer.gpu.visible, view.casting, view.lod)
+                                    None if gpu is None else (gpu.visible, gpu.agents_buffer), view.casting, view.lod)
             self._run("attach")
         self.last = FrameState(f, view, read, row_offset, agent_frames)
         framebuffer.use()
@@ -415,7 +416,7 @@ class CrowdPipeline(GLStage):
         rows = self.processor.read_rows(agents, self.weapons.socket_joint, offsets).astype(np.float64)
         socket_model = np.einsum("kij,j->ki", rows, self.weapons.socket_bind[:, 3])
         hand = self.last.agent_frames.points(agents, socket_model)
-        return float(np.max(np.linalg.norm(hand - self.weapons.grip_points(), axis=1)) * 1e3)
+        return float(np.max(np.linalg.norm(hand - self.weapons.grip_points(self.last.agent_frames), axis=1)) * 1e3)
 
     def project(self, world: np.ndarray, size: tuple[int, int]) -> np.ndarray:
         """Pixel (x, y from the top-left) of world points (P, 3) in this frame's camera."""

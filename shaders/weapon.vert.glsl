@@ -1,16 +1,20 @@
 #version 330 core
-// Weapons: one instanced draw per weapon mesh. Each instance is the weapon's model matrix, computed on
-// the CPU from the socket matrix it read back (agent world x socket x inverse grip), relative to the
-// camera like everything else. Shares skin.frag.glsl and depth.frag.glsl with the crowd.
+// Weapons: one instanced draw per (weapon, LOD) mesh. Each instance is the weapon's model matrix in
+// its agent's model space, computed on the CPU from the socket matrix it read back (socket x inverse
+// grip), and the agent's transform as the body's instance record carries it, applied here with the
+// expressions of skin.vert.glsl, so the weapon and the hand holding it round alike. Shares
+// skin.frag.glsl and depth.frag.glsl with the crowd.
 //
 // Defines: DEPTH_ONLY (shadow pass: position only).
 
 in vec3 in_position;
 in uvec2 in_packed;  // x: normal, snorm10 x3 | y: colour, RGBA8
 
-in vec4 i_row0;  // rows of the camera-relative 3x4 model matrix
+in vec4 i_row0;  // rows of the 3x4 model matrix in the agent's model space
 in vec4 i_row1;
 in vec4 i_row2;
+in vec4 i_position_scale;  // the agent's origin relative to the camera, uniform scale (its instance record's)
+in uint i_heading;         // cos, sin of the agent's heading, snorm16 x2 (its instance record's)
 
 uniform mat4 u_view_proj;
 
@@ -22,12 +26,19 @@ out vec4 v_color;
 
 void main() {
     vec4 p = vec4(in_position, 1.0);
-    vec3 world = vec3(dot(i_row0, p), dot(i_row1, p), dot(i_row2, p));
+    vec3 model = vec3(dot(i_row0, p), dot(i_row1, p), dot(i_row2, p));
+    // Heading about +Y, then scale and position: skin.vert.glsl's expressions for the body.
+    vec2 cs = vec2(ivec2(uvec2(i_heading) << uvec2(16u, 0u)) >> 16) / 32767.0;
+    float c = cs.x;
+    float s = cs.y;
+    vec3 local = vec3(c * model.x + s * model.z, model.y, -s * model.x + c * model.z);
+    vec3 world = i_position_scale.xyz + i_position_scale.w * local;
     gl_Position = u_view_proj * vec4(world, 1.0);
 #ifndef DEPTH_ONLY
     vec3 n = vec3(ivec3(uvec3(in_packed.x) << uvec3(22u, 12u, 2u)) >> 22) / 511.0;
+    vec3 normal = vec3(dot(i_row0.xyz, n), dot(i_row1.xyz, n), dot(i_row2.xyz, n));
     v_world = world;
-    v_normal = vec3(dot(i_row0.xyz, n), dot(i_row1.xyz, n), dot(i_row2.xyz, n));
+    v_normal = vec3(c * normal.x + s * normal.z, normal.y, -s * normal.x + c * normal.z);
     v_color = vec4((uvec4(in_packed.y) >> uvec4(0u, 8u, 16u, 24u)) & 0xFFu) / 255.0;
 #endif
 }

@@ -74,4 +74,6 @@ class PaletteSync:
             return None
         keep = read.agents < agents
         keep[keep] = self.born[read.agents[keep]] <= read.frame
+        if keep.all():  # the usual frame: nobody (re)spawned since the read, and no copy of its rows
+            return read
         return dataclasses.replace(read, agents=read.agents[keep], joints=read.joints[keep], rows=read.rows[keep])

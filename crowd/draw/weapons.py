@@ -9,10 +9,13 @@ Contract: ``attach(read, agents_frame, weapon_of_agent)``:
   values the instance record carries, so weapon and hand go through the same numbers;
 - ``weapon_of_agent``: (N,) weapon index per agent (-1: unarmed).
 
-Per entry: weapon model = agent x (socket skinning matrix x socket bind) x inverse(grip), in float64,
-vectorised; uploaded as float32 camera-relative 3x4 rows. An entry whose agent is unarmed now, or
-out of range, is dropped without touching the others. ``drawn`` keeps what was uploaded (agents,
-weapon indices, rows) so that the error of the frame as drawn can be measured.
+Per entry: the weapon in its agent's model space = socket skinning matrix x socket bind x
+inverse(grip), in float32, vectorised (``placements``). The agent's own transform is applied on the
+GPU, by weapon.vert.glsl with the arithmetic of skin.vert.glsl, from the agent's part of the instance
+(the CPU path writes it from ``agents_frame``; the GPU path's weapon cull copies it from the body's
+record): weapon and hand go through the same numbers and the same expressions. An entry whose agent
+is unarmed now, or out of range, is dropped without touching the others. ``drawn`` keeps what was
+uploaded (agents, weapon indices, model-space rows) so that the error of the frame as drawn can be measured.
 
 Culling: on the CPU cull path ``attach`` is given the visible set and uploads only those weapons. On the
 GPU path (``gpu_cull``) the CPU does not know it: every armed agent's weapon is uploaded with its
@@ -32,11 +35,14 @@ from ..gl import GLObjects, GLStage, load_shader
 from .gpu_cull import BUFFER_UPDATE, COMMAND, COMMAND_DTYPE, GROUP_SIZE, VERTEX_ATTRIB_ARRAY, CountRing
 from ..asset.model import Character, RigidMesh
 from ..asset.vertex_cache import best_triangle_order
-from .render import gl_bytes, heading_snorm16, pack_colors, pack_normals
+from .render import gl_bytes, heading_snorm16, pack_colors, pack_normals, write_heading
 from .shadows import CASCADES
 
 VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("packed", "<u4", 2)])
-INSTANCE_DTYPE = np.dtype([("rows", "<f4", (3, 4))])
+# A weapon instance: its 3x4 model matrix in its agent's model space, and the agent's transform as the
+# body's instance record carries it (camera-relative position and scale; fields.z the heading), which
+# weapon.vert.glsl applies as skin.vert.glsl does. 80 bytes, std430's layout of the same struct.
+INSTANCE_DTYPE = np.dtype([("rows", "<f4", (3, 4)), ("position_scale", "<f4", 4), ("fields", "<u4", 4)])
 
 
 class WeaponError(ValueError):
@@ -55,12 +61,21 @@ class AgentFrames:
         self._scale = np.asarray(scale, np.float32)
         self._eye = np.asarray(eye, np.float64)
 
-    def of(self, agents: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(position float32 (M, 3), scale float64 (M,), cos_sin float64 (M, 2)) of those agents."""
+    def of(self, agents: np.ndarray, dtype=np.float64) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(position float32 (M, 3), scale (M,), cos_sin (M, 2)) of those agents, the last two in `dtype`."""
         rel = (self._position[agents] - self._eye[None]).astype(np.float32)
-        yaw = self._yaw[agents]
-        cs = heading_snorm16(yaw)
-        return rel, self._scale[agents].astype(np.float64), cs.astype(np.float64) / 32767.0
+        cs = heading_snorm16(self._yaw[agents])
+        return rel, self._scale[agents].astype(dtype), cs.astype(dtype) / dtype(32767.0)  # as unpackSnorm2x16 divides
+
+    def instances(self, agents: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """(K,) INSTANCE_DTYPE: model-space weapon rows (K, 3, 4) with their agents' transforms, as the
+        body's instance records carry them (the CPU path's weapon instances)."""
+        out = np.zeros(len(agents), INSTANCE_DTYPE)
+        out["rows"] = rows
+        out["position_scale"][:, :3] = self._position[agents] - self._eye[None]
+        out["position_scale"][:, 3] = self._scale[agents]
+        write_heading(self._yaw[agents], out["fields"][:, 2])
+        return out
 
     def points(self, agents: np.ndarray, model_points: np.ndarray) -> np.ndarray:
         """(M, 3) float64: model-space points of those agents placed as the shader places them:
@@ -71,10 +86,15 @@ class AgentFrames:
         return rel + k[:, None] * np.stack([c * p[:, 0] + s * p[:, 2], p[:, 1], c * p[:, 2] - s * p[:, 0]], axis=1)
 
 
-def pack_rigid(mesh: RigidMesh) -> np.ndarray:
+def pack_rigid(mesh: RigidMesh, to_socket: np.ndarray) -> np.ndarray:
+    """The mesh's vertices moved into its socket's space by the affine `to_socket` (4, 4) in float64
+    (socket bind x inverse grip, fixed per weapon): the read-back socket skinning matrix then places
+    them as it is, and the CPU does no arithmetic per weapon."""
     v = np.zeros(len(mesh.positions), VERTEX_DTYPE)
-    v["position"] = mesh.positions
-    v["packed"][:, 0] = pack_normals(mesh.normals)
+    linear = to_socket[:3, :3]
+    v["position"] = np.asarray(mesh.positions, np.float64) @ linear.T + to_socket[:3, 3]
+    normals = np.asarray(mesh.normals, np.float64) @ np.linalg.inv(linear)  # the inverse transpose, for any scale
+    v["packed"][:, 0] = pack_normals(normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12))
     v["packed"][:, 1] = pack_colors(mesh.colors, mesh.base_color, len(v))
     return v
 
@@ -93,9 +113,11 @@ class WeaponRenderer(GLStage):
         bind = np.linalg.inv(np.asarray(character.skeleton.inverse_bind, np.float64))
         self.socket_bind = bind[self.socket_joint]  # the socket joint's model matrix at bind
         self.inverse_grip = np.stack([np.linalg.inv(np.asarray(p.grip, np.float64)) for p in character.props.values()])
-        # Per weapon mesh: the socket's skinning matrix times this gives the weapon in model space.
+        # Per weapon mesh: the socket's skinning matrix times this gives the weapon in model space. It is
+        # baked into the mesh's vertices (pack_rigid), so an instance is the read-back socket rows as they are.
         self._socket_to_weapon = np.stack([self.socket_bind @ g for g in self.inverse_grip])
-        self.grip_origin = np.stack([np.asarray(p.grip, np.float64)[:, 3] for p in character.props.values()])  # (W, 4)
+        grip_origin = np.stack([np.asarray(p.grip, np.float64)[:, 3] for p in character.props.values()])  # (W, 4)
+        self._grip_in_socket = np.einsum("wij,wj->wi", self._socket_to_weapon, grip_origin)  # the grip point, as baked
         self.gpu_cull = gpu_cull
         self.lod_count = max(len(p.lods) for p in character.props.values())
         draws = len(self.names) * self.lod_count  # draw w * lod_count + lod: weapon w at that LOD
@@ -113,10 +135,10 @@ class WeaponRenderer(GLStage):
                 self._shadow_shown = self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
                 self._shadow_commands = self._objects.add(ctx.buffer(reserve=CASCADES * draws * COMMAND_DTYPE.itemsize))
         self.shadows = shadows
-        for prop in character.props.values():
+        for w, prop in enumerate(character.props.values()):
             lods = prop.lods + (prop.lods[-1],) * (self.lod_count - len(prop.lods))
             for lod, mesh in enumerate(lods):
-                vbo = self._objects.add(ctx.buffer(pack_rigid(mesh).tobytes()))
+                vbo = self._objects.add(ctx.buffer(pack_rigid(mesh, self._socket_to_weapon[w]).tobytes()))
                 ibo = self._objects.add(ctx.buffer(best_triangle_order(mesh.indices, len(mesh.positions)).tobytes()))
                 inst = self._shown if gpu_cull else self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
                 shadow = []  # per cascade: the CPU path's lists (the GPU path's are one buffer, by baseInstance)
@@ -141,78 +163,71 @@ class WeaponRenderer(GLStage):
             vertex = ("3f 2u", "in_position", "in_packed") if kind == "color" else ("3f 8x", "in_position")
             instances = mesh["shadow_instances"][cascade] if kind == "depth" else mesh["instances"]
             mesh["vaos"][kind, cascade] = self._objects.add(self.ctx.vertex_array(
-                prog, [(mesh["vbo"], *vertex), (instances, "4f 4f 4f/i", "i_row0", "i_row1", "i_row2")], index_buffer=mesh["ibo"], index_element_size=4))
+                prog, [(mesh["vbo"], *vertex), (instances, "4f 4f 4f 4f 8x 1u 4x/i", "i_row0", "i_row1", "i_row2", "i_position_scale", "i_heading")], index_buffer=mesh["ibo"], index_element_size=4))
         return mesh["vaos"][kind, cascade]
 
-    def matrices(self, read, frames: AgentFrames, weapon_of_agent: np.ndarray):
-        """(agents, weapon indices, (K, 3, 4) float32 camera-relative weapon model rows, as uploaded)
-        for the entries of `read` whose agent exists and is armed now, sorted by weapon.
+    def placements(self, read, weapon_of_agent: np.ndarray):
+        """(agents, weapon indices, (K, 3, 4) float32 socket skinning-matrix rows) for the entries of
+        `read` whose agent exists and is armed now, in the read's order.
 
-        Float64 and vectorised, in planes (one (K, 4) array per matrix row, so every operation runs over
-        contiguous memory): per weapon mesh one (K, 4) @ (4, 4) product per row for socket x bind x
-        inverse grip, then the agent's heading, scale and position element-wise. numpy's batched 4x4
-        matmul took 7 ms for 10,000 weapons on the dev container; this takes about 1.5 ms."""
+        No arithmetic: the weapon meshes' vertices are in their socket's space (pack_rigid), and the
+        agent's transform is applied by weapon.vert.glsl, so the read-back rows are the instances'
+        model rows as they are. Only a frame with entries to drop (an agent gone, unarmed, or dead
+        since its socket was gathered) copies them. Composing socket x grip x agent in float64 numpy
+        took 11 ms for 50,000 weapons on the dev container."""
         agents, rows = read.agents, read.rows
-        keep = (agents < len(weapon_of_agent)) & (read.joints == self.socket_joint)
-        agents, rows = agents[keep], rows[keep]
-        weapon = weapon_of_agent[agents].astype(np.int16)
-        armed = (weapon >= 0) & (weapon < len(self.names))
-        agents, rows, weapon = agents[armed], rows[armed], weapon[armed]
-        if not np.all(np.isfinite(rows)):
+        present = (agents < len(weapon_of_agent)) & (read.joints == self.socket_joint)
+        if present.all():
+            weapon = weapon_of_agent[agents].astype(np.int64)
+        else:
+            weapon = np.full(len(agents), -1, np.int64)
+            weapon[present] = weapon_of_agent[agents[present]]
+        keep = (weapon >= 0) & (weapon < len(self.names))
+        if not keep.all():
+            entry = np.flatnonzero(keep)
+            agents, weapon, rows = agents[entry], weapon[entry], rows[entry]
+        rows = np.asarray(rows, np.float32)
+        # All finite exactly when their float64 sum is (NaN and Inf propagate, Inf - Inf is NaN, and no
+        # float32 values' sum overflows float64): one pass and no boolean temporary.
+        if not np.isfinite(rows.sum(dtype=np.float64)):
             raise WeaponError("a read-back socket matrix holds NaN or Inf")
-        order = np.argsort(weapon, kind="stable")  # 16-bit keys: a radix sort
-        agents, weapon = agents[order], weapon[order].astype(np.int64)
-        socket = np.ascontiguousarray(rows[order].transpose(1, 0, 2), dtype=np.float64)  # (3, K, 4)
-        starts = np.searchsorted(weapon, np.arange(len(self.names) + 1))
-        local = np.empty(socket.shape)  # the weapon in the agent's model space
-        for w in range(len(self.names)):
-            a, b = starts[w], starts[w + 1]
-            local[:, a:b] = socket[:, a:b] @ self._socket_to_weapon[w]
-        position, scale, cs = frames.of(agents)
-        k = scale[:, None]
-        kc, ks = k * cs[:, 0:1], k * cs[:, 1:2]
-        out = np.empty(local.shape)
-        np.multiply(kc, local[0], out=out[0])
-        out[0] += ks * local[2]
-        np.multiply(k, local[1], out=out[1])
-        np.multiply(kc, local[2], out=out[2])
-        out[2] -= ks * local[0]
-        out[:, :, 3] += position.T
-        return agents, weapon, out.transpose(1, 0, 2).astype(np.float32)
+        return agents, weapon, rows
 
     def attach(self, read, frames: AgentFrames, weapon_of_agent: np.ndarray, visible: np.ndarray | None = None,
                visibility=None, casting: np.ndarray | None = None, lod: np.ndarray | None = None) -> int:
         """Place and upload this frame's weapons (none when `read` is None). Returns how many.
         `visible`, `casting` and `lod`: the CPU cull's agents drawn, agents in each shadow cascade's
         volume ((cascades, N): their weapons' shadows are drawn there) and each agent's colour LOD
-        (None: LOD0); `visibility`: on the GPU path, the body cull's per-agent visibility and LODs,
-        which a compute pass filters the weapons by for both passes."""
+        (None: LOD0); `visibility`: on the GPU path, the body cull's buffers of per-agent visibility and
+        LODs, which a compute pass filters the weapons by for both passes, and of agent records, whose
+        transform it applies to each weapon placed in its agent's model space."""
         if read is None:
             agents, weapon, rows = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 4), np.float32)
         else:
-            agents, weapon, rows = self.matrices(read, frames, np.asarray(weapon_of_agent))
+            agents, weapon, rows = self.placements(read, np.asarray(weapon_of_agent))
         if self.gpu_cull:
-            return self._attach_on_gpu(agents, weapon, rows, np.searchsorted(weapon, np.arange(len(self.names) + 1)), visibility)
+            return self._attach_on_gpu(agents, weapon, rows, np.concatenate([[0], np.cumsum(np.bincount(weapon, minlength=len(self.names)))]), visibility)
         agent_lod = np.zeros(len(agents), np.int64) if lod is None else np.asarray(lod, np.int64)[agents]
+        instances = frames.instances(agents, rows)
         if self.shadows:
             for k in range(CASCADES):
                 lit = np.ones(len(agents), bool) if casting is None else casting[k][agents]
-                self._upload_cpu(weapon[lit], agent_lod[lit] + 1, rows[lit], "shadow_instances", "shadow_counts", k)
+                self._upload_cpu(weapon[lit], agent_lod[lit] + 1, instances[lit], "shadow_instances", "shadow_counts", k)
         if visible is not None:
             shown = visible[agents]
-            agents, weapon, rows, agent_lod = agents[shown], weapon[shown], rows[shown], agent_lod[shown]
-        self._upload_cpu(weapon, agent_lod, rows, "instances", "count")
+            agents, weapon, rows, agent_lod, instances = agents[shown], weapon[shown], rows[shown], agent_lod[shown], instances[shown]
+        self._upload_cpu(weapon, agent_lod, instances, "instances", "count")
         self.drawn = (agents, weapon, rows)
         self.last = {"weapons": int(len(agents)), "drawn": int(len(agents)), "draws": sum(1 for m in self._meshes if m["count"]),
                      "triangles": sum(m["count"] * m["triangles"] for m in self._meshes)}
         return len(agents)
 
-    def _upload_cpu(self, weapon: np.ndarray, lod: np.ndarray, rows: np.ndarray, buffer: str, count: str, cascade: int | None = None) -> None:
-        """The CPU path: each (weapon, LOD) mesh's rows into its `buffer`, their number in `count`
-        (the shadow lists' of one `cascade`)."""
+    def _upload_cpu(self, weapon: np.ndarray, lod: np.ndarray, instances: np.ndarray, buffer: str, count: str, cascade: int | None = None) -> None:
+        """The CPU path: each (weapon, LOD) mesh's instances (INSTANCE_DTYPE) into its `buffer`, their
+        number in `count` (the shadow lists' of one `cascade`)."""
         key = weapon * self.lod_count + np.minimum(lod, self.lod_count - 1)
         order = np.argsort(key, kind="stable")
-        rows = rows[order]
+        rows = instances[order]
         starts = np.searchsorted(key[order], np.arange(len(self._meshes) + 1))
         for d, mesh in enumerate(self._meshes):
             chosen = rows[starts[d]:starts[d + 1]]
@@ -232,11 +247,13 @@ class WeaponRenderer(GLStage):
         LOD l's lists follow one another, each `k` long, weapon w's part of each starting at starts[w];
         the shadow lists hold one such set per cascade, one after the other."""
         if visibility is None:
-            raise WeaponError("the GPU weapon cull needs the body cull's visibility buffer")
+            raise WeaponError("the GPU weapon cull needs the body cull's visibility and record buffers")
+        visible, records = visibility
         k = len(agents)
         sets = 1 + (CASCADES if self._shadow_shown is not None else 0)  # the colour lists, then each cascade's
-        for buf, size in ((self._placed, rows.nbytes), (self._shown, rows.nbytes * self.lod_count),
-                          (self._shadow_shown, rows.nbytes * self.lod_count * (sets - 1))):
+        shown = k * INSTANCE_DTYPE.itemsize  # a weapon's instance, as the weapon cull writes it
+        for buf, size in ((self._placed, rows.nbytes), (self._shown, shown * self.lod_count),
+                          (self._shadow_shown, shown * self.lod_count * (sets - 1))):
             if buf is not None and buf.size != max(size, INSTANCE_DTYPE.itemsize):
                 buf.orphan(max(size, INSTANCE_DTYPE.itemsize))
         commands = np.zeros(len(self._meshes), COMMAND_DTYPE)
@@ -254,10 +271,11 @@ class WeaponRenderer(GLStage):
             mesh["shadow_counts"] = [mesh["count"]] * CASCADES
         if k:
             self._placed.write(np.ascontiguousarray(rows))
-            owner = np.stack([agents, weapon], axis=1).astype(np.uint32)
+            owner = np.empty((k, 2), np.uint32)
+            owner[:, 0], owner[:, 1] = agents, weapon
             if self._owner.size != owner.nbytes:
                 self._owner.orphan(owner.nbytes)
-            self._owner.write(owner.tobytes())
+            self._owner.write(owner)
             self._cull["u_count"] = k
             self._cull["u_lod_count"] = self.lod_count
             first = np.zeros(16, np.uint32)
@@ -268,7 +286,7 @@ class WeaponRenderer(GLStage):
                 self._cull["u_shadow"] = run  # 0: colour; 1 + k: cascade k
                 self._cull["u_list_base"] = max(run - 1, 0) * self.lod_count * k
                 self._cull["u_command_base"] = max(run - 1, 0) * len(self._meshes)
-                for binding, buf in enumerate((self._placed, self._owner, shown, command_buffer, visibility)):
+                for binding, buf in enumerate((self._placed, self._owner, shown, command_buffer, visible, records)):
                     buf.bind_to_storage_buffer(binding)
                 self._cull.run(group_x=(k + GROUP_SIZE - 1) // GROUP_SIZE)
             self.ctx.memory_barrier(VERTEX_ATTRIB_ARRAY | COMMAND | BUFFER_UPDATE)
@@ -303,10 +321,11 @@ class WeaponRenderer(GLStage):
         else:
             self._vao(mesh, kind, cascade if kind == "depth" else 0).render(moderngl.TRIANGLES, instances=count)
 
-    def grip_points(self) -> np.ndarray:
-        """(K, 3) float64: the grip point of each drawn weapon, through the float32 rows the GPU got."""
+    def grip_points(self, frames: AgentFrames) -> np.ndarray:
+        """(K, 3) float64: the grip point of each drawn weapon, through the float32 model-space rows the
+        GPU got, placed by `frames` as weapon.vert.glsl places them."""
         agents, weapon, rows = self.drawn
-        return np.einsum("kij,kj->ki", rows.astype(np.float64), self.grip_origin[weapon])
+        return frames.points(agents, np.einsum("kij,kj->ki", rows.astype(np.float64), self._grip_in_socket[weapon]))
 
     def depth_pass(self, view, renderer) -> None:
         """Into each shadow cascade's tile (``renderer.shadow_tiles``), after the crowd's shadow pass."""
