@@ -360,7 +360,8 @@ class CrowdPipeline(GLStage):
                 agent_frames = AgentFrames(instances.position, instances.yaw, instances.scale, self.camera.eye)
                 gpu = self.renderer.gpu
                 self.weapons.attach(self.sync.synced(read, self.agents), agent_frames, self.ai.weapon, view.visible,
-                                    None if gpu is None else (gpu.visible, gpu.agents_buffer), view.casting, view.lod)
+                                    None if gpu is None else (gpu.visible, gpu.agents_buffer), view.casting, view.lod,
+                                    fallen=~self.ai.alive())
             self._run("attach")
         self.last = FrameState(f, view, read, row_offset, agent_frames)
         framebuffer.use()
@@ -375,7 +376,7 @@ class CrowdPipeline(GLStage):
             with t.gpu("draw"):
                 self.renderer.color_pass(framebuffer, view, self.processor)
             self._run("draw")
-        if self.weapons is not None and self.weapons.last["weapons"]:
+        if self.weapons is not None and (self.weapons.last["weapons"] or self.weapons.last["dropped"]):
             with t.gpu("weapons"):
                 self.weapons.color_pass(framebuffer, view, self.renderer)
             self._run("weapons")

@@ -40,7 +40,8 @@ def weapon_stats(pipeline) -> dict:
         return {"enabled": False}
     return {"enabled": True, "latency_frames": pipeline.latency,
             "pose_lag_ms": pipeline.pose_lag_ms(),  # simulated time the pose trails by
-            "armed": int(np.count_nonzero(pipeline.ai.armed())), "placed": pipeline.weapons.last["weapons"], "drawn": pipeline.weapons.last["drawn"],
+            "armed": int(np.count_nonzero(pipeline.ai.armed())), "placed": pipeline.weapons.last["weapons"],
+            "dropped": pipeline.weapons.last["dropped"], "drawn": pipeline.weapons.last["drawn"],  # drawn: in hand and on the ground
             "triangles": pipeline.weapons.last["triangles"],
             "gathered": pipeline.readback.last_count, "stalls": pipeline.readback_stalls, "reads": len(pipeline.readback_waits)}
 

@@ -273,8 +273,8 @@ def test_resizing_releases_what_it_no_longer_needs(gl_context, zombie_bake):
 @pytest.mark.parametrize("path", PATHS)
 def test_history_keeps_the_palettes_of_earlier_runs(gl_context, zombie, zombie_bake, path):
     """A ring of 4 palettes: after six runs with different layers, ages 0-3 hold runs 5, 4, 3 and 2,
-    each as exact as a single palette; a resize within the same rows keeps the history, one that
-    needs more rows (or a new history length) starts it again."""
+    each as exact as a single palette; a resize keeps the history of the agents still there (within the
+    same rows as it is, into more rows copied across); a new history length starts it again."""
     rng = np.random.default_rng(21)
     n = 300  # two palette rows (178 agents per row for 23 joints): a partial last row too
     runs = [random_layers(rng, n, 2, len(zombie_bake.clips)) for _ in range(6)]
@@ -294,11 +294,13 @@ def test_history_keeps_the_palettes_of_earlier_runs(gl_context, zombie, zombie_b
         proc.resize(n - 10)  # same rows: history kept for the agents still there
         kept = proc.read_palette(1).astype(np.float64)
         assert joint_error(zombie.skeleton.inverse_bind, kept, reference_palette(zombie_bake, runs[4][: n - 10])) <= ZOMBIE_TOL_M
-        proc.resize(1000)  # more rows: a new palette, no history
-        assert proc.runs == 0
+        proc.resize(1000)  # more rows: a new palette, the kept agents' history copied across
+        assert proc.runs == 6 and proc.palette_rows() == 6
+        for age in range(4):
+            kept = proc.read_palette(age)[: n - 10].astype(np.float64)
+            assert joint_error(zombie.skeleton.inverse_bind, kept, reference_palette(zombie_bake, runs[5 - age][: n - 10])) <= ZOMBIE_TOL_M, f"age {age}"
         proc.process(runs[0].repeat(4, axis=0)[:1000])
-        with pytest.raises(ProcessorError):
-            proc.row_offset(1)
+        assert proc.runs == 7
         proc.set_history(2)
         assert proc.planes[0].layers * proc.planes[0].height == 2 * proc.palette_rows() and proc.runs == 0
     finally:

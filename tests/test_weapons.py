@@ -206,13 +206,18 @@ def test_dying_and_removed_agents_drop_their_weapon_and_nobody_else_does(harness
     for _ in range(p.latency):
         h.frame()
     assert new <= drawn_agents(p) and p.weapon_error_mm() <= ERROR_MM
-    # Past a palette row (178 agents for 23 joints) the palette is reallocated: weapons hide N frames.
+    # Past a palette row (178 agents for 23 joints) the palette is reallocated, and the gather's ring
+    # grows with the armed crowd: the kept palettes and the queued read-backs are copied across, so
+    # every agent kept keeps its weapon in hand in every frame.
+    held = drawn_agents(p)
+    capacity = p.readback.capacity
     p.set_agent_count(400)
-    h.frame()
-    assert p.weapons.last["weapons"] == 0
-    for _ in range(p.latency):
+    p.ai.weapon[:] = np.arange(p.agents) % 2
+    for _ in range(p.latency + 1):
         h.frame()
-    assert p.weapons.last["weapons"] > 0 and p.weapon_error_mm() <= ERROR_MM
+        assert held <= drawn_agents(p) and p.weapon_error_mm() <= ERROR_MM
+    assert p.readback.capacity > capacity and p.processor.palette_rows() > 1
+    assert set(range(p.agents)) - {victim} == drawn_agents(p)  # the new agents' weapons, N frames on
 
 
 @pytest.mark.parametrize("config", [{"weapons": False}, {"ai": AIConfig(armed_share=0.0)}])
@@ -336,3 +341,67 @@ def test_the_cpu_paths_weapon_instances_carry_their_agents_records_bit_for_bit(h
     records = p.renderer._all_records(p.ai.instances(), np.asarray(p.camera.eye, np.float64), 0)[agents]
     assert np.array_equal(inst["position_scale"].view(np.uint32), records["position_scale"].view(np.uint32))
     assert np.array_equal(inst["fields"][:, 2], records["packed"][:, 2])
+
+
+@pytest.mark.parametrize("cull", ["cpu", "gpu"])
+def test_a_dropped_weapon_lies_on_the_ground_below_the_hand_it_left_until_the_respawn(harness, cull):
+    from crowd.draw.weapons import VERTEX_DTYPE
+    h = harness(scripted_player=False, cull=cull, ai=AIConfig(half_extent=9.0, armed_share=1.0, corpse_time=0.5))
+    p = h.pipeline
+    p.ai.player = np.array([500.0, 500.0])  # nobody notices the player: the crowd only wanders
+    for _ in range(4):
+        h.frame()
+    victim = 7
+    agents, weapon, rows = p.weapons.drawn
+    p.ai.health[victim] = 1
+    p.ai.hit([victim])
+    last_hand = None
+    for _ in range(p.latency + 1):  # the weapon stays in hand for N frames, then drops
+        if victim in p.weapons.drawn[0]:
+            k = int(np.flatnonzero(p.weapons.drawn[0] == victim)[0])
+            last_hand = p.weapons.grip_points(p.last.agent_frames)[k]
+        h.frame()
+    assert last_hand is not None and victim not in p.weapons.drawn[0]
+    dropped_agents, dropped_weapon, dropped_rows = p.weapons.dropped
+    assert dropped_agents.tolist() == [victim] and p.weapons.last["dropped"] == 1
+    # Its vertices, as the GPU places them: the lowest on the ground, the grip point below the hand.
+    w = int(dropped_weapon[0])
+    mesh = p.weapons._meshes[w * p.weapons.lod_count]
+    baked = np.frombuffer(mesh["vbo"].read(), VERTEX_DTYPE)["position"].astype(np.float64)
+    model = baked @ dropped_rows[0][:, :3].T.astype(np.float64) + dropped_rows[0][:, 3]
+    world = p.last.agent_frames.points(np.full(len(model), victim), model) + np.asarray(p.camera.eye, np.float64)
+    assert abs(world[:, 1].min()) < 1e-3
+    grip = p.last.agent_frames.points(np.array([victim]), (dropped_rows[0].astype(np.float64) @ p.weapons._grip_in_socket[w])[None])[0]
+    assert np.linalg.norm(grip[[0, 2]] - last_hand[[0, 2]]) < 1e-3 and grip[1] < last_hand[1]
+    assert p.weapon_error_mm() <= ERROR_MM  # the weapons still in hand are unaffected
+    # It stays while the body lies there, and is gone once the zombie has respawned.
+    while p.ai.state[victim] >= DYING:
+        assert victim in p.weapons.dropped[0]
+        h.frame()
+    h.frame()
+    assert victim not in p.weapons.dropped[0] and p.weapons.last["dropped"] == 0
+
+
+@pytest.mark.parametrize("limit", [None, 2])
+def test_a_reallocated_palette_keeps_every_kept_agents_history_bit_for_bit(harness, monkeypatch, limit):
+    """Growing 300 -> 700 agents (2 -> 4 palette rows a slot) and shrinking back to 250: every kept
+    agent's rows in every kept ring slot are the old ones, in one layer a slot and with slots cut
+    into layers of 2 rows (a slot then spans layers, and old and new layers split at other rows)."""
+    from crowd.anim import processor as module
+    if limit is not None:
+        monkeypatch.setattr(module, "palette_limits", lambda ctx: (limit, 256))
+    h = harness(agents=300, ai=AIConfig(half_extent=12.0, armed_share=0.7))
+    for _ in range(5):
+        h.frame()
+    proc = h.pipeline.processor
+    for agents in (700, 250):
+        kept = np.arange(min(agents, proc.agents))
+        ages = range(min(proc.history, proc.runs))
+        before = [proc.read_rows(kept, j, np.full(len(kept), proc.row_offset(a))) for a in ages for j in (0, 11)]
+        h.pipeline.set_agent_count(agents)
+        after = [proc.read_rows(kept, j, np.full(len(kept), proc.row_offset(a))) for a in ages for j in (0, 11)]
+        assert all(np.array_equal(b, c) for b, c in zip(before, after))
+        if limit is not None:
+            assert proc.layer_rows == limit
+        h.frame()
+        assert h.pipeline.weapon_error_mm() <= ERROR_MM

@@ -349,7 +349,9 @@ class AnimationProcessor(GLStage):
             self._allocate(self.agents)
 
     def resize(self, agents: int) -> None:
-        """Make room for exactly `agents` agents; everything for agents no longer there is released."""
+        """Make room for exactly `agents` agents; everything for agents no longer there is released. The
+        agents kept keep their palette history: the same texture rows are kept as they are, and new
+        planes get the kept palettes copied across on the GPU (so weapons stay in hand through it)."""
         if not isinstance(agents, (int, np.integer)) or agents < 0:
             raise ProcessorError(f"agent count must be a whole number >= 0, got {agents!r}")
         agents = int(agents)
@@ -357,9 +359,9 @@ class AnimationProcessor(GLStage):
             self.agents = agents  # the same texture rows: the agents kept keep their palette history
             self._update_quad()
             return
-        self._allocate(agents)
+        self._allocate(agents, keep=True)
 
-    def _allocate(self, agents: int) -> None:
+    def _allocate(self, agents: int, keep: bool = False) -> None:
         rows = self.palette_rows(agents)
         limit, max_layers = palette_limits(self.ctx)
         layer_rows = max(1, min(rows, limit))
@@ -369,9 +371,16 @@ class AnimationProcessor(GLStage):
         if layers > max_layers or layers * layer_rows > MAX_PALETTE_ROWS:
             raise ProcessorError(f"{agents:,} agents with a palette history of {self.history} need {layers} palette layers of "
                                  f"{layer_rows:,} rows, more than this GPU's {max_layers} layers or the {MAX_PALETTE_ROWS:,} rows a texel code addresses")
+        # The palettes kept across (`keep`, with something written and agents on both sides): the old
+        # planes stay alive until they are copied; the ring's position (runs) carries over.
+        old = None
+        if keep and self.planes and self.runs and agents:
+            old = (self.planes, self._own["palette"], self.layer_rows, self.slot_layers, min(self.palette_rows(), self.palette_rows(agents)))
+            self._own["palette"] = []
+            self.planes = ()
         self._drop_palette()
         self.agents = agents
-        self.runs = 0
+        runs, self.runs = self.runs, 0
         self.layer_rows, self.slot_layers = layer_rows, slot_layers
         if agents == 0:
             return  # no agents: no palette, no layer texture, no pass
@@ -393,11 +402,47 @@ class AnimationProcessor(GLStage):
         if failure is not None:
             self._drop_palette()
             self.agents = 0
+            if old is not None:
+                for obj in old[1]:
+                    obj.release()
             raise ProcessorError(failure)
         fb.clear(0.0, 0.0, 0.0, 0.0)
         if self.path == "fragment":
             self._framebuffer = fb
         self._update_quad()
+        if old is not None:
+            try:
+                self._copy_palettes(*old[0:1], *old[2:])
+                self.runs = runs
+            finally:
+                for obj in old[1]:
+                    obj.release()
+
+    def _copy_palettes(self, planes, layer_rows: int, slot_layers: int, rows: int) -> None:
+        """Copy the first `rows` rows of every ring slot of the old `planes` (laid out in layers of
+        `layer_rows` rows, `slot_layers` a slot) into the same rows of the same slots of the new
+        planes, on the GPU: each old plane into a pixel-pack buffer, then runs of rows that stay in one
+        layer on both sides through a staging buffer into the new plane. An agent's texel within its
+        slot (palette_texel) does not depend on the crowd's size, so the rows move as they are."""
+        width = planes[0].size[0]
+        row_bytes = width * 16
+        staging = self.ctx.buffer(reserve=max(min(rows, layer_rows, self.layer_rows) * row_bytes, 16))
+        whole = self.ctx.buffer(reserve=planes[0].size[0] * planes[0].size[1] * planes[0].layers * 16)
+        try:
+            for old_plane, new_plane in zip(planes, self.planes):
+                old_plane.read_into(whole)
+                for slot in range(self.history):
+                    y = 0
+                    while y < rows:
+                        old_layer, old_row = slot * slot_layers + y // layer_rows, y % layer_rows
+                        new_layer, new_row = slot * self.slot_layers + y // self.layer_rows, y % self.layer_rows
+                        count = min(rows - y, layer_rows - old_row, self.layer_rows - new_row)
+                        self.ctx.copy_buffer(staging, whole, size=count * row_bytes, read_offset=(old_layer * layer_rows + old_row) * row_bytes)
+                        new_plane.write(staging, viewport=(0, new_row, new_layer, width, count, 1))
+                        y += count
+        finally:
+            staging.release()
+            whole.release()
 
     def _drop_palette(self) -> None:
         """Release the palette planes, their framebuffer and the layer texture (the bake's textures stay)."""

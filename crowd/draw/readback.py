@@ -97,14 +97,25 @@ class SocketReadback(GLStage):
         self._entries.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self._target = self.ctx.texture((3 * width, rows), 4, dtype="f4")
         self._fbo = self.ctx.framebuffer(color_attachments=[self._target])
-        # Growing drops the frames queued in the ring: their weapons are hidden for up to N frames.
-        # Capacity doubles, so a crowd that grows to 10,000 armed agents does this about 8 times.
+        # The frames queued in the ring survive the growth: each one's entries are copied into its new,
+        # larger buffer on the GPU (ordered after the transfer that fills them), and its fence is
+        # replaced by one after the copy. Capacity doubles, so a crowd that grows to 10,000 armed agents
+        # does this about 8 times.
         for i, slot in enumerate(self._slots):
+            grown = self.ctx.buffer(reserve=capacity * ENTRY_BYTES)
             if i < len(self._buffers):
-                self._buffers[i].orphan(capacity * ENTRY_BYTES)
+                queued = slot.frame >= 0 and slot.agents is not None and slot.agents.size
+                if queued:
+                    self.ctx.copy_buffer(grown, self._buffers[i], size=int(slot.agents.size) * ENTRY_BYTES)
+                    slot.fence.release()
+                    slot.fence = Fence()
+                else:
+                    self._clear(slot)
+                self._buffers[i].release()
+                self._buffers[i] = grown
             else:
-                self._buffers.append(self.ctx.buffer(reserve=capacity * ENTRY_BYTES))
-            self._clear(slot)
+                self._buffers.append(grown)
+                self._clear(slot)
         self.capacity = capacity
 
     @staticmethod

@@ -24,6 +24,10 @@ visible, compacted per (weapon, LOD) mesh and counted in indirect commands, so a
 when its agent is, at its agent's LOD. With shadows on, each shadow cascade's tile gets the weapons of
 the agents in that cascade's volume (the body cull's shadow lists), from lists of their own on both paths. ``last["weapons"]`` counts the weapons placed, ``last["drawn"]`` those drawn (on the GPU
 path as the GPU hands the counts back, a frame or two late; ``refresh_counts(wait=True)`` at a run's end).
+
+Dropped weapons: given ``fallen`` (agents dying or dead), a weapon that was in hand last frame and is
+not now drops (``on_ground``) and is drawn lying there, in its agent's model space, until the agent
+is up again; ``last["dropped"]`` counts them. They are not in ``drawn`` (which the in-hand error measures).
 """
 
 from __future__ import annotations
@@ -155,7 +159,14 @@ class WeaponRenderer(GLStage):
         if "u_shadow_map" in self._programs["color"]:
             self._programs["color"]["u_shadow_map"] = 3
         self.drawn = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 4), np.float32))
-        self.last = {"weapons": 0, "drawn": 0, "draws": 0, "triangles": 0}
+        # Weapons lying on the ground (agents, weapon, rows in the fallen agent's model space) until their
+        # agent gets up again; and what was in hand last frame, where the next drop comes from.
+        self.dropped = self._held_before = self.drawn
+        grip = np.linalg.inv(self.inverse_grip)
+        self._grip_point = grip[:, :3, 3]  # (W, 3): the grip point in each weapon's space
+        # How far below its grip point each weapon reaches along its +Z, the axis a dropped weapon lies on.
+        self._low_z = np.array([float(np.min(np.asarray(prop.lods[0].positions, np.float64)[:, 2])) for prop in character.props.values()]) - self._grip_point[:, 2]
+        self.last = {"weapons": 0, "dropped": 0, "drawn": 0, "draws": 0, "triangles": 0}
 
     def _vao(self, mesh: dict, kind: str, cascade: int = 0) -> moderngl.VertexArray:
         if (kind, cascade) not in mesh["vaos"]:
@@ -194,33 +205,77 @@ class WeaponRenderer(GLStage):
         return agents, weapon, rows
 
     def attach(self, read, frames: AgentFrames, weapon_of_agent: np.ndarray, visible: np.ndarray | None = None,
-               visibility=None, casting: np.ndarray | None = None, lod: np.ndarray | None = None) -> int:
+               visibility=None, casting: np.ndarray | None = None, lod: np.ndarray | None = None, fallen: np.ndarray | None = None) -> int:
         """Place and upload this frame's weapons (none when `read` is None). Returns how many.
         `visible`, `casting` and `lod`: the CPU cull's agents drawn, agents in each shadow cascade's
         volume ((cascades, N): their weapons' shadows are drawn there) and each agent's colour LOD
         (None: LOD0); `visibility`: on the GPU path, the body cull's buffers of per-agent visibility and
         LODs, which a compute pass filters the weapons by for both passes, and of agent records, whose
-        transform it applies to each weapon placed in its agent's model space."""
+        transform it applies to each weapon placed in its agent's model space. `fallen` (N,): agents down
+        (dying or dead), whose weapon leaves the hand for the ground (``dropped``) until they get up."""
         if read is None:
             agents, weapon, rows = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 4), np.float32)
         else:
             agents, weapon, rows = self.placements(read, np.asarray(weapon_of_agent))
+        if fallen is not None:
+            self._drop(agents, np.asarray(fallen, bool))
+        self._held_before = (agents, weapon, rows)
+        held = len(agents)  # the placed weapons come first, the dropped ones after them
+        agents, weapon, rows = (np.concatenate([a, b]) for a, b in zip((agents, weapon, rows), self.dropped))
         if self.gpu_cull:
-            return self._attach_on_gpu(agents, weapon, rows, np.concatenate([[0], np.cumsum(np.bincount(weapon, minlength=len(self.names)))]), visibility)
+            return self._attach_on_gpu(agents, weapon, rows, np.concatenate([[0], np.cumsum(np.bincount(weapon, minlength=len(self.names)))]), visibility, held)
         agent_lod = np.zeros(len(agents), np.int64) if lod is None else np.asarray(lod, np.int64)[agents]
         instances = frames.instances(agents, rows)
         if self.shadows:
             for k in range(CASCADES):
                 lit = np.ones(len(agents), bool) if casting is None else casting[k][agents]
                 self._upload_cpu(weapon[lit], agent_lod[lit] + 1, instances[lit], "shadow_instances", "shadow_counts", k)
+        in_hand = np.arange(len(agents)) < held
         if visible is not None:
             shown = visible[agents]
-            agents, weapon, rows, agent_lod, instances = agents[shown], weapon[shown], rows[shown], agent_lod[shown], instances[shown]
+            agents, weapon, rows, agent_lod, instances, in_hand = (a[shown] for a in (agents, weapon, rows, agent_lod, instances, in_hand))
         self._upload_cpu(weapon, agent_lod, instances, "instances", "count")
-        self.drawn = (agents, weapon, rows)
-        self.last = {"weapons": int(len(agents)), "drawn": int(len(agents)), "draws": sum(1 for m in self._meshes if m["count"]),
-                     "triangles": sum(m["count"] * m["triangles"] for m in self._meshes)}
+        self.drawn = (agents[in_hand], weapon[in_hand], rows[in_hand])
+        self.last = {"weapons": int(np.count_nonzero(in_hand)), "dropped": len(self.dropped[0]), "drawn": int(len(agents)),
+                     "draws": sum(1 for m in self._meshes if m["count"]), "triangles": sum(m["count"] * m["triangles"] for m in self._meshes)}
         return len(agents)
+
+    def _drop(self, held: np.ndarray, fallen: np.ndarray) -> None:
+        """Weapons whose agent fell this frame (in hand last frame, `fallen` now, not in hand now) drop to
+        the ground; those of agents up again (respawned) or gone are removed."""
+        agents, weapon, rows = self.dropped
+        stay = (agents < len(fallen)) & fallen[np.minimum(agents, max(len(fallen) - 1, 0))] if len(fallen) else np.zeros(len(agents), bool)
+        before_agents, before_weapon, before_rows = self._held_before
+        new = (before_agents < len(fallen)) & ~np.isin(before_agents, held) & ~np.isin(before_agents, agents[stay])
+        new[new] = fallen[before_agents[new]]
+        self.dropped = (np.concatenate([agents[stay], before_agents[new]]), np.concatenate([weapon[stay], before_weapon[new]]),
+                        np.concatenate([rows[stay], self.on_ground(before_rows[new], before_weapon[new])]))
+
+    def on_ground(self, socket_rows: np.ndarray, weapon: np.ndarray) -> np.ndarray:
+        """(K, 3, 4) float32 instance rows (socket-space convention, in the agent's model space) of
+        weapons dropped from hands whose socket rows were `socket_rows`: each lies flat on the ground
+        (the agent's y = 0) with its handle (+Y) along the direction it pointed, projected onto the
+        ground, its +Z up, and its grip point straight below where the hand held it. In float64."""
+        k = len(weapon)
+        if not k:
+            return np.zeros((0, 3, 4), np.float32)
+        m = self._socket_to_weapon[weapon]  # (K, 4, 4): weapon space -> socket space
+        held = np.einsum("kij,kjl->kil", np.asarray(socket_rows, np.float64), m)  # (K, 3, 4): the weapon in model space
+        along = held[:, [0, 2], 1]  # the handle's direction on the ground (x, z)
+        length = np.linalg.norm(along, axis=1)
+        sideways = held[:, [0, 2], 0]  # a handle pointing straight down lies along the weapon's +X instead
+        along = np.where((length > 1e-6)[:, None], along, sideways) / np.maximum(np.where(length > 1e-6, length, np.linalg.norm(sideways, axis=1)), 1e-12)[:, None]
+        dx, dz = along[:, 0], along[:, 1]
+        ground = np.zeros((k, 4, 4))
+        ground[:, :3, 0] = np.stack([-dz, np.zeros(k), dx], axis=1)  # +X: Y x Z, right-handed
+        ground[:, :3, 1] = np.stack([dx, np.zeros(k), dz], axis=1)
+        ground[:, 1, 2] = 1.0
+        ground[:, 3, 3] = 1.0
+        g = self._grip_point[weapon]
+        hand = np.einsum("kij,kj->ki", held[:, :, :3], g) + held[:, :, 3]  # the grip point in hand
+        below = np.stack([hand[:, 0], -self._low_z[weapon], hand[:, 2]], axis=1)
+        ground[:, :3, 3] = below - np.einsum("kij,kj->ki", ground[:, :3, :3], g)
+        return (ground @ np.linalg.inv(m))[:, :3].astype(np.float32)  # rows x (M x p) = ground x p
 
     def _upload_cpu(self, weapon: np.ndarray, lod: np.ndarray, instances: np.ndarray, buffer: str, count: str, cascade: int | None = None) -> None:
         """The CPU path: each (weapon, LOD) mesh's instances (INSTANCE_DTYPE) into its `buffer`, their
@@ -242,7 +297,7 @@ class WeaponRenderer(GLStage):
             if len(chosen):
                 target.write(chosen.tobytes())
 
-    def _attach_on_gpu(self, agents, weapon, rows, starts, visibility) -> int:
+    def _attach_on_gpu(self, agents, weapon, rows, starts, visibility, held: int) -> int:
         """Every placed weapon uploaded once; the weapon cull writes each into its (weapon, LOD) range:
         LOD l's lists follow one another, each `k` long, weapon w's part of each starting at starts[w];
         the shadow lists hold one such set per cascade, one after the other."""
@@ -293,8 +348,8 @@ class WeaponRenderer(GLStage):
             self._ring.queue(self._commands)
         else:
             self._ring.zero()
-        self.drawn = (agents, weapon, rows)
-        self.last = {"weapons": int(k)}
+        self.drawn = (agents[:held], weapon[:held], rows[:held])
+        self.last = {"weapons": held, "dropped": k - held}
         self.refresh_counts()
         return k
 
