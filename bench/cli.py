@@ -159,7 +159,7 @@ def bench_ai(args) -> int:
     """Steps a crowd around a scripted player for a warm-up, then times steps. The separation's share is
     the AI's own count of the time it spent there (``CrowdAI.separation_seconds``), so the table says
     what bounds a step."""
-    from crowd.sim.ai import CrowdAI, PlayerScript, motion_for
+    from crowd.sim.ai import AIConfig, CrowdAI, PlayerScript, motion_for
     from crowd.asset.gltf import load_character
     from crowd.anim.roles import bake_roles, match_roles
     from crowd.allocator import keep_freed_memory
@@ -171,10 +171,11 @@ def bench_ai(args) -> int:
     motion = motion_for(character, baked, roles)
     device = device_cpu()
     print(f"{device} | one core | median of {args.steps} steps after {args.warmup} warm-up steps of 1/60 s")
-    print(f"{'agents':>8} {'ms/step':>9} {'mean':>7} {'p95 ms':>8} {'separation':>11} {'list builds':>12} {'chasing':>8}")
+    print(f"{'agents':>8} {'think every':>11} {'ms/step':>9} {'mean':>7} {'p95 ms':>8} {'separation':>11} {'list builds':>12} {'chasing':>8} {'exact':>6}")
     rows = []
-    for n in [int(x) for x in args.agents.split(",")]:
-        ai = CrowdAI(n, args.seed, motion)
+    budgets = [int(k) for k in args.think_every.split(",")] if args.think_every else [AIConfig().think_every]
+    for n, think_every in ((n, k) for n in [int(x) for x in args.agents.split(",")] for k in budgets):
+        ai = CrowdAI(n, args.seed, motion, AIConfig(think_every=think_every))
         script = PlayerScript(ai.half_extent * 0.5)
         layers = np.empty((n, 4, 4), np.float32)
         spent = []  # seconds of separation per timed step
@@ -199,10 +200,11 @@ def bench_ai(args) -> int:
         row = {"agents": n, "ms_per_step": round(float(np.median(times)) * 1e3, 4), "mean_ms": round(float(np.mean(times)) * 1e3, 4),
                "p95_ms": round(float(np.percentile(times, 95)) * 1e3, 4), "separation_ms": round(float(np.median(spent)) * 1e3, 4),
                "separation_mean_ms": round(float(np.mean(spent)) * 1e3, 4),
-               "list_builds_per_step": round((ai.pair_builds - builds) / args.steps, 4), "states": ai.counts()}
+               "list_builds_per_step": round((ai.pair_builds - builds) / args.steps, 4), "states": ai.counts(),
+               "think_every": think_every, "budgeted": ai.budgeted(), "exact": ai.exact_count()}
         rows.append(row)
-        print(f"{n:>8} {row['ms_per_step']:>9.3f} {row['mean_ms']:>7.3f} {row['p95_ms']:>8.3f} {row['separation_ms']:>11.3f} "
-              f"{row['list_builds_per_step']:>12.3f} {row['states']['chase']:>8}")
+        print(f"{n:>8} {think_every if ai.budgeted() else 1:>11} {row['ms_per_step']:>9.3f} {row['mean_ms']:>7.3f} {row['p95_ms']:>8.3f} "
+              f"{row['separation_ms']:>11.3f} {row['list_builds_per_step']:>12.3f} {row['states']['chase']:>8} {row['exact']:>6}")
     if args.json:
         from crowd.files import atomic_write_bytes
 
@@ -475,6 +477,9 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=600)
     p.add_argument("--warmup", type=int, default=120)
     p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--think-every", default=None,
+                   help="comma-separated think budgets to compare (1: every zombie thinks every substep; default: the setting's); "
+                        "the budget applies from the think_from setting's crowd size on")
     p.add_argument("--json", type=Path)
     p.set_defaults(run=bench_ai)
     p = sub.add_parser("frame", help="the whole headless frame: period (frames back to back, one finish) and latency (a finish per frame)")

@@ -308,6 +308,7 @@ class CrowdPipeline(GLStage):
         with t.cpu("ai"):
             if self.player_script is not None:
                 self.player_script.update(self.ai)
+            self.ai.focus = (np.asarray(self.camera.eye, np.float64)[[0, 2]],)  # zombies near the camera think every substep
             steps_before = self.ai.steps
             self.ai.step(dt)
             instances = self.ai.instances()

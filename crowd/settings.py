@@ -247,6 +247,10 @@ _ALL = (
     _ai("area_per_agent", 6.0, "m^2 of world per zombie (sets the world size when half_extent is 0)", low=0, open_low=True),
     _ai("min_half_extent", 12.0, "metres, the smallest half width of the world", low=0, open_low=True),
     _ai("half_extent", 0.0, "metres, the world's half width; 0: from the zombie count", low=0),
+    _ai("think_every", 8, "substeps between two thinks of a far zombie that wanders or lies dead (1: all think every substep)",
+        kind="int", low=1, high=64),
+    _ai("think_radius", 30.0, "metres from the player or the camera within which every zombie thinks every substep (at least notice_radius)", low=0),
+    _ai("think_from", 20_000, "zombies from which the think budget is used (below, its fixed cost is more than it saves)", kind="int", low=0),
     # live controls of a running crowd (the panel; not in scene files)
     Setting("time_scale", "session", "float", 1.0, "simulated seconds per real second", label="time scale", low=0, high=10, slider=(0, 4)),
     Setting("clip_speed", "session", "float", 1.0, "a clip's playback speed; a faster walk also moves faster",

@@ -58,7 +58,9 @@ def pipeline_stats(pipeline) -> dict:
                  "rows": p.bake.rows, "bytes": p.bake.nbytes},
         "roles": p.roles,
         "ai": {"states": p.ai.counts(), "player_hits_taken": p.ai.player_hits_taken, "faults": p.ai.check(),
-               "notes": list(p.motion.notes)},
+               "notes": list(p.motion.notes),
+               # The think budget: whether this crowd uses it, and how many zombies think every substep.
+               "think_budget": {"on": p.ai.budgeted(), "exact": p.ai.exact_count()}},
         "passes_ms": p.timer.medians(),
         "passes_clock": {k: p.timer.clock[k] for k in p.timer.order},
         "passes_run": list(p.passes_run),

@@ -6,6 +6,7 @@ agent outside the world bounds, and every layer weight finite and non-negative.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -29,6 +30,24 @@ from crowd.frame import CLIP, MASK, PHASE, WEIGHT, validate_layers
 from crowd.anim.roles import bake_roles, match_roles
 
 STEP = 1.0 / 60.0
+
+
+@pytest.fixture(autouse=True, params=["budget off", "budget on"])
+def think_budget(request, monkeypatch):
+    """Every test here runs twice: with the think budget off, and on for any crowd (think_from 0) with
+    the smallest radius allowed, so that most agents of these small worlds are far and budgeted."""
+    if request.param == "budget off":
+        over = {"think_every": 1}
+    else:
+        over = {"think_every": 8, "think_from": 0}
+    validate = AIConfig.validate
+
+    def with_budget(config: AIConfig) -> AIConfig:  # what CrowdAI keeps of any config it is given
+        radius = {"think_radius": config.notice_radius} if "think_from" in over else {}
+        return validate(dataclasses.replace(config, **over, **radius))
+
+    monkeypatch.setattr(AIConfig, "validate", with_budget)
+    return request.param
 
 
 @pytest.fixture(scope="module")
@@ -269,3 +288,14 @@ def test_bad_ai_settings_get_one_line_errors(motion):
             CrowdAI(10, 1, motion, AIConfig(**bad))
     with pytest.raises(AIError, match="origin"):
         CrowdAI(10, 1, motion, origin=(float("inf"), 0.0))
+
+
+
+def test_a_tiny_separation_radius_in_a_huge_world_needs_no_huge_grid(motion):
+    """1 mm between 2,000 zombies across 10 km: the neighbour grid's cells would be 20 billion; its cells
+    widen to about 4 an agent instead, and every close pair is still found."""
+    ai = CrowdAI(2000, 6, motion, AIConfig(half_extent=5000.0, separation_radius=1e-3, wander_speed=0.0))
+    ai.x[:10], ai.z[:10] = 100.0 + np.arange(10) * 2e-4, 50.0  # ten agents closer than the radius
+    ai.player = np.array([4000.0, 4000.0])  # nobody chases, nobody walks: only separation moves the ten
+    run(ai, 60)
+    assert nearest_neighbour(ai.pos[:10]).min() > 5e-4  # they started 0.2 mm apart

@@ -71,6 +71,7 @@ def test_stats_fields_and_no_shadow_resources_when_shadows_are_off(tmp_path, gl_
     assert saved["passes_clock"]["process"] == "gpu" and saved["passes_ms"]["process"] > 0
     assert saved["passes_clock"]["ai"] == "cpu" and saved["passes_ms"]["ai"] > 0  # the crowd AI's CPU ms per frame
     assert saved["ai"]["faults"] == [] and sum(saved["ai"]["states"].values()) == 20
+    assert saved["ai"]["think_budget"] == {"on": False, "exact": 20}  # 20 zombies: below think_from, everyone exact
     assert "shadow" not in saved["passes_run"] and "shadow_map" not in saved["gpu_bytes"] or saved["gpu_bytes"]["shadow_map"] == 0
     assert saved["bake"]["clips"] == ["idle", "shamble", "run", "attack", "hit", "death"]  # crawl is not used: not baked
     assert stats["nan_count"] == 0

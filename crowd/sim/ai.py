@@ -23,6 +23,11 @@ stiffness x dt far above 1 stays bounded. Neighbours come from a uniform grid ov
 sorted by cell), never from all pairs, and the pair list is reused across substeps until an agent has
 moved far enough to invalidate it. Positions are float64; the renderer subtracts the
 camera before anything becomes float32.
+
+Think budget (settings think_every, think_radius, think_from): in a big crowd, zombies far from the
+player and the camera (``focus``) that wander or lie dead think every think_every substeps, a block
+of consecutive agents at a time, and coast at their velocity and phase rate in between; everyone
+else, and every action, is stepped exactly as without it (``_budgeted_substep``).
 """
 
 from __future__ import annotations
@@ -43,6 +48,7 @@ STATE_NAMES = ("wander", "chase", "attack", "hit", "dying", "dead")
 # Actions (int8): which clip layer 3 plays.
 NO_ACTION, ACT_ATTACK, ACT_HIT, ACT_DEATH = range(4)
 ACTION_ROLES = (None, "attack", "hit", "death")
+LAYER_RUN = 16_384  # agents whose layers write_layers fills at a time (1 MB: they stay in the cache)
 MAX_ACTION_WEIGHT = 1000.0  # an upper-body action at full fade: 99.9 % of the upper body
 SEPARATION_CELL_CAP = 48  # neighbours considered per run of cells (bounds the work when many agents pile up)
 TINTS = np.array([[150, 170, 130], [170, 150, 130], [130, 150, 160], [180, 180, 160], [140, 160, 120], [160, 130, 140]], np.uint8)
@@ -88,6 +94,9 @@ class AIConfig:
     area_per_agent: float = _AI['area_per_agent']
     min_half_extent: float = _AI['min_half_extent']
     half_extent: float = _AI['half_extent']
+    think_every: int = _AI['think_every']
+    think_radius: float = _AI['think_radius']
+    think_from: int = _AI['think_from']
 
     def validate(self) -> "AIConfig":
         for name, setting in group("ai").items():
@@ -99,6 +108,8 @@ class AIConfig:
             raise AIError("AI forget_radius must be >= notice_radius")
         if self.substep > self.max_dt:
             raise AIError("AI needs substep <= max_dt")
+        if self.think_every > 1 and self.think_radius < self.notice_radius:  # the budget may be used at some crowd size
+            raise AIError("AI think_radius must be >= notice_radius (a zombie that may notice the player thinks every substep)")
         return self
 
     def half_extent_for(self, agents: int) -> float:
@@ -199,6 +210,31 @@ class PlayerScript:
                 ai.hit(np.array([target]))
 
 
+class _Agents:
+    """Some of the crowd's per-agent arrays under the AI's own names, for one think: views for a slice
+    (the whole crowd, one think block), gathered copies for an index array (the exact agents).
+    ``commit()`` writes back the copies, and every array the think rebound (np.where makes new ones)."""
+
+    def __init__(self, ai: "CrowdAI", selection):
+        self._ai, self._selection = ai, selection
+        self._was = {}
+        for name in ai._names():
+            self._was[name] = getattr(ai, name)[selection]
+            setattr(self, name, self._was[name])
+
+    def commit(self) -> None:
+        gathered = not isinstance(self._selection, slice)
+        whole = not gathered and self._selection == slice(None)
+        for name, was in self._was.items():
+            now = getattr(self, name)
+            if now is was and not gathered:
+                continue  # changed in place, through the view
+            if whole:
+                setattr(self._ai, name, now)
+            else:
+                getattr(self._ai, name)[self._selection] = now
+
+
 class CrowdAI:
     def __init__(self, agents: int, seed: int, motion: Motion, config: AIConfig | None = None, origin=(0.0, 0.0)):
         self.config = (config or AIConfig()).validate()
@@ -215,6 +251,8 @@ class CrowdAI:
         self.steps = 0  # step() calls so far; an agent's spawned_step is the step in which it (re)appeared
         self.pair_builds = 0  # how often the separation's neighbour list was rebuilt (benchmarks report it)
         self.separation_seconds = 0.0  # CPU time spent in separation so far: what bounds a big crowd's step
+        self.substeps = 0  # substeps so far: the think budget's block of the next one is substeps % think_every
+        self.focus: tuple = ()  # ground points (x, z) besides the player near which agents think every substep: the camera
         self._motion_tables(motion)
         self.n = 0
         self._allocate(0)
@@ -238,15 +276,19 @@ class CrowdAI:
         self.config = config.validate()
         self.half_extent = self.config.half_extent_for(self.n)
         self._pairs = None
+        self._exact[:] = self._must_be_exact(self)  # a new budget, or none: everyone starts from now
+        self._pending[:] = 0.0
         self._bound()
 
     # -- agents (one numpy array per attribute; x and z apart so the hot loop reads contiguous memory)
 
     _FLOAT = ("x", "z", "vx", "vz", "hx", "hz", "state_time", "aware", "tx", "tz", "pause", "phase", "action_time", "cooldown",
-              "speed_factor", "reaction", "walk_top", "chase_top")
+              "speed_factor", "reaction", "walk_top", "chase_top",
+              "phase_rate", "_pending")  # the think budget's: the phase's rate between thinks, the time since the last
     _OTHER = {"state": np.int8, "action": np.int8, "health": np.int16, "runner": bool, "scale": np.float32, "head": np.int32,
               "weapon": np.int16,
-              "spawned_step": np.int64}
+              "spawned_step": np.int64,
+              "_exact": bool}  # thinks every substep (the think budget)
 
     def _allocate(self, n: int) -> None:
         for name in self._FLOAT:
@@ -281,53 +323,55 @@ class CrowdAI:
         for name, arr in kept.items():
             getattr(self, name)[: len(arr)] = arr
         self.n = n
-        self._spawn(np.arange(old, n), anywhere=True)
+        self._spawn(self, np.arange(old, n), anywhere=True)
+        self._exact[old:] = self._must_be_exact(self)[old:]
         # Agents outside a shrunken world are brought inside by the next step's bounds.
 
-    def _spawn(self, idx: np.ndarray, anywhere: bool) -> None:
-        """New agents: anywhere in the world (start, resize) or on its edges (respawn). Traits are drawn
-        at first spawn only, so a respawned agent keeps its look, speed and weapon."""
+    def _spawn(self, a, idx: np.ndarray, anywhere: bool) -> None:
+        """New agents `idx` of `a` (the crowd itself, or the agents of one think): anywhere in the world
+        (start, resize) or on its edges (respawn). Traits are drawn at first spawn only, so a respawned
+        agent keeps its look, speed and weapon."""
         k = len(idx)
         if not k:
             return
         self._pairs = None  # an agent that comes back to life is in no pair of the neighbour list
-        self.spawned_step[idx] = self.steps
+        a.spawned_step[idx] = self.steps
         cfg, rng, h = self.config, self.rng, self.half_extent
         if anywhere:
             pos = rng.uniform(-h, h, (k, 2))
             yaw = rng.uniform(-math.pi, math.pi, k)
-            self.phase[idx] = rng.uniform(0.0, 1.0, k)
-            self.speed_factor[idx] = rng.uniform(cfg.speed_min, cfg.speed_max, k)
-            self.reaction[idx] = rng.uniform(cfg.reaction_min, cfg.reaction_max, k)
-            self.runner[idx] = rng.uniform(0, 1, k) < cfg.runner_share
-            self.scale[idx] = rng.uniform(0.92, 1.08, k)
-            self.tint[idx, :3] = TINTS[rng.integers(0, len(TINTS), k)]
-            self.tint[idx, 3] = 255
-            self.head[idx] = rng.integers(0, max(self.motion.head_count, 1), k)
+            a.phase[idx] = rng.uniform(0.0, 1.0, k)
+            a.speed_factor[idx] = rng.uniform(cfg.speed_min, cfg.speed_max, k)
+            a.reaction[idx] = rng.uniform(cfg.reaction_min, cfg.reaction_max, k)
+            a.runner[idx] = rng.uniform(0, 1, k) < cfg.runner_share
+            a.scale[idx] = rng.uniform(0.92, 1.08, k)
+            a.tint[idx, :3] = TINTS[rng.integers(0, len(TINTS), k)]
+            a.tint[idx, 3] = 255
+            a.head[idx] = rng.integers(0, max(self.motion.head_count, 1), k)
             armed = (rng.uniform(0, 1, k) < cfg.armed_share) & (self.motion.weapon_count > 0)
-            self.weapon[idx] = np.where(armed, rng.integers(0, max(self.motion.weapon_count, 1), k), -1)
+            a.weapon[idx] = np.where(armed, rng.integers(0, max(self.motion.weapon_count, 1), k), -1)
             m = self.motion
-            self.walk_top[idx] = m.walk_speed * self.speed_factor[idx]
-            self.chase_top[idx] = np.where(self.runner[idx], m.run_speed, m.walk_speed) * self.speed_factor[idx]
+            a.walk_top[idx] = m.walk_speed * a.speed_factor[idx]
+            a.chase_top[idx] = np.where(a.runner[idx], m.run_speed, m.walk_speed) * a.speed_factor[idx]
         else:
             side = rng.integers(0, 4, k)
             along = rng.uniform(-h, h, k)
             edge = np.where(side % 2 == 0, -1.0, 1.0) * (h - 0.5)
             pos = np.where((side < 2)[:, None], np.stack([edge, along], axis=1), np.stack([along, edge], axis=1))
             yaw = np.arctan2(-pos[:, 0], -pos[:, 1])  # face the middle
-        self.x[idx] = self.origin[0] + pos[:, 0]
-        self.z[idx] = self.origin[1] + pos[:, 1]
-        self.hx[idx], self.hz[idx] = np.sin(yaw), np.cos(yaw)
-        self.vx[idx] = self.vz[idx] = 0.0
-        self.tx[idx], self.tz[idx] = self.x[idx], self.z[idx]
-        self.state[idx] = WANDER
-        self.state_time[idx] = 0.0
-        self.aware[idx] = 0.0
-        self.pause[idx] = rng.uniform(0.0, 2.0, k)
-        self.health[idx] = int(cfg.health)
-        self.action[idx] = NO_ACTION
-        self.action_time[idx] = 0.0
-        self.cooldown[idx] = 0.0
+        a.x[idx] = self.origin[0] + pos[:, 0]
+        a.z[idx] = self.origin[1] + pos[:, 1]
+        a.hx[idx], a.hz[idx] = np.sin(yaw), np.cos(yaw)
+        a.vx[idx] = a.vz[idx] = 0.0
+        a.tx[idx], a.tz[idx] = a.x[idx], a.z[idx]
+        a.state[idx] = WANDER
+        a.state_time[idx] = 0.0
+        a.aware[idx] = 0.0
+        a.pause[idx] = rng.uniform(0.0, 2.0, k)
+        a.health[idx] = int(cfg.health)
+        a.action[idx] = NO_ACTION
+        a.action_time[idx] = 0.0
+        a.cooldown[idx] = 0.0
 
     # -- player actions
 
@@ -365,12 +409,16 @@ class CrowdAI:
         if m.clip["hit"] >= 0:
             self._start(hurt, HIT, ACT_HIT)
         self.aware[hurt] = np.maximum(self.aware[hurt], self.reaction[hurt])  # a hit agent knows where the player is
+        self._exact[idx] = True  # a hit is exact from the next substep on, whatever the budget
+        self._pending[idx] = 0.0
 
-    def _start(self, idx: np.ndarray, state: int, action: int) -> None:
-        self.state[idx] = state
-        self.state_time[idx] = 0.0
-        self.action[idx] = action
-        self.action_time[idx] = 0.0
+    def _start(self, idx: np.ndarray, state: int, action: int, a=None) -> None:
+        """Agents `idx` of `a` (the agents of one think; by default the crowd) start an action."""
+        a = self if a is None else a
+        a.state[idx] = state
+        a.state_time[idx] = 0.0
+        a.action[idx] = action
+        a.action_time[idx] = 0.0
 
     # -- stepping
 
@@ -389,101 +437,200 @@ class CrowdAI:
         self.time += h
         if not self.n:
             return
+        if not self.budgeted():  # every agent thinks every substep
+            everyone = _Agents(self, slice(None))
+            near = self._think_a(everyone, h, h)
+            everyone.commit()
+            self._separate(min(self.config.separation_stiffness * h, 1.0))
+            self._bound()
+            everyone = _Agents(self, slice(None))
+            self._think_b(everyone, h, h, *near)
+            everyone.commit()
+            self.substeps += 1
+            return
+        self._budgeted_substep(h)
+
+    def exact_count(self) -> int:
+        """Zombies that think every substep: all of them without the budget."""
+        return int(np.count_nonzero(self._exact)) if self.budgeted() else self.n
+
+    def budgeted(self) -> bool:
+        """Whether the think budget is in use: think_every above 1, for a crowd of think_from or more."""
+        return self.config.think_every > 1 and self.n >= self.config.think_from
+
+    def _budgeted_substep(self, h: float) -> None:
+        """The think budget (crowd.settings: think_every, think_radius): agents that must be exact (near
+        the player or a focus point, or doing anything but wandering and lying dead) think every
+        substep; the rest are cut into think_every blocks of consecutive agents, and one block thinks
+        per substep, over the time since it last did. Between thinks an agent keeps its velocity and
+        phase rate: its position and phase move every substep (no stutter), its timers, steering,
+        heading and animation weights catch up when it thinks. An exact agent is stepped exactly as
+        with the budget off: it takes no time from the budget, and its substep is the same arithmetic.
+
+        The blocks are slices, so a block thinks through views of the arrays; the exact agents, a few
+        hundred around the player, are gathered and scattered back."""
+        k = self.config.think_every
+        b = self.substeps % k
+        block = slice(b * self.n // k, (b + 1) * self.n // k)
+        exact = np.flatnonzero(self._exact)
+        in_block = self._exact[block]  # exact agents inside the block think with the exact ones, not here
+        think_h = np.where(in_block, 0.0, self._pending[block] + h)  # time since the block's agents last thought
+        move_h = np.where(in_block, 0.0, h)  # this substep's motion (the rest was moved between thinks)
+        self._pending[block] = 0.0
+
+        # The block thinks through views, its exact agents too (with no time: they think below); what
+        # its first half changes of them (a transition seen from where they stand after moving, a
+        # timer) is put back, so they start their exact substep from where the last one left them.
+        inside = _Agents(self, block.start + np.flatnonzero(in_block))
+        group = _Agents(self, block)
+        near_block = self._think_a(group, think_h, move_h)
+        group.commit()
+        inside.commit()
+        group = _Agents(self, exact)
+        near_exact = self._think_a(group, h, h)
+        group.commit()
+
+        # Everyone else moves on at its velocity and phase rate (and is separated with the rest, below).
+        thinking = self._exact.copy()
+        thinking[block] = True
+        coast = np.where(thinking, 0.0, h)
+        self.x += self.vx * coast
+        self.z += self.vz * coast
+        advance_phase(self.phase, self.phase_rate * coast)
+        self._pending += coast
+
+        self._separate(min(self.config.separation_stiffness * h, 1.0))  # everyone, every substep
+        self._bound()
+
+        group = _Agents(self, exact)
+        self._think_b(group, h, h, *near_exact)
+        self._exact[exact] = self._must_be_exact(group)
+        group.commit()
+        group = _Agents(self, block)
+        self._think_b(group, think_h, move_h, *near_block)
+        self._exact[block] |= self._must_be_exact(group)  # from now on with the exact ones
+        group.commit()
+        self._pending[self._exact] = 0.0
+        self.substeps += 1
+
+    def _must_be_exact(self, a: "_Agents") -> np.ndarray:
+        """Agents of `a` that think every substep: all but the wandering and the dead, and everyone
+        within think_radius of the player or of a focus point (the camera)."""
+        r2 = self.config.think_radius ** 2
+        exact = (a.state != WANDER) & (a.state != DEAD)
+        for fx, fz in (self.player, *self.focus):
+            dx, dz = a.x - float(fx), a.z - float(fz)
+            exact |= dx * dx + dz * dz < r2
+        return exact
+
+    def _think_a(self, a: "_Agents", h, move):
+        """The first half of a substep for the agents of `a`: timers and transitions, steering and
+        velocity over `h` seconds (a scalar, or per agent: the time since they last thought), and
+        this substep's motion over `move`. Returns what the second half needs."""
         cfg = self.config
         px, pz = float(self.player[0]), float(self.player[1])
-        to_px, to_pz = px - self.x, pz - self.z
+        to_px, to_pz = px - a.x, pz - a.z
         dist = np.sqrt(to_px * to_px + to_pz * to_pz)
-        state = self.state
-        self.state_time += h
-        self.action_time += h
-        self.cooldown -= h
+        state = a.state
+        a.state_time += h
+        a.action_time += h
+        a.cooldown -= h
 
         # Transitions; events are rare, so they work on index lists.
-        done = np.flatnonzero(self.action_time >= self._action_length[self.action])
+        done = np.flatnonzero(a.action_time >= self._action_length[a.action])
         if done.size:
             s = state[done]
             back = done[(s == ATTACK) | (s == HIT)]
-            self.cooldown[back] = np.where(state[back] == ATTACK, cfg.attack_cooldown, 0.0)
+            a.cooldown[back] = np.where(state[back] == ATTACK, cfg.attack_cooldown, 0.0)
             state[back] = CHASE
-            self.action[back] = NO_ACTION
+            a.action[back] = NO_ACTION
             died = done[s == DYING]
             state[died] = DEAD
-            self.state_time[died] = 0.0
-        respawn = np.flatnonzero((self.state_time >= cfg.corpse_time) & (state == DEAD))
-        self._spawn(respawn, anywhere=False)
+            a.state_time[died] = 0.0
+        respawn = np.flatnonzero((a.state_time >= cfg.corpse_time) & (state == DEAD))
+        self._spawn(a, respawn, anywhere=False)
         near = dist < cfg.notice_radius
-        self.aware += h
-        self.aware[~near] = 0.0
+        a.aware += h
+        a.aware[~near] = 0.0
         wandering = state == WANDER
-        notice = np.flatnonzero(wandering & (self.aware >= self.reaction))
+        notice = np.flatnonzero(wandering & (a.aware >= a.reaction))
         state[notice] = CHASE
         lost = np.flatnonzero((dist > cfg.forget_radius) & (state == CHASE))
         state[lost] = WANDER
         if self.motion.clip["attack"] >= 0:
-            strike = np.flatnonzero((dist < cfg.attack_reach) & (self.cooldown <= 0.0) & (state == CHASE))
-            self._start(strike, ATTACK, ACT_ATTACK)
+            ready = (dist < cfg.attack_reach) & (a.cooldown <= 0.0) & (state == CHASE)
+            strike = np.flatnonzero(ready & (h > 0.0) if np.ndim(h) else ready)  # agents given no time strike nobody
+            self._start(strike, ATTACK, ACT_ATTACK, a)
             self.player_hits_taken += int(strike.size)
 
         # Desired velocity: wanderers walk slowly to their target, chasers to the player, the rest stand.
         chasing = state == CHASE
         wandering = state == WANDER
         if wandering.any():
-            self._wander(wandering, h)
-        dx = np.where(chasing, to_px, self.tx - self.x)
-        dz = np.where(chasing, to_pz, self.tz - self.z)
+            self._wander(a, wandering, h)
+        dx = np.where(chasing, to_px, a.tx - a.x)
+        dz = np.where(chasing, to_pz, a.tz - a.z)
         d = np.sqrt(dx * dx + dz * dz)
-        top = np.where(chasing, self.chase_top, cfg.wander_speed * self.walk_top * (wandering & (self.pause <= 0.0)))
+        top = np.where(chasing, a.chase_top, cfg.wander_speed * a.walk_top * (wandering & (a.pause <= 0.0)))
         gap = np.where(chasing, d - 0.8 * cfg.attack_reach, d)
         speed = top * np.minimum(np.maximum(gap * (1.0 / cfg.arrive_distance), 0.0), 1.0)
         scale = speed / np.maximum(d, 1e-9)
         # Velocity with limited acceleration; the dying and the dead stop at once (no sliding corpses).
-        cx, cz = dx * scale - self.vx, dz * scale - self.vz
+        cx, cz = dx * scale - a.vx, dz * scale - a.vz
         limit = np.minimum(1.0, (cfg.max_accel * h) / np.maximum(np.sqrt(cx * cx + cz * cz), 1e-12))
-        self.vx += cx * limit
-        self.vz += cz * limit
+        a.vx += cx * limit
+        a.vz += cz * limit
         still = np.flatnonzero(state >= DYING)
-        self.vx[still] = 0.0
-        self.vz[still] = 0.0
-        self.x += self.vx * h
-        self.z += self.vz * h
-        started = time.perf_counter()
-        self._separate(h)
-        self.separation_seconds += time.perf_counter() - started
-        self._bound()
+        a.vx[still] = 0.0
+        a.vz[still] = 0.0
+        a.x += a.vx * move
+        a.z += a.vz * move
+        return to_px, to_pz, dist
 
+    def _think_b(self, a: "_Agents", h, move, to_px, to_pz, dist) -> None:
+        """The second half, after separation: heading (turned by at most turn_rate x `h`) and the
+        locomotion phase (advanced over `move`)."""
+        cfg = self.config
+        state = a.state
         # Heading: a unit vector turned toward the motion (or toward the player while attacking) by at
         # most turn_rate * h, rotating by a fixed angle instead of going through angles (no trig per agent).
-        speed = np.sqrt(self.vx * self.vx + self.vz * self.vz)
+        speed = np.sqrt(a.vx * a.vx + a.vz * a.vz)
         attacking = state == ATTACK
-        gx = np.where(attacking, to_px, self.vx)
-        gz = np.where(attacking, to_pz, self.vz)
+        gx = np.where(attacking, to_px, a.vx)
+        gz = np.where(attacking, to_pz, a.vz)
         glen = np.where(attacking, dist, speed)
         turning = (glen > 0.05) & (state < DYING)
-        self._turn(turning, gx, gz, glen, cfg.turn_rate * h)
+        if np.ndim(h):
+            turning &= h > 0.0  # agents that do not think here (exact ones inside a block) keep their heading
+        self._turn(a, turning, gx, gz, glen, cfg.turn_rate * h)
 
         # Locomotion phase: speed over the blended stride (idle plays at its own rate while standing).
         m = self.motion
-        w_idle, _, _, run_t = self._locomotion_weights(speed)
+        w_idle, _, _, run_t = self._locomotion_weights(speed, a.walk_top, a.speed_factor)
         stride = m.walk_stride + run_t * (m.run_stride - m.walk_stride)
-        advance_phase(self.phase, (w_idle * (1.0 / m.duration["idle"]) + (1.0 - w_idle) * speed / stride) * h)
+        rate = w_idle * (1.0 / m.duration["idle"]) + (1.0 - w_idle) * speed / stride
+        advance_phase(a.phase, rate * move)
+        if self.budgeted():
+            a.phase_rate[:] = rate  # what the phase advances by until the agent thinks again
 
-    def _turn(self, turning: np.ndarray, gx, gz, glen, step: float) -> None:
-        """Turn each heading toward (gx, gz) by at most `step` radians. Headings within `step` of their
-        goal snap to it; only the few farther off are rotated, by a fixed angle (no trig per agent).
-        Rotation keeps the length to within rounding, about 1e-16 per step: 1e-10 after ten hours."""
+    def _turn(self, a: "_Agents", turning: np.ndarray, gx, gz, glen, step) -> None:
+        """Turn each heading toward (gx, gz) by at most `step` radians (a scalar, or per agent).
+        Headings within `step` of their goal snap to it; only the few farther off are rotated, by a
+        fixed angle (no trig per agent when `step` is one number). Rotation keeps the length to within
+        rounding, about 1e-16 per step: 1e-10 after ten hours."""
         inv = 1.0 / (glen + 1e-30)
         ux, uz = gx * inv, gz * inv
-        hx, hz = self.hx, self.hz
-        near = hx * ux + hz * uz >= math.cos(step)
+        hx, hz = a.hx, a.hz
+        near = hx * ux + hz * uz >= np.cos(step)
         snap = turning & near
         far = np.flatnonzero(turning & ~near)
-        self.hx = np.where(snap, ux, hx)
-        self.hz = np.where(snap, uz, hz)
+        a.hx = np.where(snap, ux, hx)
+        a.hz = np.where(snap, uz, hz)
         if far.size:
             fx, fz = hx[far], hz[far]
-            s = np.where(fx * uz[far] - fz * ux[far] >= 0.0, -math.sin(step), math.sin(step))  # toward the goal
-            c = math.cos(step)
-            self.hx[far], self.hz[far] = c * fx + s * fz, c * fz - s * fx
+            sin, cos = (np.sin(step[far]), np.cos(step[far])) if np.ndim(step) else (math.sin(step), math.cos(step))
+            s = np.where(fx * uz[far] - fz * ux[far] >= 0.0, -sin, sin)  # toward the goal
+            a.hx[far], a.hz[far] = cos * fx + s * fz, cos * fz - s * fx
 
     def _bound(self) -> None:
         """World bounds: clamp, and stop the velocity component that points out."""
@@ -494,53 +641,49 @@ class CrowdAI:
                 p[out] = np.minimum(np.maximum(p[out], low), high)
                 v[out] = 0.0
 
-    def _wander(self, wandering: np.ndarray, h: float) -> None:
-        self.pause -= h
-        dx, dz = self.tx - self.x, self.tz - self.z
-        idx = np.flatnonzero(wandering & (dx * dx + dz * dz < 0.16) & (self.pause <= 0.0))
+    def _wander(self, a: "_Agents", wandering: np.ndarray, h) -> None:
+        a.pause -= h
+        dx, dz = a.tx - a.x, a.tz - a.z
+        idx = np.flatnonzero(wandering & (dx * dx + dz * dz < 0.16) & (a.pause <= 0.0))
         if idx.size:
             cfg, rng = self.config, self.rng
             angle = rng.uniform(-math.pi, math.pi, idx.size)
             radius = cfg.wander_radius * np.sqrt(rng.uniform(0.1, 1.0, idx.size))
             inner = self.half_extent - 0.5
-            self.tx[idx] = np.clip(self.x[idx] + radius * np.sin(angle), self.origin[0] - inner, self.origin[0] + inner)
-            self.tz[idx] = np.clip(self.z[idx] + radius * np.cos(angle), self.origin[1] - inner, self.origin[1] + inner)
-            self.pause[idx] = np.where(rng.uniform(0, 1, idx.size) < 0.5, rng.uniform(1.0, 4.0, idx.size), 0.0)
+            a.tx[idx] = np.clip(a.x[idx] + radius * np.sin(angle), self.origin[0] - inner, self.origin[0] + inner)
+            a.tz[idx] = np.clip(a.z[idx] + radius * np.cos(angle), self.origin[1] - inner, self.origin[1] + inner)
+            a.pause[idx] = np.where(rng.uniform(0, 1, idx.size) < 0.5, rng.uniform(1.0, 4.0, idx.size), 0.0)
 
-    def _separate(self, h: float) -> None:
+    def _separate(self, gain: float) -> None:
         """Push overlapping living agents apart: both agents of a pair closer than the separation radius r
-        move apart by half the overlap, times min(stiffness x h, 1), and no agent moves more than r / 2."""
-        cfg = self.config
-        r = cfg.separation_radius
+        move apart by half the overlap, times `gain` (min(stiffness x h, 1)), and no agent moves more
+        than r / 2. Every agent, every substep, the think budget's included: a pile-up must come apart
+        as fast as without it (its agents think rarely, but they do not overlap for longer).
+
+        The pushes are summed by bincounts over the crowd (cheap), and the rest runs over the agents of
+        overlapping pairs only: the moves of all 100,000 agents were most of a step's separation."""
+        started = time.perf_counter()
+        r = self.config.separation_radius
         i, j = self._neighbour_pairs()
-        if not i.size:
-            return
-        state = self.state
-        dx, dz = self.x[i] - self.x[j], self.z[i] - self.z[j]
-        dist2 = dx * dx + dz * dz
-        # Agents that died since the list was built are skipped here rather than by a rebuild.
-        close = np.flatnonzero((dist2 < r * r) & (state[i] < DYING) & (state[j] < DYING))
-        if not close.size:
-            return
-        i, j, dx, dz = i[close], j[close], dx[close], dz[close]
-        dist = np.sqrt(dist2[close])
-        inv = 1.0 / np.maximum(dist, 1e-12)
-        ux, uz = dx * inv, dz * inv
-        # Coincident agents: a direction made from the pair's agent numbers (deterministic).
-        same = np.flatnonzero(dist < 1e-9)
-        if same.size:
-            angle = 2 * math.pi * np.mod(i[same] * 0.6180339887 + j[same] * 0.7548776662, 1.0)
-            ux[same], uz[same] = np.cos(angle), np.sin(angle)
-        amount = 0.5 * (r - dist)  # each of the two takes half the overlap
-        fx, fz = ux * amount, uz * amount
-        push_x = np.bincount(i, weights=fx, minlength=self.n) - np.bincount(j, weights=fx, minlength=self.n)
-        push_z = np.bincount(i, weights=fz, minlength=self.n) - np.bincount(j, weights=fz, minlength=self.n)
-        # Stiffness x h above 1 removes the whole overlap, never more; no agent moves more than r / 2.
-        gain = min(cfg.separation_stiffness * h, 1.0)
-        norm = np.sqrt(push_x * push_x + push_z * push_z) * gain
-        gain = gain * np.minimum(1.0, 0.5 * r / np.maximum(norm, 1e-12))
-        self.x += push_x * gain
-        self.z += push_z * gain
+        if i.size:
+            dx, dz = self.x[i] - self.x[j], self.z[i] - self.z[j]
+            dist2 = dx * dx + dz * dz
+            # Agents that died since the list was built are skipped here rather than by a rebuild.
+            close = np.flatnonzero((dist2 < r * r) & (self.state[i] < DYING) & (self.state[j] < DYING))
+            if close.size:
+                i, j, dx, dz = i[close], j[close], dx[close], dz[close]
+                fx, fz = _overlap_push(i, j, dx, dz, np.sqrt(dist2[close]), r)
+                pushed = np.zeros(self.n, bool)
+                pushed[i] = pushed[j] = True
+                agents = np.flatnonzero(pushed)
+                push_x = (np.bincount(i, weights=fx, minlength=self.n) - np.bincount(j, weights=fx, minlength=self.n))[agents]
+                push_z = (np.bincount(i, weights=fz, minlength=self.n) - np.bincount(j, weights=fz, minlength=self.n))[agents]
+                # Stiffness x h above 1 removes the whole overlap, never more; no agent moves more than r / 2.
+                norm = np.sqrt(push_x * push_x + push_z * push_z) * gain
+                gain = gain * np.minimum(1.0, 0.5 * r / np.maximum(norm, 1e-12))
+                self.x[agents] += push_x * gain
+                self.z[agents] += push_z * gain
+        self.separation_seconds += time.perf_counter() - started
 
     def _neighbour_pairs(self) -> tuple[np.ndarray, np.ndarray]:
         """Candidate pairs (i, j) of agents: every pair of living agents closer than the separation radius
@@ -573,6 +716,9 @@ class CrowdAI:
             return np.zeros(0, np.intp), np.zeros(0, np.intp)
         everyone = live.size == self.n  # the usual case: plain arrays instead of gathers
         x, z = (self.x, self.z) if everyone else (self.x[live], self.z[live])
+        # At most about 4 cells an agent: a separation radius far below the spacing (a valid setting)
+        # must not ask for a grid of billions of cells; wider cells only find more candidates.
+        size = max(size, 2.0 * self.half_extent / math.sqrt(4.0 * live.size + 1.0))
         side = int(math.ceil(2.0 * self.half_extent / size)) + 3  # spare cells around: no edge checks
         gx = np.minimum(np.maximum((x - (self.origin[0] - self.half_extent)) * (1.0 / size) + 1.0, 1.0), side - 2.0)
         gz = np.minimum(np.maximum((z - (self.origin[1] - self.half_extent)) * (1.0 / size) + 1.0, 1.0), side - 2.0)
@@ -594,14 +740,19 @@ class CrowdAI:
 
     # -- outputs
 
-    def _locomotion_weights(self, speed: np.ndarray):
+    def _locomotion_weights(self, speed: np.ndarray, walk: np.ndarray | None = None, speed_factor: np.ndarray | None = None, out=None):
         """(idle, walk, run weights, run share of the stride) from ground speed: idle → walk up to the
-        agent's walk speed, walk → run up to its run speed."""
+        agent's walk speed, walk → run up to its run speed (`walk`, `speed_factor`: some agents', by
+        default everyone's). `out`: three arrays (a layer's strided weight column, say) the weights are
+        written into by the operations that make them, rounded once, instead of new arrays."""
         m = self.motion
-        walk = self.walk_top
+        walk = self.walk_top if walk is None else walk
+        speed_factor = self.speed_factor if speed_factor is None else speed_factor
         to_walk = np.minimum(speed / walk, 1.0)
-        run_t = np.minimum(np.maximum((speed - walk) / (m.run_speed * self.speed_factor - walk), 0.0), 1.0)
-        return 1.0 - to_walk, to_walk * (1.0 - run_t), to_walk * run_t, run_t
+        run_t = np.minimum(np.maximum((speed - walk) / (m.run_speed * speed_factor - walk), 0.0), 1.0)
+        out = out or (None, None, None)
+        return (np.subtract(1.0, to_walk, out=out[0], casting="unsafe"), np.multiply(to_walk, 1.0 - run_t, out=out[1], casting="unsafe"),
+                np.multiply(to_walk, run_t, out=out[2], casting="unsafe"), run_t)
 
     def action_fade(self, agents: np.ndarray | None = None) -> np.ndarray:
         """0..1 per agent (or per agent of `agents`): how much of the action layer shows, cross-faded in
@@ -620,14 +771,28 @@ class CrowdAI:
         if out.shape != (self.n, LAYERS, 4) or out.dtype != np.float32:
             raise AIError(f"layers must be float32 ({self.n}, {LAYERS}, 4), got {out.dtype} {out.shape}")
         m = self.motion
-        speed = np.sqrt(self.vx * self.vx + self.vz * self.vz)
-        weights = self._locomotion_weights(speed)[:3]
-        for layer, role in enumerate(("idle", "walk", "run")):
-            out[:, layer, CLIP] = m.clip[role]
-            out[:, layer, PHASE] = self.phase
-            out[:, layer, WEIGHT] = weights[layer]
-            out[:, layer, MASK] = -1.0
-        out[:, 3] = (0.0, 0.0, 0.0, -1.0)
+        # The constant columns in one broadcast of a (4, 4) template, then the phase (rounded to float32
+        # once) and the weights (each written by the operation that makes it) into their strided
+        # columns, a run of agents at a time: each column is a strided pass over its run, and a run
+        # of 16,384 agents' layers (1 MB) stays in the cache for all of them, where a million agents'
+        # (64 MB) went through memory once per column.
+        clips = tuple(m.clip[role] for role in ("idle", "walk", "run"))
+        if getattr(self, "_layer_template", (None,))[0] != clips:  # a run's worth: a copy is 4x a broadcast's speed
+            template = np.zeros((LAYER_RUN, LAYERS, 4), np.float32)
+            template[:, :3, CLIP] = clips
+            template[:, :, MASK] = -1.0
+            self._layer_template = (clips, template)
+        template = self._layer_template[1]
+        for start in range(0, self.n, LAYER_RUN):
+            run = slice(start, min(start + LAYER_RUN, self.n))
+            o = out[run]
+            o[:] = template[: len(o)]
+            phase = self.phase[run].astype(np.float32)
+            for layer in range(3):
+                o[:, layer, PHASE] = phase
+            vx, vz = self.vx[run], self.vz[run]
+            self._locomotion_weights(np.sqrt(vx * vx + vz * vz), self.walk_top[run], self.speed_factor[run],
+                                     out=[o[:, layer, WEIGHT] for layer in range(3)])
         acting = np.flatnonzero(self.action)
         if acting.size:
             action = self.action[acting]
@@ -669,6 +834,20 @@ class CrowdAI:
 
     def counts(self) -> dict[str, int]:
         return {name: int(np.count_nonzero(self.state == code)) for code, name in enumerate(STATE_NAMES)}
+
+
+def _overlap_push(i, j, dx, dz, dist, r: float):
+    """Per overlapping pair (i, j) at offset (dx, dz) = i - j and distance `dist` < r: the push on i
+    (j gets its opposite), half the overlap along the pair's direction."""
+    inv = 1.0 / np.maximum(dist, 1e-12)
+    ux, uz = dx * inv, dz * inv
+    # Coincident agents: a direction made from the pair's agent numbers (deterministic).
+    same = np.flatnonzero(dist < 1e-9)
+    if same.size:
+        angle = 2 * math.pi * np.mod(i[same] * 0.6180339887 + j[same] * 0.7548776662, 1.0)
+        ux[same], uz[same] = np.cos(angle), np.sin(angle)
+    amount = 0.5 * (r - dist)  # each of the two takes half the overlap
+    return ux * amount, uz * amount
 
 
 def advance_phase(phase: np.ndarray, step) -> np.ndarray:
