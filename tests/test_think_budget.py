@@ -66,14 +66,19 @@ def test_a_hit_is_exact_at_once_and_far_agents_coast_every_substep(motion):
     assert np.count_nonzero(~ai._exact & (np.hypot(ai.vx, ai.vz) > 0.05)) > 500  # most of the crowd is budgeted, much of it walks
     # No stutter: between its thinks a far agent moves on every substep at its velocity, and its
     # phase at its rate; the block whose turn it is thinks, over the time since it last did.
+    turns = 0
     for _ in range(16):
         b = ai.substeps % 8
         block = np.zeros(ai.n, bool)
         block[b * ai.n // 8: (b + 1) * ai.n // 8] = True
         coasting = ~ai._exact & ~block
-        x, z, vx, vz, phase, rate = (a.copy() for a in (ai.x, ai.z, ai.vx, ai.vz, ai.phase, ai.phase_rate))
+        x, z, vx, vz, phase, rate, hx, hz = (a.copy() for a in (ai.x, ai.z, ai.vx, ai.vz, ai.phase, ai.phase_rate, ai.hx, ai.hz))
         pending = ai._pending.copy()
         ai.step(STEP)
+        # Headings turn by at most one substep's turn, thinking or not (a think does not turn them at once).
+        turned = np.abs(np.arctan2(hx * ai.hz - hz * ai.hx, hx * ai.hx + hz * ai.hz))
+        assert turned.max() <= config.turn_rate * STEP + 1e-9
+        turns += np.count_nonzero(turned[coasting] > 1e-12)
         assert np.array_equal(ai.x[coasting], x[coasting] + vx[coasting] * STEP)
         assert np.array_equal(ai.z[coasting], z[coasting] + vz[coasting] * STEP)
         assert np.array_equal(ai.vx[coasting], vx[coasting])
@@ -81,6 +86,7 @@ def test_a_hit_is_exact_at_once_and_far_agents_coast_every_substep(motion):
         assert np.allclose(np.mod(ai.phase[walking] - phase[walking], 1.0), rate[walking] * STEP, atol=1e-12)
         thought = block & ~ai._exact
         assert np.all(ai._pending[thought] == 0.0) and np.all(ai._pending[coasting] == pending[coasting] + STEP)
+    assert turns > 50  # far agents did go on turning between their thinks
     # A far agent struck by the player plays its hit from the next substep on, exactly.
     victim = int(np.flatnonzero(~ai._exact & (ai.state == WANDER))[0])
     ai.hit([victim])

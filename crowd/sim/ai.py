@@ -284,11 +284,13 @@ class CrowdAI:
 
     _FLOAT = ("x", "z", "vx", "vz", "hx", "hz", "state_time", "aware", "tx", "tz", "pause", "phase", "action_time", "cooldown",
               "speed_factor", "reaction", "walk_top", "chase_top",
-              "phase_rate", "_pending")  # the think budget's: the phase's rate between thinks, the time since the last
+              "phase_rate", "_pending",  # the think budget's: the phase's rate between thinks, the time since the last,
+              "_goal_x", "_goal_z")  # and the heading a far agent turns toward between thinks
     _OTHER = {"state": np.int8, "action": np.int8, "health": np.int16, "runner": bool, "scale": np.float32, "head": np.int32,
               "weapon": np.int16,
               "spawned_step": np.int64,
-              "_exact": bool}  # thinks every substep (the think budget)
+              "_exact": bool,  # thinks every substep (the think budget)
+              "_coast_turn": bool}  # turns toward its goal heading between thinks
 
     def _allocate(self, n: int) -> None:
         for name in self._FLOAT:
@@ -444,7 +446,7 @@ class CrowdAI:
             self._separate(min(self.config.separation_stiffness * h, 1.0))
             self._bound()
             everyone = _Agents(self, slice(None))
-            self._think_b(everyone, h, h, *near)
+            self._think_b(everyone, h, h, h, *near)
             everyone.commit()
             self.substeps += 1
             return
@@ -498,16 +500,19 @@ class CrowdAI:
         self.z += self.vz * coast
         advance_phase(self.phase, self.phase_rate * coast)
         self._pending += coast
+        turning = np.flatnonzero(self._coast_turn & ~thinking)
+        if turning.size:
+            self._coast_turns(turning, self.config.turn_rate * h)
 
         self._separate(min(self.config.separation_stiffness * h, 1.0))  # everyone, every substep
         self._bound()
 
         group = _Agents(self, exact)
-        self._think_b(group, h, h, *near_exact)
+        self._think_b(group, h, h, h, *near_exact)
         self._exact[exact] = self._must_be_exact(group)
         group.commit()
         group = _Agents(self, block)
-        self._think_b(group, think_h, move_h, *near_block)
+        self._think_b(group, think_h, move_h, h, *near_block)
         self._exact[block] |= self._must_be_exact(group)  # from now on with the exact ones
         group.commit()
         self._pending[self._exact] = 0.0
@@ -587,9 +592,11 @@ class CrowdAI:
         a.z += a.vz * move
         return to_px, to_pz, dist
 
-    def _think_b(self, a: "_Agents", h, move, to_px, to_pz, dist) -> None:
-        """The second half, after separation: heading (turned by at most turn_rate x `h`) and the
-        locomotion phase (advanced over `move`)."""
+    def _think_b(self, a: "_Agents", h, move, substep: float, to_px, to_pz, dist) -> None:
+        """The second half, after separation: heading (turned by at most turn_rate x `substep`, this
+        substep's length, however long since the agent last thought: a budgeted agent goes on turning
+        toward the same goal between thinks, see _coast_turns) and the locomotion phase (advanced over
+        `move`)."""
         cfg = self.config
         state = a.state
         # Heading: a unit vector turned toward the motion (or toward the player while attacking) by at
@@ -600,9 +607,14 @@ class CrowdAI:
         gz = np.where(attacking, to_pz, a.vz)
         glen = np.where(attacking, dist, speed)
         turning = (glen > 0.05) & (state < DYING)
-        if np.ndim(h):
+        budgeted = np.ndim(h) > 0
+        if budgeted:
             turning &= h > 0.0  # agents that do not think here (exact ones inside a block) keep their heading
-        self._turn(a, turning, gx, gz, glen, cfg.turn_rate * h)
+        ux, uz = self._turn(a, turning, gx, gz, glen, cfg.turn_rate * substep)
+        if budgeted:  # those not at their goal yet turn on toward it, a substep's worth at a time, until they think again
+            np.copyto(a._goal_x, ux)
+            np.copyto(a._goal_z, uz)
+            np.copyto(a._coast_turn, turning & ((a.hx != ux) | (a.hz != uz)))
 
         # Locomotion phase: speed over the blended stride (idle plays at its own rate while standing).
         m = self.motion
@@ -613,24 +625,32 @@ class CrowdAI:
         if self.budgeted():
             a.phase_rate[:] = rate  # what the phase advances by until the agent thinks again
 
-    def _turn(self, a: "_Agents", turning: np.ndarray, gx, gz, glen, step) -> None:
-        """Turn each heading toward (gx, gz) by at most `step` radians (a scalar, or per agent).
-        Headings within `step` of their goal snap to it; only the few farther off are rotated, by a
-        fixed angle (no trig per agent when `step` is one number). Rotation keeps the length to within
-        rounding, about 1e-16 per step: 1e-10 after ten hours."""
+    def _turn(self, a: "_Agents", turning: np.ndarray, gx, gz, glen, step: float):
+        """Turn each heading toward (gx, gz) by at most `step` radians. Headings within `step` of their
+        goal snap to it; only the few farther off are rotated, by a fixed angle (no trig per agent).
+        Rotation keeps the length to within rounding, about 1e-16 per step: 1e-10 after ten hours.
+        Returns the goal directions."""
         inv = 1.0 / (glen + 1e-30)
         ux, uz = gx * inv, gz * inv
         hx, hz = a.hx, a.hz
-        near = hx * ux + hz * uz >= np.cos(step)
+        near = hx * ux + hz * uz >= math.cos(step)
         snap = turning & near
         far = np.flatnonzero(turning & ~near)
         a.hx = np.where(snap, ux, hx)
         a.hz = np.where(snap, uz, hz)
         if far.size:
-            fx, fz = hx[far], hz[far]
-            sin, cos = (np.sin(step[far]), np.cos(step[far])) if np.ndim(step) else (math.sin(step), math.cos(step))
-            s = np.where(fx * uz[far] - fz * ux[far] >= 0.0, -sin, sin)  # toward the goal
-            a.hx[far], a.hz[far] = cos * fx + s * fz, cos * fz - s * fx
+            a.hx[far], a.hz[far] = _rotate_toward(hx[far], hz[far], ux[far], uz[far], step)
+        return ux, uz
+
+    def _coast_turns(self, coasting: np.ndarray, step: float) -> None:
+        """Between thinks: the budgeted agents still turning (`coasting`, indices) turn toward the goal
+        their last think set, by `step` as an exact agent turns each substep, snapping when within it."""
+        hx, hz, ux, uz = self.hx[coasting], self.hz[coasting], self._goal_x[coasting], self._goal_z[coasting]
+        near = hx * ux + hz * uz >= math.cos(step)
+        rx, rz = _rotate_toward(hx, hz, ux, uz, step)
+        self.hx[coasting] = np.where(near, ux, rx)
+        self.hz[coasting] = np.where(near, uz, rz)
+        self._coast_turn[coasting[near]] = False
 
     def _bound(self) -> None:
         """World bounds: clamp, and stop the velocity component that points out."""
@@ -834,6 +854,13 @@ class CrowdAI:
 
     def counts(self) -> dict[str, int]:
         return {name: int(np.count_nonzero(self.state == code)) for code, name in enumerate(STATE_NAMES)}
+
+
+def _rotate_toward(hx, hz, ux, uz, step: float):
+    """Unit headings (hx, hz) rotated by the angle `step` toward the unit directions (ux, uz)."""
+    sin, cos = math.sin(step), math.cos(step)
+    s = np.where(hx * uz - hz * ux >= 0.0, -sin, sin)  # toward the goal
+    return cos * hx + s * hz, cos * hz - s * hx
 
 
 def _overlap_push(i, j, dx, dz, dist, r: float):
