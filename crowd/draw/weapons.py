@@ -221,7 +221,8 @@ class WeaponRenderer(GLStage):
             self._drop(agents, np.asarray(fallen, bool))
         self._held_before = (agents, weapon, rows)
         held = len(agents)  # the placed weapons come first, the dropped ones after them
-        agents, weapon, rows = (np.concatenate([a, b]) for a, b in zip((agents, weapon, rows), self.dropped))
+        if len(self.dropped[0]):  # (a copy of every placed row: only when something lies on the ground)
+            agents, weapon, rows = (np.concatenate([a, b]) for a, b in zip((agents, weapon, rows), self.dropped))
         if self.gpu_cull:
             return self._attach_on_gpu(agents, weapon, rows, np.concatenate([[0], np.cumsum(np.bincount(weapon, minlength=len(self.names)))]), visibility, held)
         agent_lod = np.zeros(len(agents), np.int64) if lod is None else np.asarray(lod, np.int64)[agents]
@@ -244,9 +245,14 @@ class WeaponRenderer(GLStage):
         """Weapons whose agent fell this frame (in hand last frame, `fallen` now, not in hand now) drop to
         the ground; those of agents up again (respawned) or gone are removed."""
         agents, weapon, rows = self.dropped
-        stay = (agents < len(fallen)) & fallen[np.minimum(agents, max(len(fallen) - 1, 0))] if len(fallen) else np.zeros(len(agents), bool)
+        n = len(fallen)
+        stay = (agents < n) & fallen[np.minimum(agents, max(n - 1, 0))] if n else np.zeros(len(agents), bool)
         before_agents, before_weapon, before_rows = self._held_before
-        new = (before_agents < len(fallen)) & ~np.isin(before_agents, held) & ~np.isin(before_agents, agents[stay])
+        # Flags over the crowd, not np.isin (a sort: 2 ms for 50,000 weapons): in hand now, or down already.
+        taken = np.zeros(n + 1, bool)
+        taken[held[held < n]] = True
+        taken[agents[stay]] = True
+        new = (before_agents < n) & ~taken[np.minimum(before_agents, n)]
         new[new] = fallen[before_agents[new]]
         self.dropped = (np.concatenate([agents[stay], before_agents[new]]), np.concatenate([weapon[stay], before_weapon[new]]),
                         np.concatenate([rows[stay], self.on_ground(before_rows[new], before_weapon[new])]))
