@@ -226,6 +226,8 @@ def bench_frame(args) -> int:
     from crowd.settings import parse
     from crowd.smoke import FIXED_DT, paced_frames
 
+    dt = FIXED_DT if args.dt is None else args.dt
+
     size = parse("size", args.size)
     scene = load_scene(args.scene) if args.scene else Scene()
     ctx = headless_context()
@@ -240,16 +242,16 @@ def bench_frame(args) -> int:
             with CrowdPipeline(ctx, config) as pipeline:
                 pipeline.camera = scene.camera_for(size[0] / size[1]) or pipeline.default_camera(size[0] / size[1])
                 for _ in range(args.warmup):
-                    pipeline.frame(target.framebuffer, FIXED_DT)
+                    pipeline.frame(target.framebuffer, dt)
                 ctx.finish()
                 periods, latencies, intervals = [], [], []
                 for _ in range(args.repeats):
-                    paced = paced_frames(ctx, lambda: pipeline.frame(target.framebuffer, FIXED_DT), args.frames)
+                    paced = paced_frames(ctx, lambda: pipeline.frame(target.framebuffer, dt), args.frames)
                     periods.append(sum(paced) / len(paced))
                     intervals += paced
                     for _ in range(max(1, args.frames // 2)):
                         t0 = time.perf_counter()
-                        pipeline.frame(target.framebuffer, FIXED_DT)
+                        pipeline.frame(target.framebuffer, dt)
                         ctx.finish()
                         latencies.append((time.perf_counter() - t0) * 1e3)
                 pipeline.timer.end_frame(drain=True)
@@ -273,7 +275,7 @@ def bench_frame(args) -> int:
         from crowd.files import atomic_write_bytes
 
         atomic_write_bytes(Path(args.json), json.dumps({"device": device, "size": list(size), "scene": str(args.scene or "default"),
-                                                        "rows": rows}, indent=1).encode())
+                                                        "dt_s": dt, "rows": rows}, indent=1).encode())
     ctx.release()
     return 0
 
@@ -489,6 +491,8 @@ def main(argv=None) -> int:
     p.add_argument("--frames", type=int, default=100, help="frames per period measurement")
     p.add_argument("--repeats", type=int, default=3, help="period measurements per agent count (the median is reported)")
     p.add_argument("--warmup", type=int, default=10, help="frames before measuring (shaders compile, buffers grow)")
+    p.add_argument("--dt", type=float, default=None,
+                   help="simulated seconds a frame (default: the headless loop's 1/30 s, two AI substeps; 1/60 is what a 60 fps window steps)")
     p.add_argument("--json", type=Path, help="write the rows here")
     p.set_defaults(run=bench_frame)
     p = sub.add_parser("lod", help="silhouette IoU of each coarser LOD against LOD0 at its switch distance (float64, CPU)")
