@@ -101,3 +101,22 @@ def test_a_bad_think_budget_is_one_line(motion):
     for bad in ({"think_every": 0}, {"think_every": 65}, {"think_from": -1}, {"think_radius": -1.0}):
         with pytest.raises(AIError):
             CrowdAI(10, 1, motion, AIConfig(**bad))
+
+
+def test_agents_the_player_leaves_behind_go_back_to_the_budget(motion):
+    """300 zombies around the player, none of which will ever chase (a reaction of 1,000 s), are all
+    exact; once the player is 1 km away they are budgeted again at the next substep."""
+    config = AIConfig(half_extent=2000.0, think_every=8, think_from=0, think_radius=30.0, reaction_min=1000.0, reaction_max=1000.0)
+    ai = CrowdAI(3000, 2, motion, config)
+    rng = np.random.default_rng(5)
+    ai.x[:300], ai.z[:300] = rng.uniform(-15.0, 15.0, (2, 300))
+    ai.tx[:300], ai.tz[:300] = ai.x[:300], ai.z[:300]
+    ai.player = np.array([0.0, 0.0])
+    ai.set_config(ai.config)
+    for _ in range(10):
+        ai.step(STEP)
+    assert ai.exact_count() >= 295 and ai._exact[:300].all()
+    ai.player = np.array([1000.0, 1000.0])
+    ai.step(STEP)
+    near_new = np.hypot(ai.x - 1000.0, ai.z - 1000.0) < 30.0
+    assert not ai._exact[:300].any() and ai.exact_count() <= int(np.count_nonzero(near_new))

@@ -465,9 +465,10 @@ class CrowdAI:
         the player or a focus point, or doing anything but wandering and lying dead) think every
         substep; the rest are cut into think_every blocks of consecutive agents, and one block thinks
         per substep, over the time since it last did. Between thinks an agent keeps its velocity and
-        phase rate: its position and phase move every substep (no stutter), its timers, steering,
-        heading and animation weights catch up when it thinks. An exact agent is stepped exactly as
-        with the budget off: it takes no time from the budget, and its substep is the same arithmetic.
+        phase rate: its position and phase move every substep (no stutter), it goes on turning toward
+        the heading its think chose, and its timers, steering and animation weights catch up when it
+        thinks. An exact agent is stepped exactly as with the budget off: it takes no time from the
+        budget, and its substep is the same arithmetic.
 
         The blocks are slices, so a block thinks through views of the arrays; the exact agents, a few
         hundred around the player, are gathered and scattered back."""
@@ -509,8 +510,8 @@ class CrowdAI:
 
         group = _Agents(self, exact)
         self._think_b(group, h, h, h, *near_exact)
+        group.commit()  # (the copy holds the old flags: commit first, then say who stays exact)
         self._exact[exact] = self._must_be_exact(group)
-        group.commit()
         group = _Agents(self, block)
         self._think_b(group, think_h, move_h, h, *near_block)
         self._exact[block] |= self._must_be_exact(group)  # from now on with the exact ones
