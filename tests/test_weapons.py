@@ -288,18 +288,20 @@ def test_pipeline_rejects_a_bad_latency(gl_context):
             CrowdPipeline(gl_context, PipelineConfig(agents=2, readback_latency=bad))
 
 
-def test_weapon_vertices_are_baked_into_socket_space_as_float64_places_them(gl_context, zombie):
+@pytest.mark.parametrize("gpu_cull", [False, True])
+def test_weapon_vertices_are_baked_into_socket_space_as_float64_places_them(gl_context, zombie, gpu_cull):
     """What the GPU draws for a weapon is socket x (socket bind x inverse grip) x vertex: the meshes'
     vertices, read back from their buffers, are the float64 product of the last two with the
-    original vertices, to float32 rounding; normals to their snorm10 step."""
-    from crowd.draw.weapons import VERTEX_DTYPE, WeaponRenderer
-    w = WeaponRenderer(gl_context, zombie, shadows=False)
+    original vertices, to float32 rounding; normals to their snorm10 step (each mesh's own buffer on the
+    CPU path, its part of the shared one on the GPU path)."""
+    from crowd.draw.weapons import WeaponRenderer
+    w = WeaponRenderer(gl_context, zombie, shadows=False, gpu_cull=gpu_cull)
     try:
         meshes = [(i, mesh) for i, prop in enumerate(zombie.props.values())
                   for mesh in prop.lods + (prop.lods[-1],) * (w.lod_count - len(prop.lods))]
-        assert len(meshes) == len(w._meshes)
-        for (i, mesh), drawn in zip(meshes, w._meshes):
-            v = np.frombuffer(drawn["vbo"].read(), VERTEX_DTYPE)
+        assert len(meshes) == len(w._meshes) and len(w.mesh_vertices(len(meshes) - 1)) == len(meshes[-1][1].positions)
+        for d, (i, mesh) in enumerate(meshes):
+            v = w.mesh_vertices(d)
             m = w.socket_bind @ w.inverse_grip[i]
             want = np.asarray(mesh.positions, np.float64) @ m[:3, :3].T + m[:3, 3]
             assert np.max(np.abs(v["position"] - want)) < 1e-6
@@ -345,7 +347,6 @@ def test_the_cpu_paths_weapon_instances_carry_their_agents_records_bit_for_bit(h
 
 @pytest.mark.parametrize("cull", ["cpu", "gpu"])
 def test_a_dropped_weapon_lies_on_the_ground_below_the_hand_it_left_until_the_respawn(harness, cull):
-    from crowd.draw.weapons import VERTEX_DTYPE
     h = harness(scripted_player=False, cull=cull, ai=AIConfig(half_extent=9.0, armed_share=1.0, corpse_time=0.5))
     p = h.pipeline
     p.ai.player = np.array([500.0, 500.0])  # nobody notices the player: the crowd only wanders
@@ -366,8 +367,7 @@ def test_a_dropped_weapon_lies_on_the_ground_below_the_hand_it_left_until_the_re
     assert dropped_agents.tolist() == [victim] and p.weapons.last["dropped"] == 1
     # Its vertices, as the GPU places them: the lowest on the ground, the grip point below the hand.
     w = int(dropped_weapon[0])
-    mesh = p.weapons._meshes[w * p.weapons.lod_count]
-    baked = np.frombuffer(mesh["vbo"].read(), VERTEX_DTYPE)["position"].astype(np.float64)
+    baked = p.weapons.mesh_vertices(w * p.weapons.lod_count)["position"].astype(np.float64)
     model = baked @ dropped_rows[0][:, :3].T.astype(np.float64) + dropped_rows[0][:, 3]
     world = p.last.agent_frames.points(np.full(len(model), victim), model) + np.asarray(p.camera.eye, np.float64)
     assert abs(world[:, 1].min()) < 1e-3

@@ -100,8 +100,9 @@ class GpuCull(GLStage):
 
     def __init__(self, ctx: moderngl.Context, draws: list[tuple[int, int, int]], common: int, group_choices: list[int],
                  with_visible: bool, shadow_cascades: int = 0):
-        """`draws`: per draw (LOD, slot, index count). Slots 0 .. common - 1 are the pieces every agent
-        wears; then each variation group's choices in turn (group g has group_choices[g])."""
+        """`draws`: per draw (LOD, slot, index count[, first index, base vertex] in the buffers it is drawn
+        from). Slots 0 .. common - 1 are the pieces every agent wears; then each variation group's
+        choices in turn (group g has group_choices[g])."""
         self._objects = GLObjects()
         self.ctx = ctx
         if len(group_choices) > MAX_GROUPS or any(c > MAX_CHOICES for c in group_choices):
@@ -113,12 +114,14 @@ class GpuCull(GLStage):
             raise GpuCullError(f"{len(draws)} (piece, LOD) draws, more than the {MAX_DRAWS} the GPU cull counts")
         self.draw_count = len(draws)
         self.index_counts = np.array([d[2] for d in draws], np.uint32)
+        self.first_index = np.array([d[3] if len(d) > 3 else 0 for d in draws], np.uint32)
+        self.base_vertex = np.array([d[4] if len(d) > 4 else 0 for d in draws], np.int32)
         self.common = common
         self.group_slots = [common + int(sum(group_choices[:g])) for g in range(len(group_choices))]
         self.slots = common + int(sum(group_choices))
         lods = max(d[0] for d in draws) + 1
         table = np.full(lods * self.slots, -1, np.int32)
-        for k, (lod, slot, _) in enumerate(draws):
+        for k, (lod, slot, *_) in enumerate(draws):
             table[lod * self.slots + slot] = k
         self.program = self._objects.add(ctx.compute_shader(load_shader("cull.comp.glsl")))
         self.draw_of = self._objects.add(ctx.buffer(table.tobytes()))
@@ -186,6 +189,8 @@ class GpuCull(GLStage):
         self.agents = n
         commands = np.zeros(self.draw_count, COMMAND_DTYPE)
         commands["count"] = self.index_counts
+        commands["first_index"] = self.first_index
+        commands["base_vertex"] = self.base_vertex
         commands["base_instance"] = np.arange(self.draw_count, dtype=np.uint32) * np.uint32(self.capacity)
         self.commands.write(commands.tobytes())
         if self.shadow_commands is not None:

@@ -229,6 +229,8 @@ class _Draw:
     count: int = 0
     shadow_instances: list = field(default_factory=list)  # the CPU path's shadow lists, one per cascade (shadows on)
     shadow_counts: list = field(default_factory=list)  # instances in each cascade's shadow list
+    first_index: int = 0  # where its indices and vertices start in the GPU path's shared buffers (vbo None)
+    base_vertex: int = 0
 
 
 class CrowdRenderer(GLStage):
@@ -265,17 +267,37 @@ class CrowdRenderer(GLStage):
             if m.group and m.piece not in self.groups.setdefault(m.group, []):
                 self.groups[m.group].append(m.piece)
         self._piece_group = {m.piece: m.group for m in meshes}
-        for m in sorted(meshes, key=lambda m: (m.lod, m.piece)):
-            vbo = self._own("meshes", ctx.buffer(pack_vertices(m).tobytes()))
-            ibo = self._own("meshes", ctx.buffer(best_triangle_order(m.indices, len(m.positions)).tobytes()))
+        # Untextured pieces first: on the GPU path they are one multi-draw per pass (below).
+        merged_vertices, merged_indices = [], []
+        for m in sorted(meshes, key=lambda m: (m.texture >= 0, m.lod, m.piece)):
+            vertices, indices = pack_vertices(m), best_triangle_order(m.indices, len(m.positions))
+            box = tuple(float(x) for x in np.concatenate(uv_box(m.uvs))) if m.texture >= 0 else (0.0, 0.0, 1.0, 1.0)
+            if cull_path == "gpu" and m.texture < 0:
+                # Into the pieces' shared buffers: its command starts at its first index and vertex there.
+                first_index, base_vertex = sum(len(i) for i in merged_indices), sum(len(v) for v in merged_vertices)
+                merged_vertices.append(vertices)
+                merged_indices.append(indices)
+                self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, None, None, None, m.texture, "", box,
+                                        first_index=first_index, base_vertex=base_vertex))
+                continue
+            vbo = self._own("meshes", ctx.buffer(vertices.tobytes()))
+            ibo = self._own("meshes", ctx.buffer(indices.tobytes()))
             # The CPU path's instance records, per draw; the GPU path draws from the cull's lists.
             inst = self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize)) if cull_path == "cpu" else None
-            box = tuple(float(x) for x in np.concatenate(uv_box(m.uvs))) if m.texture >= 0 else (0.0, 0.0, 1.0, 1.0)
             self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, vbo, ibo, inst, m.texture, uv_layout(m), box))
-            if shadows:
-                self.draws[-1].shadow_counts = [0] * CASCADES
-                if cull_path == "cpu":
-                    self.draws[-1].shadow_instances = [self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize)) for _ in range(CASCADES)]
+        # The GPU path's untextured draws (draws 0 .. merged - 1): one vertex and one index buffer, so a pass
+        # draws them all with one glMultiDrawElementsIndirect instead of a call each (69 calls a frame for
+        # the built-in zombie with shadows; each costs the CPU a call through moderngl and the driver).
+        self.merged = len(merged_vertices)
+        self._merged_buffers = None
+        if self.merged:
+            self._merged_buffers = (self._own("meshes", ctx.buffer(np.concatenate(merged_vertices).tobytes())),
+                                    self._own("meshes", ctx.buffer(np.concatenate(merged_indices).tobytes())))
+        self._merged_vaos: dict = {}
+        for draw in self.draws if shadows else ():
+            draw.shadow_counts = [0] * CASCADES
+            if cull_path == "cpu":
+                draw.shadow_instances = [self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize)) for _ in range(CASCADES)]
         # Only the textures a drawn piece uses reach the GPU, and none when no piece has one.
         used = {m.texture for m in meshes if m.texture >= 0}
         self.materials = self._own("textures", MaterialTextures(ctx, character.textures, used)) if used else None
@@ -286,7 +308,7 @@ class CrowdRenderer(GLStage):
                 for choice, piece in enumerate(pieces):
                     slot[piece] = len(slot)
             try:
-                self.gpu = self._own("cull", GpuCull(ctx, [(d.lod, slot[d.piece], d.triangles * 3) for d in self.draws], len(common),
+                self.gpu = self._own("cull", GpuCull(ctx, [(d.lod, slot[d.piece], d.triangles * 3, d.first_index, d.base_vertex) for d in self.draws], len(common),
                                                      [len(p) for p in self.groups.values()], weapons_visibility, CASCADES if shadows else 0))
             except GpuCullError as exc:
                 raise RenderError(f"{exc} (the cpu cull path has no such limit)") from None
@@ -366,6 +388,24 @@ class CrowdRenderer(GLStage):
             prog["u_albedo"] = TEXTURE_UNIT
         self._programs[key] = self._own("programs", prog)
         return prog
+
+    def _merged_vao(self, kind: str, skinned: bool) -> moderngl.VertexArray:
+        """The GPU path's one vertex array over the untextured pieces' shared buffers and a pass's lists."""
+        key = (kind, skinned)
+        if key not in self._merged_vaos:
+            prog = self._program(kind, skinned, "")
+            instances = self.gpu.shadow_lists if kind == "depth" else self.gpu.lists
+            vbo, ibo = self._merged_buffers
+            content = [(vbo, *_read_by(prog, _LAYOUTS[""][1])), (instances, *_read_by(prog, INSTANCE_FORMAT))]
+            self._merged_vaos[key] = self._own("programs", self.ctx.vertex_array(prog, content, index_buffer=ibo, index_element_size=4))
+        return self._merged_vaos[key]
+
+    def _render_merged(self, kind: str, skinned: bool, cascade: int = 0) -> None:
+        """All untextured draws of a pass in one multi-draw: their commands are 0 .. merged - 1 (a cascade's
+        after the cascades before it)."""
+        commands = self.gpu.shadow_commands if kind == "depth" else self.gpu.commands
+        self._merged_vao(kind, skinned).render_indirect(commands, moderngl.TRIANGLES, count=self.merged,
+                                                        first=cascade * len(self.draws) if kind == "depth" else 0)
 
     def _vao(self, draw: _Draw, kind: str, skinned: bool, cascade: int = 0) -> moderngl.VertexArray:
         key = (kind, skinned, cascade)
@@ -622,6 +662,9 @@ class CrowdRenderer(GLStage):
                 prog = self._program("depth", True, layout)
                 processor.bind_palette(0, prog)
                 prog["u_view_proj"].write(gl_bytes(matrix))
+                if layout == "" and self.merged:
+                    self._render_merged("depth", True, k)
+                    continue
                 for index, draw in enumerate(self.draws):
                     if draw.layout == layout:
                         self._render(index, draw, "depth", True, k)
@@ -648,6 +691,9 @@ class CrowdRenderer(GLStage):
                     processor.bind_palette(0, prog)
                 prog["u_view_proj"].write(gl_bytes(view.view_proj))
                 self.set_lighting(prog, view)
+                if layout == "" and self.merged:
+                    self._render_merged("color", skinned)
+                    continue
                 for index, draw in enumerate(self.draws):
                     if draw.layout == layout and (draw.count or self.gpu is not None):
                         if layout:

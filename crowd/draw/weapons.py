@@ -1,5 +1,5 @@
 """Attach stage: weapons placed on the CPU from read-back socket matrices, drawn one instanced draw per
-(weapon, LOD) mesh. A weapon is drawn at its agent's LOD (the prop's coarsest where it has fewer), and
+(weapon, LOD) mesh (on the GPU path, one multi-draw over buffers all the meshes share). A weapon is drawn at its agent's LOD (the prop's coarsest where it has fewer), and
 its shadow one LOD coarser, as the body's is.
 
 Contract: ``attach(read, agents_frame, weapon_of_agent)``:
@@ -139,18 +139,34 @@ class WeaponRenderer(GLStage):
                 self._shadow_shown = self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
                 self._shadow_commands = self._objects.add(ctx.buffer(reserve=CASCADES * draws * COMMAND_DTYPE.itemsize))
         self.shadows = shadows
+        merged_vertices, merged_indices = [], []  # the GPU path's: every mesh in one vertex and one index buffer
         for w, prop in enumerate(character.props.values()):
             lods = prop.lods + (prop.lods[-1],) * (self.lod_count - len(prop.lods))
             for lod, mesh in enumerate(lods):
-                vbo = self._objects.add(ctx.buffer(pack_rigid(mesh, self._socket_to_weapon[w]).tobytes()))
-                ibo = self._objects.add(ctx.buffer(best_triangle_order(mesh.indices, len(mesh.positions)).tobytes()))
+                vertices, indices = pack_rigid(mesh, self._socket_to_weapon[w]), best_triangle_order(mesh.indices, len(mesh.positions))
+                first_index, base_vertex = sum(len(i) for i in merged_indices), sum(len(v) for v in merged_vertices)
+                if gpu_cull:
+                    merged_vertices.append(vertices)
+                    merged_indices.append(indices)
+                    vbo = ibo = None
+                else:
+                    vbo = self._objects.add(ctx.buffer(vertices.tobytes()))
+                    ibo = self._objects.add(ctx.buffer(indices.tobytes()))
                 inst = self._shown if gpu_cull else self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
                 shadow = []  # per cascade: the CPU path's lists (the GPU path's are one buffer, by baseInstance)
                 if shadows:
                     shadow = [self._shadow_shown if gpu_cull else self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
                               for _ in range(CASCADES)]
                 self._meshes.append({"vbo": vbo, "ibo": ibo, "instances": inst, "shadow_instances": shadow, "count": 0,
-                                     "shadow_counts": [0] * CASCADES, "vaos": {}, "triangles": mesh.triangle_count, "lod": lod})
+                                     "shadow_counts": [0] * CASCADES, "vaos": {}, "triangles": mesh.triangle_count, "lod": lod,
+                                     "first_index": first_index if gpu_cull else 0, "base_vertex": base_vertex if gpu_cull else 0})
+        # On the GPU path a pass draws every (weapon, LOD) mesh with one multi-draw over the shared
+        # buffers (24 calls a frame before, with shadows), each command starting at its mesh's indices.
+        self._merged = None
+        if gpu_cull:
+            self._merged = {"vbo": self._objects.add(ctx.buffer(np.concatenate(merged_vertices).tobytes())),
+                            "ibo": self._objects.add(ctx.buffer(np.concatenate(merged_indices).tobytes())),
+                            "instances": self._shown, "shadow_instances": [self._shadow_shown] * CASCADES, "vaos": {}}
         defines = {"SHADOWS": 1, "CASCADES": CASCADES} if shadows else {}
         self._programs = {
             "color": self._objects.add(ctx.program(vertex_shader=load_shader("weapon.vert.glsl"), fragment_shader=load_shader("skin.frag.glsl", defines))),
@@ -319,6 +335,8 @@ class WeaponRenderer(GLStage):
                 buf.orphan(max(size, INSTANCE_DTYPE.itemsize))
         commands = np.zeros(len(self._meshes), COMMAND_DTYPE)
         commands["count"] = [m["triangles"] * 3 for m in self._meshes]
+        commands["first_index"] = [m["first_index"] for m in self._meshes]
+        commands["base_vertex"] = [m["base_vertex"] for m in self._meshes]
         lod = np.arange(len(self._meshes)) % self.lod_count
         commands["base_instance"] = lod * k + np.repeat(starts[:-1], self.lod_count)
         self._commands.write(commands.tobytes())
@@ -371,16 +389,29 @@ class WeaponRenderer(GLStage):
         """Whether the shadow pass has weapons to draw (the agents in the sun's volume may be out of view)."""
         return any(any(m["shadow_counts"]) for m in self._meshes)
 
-    def _render(self, d: int, mesh: dict, kind: str, cascade: int = 0) -> None:
-        count = mesh["shadow_counts"][cascade] if kind == "depth" else mesh["count"]
-        if not count:
-            return
+    def mesh_vertices(self, d: int) -> np.ndarray:
+        """(V,) VERTEX_DTYPE: mesh d's vertex records as the GPU holds them (its own buffer, or its part
+        of the GPU path's shared one)."""
+        mesh = self._meshes[d]
+        if mesh["vbo"] is not None:
+            return np.frombuffer(mesh["vbo"].read(), VERTEX_DTYPE)
+        end = self._meshes[d + 1]["base_vertex"] if d + 1 < len(self._meshes) else None
+        return np.frombuffer(self._merged["vbo"].read(), VERTEX_DTYPE)[mesh["base_vertex"]:end]
+
+    def _render_pass(self, kind: str, cascade: int = 0) -> None:
+        """Every (weapon, LOD) mesh of a pass: one multi-draw on the GPU path, a draw per mesh with
+        instances on the CPU path."""
         if self.gpu_cull:
+            if not any(m["shadow_counts"][cascade] if kind == "depth" else m["count"] for m in self._meshes):
+                return
             commands = self._shadow_commands if kind == "depth" else self._commands
-            first = d + (cascade * len(self._meshes) if kind == "depth" else 0)
-            self._vao(mesh, kind).render_indirect(commands, moderngl.TRIANGLES, count=1, first=first)
-        else:
-            self._vao(mesh, kind, cascade if kind == "depth" else 0).render(moderngl.TRIANGLES, instances=count)
+            first = cascade * len(self._meshes) if kind == "depth" else 0
+            self._vao(self._merged, kind).render_indirect(commands, moderngl.TRIANGLES, count=len(self._meshes), first=first)
+            return
+        for mesh in self._meshes:
+            count = mesh["shadow_counts"][cascade] if kind == "depth" else mesh["count"]
+            if count:
+                self._vao(mesh, kind, cascade if kind == "depth" else 0).render(moderngl.TRIANGLES, instances=count)
 
     def grip_points(self, frames: AgentFrames) -> np.ndarray:
         """(K, 3) float64: the grip point of each drawn weapon, through the float32 model-space rows the
@@ -393,8 +424,7 @@ class WeaponRenderer(GLStage):
         prog = self._programs["depth"]
         for k, matrix in renderer.shadow_tiles(view):
             prog["u_view_proj"].write(gl_bytes(matrix))
-            for d, mesh in enumerate(self._meshes):
-                self._render(d, mesh, "depth", k)
+            self._render_pass("depth", k)
 
     def color_pass(self, framebuffer, view, renderer) -> None:
         """`view`: this frame's ``FrameView``; `renderer` lights the weapons as it lights the crowd."""
@@ -403,8 +433,7 @@ class WeaponRenderer(GLStage):
         prog = self._programs["color"]
         prog["u_view_proj"].write(gl_bytes(view.view_proj))
         renderer.set_lighting(prog, view)
-        for d, mesh in enumerate(self._meshes):
-            self._render(d, mesh, "color")
+        self._render_pass("color")
 
     def gpu_bytes(self) -> int:
         return self._objects.gpu_bytes()
