@@ -231,6 +231,17 @@ def test_bad_layers_get_one_line_errors(gl_context, zombie_bake):
             bad[2, 1, col] = value
             with pytest.raises(FrameError, match=words):
                 proc.process(bad)
+        # A clip that is not a whole number: in a column that varies, and in one that holds it everywhere
+        # (the check looks at a constant column's one value only).
+        for agents in ([2], slice(None)):
+            bad = good.copy()
+            bad[agents, 0, CLIP] = 0.5
+            with pytest.raises(FrameError, match="clip indices must be whole numbers"):
+                proc.process(bad)
+            bad = good.copy()
+            bad[agents, 1, MASK] = -0.5
+            with pytest.raises(FrameError, match="masks must be -1"):
+                proc.process(bad)
         with pytest.raises(FrameError, match="shape"):
             proc.process(np.zeros((4, 3, 4), np.float32))
         with pytest.raises(ProcessorError, match="for 3 agents"):
