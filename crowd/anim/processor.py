@@ -373,10 +373,10 @@ class AnimationProcessor(GLStage):
                                  f"{layer_rows:,} rows, more than this GPU's {max_layers} layers or the {MAX_PALETTE_ROWS:,} rows a texel code addresses")
         # The palettes kept across (`keep`, with something written and agents on both sides): the old
         # planes stay alive until they are copied; the ring's position (runs) carries over.
-        old = None
+        old, old_objects = None, []  # (planes, their layer rows and layers a slot, rows kept), and what releases them
         if keep and self.planes and self.runs and agents:
-            old = (self.planes, self._own["palette"], self.layer_rows, self.slot_layers, min(self.palette_rows(), self.palette_rows(agents)))
-            self._own["palette"] = []
+            old = (self.planes, self.layer_rows, self.slot_layers, min(self.palette_rows(), self.palette_rows(agents)))
+            old_objects, self._own["palette"] = self._own["palette"], []
             self.planes = ()
         self._drop_palette()
         self.agents = agents
@@ -402,9 +402,8 @@ class AnimationProcessor(GLStage):
         if failure is not None:
             self._drop_palette()
             self.agents = 0
-            if old is not None:
-                for obj in old[1]:
-                    obj.release()
+            for obj in old_objects:
+                obj.release()
             raise ProcessorError(failure)
         fb.clear(0.0, 0.0, 0.0, 0.0)
         if self.path == "fragment":
@@ -412,10 +411,10 @@ class AnimationProcessor(GLStage):
         self._update_quad()
         if old is not None:
             try:
-                self._copy_palettes(*old[0:1], *old[2:])
+                self._copy_palettes(*old)
                 self.runs = runs
             finally:
-                for obj in old[1]:
+                for obj in old_objects:
                     obj.release()
 
     def _copy_palettes(self, planes, layer_rows: int, slot_layers: int, rows: int) -> None:

@@ -133,6 +133,16 @@ def pack_colors(colors: np.ndarray | None, base_color, count: int) -> np.ndarray
     return _rgba8(np.round(np.clip(colors * np.asarray(base_color, np.float32), 0.0, 1.0) * 255.0))
 
 
+def shared_buffers(ctx: moderngl.Context, meshes: list[tuple[np.ndarray, np.ndarray]]):
+    """One vertex and one index buffer holding several meshes' (vertex records, indices), for one
+    multi-draw-indirect over them, and each mesh's (first index, base vertex) there for its command.
+    The caller owns the two buffers."""
+    first_index = np.cumsum([0] + [len(i) for _, i in meshes[:-1]]).tolist()
+    base_vertex = np.cumsum([0] + [len(v) for v, _ in meshes[:-1]]).tolist()
+    return (ctx.buffer(np.concatenate([v for v, _ in meshes]).tobytes()), ctx.buffer(np.concatenate([i for _, i in meshes]).tobytes()),
+            list(zip(first_index, base_vertex)))
+
+
 def heading_snorm16(yaw: np.ndarray) -> np.ndarray:
     """(N,) headings → (N, 2) int16 snorm16 cos and sin, as instance records carry them."""
     out = np.empty((len(yaw), 2), np.int16)
@@ -268,17 +278,13 @@ class CrowdRenderer(GLStage):
                 self.groups[m.group].append(m.piece)
         self._piece_group = {m.piece: m.group for m in meshes}
         # Untextured pieces first: on the GPU path they are one multi-draw per pass (below).
-        merged_vertices, merged_indices = [], []
+        shared = []  # (vertices, indices) of the GPU path's untextured pieces, drawn from shared buffers
         for m in sorted(meshes, key=lambda m: (m.texture >= 0, m.lod, m.piece)):
             vertices, indices = pack_vertices(m), best_triangle_order(m.indices, len(m.positions))
             box = tuple(float(x) for x in np.concatenate(uv_box(m.uvs))) if m.texture >= 0 else (0.0, 0.0, 1.0, 1.0)
             if cull_path == "gpu" and m.texture < 0:
-                # Into the pieces' shared buffers: its command starts at its first index and vertex there.
-                first_index, base_vertex = sum(len(i) for i in merged_indices), sum(len(v) for v in merged_vertices)
-                merged_vertices.append(vertices)
-                merged_indices.append(indices)
-                self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, None, None, None, m.texture, "", box,
-                                        first_index=first_index, base_vertex=base_vertex))
+                shared.append((vertices, indices))
+                self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, None, None, None, m.texture, "", box))
                 continue
             vbo = self._own("meshes", ctx.buffer(vertices.tobytes()))
             ibo = self._own("meshes", ctx.buffer(indices.tobytes()))
@@ -288,11 +294,13 @@ class CrowdRenderer(GLStage):
         # The GPU path's untextured draws (draws 0 .. merged - 1): one vertex and one index buffer, so a pass
         # draws them all with one glMultiDrawElementsIndirect instead of a call each (69 calls a frame for
         # the built-in zombie with shadows; each costs the CPU a call through moderngl and the driver).
-        self.merged = len(merged_vertices)
+        self.merged = len(shared)
         self._merged_buffers = None
         if self.merged:
-            self._merged_buffers = (self._own("meshes", ctx.buffer(np.concatenate(merged_vertices).tobytes())),
-                                    self._own("meshes", ctx.buffer(np.concatenate(merged_indices).tobytes())))
+            vbo, ibo, starts = shared_buffers(ctx, shared)
+            self._merged_buffers = (self._own("meshes", vbo), self._own("meshes", ibo))
+            for draw, (first, base) in zip(self.draws, starts):  # the shared pieces are draws 0 .. merged - 1
+                draw.first_index, draw.base_vertex = first, base
         self._merged_vaos: dict = {}
         for draw in self.draws if shadows else ():
             draw.shadow_counts = [0] * CASCADES

@@ -39,7 +39,7 @@ from ..gl import GLObjects, GLStage, load_shader
 from .gpu_cull import BUFFER_UPDATE, COMMAND, COMMAND_DTYPE, GROUP_SIZE, VERTEX_ATTRIB_ARRAY, CountRing
 from ..asset.model import Character, RigidMesh
 from ..asset.vertex_cache import best_triangle_order
-from .render import gl_bytes, heading_snorm16, pack_colors, pack_normals, write_heading
+from .render import gl_bytes, heading_snorm16, pack_colors, pack_normals, shared_buffers, write_heading
 from .shadows import CASCADES
 
 VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("packed", "<u4", 2)])
@@ -121,6 +121,7 @@ class WeaponRenderer(GLStage):
         # baked into the mesh's vertices (pack_rigid), so an instance is the read-back socket rows as they are.
         self._socket_to_weapon = np.stack([self.socket_bind @ g for g in self.inverse_grip])
         grip_origin = np.stack([np.asarray(p.grip, np.float64)[:, 3] for p in character.props.values()])  # (W, 4)
+        self._grip_point = grip_origin[:, :3]  # (W, 3): the grip point in each weapon's space
         self._grip_in_socket = np.einsum("wij,wj->wi", self._socket_to_weapon, grip_origin)  # the grip point, as baked
         self.gpu_cull = gpu_cull
         self.lod_count = max(len(p.lods) for p in character.props.values())
@@ -139,15 +140,13 @@ class WeaponRenderer(GLStage):
                 self._shadow_shown = self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
                 self._shadow_commands = self._objects.add(ctx.buffer(reserve=CASCADES * draws * COMMAND_DTYPE.itemsize))
         self.shadows = shadows
-        merged_vertices, merged_indices = [], []  # the GPU path's: every mesh in one vertex and one index buffer
+        shared = []  # the GPU path's (vertices, indices) of every mesh, for one vertex and one index buffer
         for w, prop in enumerate(character.props.values()):
             lods = prop.lods + (prop.lods[-1],) * (self.lod_count - len(prop.lods))
             for lod, mesh in enumerate(lods):
                 vertices, indices = pack_rigid(mesh, self._socket_to_weapon[w]), best_triangle_order(mesh.indices, len(mesh.positions))
-                first_index, base_vertex = sum(len(i) for i in merged_indices), sum(len(v) for v in merged_vertices)
                 if gpu_cull:
-                    merged_vertices.append(vertices)
-                    merged_indices.append(indices)
+                    shared.append((vertices, indices))
                     vbo = ibo = None
                 else:
                     vbo = self._objects.add(ctx.buffer(vertices.tobytes()))
@@ -159,14 +158,16 @@ class WeaponRenderer(GLStage):
                               for _ in range(CASCADES)]
                 self._meshes.append({"vbo": vbo, "ibo": ibo, "instances": inst, "shadow_instances": shadow, "count": 0,
                                      "shadow_counts": [0] * CASCADES, "vaos": {}, "triangles": mesh.triangle_count, "lod": lod,
-                                     "first_index": first_index if gpu_cull else 0, "base_vertex": base_vertex if gpu_cull else 0})
+                                     "first_index": 0, "base_vertex": 0})
         # On the GPU path a pass draws every (weapon, LOD) mesh with one multi-draw over the shared
         # buffers (24 calls a frame before, with shadows), each command starting at its mesh's indices.
         self._merged = None
         if gpu_cull:
-            self._merged = {"vbo": self._objects.add(ctx.buffer(np.concatenate(merged_vertices).tobytes())),
-                            "ibo": self._objects.add(ctx.buffer(np.concatenate(merged_indices).tobytes())),
+            vbo, ibo, starts = shared_buffers(ctx, shared)
+            self._merged = {"vbo": self._objects.add(vbo), "ibo": self._objects.add(ibo),
                             "instances": self._shown, "shadow_instances": [self._shadow_shown] * CASCADES, "vaos": {}}
+            for mesh, (first, base) in zip(self._meshes, starts):
+                mesh["first_index"], mesh["base_vertex"] = first, base
         defines = {"SHADOWS": 1, "CASCADES": CASCADES} if shadows else {}
         self._programs = {
             "color": self._objects.add(ctx.program(vertex_shader=load_shader("weapon.vert.glsl"), fragment_shader=load_shader("skin.frag.glsl", defines))),
@@ -178,8 +179,6 @@ class WeaponRenderer(GLStage):
         # Weapons lying on the ground (agents, weapon, rows in the fallen agent's model space) until their
         # agent gets up again; and what was in hand last frame, where the next drop comes from.
         self.dropped = self._held_before = self.drawn
-        grip = np.linalg.inv(self.inverse_grip)
-        self._grip_point = grip[:, :3, 3]  # (W, 3): the grip point in each weapon's space
         # How far below its grip point each weapon reaches along its +Z, the axis a dropped weapon lies on.
         self._low_z = np.array([float(np.min(np.asarray(prop.lods[0].positions, np.float64)[:, 2])) for prop in character.props.values()]) - self._grip_point[:, 2]
         self.last = {"weapons": 0, "dropped": 0, "drawn": 0, "draws": 0, "triangles": 0}

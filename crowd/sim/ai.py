@@ -212,8 +212,9 @@ class PlayerScript:
 
 class _Agents:
     """Some of the crowd's per-agent arrays under the AI's own names, for one think: views for a slice
-    (the whole crowd, one think block), gathered copies for an index array (the exact agents).
-    ``commit()`` writes back the copies, and every array the think rebound (np.where makes new ones)."""
+    (one think block), gathered copies for an index array (the exact agents). ``commit()`` writes back
+    the copies, and every array the think rebound (np.where makes new ones). (The whole crowd thinks
+    through the CrowdAI itself, which has the same names.)"""
 
     def __init__(self, ai: "CrowdAI", selection):
         self._ai, self._selection = ai, selection
@@ -224,15 +225,11 @@ class _Agents:
 
     def commit(self) -> None:
         gathered = not isinstance(self._selection, slice)
-        whole = not gathered and self._selection == slice(None)
         for name, was in self._was.items():
             now = getattr(self, name)
             if now is was and not gathered:
                 continue  # changed in place, through the view
-            if whole:
-                setattr(self._ai, name, now)
-            else:
-                getattr(self._ai, name)[self._selection] = now
+            getattr(self._ai, name)[self._selection] = now
 
 
 class CrowdAI:
@@ -253,6 +250,7 @@ class CrowdAI:
         self.separation_seconds = 0.0  # CPU time spent in separation so far: what bounds a big crowd's step
         self.substeps = 0  # substeps so far: the think budget's block of the next one is substeps % think_every
         self.focus: tuple = ()  # ground points (x, z) besides the player near which agents think every substep: the camera
+        self._layer_template: tuple = (None, None)  # (clip indices, write_layers' constant columns for a run of agents)
         self._motion_tables(motion)
         self.n = 0
         self._allocate(0)
@@ -439,15 +437,11 @@ class CrowdAI:
         self.time += h
         if not self.n:
             return
-        if not self.budgeted():  # every agent thinks every substep
-            everyone = _Agents(self, slice(None))
-            near = self._think_a(everyone, h, h)
-            everyone.commit()
+        if not self.budgeted():  # every agent thinks every substep, the crowd's own arrays its agents
+            near = self._think_a(self, h, h)
             self._separate(min(self.config.separation_stiffness * h, 1.0))
             self._bound()
-            everyone = _Agents(self, slice(None))
-            self._think_b(everyone, h, h, h, *near)
-            everyone.commit()
+            self._think_b(self, h, h, h, *near)
             self.substeps += 1
             return
         self._budgeted_substep(h)
@@ -519,7 +513,7 @@ class CrowdAI:
         self._pending[self._exact] = 0.0
         self.substeps += 1
 
-    def _must_be_exact(self, a: "_Agents") -> np.ndarray:
+    def _must_be_exact(self, a) -> np.ndarray:
         """Agents of `a` that think every substep: all but the wandering and the dead, and everyone
         within think_radius of the player or of a focus point (the camera)."""
         r2 = self.config.think_radius ** 2
@@ -529,10 +523,11 @@ class CrowdAI:
             exact |= dx * dx + dz * dz < r2
         return exact
 
-    def _think_a(self, a: "_Agents", h, move):
-        """The first half of a substep for the agents of `a`: timers and transitions, steering and
-        velocity over `h` seconds (a scalar, or per agent: the time since they last thought), and
-        this substep's motion over `move`. Returns what the second half needs."""
+    def _think_a(self, a, h, move):
+        """The first half of a substep for the agents of `a` (the crowd itself, or an ``_Agents``):
+        timers and transitions, steering and velocity over `h` seconds (a scalar, or per agent: the
+        time since they last thought), and this substep's motion over `move`. Returns what the second
+        half needs."""
         cfg = self.config
         px, pz = float(self.player[0]), float(self.player[1])
         to_px, to_pz = px - a.x, pz - a.z
@@ -593,7 +588,7 @@ class CrowdAI:
         a.z += a.vz * move
         return to_px, to_pz, dist
 
-    def _think_b(self, a: "_Agents", h, move, substep: float, to_px, to_pz, dist) -> None:
+    def _think_b(self, a, h, move, substep: float, to_px, to_pz, dist) -> None:
         """The second half, after separation: heading (turned by at most turn_rate x `substep`, this
         substep's length, however long since the agent last thought: a budgeted agent goes on turning
         toward the same goal between thinks, see _coast_turns) and the locomotion phase (advanced over
@@ -626,7 +621,7 @@ class CrowdAI:
         if self.budgeted():
             a.phase_rate[:] = rate  # what the phase advances by until the agent thinks again
 
-    def _turn(self, a: "_Agents", turning: np.ndarray, gx, gz, glen, step: float):
+    def _turn(self, a, turning: np.ndarray, gx, gz, glen, step: float):
         """Turn each heading toward (gx, gz) by at most `step` radians. Headings within `step` of their
         goal snap to it; only the few farther off are rotated, by a fixed angle (no trig per agent).
         Rotation keeps the length to within rounding, about 1e-16 per step: 1e-10 after ten hours.
@@ -662,7 +657,7 @@ class CrowdAI:
                 p[out] = np.minimum(np.maximum(p[out], low), high)
                 v[out] = 0.0
 
-    def _wander(self, a: "_Agents", wandering: np.ndarray, h) -> None:
+    def _wander(self, a, wandering: np.ndarray, h) -> None:
         a.pause -= h
         dx, dz = a.tx - a.x, a.tz - a.z
         idx = np.flatnonzero(wandering & (dx * dx + dz * dz < 0.16) & (a.pause <= 0.0))
@@ -761,14 +756,12 @@ class CrowdAI:
 
     # -- outputs
 
-    def _locomotion_weights(self, speed: np.ndarray, walk: np.ndarray | None = None, speed_factor: np.ndarray | None = None, out=None):
+    def _locomotion_weights(self, speed: np.ndarray, walk: np.ndarray, speed_factor: np.ndarray, out=None):
         """(idle, walk, run weights, run share of the stride) from ground speed: idle → walk up to the
-        agent's walk speed, walk → run up to its run speed (`walk`, `speed_factor`: some agents', by
-        default everyone's). `out`: three arrays (a layer's strided weight column, say) the weights are
-        written into by the operations that make them, rounded once, instead of new arrays."""
+        agents' walk speeds `walk`, walk → run up to their run speeds (`speed_factor`). `out`: three
+        arrays (a layer's strided weight column, say) the weights are written into by the operations
+        that make them, rounded once, instead of new arrays."""
         m = self.motion
-        walk = self.walk_top if walk is None else walk
-        speed_factor = self.speed_factor if speed_factor is None else speed_factor
         to_walk = np.minimum(speed / walk, 1.0)
         run_t = np.minimum(np.maximum((speed - walk) / (m.run_speed * speed_factor - walk), 0.0), 1.0)
         out = out or (None, None, None)
@@ -792,13 +785,13 @@ class CrowdAI:
         if out.shape != (self.n, LAYERS, 4) or out.dtype != np.float32:
             raise AIError(f"layers must be float32 ({self.n}, {LAYERS}, 4), got {out.dtype} {out.shape}")
         m = self.motion
-        # The constant columns in one broadcast of a (4, 4) template, then the phase (rounded to float32
-        # once) and the weights (each written by the operation that makes it) into their strided
-        # columns, a run of agents at a time: each column is a strided pass over its run, and a run
-        # of 16,384 agents' layers (1 MB) stays in the cache for all of them, where a million agents'
-        # (64 MB) went through memory once per column.
+        # The constant columns copied from a run's worth of template (4x a broadcast's speed), then the
+        # phase (rounded to float32 once) and the weights (each written by the operation that makes it)
+        # into their strided columns, a run of agents at a time: each column is a strided pass over its
+        # run, and a run of 16,384 agents' layers (1 MB) stays in the cache for all of them, where a
+        # million agents' (64 MB) went through memory once per column.
         clips = tuple(m.clip[role] for role in ("idle", "walk", "run"))
-        if getattr(self, "_layer_template", (None,))[0] != clips:  # a run's worth: a copy is 4x a broadcast's speed
+        if self._layer_template[0] != clips:  # the first frame, or a new bake
             template = np.zeros((LAYER_RUN, LAYERS, 4), np.float32)
             template[:, :3, CLIP] = clips
             template[:, :, MASK] = -1.0
