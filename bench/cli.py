@@ -160,6 +160,7 @@ def bench_ai(args) -> int:
     the AI's own count of the time it spent there (``CrowdAI.separation_seconds``), so the table says
     what bounds a step."""
     from crowd.sim.ai import AIConfig, CrowdAI, PlayerScript, motion_for
+    from crowd.sim.agent_pool import available_cores
     from crowd.asset.gltf import load_character
     from crowd.anim.roles import bake_roles, match_roles
     from crowd.allocator import keep_freed_memory
@@ -170,14 +171,15 @@ def bench_ai(args) -> int:
     baked = bake_roles(character, roles)
     motion = motion_for(character, baked, roles)
     device = device_cpu()
-    print(f"{device} | one core | median of {args.steps} steps after {args.warmup} warm-up steps of 1/60 s")
-    print(f"{'agents':>8} {'think every':>11} {'ms/step':>9} {'mean':>7} {'p95 ms':>8} {'separation':>11} {'list builds':>12} {'chasing':>8} {'exact':>6}")
+    print(f"{device} | {available_cores()} cores to run on | median of {args.steps} steps after {args.warmup} warm-up steps of 1/60 s")
+    print(f"{'agents':>8} {'think every':>11} {'workers':>7} {'ms/step':>9} {'mean':>7} {'p95 ms':>8} {'separation':>11} {'list builds':>12} "
+          f"{'chasing':>8} {'exact':>6}")
     rows = []
     budgets = [int(k) for k in args.think_every.split(",")] if args.think_every else [AIConfig().think_every]
-    for n, think_every in ((n, k) for n in [int(x) for x in args.agents.split(",")] for k in budgets):
-        ai = CrowdAI(n, args.seed, motion, AIConfig(think_every=think_every))
+    pools = [int(k) for k in args.workers.split(",")] if args.workers else [AIConfig().workers]
+    for n, think_every, workers in ((n, k, w) for n in [int(x) for x in args.agents.split(",")] for k in budgets for w in pools):
+        ai = CrowdAI(n, args.seed, motion, AIConfig(think_every=think_every, workers=workers))
         script = PlayerScript(ai.half_extent * 0.5)
-        layers = np.empty((n, 4, 4), np.float32)
         spent = []  # seconds of separation per timed step
         for _ in range(args.warmup):
             script.update(ai)
@@ -189,10 +191,12 @@ def bench_ai(args) -> int:
             separation = ai.separation_seconds
             t = time.perf_counter()
             ai.step(1 / 60)
-            ai.write_layers(layers)
+            ai.write_layers()  # into the AI's own array, as the frame does
             times.append(time.perf_counter() - t)
             spent.append(ai.separation_seconds - separation)
         faults = ai.check()
+        used = ai.ranges()
+        ai.close()
         if faults:
             print(f"crowd-bench: the AI broke an invariant at {n} agents: {'; '.join(faults)}", file=sys.stderr)
             return 1
@@ -201,9 +205,9 @@ def bench_ai(args) -> int:
                "p95_ms": round(float(np.percentile(times, 95)) * 1e3, 4), "separation_ms": round(float(np.median(spent)) * 1e3, 4),
                "separation_mean_ms": round(float(np.mean(spent)) * 1e3, 4),
                "list_builds_per_step": round((ai.pair_builds - builds) / args.steps, 4), "states": ai.counts(),
-               "think_every": think_every, "budgeted": ai.budgeted(), "exact": ai.exact_count()}
+               "think_every": think_every, "budgeted": ai.budgeted(), "exact": ai.exact_count(), "workers": used}
         rows.append(row)
-        print(f"{n:>8} {think_every if ai.budgeted() else 1:>11} {row['ms_per_step']:>9.3f} {row['mean_ms']:>7.3f} {row['p95_ms']:>8.3f} "
+        print(f"{n:>8} {think_every if ai.budgeted() else 1:>11} {used:>7} {row['ms_per_step']:>9.3f} {row['mean_ms']:>7.3f} {row['p95_ms']:>8.3f} "
               f"{row['separation_ms']:>11.3f} {row['list_builds_per_step']:>12.3f} {row['states']['chase']:>8} {row['exact']:>6}")
     if args.json:
         from crowd.files import atomic_write_bytes
@@ -238,7 +242,7 @@ def bench_frame(args) -> int:
     rows = []
     with Offscreen(ctx, size) as target:
         for n in [int(x) for x in args.agents.split(",")]:
-            config = scene.with_overrides(agents=n).pipeline_config()
+            config = scene.with_overrides(agents=n, workers=args.workers).pipeline_config()
             with CrowdPipeline(ctx, config) as pipeline:
                 pipeline.camera = scene.camera_for(size[0] / size[1]) or pipeline.default_camera(size[0] / size[1])
                 for _ in range(args.warmup):
@@ -263,7 +267,8 @@ def bench_frame(args) -> int:
                 weapons = dict(pipeline.weapons.last) if pipeline.weapons is not None else None
                 memory = pipeline.gpu_bytes()
                 cull = pipeline.renderer.cull_path
-            row = {"agents": n, "cull": cull, "drawn": drawn, "weapons": weapons, "gpu_bytes": memory, "period_ms": round(float(np.median(periods)), 3), "periods_ms": [round(p, 3) for p in periods],
+                ai_processes = pipeline.ai.ranges()
+            row = {"agents": n, "cull": cull, "ai_processes": ai_processes, "drawn": drawn, "weapons": weapons, "gpu_bytes": memory, "period_ms": round(float(np.median(periods)), 3), "periods_ms": [round(p, 3) for p in periods],
                    "frame_period_ms": {"p50": round(float(np.percentile(intervals, 50)), 3), "p95": round(float(np.percentile(intervals, 95)), 3),
                                        "max": round(float(np.max(intervals)), 3)},
                    "latency_ms": round(float(np.median(latencies)), 3), "passes_ms": passes, "gpu_passes_alone_ms": alone}
@@ -482,6 +487,8 @@ def main(argv=None) -> int:
     p.add_argument("--think-every", default=None,
                    help="comma-separated think budgets to compare (1: every zombie thinks every substep; default: the setting's); "
                         "the budget applies from the think_from setting's crowd size on")
+    p.add_argument("--workers", default=None,
+                   help="comma-separated process counts to compare (1: this process only; 0: one per core; default: the setting's)")
     p.add_argument("--json", type=Path)
     p.set_defaults(run=bench_ai)
     p = sub.add_parser("frame", help="the whole headless frame: period (frames back to back, one finish) and latency (a finish per frame)")
@@ -493,6 +500,8 @@ def main(argv=None) -> int:
     p.add_argument("--warmup", type=int, default=10, help="frames before measuring (shaders compile, buffers grow)")
     p.add_argument("--dt", type=float, default=None,
                    help="simulated seconds a frame (default: the headless loop's 1/30 s, two AI substeps; 1/60 is what a 60 fps window steps)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="processes that step the AI (the workers setting: 1 this process only, 0 one per core; default: the scene's)")
     p.add_argument("--json", type=Path, help="write the rows here")
     p.set_defaults(run=bench_frame)
     p = sub.add_parser("lod", help="silhouette IoU of each coarser LOD against LOD0 at its switch distance (float64, CPU)")

@@ -80,6 +80,7 @@ class CrowdPipeline(GLStage):
     def __init__(self, ctx: moderngl.Context, config: PipelineConfig):
         keep_freed_memory()  # the frame's numpy temporaries reuse memory instead of faulting it in anew (crowd.allocator)
         self.stages = Stages()  # nothing yet: a failure before the build below releases nothing
+        self.ai: CrowdAI | None = None  # likewise: its worker processes start with a big enough crowd's first step
         self.timer = PassTimer(ctx)
         SETTINGS["agents"].check(config.agents, PipelineError)
         self.ctx = ctx
@@ -270,7 +271,8 @@ class CrowdPipeline(GLStage):
         """A new crowd from another seed (same count, settings and clips); every agent starts anew."""
         seed = SETTINGS["seed"].check(seed, PipelineError)
         self.config = dataclasses.replace(self.config, seed=seed)
-        self.ai = CrowdAI(self.agents, seed, self.motion, self.ai.config, self.config.origin)
+        old, self.ai = self.ai, CrowdAI(self.agents, seed, self.motion, self.ai.config, self.config.origin)
+        old.close()
         self.sync.spawned(slice(None), self.frames)
 
     def set_readback_latency(self, latency: int) -> None:
@@ -312,7 +314,7 @@ class CrowdPipeline(GLStage):
             steps_before = self.ai.steps
             self.ai.step(dt)
             instances = self.ai.instances()
-            layers = self.ai.write_layers(self.layers)
+            self.layers = layers = self.ai.write_layers()  # the AI's own array: no copy (its workers write it)
             if overrides:
                 overrides.apply(layers, self.ai.time, *self._forced_clip(overrides))
         self._run("ai")
@@ -447,5 +449,7 @@ class CrowdPipeline(GLStage):
         return out
 
     def release(self) -> None:
+        if self.ai is not None:
+            self.ai.close()
         self.timer.release()
         self.stages.release()

@@ -251,6 +251,8 @@ _ALL = (
         kind="int", low=1, high=64),
     _ai("think_radius", 30.0, "metres from the player or the camera within which every zombie thinks every substep (at least notice_radius)", low=0),
     _ai("think_from", 20_000, "zombies from which the think budget is used (below, its fixed cost is more than it saves)", kind="int", low=0),
+    _ai("workers", 0, "processes that step the crowd, this one included (0: one per core; 1: this process only); "
+        "any number gives the same crowd", kind="int", low=0, high=64),
     # live controls of a running crowd (the panel; not in scene files)
     Setting("time_scale", "session", "float", 1.0, "simulated seconds per real second", label="time scale", low=0, high=10, slider=(0, 4)),
     Setting("clip_speed", "session", "float", 1.0, "a clip's playback speed; a faster walk also moves faster",

@@ -79,8 +79,8 @@ def test_weapon_stays_in_the_hand_for_100_frames_while_clips_change(harness, cul
     rng = np.random.default_rng(2)
     write = p.ai.write_layers
 
-    def forced(out):
-        write(out)
+    def forced(out=None):
+        out = write(out)
         if p.frames % 7 == 3:
             pick = rng.uniform(size=len(out)) < 0.33
             out[pick] = random_layers(int(pick.sum()), out.shape[1], len(p.bake.clips), rng)

@@ -40,6 +40,7 @@ import numpy as np
 
 from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, Instances
 from ..settings import SETTINGS, group
+from .agent_pool import PARAMS, AgentPool, PoolError, SharedArrays, available_cores
 
 LAYERS = MAX_LAYERS
 # States (int8).
@@ -50,8 +51,17 @@ NO_ACTION, ACT_ATTACK, ACT_HIT, ACT_DEATH = range(4)
 ACTION_ROLES = (None, "attack", "hit", "death")
 LAYER_RUN = 16_384  # agents whose layers write_layers fills at a time (1 MB: they stay in the cache)
 MAX_ACTION_WEIGHT = 1000.0  # an upper-body action at full fade: 99.9 % of the upper body
-SEPARATION_CELL_CAP = 48  # neighbours considered per run of cells (bounds the work when many agents pile up)
+MIN_RANGE = 1_024  # agents a process steps at least: a smaller share saves less than waking a worker costs
+SEPARATION_CELL_CAP = 48  # neighbours considered per row of three cells (bounds the work when many agents pile up)
 TINTS = np.array([[150, 170, 130], [170, 150, 130], [130, 150, 160], [180, 180, 160], [140, 160, 120], [160, 130, 140]], np.uint8)
+# Phases of a substep (run on every range of agents, a barrier between two) and their numbers' places.
+THINK, PUSH, APPLY, FINISH, WRITE_LAYERS = 1, 2, 3, 4, 5
+P_H, P_TIME, P_SUBSTEPS, P_STEPS, P_PLAYER, P_RANGES, P_N, P_BLOCK, P_GAIN, P_HAVE_PAIRS, P_REBUILD, P_SIDE = (
+    1, 2, 3, 4, 5, 7, 8, 9, 11, 12, 13, 14)
+P_FOCUS_COUNT, P_FOCUS = 15, 16
+MAX_FOCUS = (PARAMS - P_FOCUS) // 2
+_RESPAWN, _WANDER = 1, 2  # what a keyed draw is for (see CrowdAI._draws)
+_MASK64 = (1 << 64) - 1
 DEFAULT_WALK_SPEED = 1.0  # m/s, for imported walks without a stride (their feet will slide)
 DEFAULT_RUN_SPEED = 3.0
 RUN_OVER_WALK = 1.8  # top speed of a runner over a walker when one clip plays both
@@ -97,6 +107,7 @@ class AIConfig:
     think_every: int = _AI['think_every']
     think_radius: float = _AI['think_radius']
     think_from: int = _AI['think_from']
+    workers: int = _AI['workers']
 
     def validate(self) -> "AIConfig":
         for name, setting in group("ai").items():
@@ -218,6 +229,7 @@ class _Agents:
 
     def __init__(self, ai: "CrowdAI", selection):
         self._ai, self._selection = ai, selection
+        self.ids = (lambda local: selection.start + local) if isinstance(selection, slice) else (lambda local: selection[local])
         self._was = {}
         for name in ai._names():
             self._was[name] = getattr(ai, name)[selection]
@@ -252,6 +264,11 @@ class CrowdAI:
         self.focus: tuple = ()  # ground points (x, z) besides the player near which agents think every substep: the camera
         self._layer_template: tuple = (None, None)  # (clip indices, write_layers' constant columns for a run of agents)
         self._motion_tables(motion)
+        self._pool: AgentPool | None = None  # worker processes, started when a crowd is big enough to split
+        self._block: SharedArrays | None = None  # the agents' arrays while the pool steps them
+        self._grid_block: SharedArrays | None = None  # where each grid cell's agents start, for the list's builds
+        self._params = np.zeros(PARAMS)  # a phase's numbers (the pool's shared ones while it runs)
+        self._respawns = 0  # agents respawned by this process's range in a phase
         self.n = 0
         self._allocate(0)
         self.resize(agents)
@@ -266,17 +283,22 @@ class CrowdAI:
         and its speed factor; top speeds follow the new locomotion speeds."""
         self.motion = motion
         self._motion_tables(motion)
+        self._stale = True
         self.walk_top[:] = motion.walk_speed * self.speed_factor
         self.chase_top[:] = np.where(self.runner, motion.run_speed, motion.walk_speed) * self.speed_factor
 
     def set_config(self, config: AIConfig) -> None:
         """New AI settings at run time (the panel): the world size follows the new settings."""
-        self.config = config.validate()
+        config = config.validate()
+        if self._pool is not None and config.workers != self.config.workers:
+            self._stop_pool()  # restarted at its new size when a substep needs it
+        self.config = config
         self.half_extent = self.config.half_extent_for(self.n)
-        self._pairs = None
+        self._pairs = False
+        self._stale = True
         self._exact[:] = self._must_be_exact(self)  # a new budget, or none: everyone starts from now
         self._pending[:] = 0.0
-        self._bound()
+        self._bound(0, self.n)
 
     # -- agents (one numpy array per attribute; x and z apart so the hot loop reads contiguous memory)
 
@@ -290,17 +312,61 @@ class CrowdAI:
               "_exact": bool,  # thinks every substep (the think budget)
               "_coast_turn": bool}  # turns toward its goal heading between thinks
 
-    def _allocate(self, n: int) -> None:
-        for name in self._FLOAT:
-            setattr(self, name, np.zeros(n))
-        for name, dtype in self._OTHER.items():
-            setattr(self, name, np.zeros(n, dtype))
-        self.tint = np.zeros((n, 4), np.uint8)
-        self._pairs = None  # the separation's neighbour list (see _neighbour_pairs)
-        self._pairs_x = self._pairs_z = None  # where the agents stood when that list was built
+    def _layout(self, n: int) -> dict:
+        """Every per-agent array, name -> (dtype, shape): the agents' state (``_names``), the neighbour
+        list's per-agent part and the layers write_layers fills."""
+        layout = {name: (np.float64, (n,)) for name in self._FLOAT}
+        layout.update({name: (dtype, (n,)) for name, dtype in self._OTHER.items()})
+        layout["tint"] = (np.uint8, (n, 4))
+        layout.update(_cell=(np.int64, (n,)), _cell_order=(np.intp, (n,)),  # the grid of the neighbour lists' last build
+                      _pairs_x=(np.float64, (n,)), _pairs_z=(np.float64, (n,)),  # where the agents stood at it
+                      _layer_out=(np.float32, (n, LAYERS, 4)))
+        return layout
+
+    def _allocate(self, n: int):
+        """Zeroed arrays for n agents, in shared memory while worker processes step the crowd. Returns the
+        block the arrays were in before, if any (the caller copies from it, then closes it)."""
+        was = self._block
+        layout = self._layout(n)
+        if self._pool is not None:
+            self._block = SharedArrays(layout)
+            arrays = self._block.arrays
+        else:
+            self._block = None
+            arrays = {name: np.zeros(shape, dtype) for name, (dtype, shape) in layout.items()}
+        for name, array in arrays.items():
+            setattr(self, name, array)
+        self._pairs = False  # the separation's neighbour lists are to be built (see _prepare_lists)
+        self._range_list = None  # this process's range's list (see _build_list)
+        self._cell_first = np.zeros(1, np.int64)
+        self._stale = True
+        return was
 
     def _names(self):
         return (*self._FLOAT, *self._OTHER, "tint")
+
+    @staticmethod
+    def ids(local: np.ndarray) -> np.ndarray:
+        """The crowd's own agent numbers (an ``_Agents`` maps its local ones)."""
+        return local
+
+    def _draws(self, ids: np.ndarray, purpose: int, count: int) -> np.ndarray:
+        """(count, len(ids)) uniform numbers in [0, 1) for agents `ids`, keyed by (seed, agent, substep,
+        purpose): the same for an agent whichever process steps it and whatever others draw, which a
+        sequential generator cannot give. A counter-based generator: splitmix64's finaliser over the key
+        (written here: numpy's Philox draws streams, not one number per key for many keys at once)."""
+        base = (self.seed * 0x9E3779B97F4A7C15 + self.substeps * 0xD1B54A32D192ED03 + purpose * 0xAEF17502108EF2D9) & _MASK64
+        key = np.asarray(ids).astype(np.uint64) * np.uint64(0xBF58476D1CE4E5B9) ^ np.uint64(base)
+        out = np.empty((count, key.size))
+        for row in range(count):
+            z = key + np.uint64(((row + 1) * 0x9E3779B97F4A7C15) & _MASK64)
+            z ^= z >> np.uint64(30)
+            z *= np.uint64(0xBF58476D1CE4E5B9)
+            z ^= z >> np.uint64(27)
+            z *= np.uint64(0x94D049BB133111EB)
+            z ^= z >> np.uint64(31)
+            out[row] = (z >> np.uint64(11)) * (1.0 / (1 << 53))
+        return out
 
     @property
     def pos(self) -> np.ndarray:
@@ -319,9 +385,12 @@ class CrowdAI:
         n, old = int(agents), self.n
         self.half_extent = self.config.half_extent_for(n)
         kept = {name: getattr(self, name)[: min(n, old)] for name in self._names()}
-        self._allocate(n)
+        was = self._allocate(n)
         for name, arr in kept.items():
             getattr(self, name)[: len(arr)] = arr
+        del kept
+        if was is not None:
+            was.close()
         self.n = n
         self._spawn(self, np.arange(old, n), anywhere=True)
         self._exact[old:] = self._must_be_exact(self)[old:]
@@ -334,7 +403,7 @@ class CrowdAI:
         k = len(idx)
         if not k:
             return
-        self._pairs = None  # an agent that comes back to life is in no pair of the neighbour list
+        self._respawns += k  # an agent that comes back to life is in no pair of the neighbour list: the step rebuilds it
         a.spawned_step[idx] = self.steps
         cfg, rng, h = self.config, self.rng, self.half_extent
         if anywhere:
@@ -353,9 +422,10 @@ class CrowdAI:
             m = self.motion
             a.walk_top[idx] = m.walk_speed * a.speed_factor[idx]
             a.chase_top[idx] = np.where(a.runner[idx], m.run_speed, m.walk_speed) * a.speed_factor[idx]
-        else:
-            side = rng.integers(0, 4, k)
-            along = rng.uniform(-h, h, k)
+        else:  # while stepping: draws keyed by agent and substep, so any split of the crowd gives the same ones
+            draw = self._draws(a.ids(idx), _RESPAWN, 3)
+            side = np.minimum((draw[0] * 4.0).astype(np.int64), 3)
+            along = -h + 2.0 * h * draw[1]
             edge = np.where(side % 2 == 0, -1.0, 1.0) * (h - 0.5)
             pos = np.where((side < 2)[:, None], np.stack([edge, along], axis=1), np.stack([along, edge], axis=1))
             yaw = np.arctan2(-pos[:, 0], -pos[:, 1])  # face the middle
@@ -367,7 +437,7 @@ class CrowdAI:
         a.state[idx] = WANDER
         a.state_time[idx] = 0.0
         a.aware[idx] = 0.0
-        a.pause[idx] = rng.uniform(0.0, 2.0, k)
+        a.pause[idx] = rng.uniform(0.0, 2.0, k) if anywhere else 2.0 * draw[2]
         a.health[idx] = int(cfg.health)
         a.action[idx] = NO_ACTION
         a.action_time[idx] = 0.0
@@ -434,17 +504,242 @@ class CrowdAI:
         return count
 
     def _substep(self, h: float) -> None:
+        """One substep in phases over ranges of agents, with a barrier between two: think (timers,
+        transitions, steering, motion; coasting under the budget), push (separation: each agent's push
+        from its range's neighbour list, read from everyone's positions), apply (the pushes and the
+        world's bounds) and finish (heading and phase; without the budget, apply is part of it). Each
+        phase runs the same arithmetic on each agent whichever process steps it, so any number of
+        workers gives the same crowd, bit for bit (``tests/test_agent_pool.py``)."""
         self.time += h
         if not self.n:
             return
-        if not self.budgeted():  # every agent thinks every substep, the crowd's own arrays its agents
-            near = self._think_a(self, h, h)
-            self._separate(min(self.config.separation_stiffness * h, 1.0))
-            self._bound()
-            self._think_b(self, h, h, h, *near)
-            self.substeps += 1
+        ranges = self._ready_ranges()
+        p = self._params
+        p[P_H], p[P_TIME], p[P_SUBSTEPS], p[P_STEPS] = h, self.time, self.substeps, self.steps
+        p[P_PLAYER:P_PLAYER + 2] = self.player
+        if len(self.focus) > MAX_FOCUS:
+            raise AIError(f"AI focus has {len(self.focus)} points; at most {MAX_FOCUS}")
+        p[P_FOCUS_COUNT] = len(self.focus)
+        for f, point in enumerate(self.focus):
+            p[P_FOCUS + 2 * f:P_FOCUS + 2 * f + 2] = point
+        p[P_RANGES], p[P_N] = ranges, self.n
+        if self.budgeted():
+            k, b = self.config.think_every, self.substeps % self.config.think_every
+            p[P_BLOCK], p[P_BLOCK + 1] = b * self.n // k, (b + 1) * self.n // k
+        else:
+            p[P_BLOCK] = p[P_BLOCK + 1] = -1.0
+        p[P_HAVE_PAIRS] = bool(self._pairs)
+        answers = self._phase(THINK, ranges)
+        self.player_hits_taken += int(answers[1:, 0].sum())  # this process's range counted its own
+        if answers[:, 1].any():
+            self._pairs = False
+        started = time.perf_counter()
+        p[P_REBUILD] = self._prepare_lists(float(answers[:, 2].max()))
+        if ranges > 1:
+            self._sync_workers()  # a grid that outgrew its block is in a new one
+        p[P_GAIN] = min(self.config.separation_stiffness * h, 1.0)
+        self._phase(PUSH, ranges)
+        self.separation_seconds += time.perf_counter() - started
+        if p[P_BLOCK] >= 0:  # the budget's thinkers are not cut by range: the pushes land first, everywhere
+            self._phase(APPLY, ranges)
+        self._phase(FINISH, ranges)
+        self.substeps += 1
+
+    def _phase(self, code: int, ranges: int) -> np.ndarray:
+        """Phase `code` on every range: range 0 here, ranges 1.. in the workers. Returns each range's
+        answer, (ranges, 3)."""
+        p = self._params
+        p[0] = code
+        if ranges == 1:
+            return np.array([self.run_phase(code, p, -1)], np.float64)
+        mine = []
+        try:
+            theirs = self._pool.run(code, ranges - 1, lambda: mine.append(self.run_phase(code, p, -1)))
+        except PoolError as error:
+            self._stop_pool(copy=False)
+            raise AIError(str(error)) from None
+        return np.concatenate([np.array([mine[0]], np.float64), theirs[:, :3]])
+
+    def _workers(self) -> int:
+        """Processes that may step the crowd, this one included (the ``workers`` setting; 0: one per core)."""
+        return self.config.workers or min(available_cores(), 64)
+
+    def _ready_ranges(self) -> int:
+        """How many ranges this substep's crowd is cut into (at least MIN_RANGE agents each), with the
+        worker pool started, stopped or told of new arrays and settings as that needs."""
+        ranges = self.ranges()
+        if ranges > 1 and self._pool is None:
+            self._start_pool(self._workers() - 1)
+        if ranges > 1:
+            self._sync_workers()
+        return ranges
+
+    def _sync_workers(self) -> None:
+        """Tell the workers of new arrays or settings, if there are any since they last heard."""
+        if self._stale:
+            grid = self._grid_block
+            message = dict(block=(self._block.name, self._block.layout), grid=(grid.name, grid.layout) if grid else None,
+                           config=self.config, motion=self.motion, seed=self.seed, origin=self.origin,
+                           half_extent=self.half_extent, n=self.n)
+            try:
+                self._pool.sync([message] * self._pool.workers)
+            except PoolError as error:
+                self._stop_pool(copy=False)
+                raise AIError(str(error)) from None
+            self._stale = False
+
+    def _start_pool(self, workers: int) -> None:
+        """Start the workers and move the agents' arrays (and the neighbour list) into shared memory."""
+        try:
+            self._pool = AgentPool(workers, CrowdAI.worker_side)
+        except (OSError, PoolError) as error:
+            raise AIError(f"AI workers could not start: {str(error).splitlines()[0]}") from None
+        self._params = self._pool.params  # the phases' numbers, now read by the workers too
+        self._rehome()
+
+    def _stop_pool(self, copy: bool = True) -> None:
+        """Stop the workers; the arrays go back to this process's memory (`copy`: with their state)."""
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            self._params = self._params.copy()
+            pool.close()
+        if copy:
+            self._rehome()
+
+    def _rehome(self) -> None:
+        """The same arrays, values and neighbour list in the memory the pool's state asks for."""
+        kept = {name: getattr(self, name) for name in self._layout(self.n)}
+        was = self._allocate(self.n)  # (the neighbour lists are built anew: each range's is its process's own)
+        for name, array in kept.items():
+            getattr(self, name)[...] = array
+        del kept
+        if was is not None:
+            was.close()
+
+    def close(self) -> None:
+        """Stop the worker processes and free the shared memory (also done when the AI is collected)."""
+        self._stop_pool(copy=True)
+        if self._grid_block is not None:
+            self._grid_block.close()
+            self._grid_block = None
+
+    @classmethod
+    def worker_side(cls) -> "CrowdAI":
+        """The AI in a worker process: arrays mapped from the main process's block by ``sync_worker``."""
+        ai = cls.__new__(cls)
+        ai._block = ai._grid_block = ai._pool = ai._range_list = None
+        ai._respawns, ai.player_hits_taken, ai.focus, ai.rng = 0, 0, (), None  # (a worker spawns only at edges: keyed draws)
+        return ai
+
+    def sync_worker(self, message: dict | None) -> None:
+        """(A worker) map the arrays and take the settings the main process sent; None: unmap all."""
+        for name in list(self.__dict__):
+            if isinstance(self.__dict__[name], np.ndarray) and name not in ("origin", "player"):
+                del self.__dict__[name]
+        for block in (self._block, self._grid_block):
+            if block is not None:
+                block.close()
+        self._block = self._grid_block = None
+        if message is None:
             return
-        self._budgeted_substep(h)
+        self.config, self.motion, self.seed = message["config"], message["motion"], message["seed"]
+        self.origin, self.half_extent, self.n = message["origin"], message["half_extent"], message["n"]
+        self._motion_tables(self.motion)
+        self._layer_template = (None, None)
+        self._block = SharedArrays(*reversed(message["block"]))
+        for name, array in self._block.arrays.items():
+            setattr(self, name, array)
+        if message["grid"] is not None:
+            self._grid_block = SharedArrays(*reversed(message["grid"]))
+            self._cell_first = self._grid_block.arrays["first"]
+
+    def run_phase(self, code: int, p: np.ndarray, index: int) -> tuple:
+        """Phase `code` on this process's share of the agents (range index + 1 of p's count; the main
+        process is index -1), with the substep's numbers `p`. Returns up to three numbers."""
+        ranges, n, r = int(p[P_RANGES]), int(p[P_N]), index + 1
+        lo, hi = r * n // ranges, (r + 1) * n // ranges
+        if index >= 0:  # a worker: the substep's numbers, as the main process holds them
+            self.time, self.substeps, self.steps = float(p[P_TIME]), int(p[P_SUBSTEPS]), int(p[P_STEPS])
+            self.player = p[P_PLAYER:P_PLAYER + 2].copy()
+            self.focus = tuple(p[P_FOCUS + 2 * f:P_FOCUS + 2 * f + 2].copy() for f in range(int(p[P_FOCUS_COUNT])))
+        h = float(p[P_H])
+        if code == THINK:
+            block = None
+            if p[P_BLOCK] >= 0:  # this process's share of the budget's block: a slice of it, not of its range
+                b0, b1 = int(p[P_BLOCK]), int(p[P_BLOCK + 1])
+                block = (b0, b1, slice(b0 + r * (b1 - b0) // ranges, b0 + (r + 1) * (b1 - b0) // ranges))
+            return self._think_range(lo, hi, h, block, bool(p[P_HAVE_PAIRS]))
+        if code == PUSH:
+            if p[P_REBUILD]:
+                self._build_list(lo, hi, int(p[P_SIDE]))
+            self._range["push"] = self._push_range(lo, hi, float(p[P_GAIN]))
+        elif code == APPLY:
+            self._apply_range(lo, hi)
+        elif code == FINISH:
+            self._finish_range(lo, hi, h)
+        elif code == WRITE_LAYERS:
+            self._write_layer_range(self._layer_out, lo, hi)
+        else:
+            raise AIError(f"unknown AI phase {code}")
+        return (0.0, 0.0, 0.0)
+
+    def _think_range(self, lo: int, hi: int, h: float, block, have_pairs: bool) -> tuple:
+        """The think phase of agents lo..hi, or under the budget (`block`: the block's bounds and this
+        process's slice of it) of this process's share: (strikes on the player, respawns, the largest
+        squared move since the neighbour lists' build among the agents it moved, 0 without lists)."""
+        hits, self._respawns = self.player_hits_taken, 0
+        if block is None:  # every agent thinks
+            group = _Agents(self, slice(lo, hi))
+            self._range = {"near": self._think_a(group, h, h)}
+            group.commit()
+            moved = [(slice(lo, hi), None)]
+        else:
+            self._range = self._budgeted_think(lo, hi, h, *block)
+            # What this process moved: its range's coasting agents, its slice of the block, its exact agents.
+            moved = [(slice(lo, hi), self._range["coasting"]), (self._range["block"], None), (self._range["exact"], None)]
+        farthest = 0.0
+        if have_pairs:
+            for agents, mask in moved:
+                mx, mz = self.x[agents] - self._pairs_x[agents], self.z[agents] - self._pairs_z[agents]
+                moved2 = mx * mx + mz * mz if mask is None else np.where(mask, mx * mx + mz * mz, 0.0)
+                if moved2.size:
+                    farthest = max(farthest, float(np.max(moved2)))
+        return (float(self.player_hits_taken - hits), float(self._respawns), farthest)
+
+    def _apply_range(self, lo: int, hi: int) -> None:
+        """Agents lo..hi: their separation pushes, then the world's bounds."""
+        push = self._range.pop("push")
+        if push is not None:
+            agents, push_x, push_z = push
+            self.x[agents] += push_x
+            self.z[agents] += push_z
+        self._bound(lo, hi)
+
+    def _finish_range(self, lo: int, hi: int, h: float) -> None:
+        """The finish phase: heading and phase of this process's agents (and, without the budget, their
+        pushes and bounds first)."""
+        state, self._range = self._range, None
+        if "near" in state:
+            self._range = state
+            self._apply_range(lo, hi)
+            self._range = None
+            group = _Agents(self, slice(lo, hi))
+            self._think_b(group, h, h, h, *state["near"])
+            group.commit()
+            return
+        exact, block = state["exact"], state["block"]
+        group = _Agents(self, exact)
+        self._think_b(group, h, h, h, *state["near_exact"])
+        group.commit()  # (the copy holds the old flags: commit first, then say who stays exact)
+        self._exact[exact] = self._must_be_exact(group)
+        group = _Agents(self, block)
+        self._think_b(group, state["think_h"], state["move_h"], h, *state["near_block"])
+        self._exact[block] |= self._must_be_exact(group)  # from now on with the exact ones (their pending time is 0)
+        group.commit()
+
+    def ranges(self) -> int:
+        """Processes that step the crowd now, this one included (1 below 2 x MIN_RANGE agents)."""
+        return max(1, min(self._workers(), self.n // MIN_RANGE))
 
     def exact_count(self) -> int:
         """Zombies that think every substep: all of them without the budget."""
@@ -454,64 +749,56 @@ class CrowdAI:
         """Whether the think budget is in use: think_every above 1, for a crowd of think_from or more."""
         return self.config.think_every > 1 and self.n >= self.config.think_from
 
-    def _budgeted_substep(self, h: float) -> None:
-        """The think budget (crowd.settings: think_every, think_radius): agents that must be exact (near
-        the player or a focus point, or doing anything but wandering and lying dead) think every
-        substep; the rest are cut into think_every blocks of consecutive agents, and one block thinks
-        per substep, over the time since it last did. Between thinks an agent keeps its velocity and
-        phase rate: its position and phase move every substep (no stutter), it goes on turning toward
-        the heading its think chose, and its timers, steering and animation weights catch up when it
-        thinks. An exact agent is stepped exactly as with the budget off: it takes no time from the
-        budget, and its substep is the same arithmetic.
+    def _budgeted_think(self, lo: int, hi: int, h: float, b0: int, b1: int, block: slice) -> dict:
+        """The think budget's think phase (crowd.settings: think_every, think_radius): agents that must
+        be exact (near the player or a focus point, or doing anything but wandering and lying dead)
+        think every substep; the rest are cut into think_every blocks of consecutive agents, and one
+        block (agents b0..b1) thinks per substep, over the time since it last did. Between thinks an
+        agent keeps its velocity and phase rate: its position and phase move every substep (no
+        stutter), it goes on turning toward the heading its think chose, and its timers, steering and
+        animation weights catch up when it thinks. An exact agent is stepped exactly as with the budget
+        off: it takes no time from the budget, and its substep is the same arithmetic.
 
-        The blocks are slices, so a block thinks through views of the arrays; the exact agents, a few
-        hundred around the player, are gathered and scattered back."""
-        k = self.config.think_every
-        b = self.substeps % k
-        block = slice(b * self.n // k, (b + 1) * self.n // k)
-        exact = np.flatnonzero(self._exact)
+        Who does what, so that the processes share the block's work evenly and never touch one agent
+        at once: each thinks its slice `block` of the block (through views) and the block's exact
+        agents in it, the exact agents of its range lo..hi outside the block (gathered and scattered
+        back), and coasts the rest of its range. Returns what the finish phase needs."""
         in_block = self._exact[block]  # exact agents inside the block think with the exact ones, not here
         think_h = np.where(in_block, 0.0, self._pending[block] + h)  # time since the block's agents last thought
         move_h = np.where(in_block, 0.0, h)  # this substep's motion (the rest was moved between thinks)
         self._pending[block] = 0.0
 
-        # The block thinks through views, its exact agents too (with no time: they think below); what
-        # its first half changes of them (a transition seen from where they stand after moving, a
+        # The block's slice thinks through views, its exact agents too (with no time: they think below);
+        # what its first half changes of them (a transition seen from where they stand after moving, a
         # timer) is put back, so they start their exact substep from where the last one left them.
-        inside = _Agents(self, block.start + np.flatnonzero(in_block))
+        inside = block.start + np.flatnonzero(in_block)
+        restore = _Agents(self, inside)
         group = _Agents(self, block)
         near_block = self._think_a(group, think_h, move_h)
         group.commit()
-        inside.commit()
+        restore.commit()
+        thinking = self._exact[lo:hi].copy()  # the range's exact agents, and below its part of the block
+        blocked = slice(min(max(b0, lo), hi) - lo, max(min(b1, hi), lo) - lo)
+        outside = thinking.copy()
+        outside[blocked] = False
+        exact = np.concatenate([lo + np.flatnonzero(outside), inside])
         group = _Agents(self, exact)
         near_exact = self._think_a(group, h, h)
         group.commit()
 
-        # Everyone else moves on at its velocity and phase rate (and is separated with the rest, below).
-        thinking = self._exact.copy()
-        thinking[block] = True
+        # The rest of the range moves on at its velocity and phase rate (and is separated with everyone).
+        thinking[blocked] = True
+        coasting = ~thinking
         coast = np.where(thinking, 0.0, h)
-        self.x += self.vx * coast
-        self.z += self.vz * coast
-        advance_phase(self.phase, self.phase_rate * coast)
-        self._pending += coast
-        turning = np.flatnonzero(self._coast_turn & ~thinking)
+        self.x[lo:hi] += self.vx[lo:hi] * coast
+        self.z[lo:hi] += self.vz[lo:hi] * coast
+        advance_phase(self.phase[lo:hi], self.phase_rate[lo:hi] * coast)
+        self._pending[lo:hi] += coast
+        turning = lo + np.flatnonzero(self._coast_turn[lo:hi] & coasting)
         if turning.size:
             self._coast_turns(turning, self.config.turn_rate * h)
-
-        self._separate(min(self.config.separation_stiffness * h, 1.0))  # everyone, every substep
-        self._bound()
-
-        group = _Agents(self, exact)
-        self._think_b(group, h, h, h, *near_exact)
-        group.commit()  # (the copy holds the old flags: commit first, then say who stays exact)
-        self._exact[exact] = self._must_be_exact(group)
-        group = _Agents(self, block)
-        self._think_b(group, think_h, move_h, h, *near_block)
-        self._exact[block] |= self._must_be_exact(group)  # from now on with the exact ones
-        group.commit()
-        self._pending[self._exact] = 0.0
-        self.substeps += 1
+        return dict(exact=exact, block=block, think_h=think_h, move_h=move_h, near_block=near_block, near_exact=near_exact,
+                    coasting=coasting)
 
     def _must_be_exact(self, a) -> np.ndarray:
         """Agents of `a` that think every substep: all but the wandering and the dead, and everyone
@@ -648,9 +935,9 @@ class CrowdAI:
         self.hz[coasting] = np.where(near, uz, rz)
         self._coast_turn[coasting[near]] = False
 
-    def _bound(self) -> None:
-        """World bounds: clamp, and stop the velocity component that points out."""
-        for p, v, o in ((self.x, self.vx, self.origin[0]), (self.z, self.vz, self.origin[1])):
+    def _bound(self, lo: int, hi: int) -> None:
+        """World bounds for agents lo..hi: clamp, and stop the velocity component that points out."""
+        for p, v, o in ((self.x[lo:hi], self.vx[lo:hi], self.origin[0]), (self.z[lo:hi], self.vz[lo:hi], self.origin[1])):
             low, high = o - self.half_extent, o + self.half_extent
             out = np.flatnonzero((p < low) | (p > high))
             if out.size:
@@ -662,74 +949,69 @@ class CrowdAI:
         dx, dz = a.tx - a.x, a.tz - a.z
         idx = np.flatnonzero(wandering & (dx * dx + dz * dz < 0.16) & (a.pause <= 0.0))
         if idx.size:
-            cfg, rng = self.config, self.rng
-            angle = rng.uniform(-math.pi, math.pi, idx.size)
-            radius = cfg.wander_radius * np.sqrt(rng.uniform(0.1, 1.0, idx.size))
+            cfg = self.config
+            draw = self._draws(a.ids(idx), _WANDER, 4)  # keyed by agent and substep (see _draws)
+            angle = math.pi * (2.0 * draw[0] - 1.0)
+            radius = cfg.wander_radius * np.sqrt(0.1 + 0.9 * draw[1])
             inner = self.half_extent - 0.5
             a.tx[idx] = np.clip(a.x[idx] + radius * np.sin(angle), self.origin[0] - inner, self.origin[0] + inner)
             a.tz[idx] = np.clip(a.z[idx] + radius * np.cos(angle), self.origin[1] - inner, self.origin[1] + inner)
-            a.pause[idx] = np.where(rng.uniform(0, 1, idx.size) < 0.5, rng.uniform(1.0, 4.0, idx.size), 0.0)
+            a.pause[idx] = np.where(draw[2] < 0.5, 1.0 + 3.0 * draw[3], 0.0)
 
-    def _separate(self, gain: float) -> None:
-        """Push overlapping living agents apart: both agents of a pair closer than the separation radius r
-        move apart by half the overlap, times `gain` (min(stiffness x h, 1)), and no agent moves more
-        than r / 2. Every agent, every substep, the think budget's included: a pile-up must come apart
-        as fast as without it (its agents think rarely, but they do not overlap for longer).
+    def _push_range(self, lo: int, hi: int, gain: float):
+        """Separation pushes of agents lo..hi, from everyone's positions (nothing is moved here: the apply
+        phase moves them, after every range has read the positions). Both agents of a pair closer than
+        the separation radius r move apart by half the overlap, times `gain` (min(stiffness x h, 1)),
+        and no agent moves more than r / 2. Every agent, every substep, the think budget's included: a
+        pile-up must come apart as fast as without it (its agents think rarely, but they do not overlap
+        for longer).
 
-        The pushes are summed by bincounts over the crowd (cheap), and the rest runs over the agents of
-        overlapping pairs only: the moves of all 100,000 agents were most of a step's separation."""
-        started = time.perf_counter()
+        An agent's entries in its range's list are contiguous and in the grid's order, so its push is a
+        sum over the same entries in the same order whichever range it is in. Returns (agents, push x,
+        push z) for the pushed ones, or None."""
         r = self.config.separation_radius
-        i, j = self._neighbour_pairs()
-        if i.size:
-            dx, dz = self.x[i] - self.x[j], self.z[i] - self.z[j]
-            dist2 = dx * dx + dz * dz
-            # Agents that died since the list was built are skipped here rather than by a rebuild.
-            close = np.flatnonzero((dist2 < r * r) & (self.state[i] < DYING) & (self.state[j] < DYING))
-            if close.size:
-                i, j, dx, dz = i[close], j[close], dx[close], dz[close]
-                fx, fz = _overlap_push(i, j, dx, dz, np.sqrt(dist2[close]), r)
-                pushed = np.zeros(self.n, bool)
-                pushed[i] = pushed[j] = True
-                agents = np.flatnonzero(pushed)
-                push_x = (np.bincount(i, weights=fx, minlength=self.n) - np.bincount(j, weights=fx, minlength=self.n))[agents]
-                push_z = (np.bincount(i, weights=fz, minlength=self.n) - np.bincount(j, weights=fz, minlength=self.n))[agents]
-                # Stiffness x h above 1 removes the whole overlap, never more; no agent moves more than r / 2.
-                norm = np.sqrt(push_x * push_x + push_z * push_z) * gain
-                gain = gain * np.minimum(1.0, 0.5 * r / np.maximum(norm, 1e-12))
-                self.x[agents] += push_x * gain
-                self.z[agents] += push_z * gain
-        self.separation_seconds += time.perf_counter() - started
+        first, second = self._range_list
+        if not first.size:
+            return None
+        dx, dz = self.x[first] - self.x[second], self.z[first] - self.z[second]
+        dist2 = dx * dx + dz * dz
+        # Agents that died since the list was built are skipped here rather than by a rebuild.
+        close = np.flatnonzero((dist2 < r * r) & (self.state[first] < DYING) & (self.state[second] < DYING))
+        if not close.size:
+            return None
+        first, second = first[close], second[close]
+        fx, fz = _overlap_push(first, second, dx[close], dz[close], np.sqrt(dist2[close]), r)
+        local = first - lo  # sorted: the list is in agent order
+        agents = local[np.flatnonzero(np.concatenate(([True], local[1:] != local[:-1])))]
+        push_x = np.bincount(local, weights=fx, minlength=hi - lo)[agents]
+        push_z = np.bincount(local, weights=fz, minlength=hi - lo)[agents]
+        # Stiffness x h above 1 removes the whole overlap, never more; no agent moves more than r / 2.
+        norm = np.sqrt(push_x * push_x + push_z * push_z) * gain
+        gain = gain * np.minimum(1.0, 0.5 * r / np.maximum(norm, 1e-12))
+        return agents + lo, push_x * gain, push_z * gain
 
-    def _neighbour_pairs(self) -> tuple[np.ndarray, np.ndarray]:
-        """Candidate pairs (i, j) of agents: every pair of living agents closer than the separation radius
-        r, and others up to 2r apart. The list is kept across substeps (a Verlet list, as in molecular
-        dynamics) until some agent has moved r / 2 from where it stood when the list was built: until
-        then no pair can have closed from over 2r to under r, so the list still holds every close pair.
-        Building it costs about seven substeps' use of it; agents move 1 to 7 cm per substep."""
+    def _prepare_lists(self, moved2: float) -> bool:
+        """Whether the separation's neighbour lists are to be rebuilt in this substep's push phase, and if
+        so the grid they are built from (here, for the whole crowd: one sort). Each range's list holds,
+        for each of its living agents, every living agent closer than the separation radius r and others
+        up to 2r away. The lists are kept across substeps (a Verlet list, as in molecular dynamics)
+        until some agent has moved r / 2 from where it stood when they were built (`moved2`: the largest
+        squared move, measured by the think phase): until then no pair can have closed from over 2r to
+        under r, so the lists still hold every close pair. A build costs about seven substeps' use of
+        them; agents move 1 to 7 cm per substep."""
         r = self.config.separation_radius
-        if self._pairs is not None:
-            mx, mz = self.x - self._pairs_x, self.z - self._pairs_z
-            if float(np.max(mx * mx + mz * mz)) <= 0.25 * r * r:
-                return self._pairs
-        i, j = self._grid_pairs(2.0 * r)
-        dx, dz = self.x[i] - self.x[j], self.z[i] - self.z[j]
-        near = np.flatnonzero(dx * dx + dz * dz < 4.0 * r * r)
-        self._pairs = (i[near], j[near])
-        self._pairs_x, self._pairs_z = self.x.copy(), self.z.copy()
+        if self._pairs and moved2 <= 0.25 * r * r:
+            return False
+        self._params[P_SIDE] = self._build_grid(2.0 * r)
+        self._pairs = True
         self.pair_builds += 1
-        return self._pairs
+        return True
 
-    def _grid_pairs(self, size: float) -> tuple[np.ndarray, np.ndarray]:
-        """Every pair of living agents in the same or adjacent cells of a uniform grid of `size`-wide
-        cells (so every pair closer than `size`), each pair once; at most SEPARATION_CELL_CAP per run.
-
-        Cells are numbered row by row and agents sorted by cell. Each pair is visited from its earlier
-        agent in that order: the rest of the agent's own cell and the cell to its right form one
-        contiguous run of sorted agents, the three cells of the next row another."""
+    def _build_grid(self, size: float) -> int:
+        """Living agents sorted into a uniform grid of `size`-wide cells (so every pair closer than `size`
+        is in the same or adjacent cells): each one's cell, the agents in cell order and where each
+        cell's agents start in it. Returns the grid's side in cells."""
         live = np.flatnonzero(self.state < DYING)
-        if live.size < 2:
-            return np.zeros(0, np.intp), np.zeros(0, np.intp)
         everyone = live.size == self.n  # the usual case: plain arrays instead of gathers
         x, z = (self.x, self.z) if everyone else (self.x[live], self.z[live])
         # At most about 4 cells an agent: a separation radius far below the spacing (a valid setting)
@@ -739,20 +1021,49 @@ class CrowdAI:
         gx = np.minimum(np.maximum((x - (self.origin[0] - self.half_extent)) * (1.0 / size) + 1.0, 1.0), side - 2.0)
         gz = np.minimum(np.maximum((z - (self.origin[1] - self.half_extent)) * (1.0 / size) + 1.0, 1.0), side - 2.0)
         cell = gz.astype(np.int64) * side + gx.astype(np.int64)
+        self._cell[live] = cell
         order = _sort_cells(cell, side * side)
-        sorted_cell = cell[order]
-        first = np.zeros(side * side + 1, np.int64)  # where each cell's agents start in the sorted order
-        np.cumsum(np.bincount(cell, minlength=side * side), out=first[1:])
-        here = np.arange(live.size)
-        # Both runs of every agent at once: [own cell after me, right cell] and [three cells below].
-        start = np.concatenate([here + 1, first[sorted_cell + (side - 1)]])
-        k = np.minimum(np.concatenate([first[sorted_cell + 2], first[sorted_cell + (side + 2)]]) - start, SEPARATION_CELL_CAP)
-        some = np.flatnonzero(k > 0)
-        k = k[some]
-        i = np.repeat(some % live.size, k)  # positions in the sorted order, i < j
-        j = np.repeat(start[some] - np.cumsum(k) + k, k) + np.arange(int(k.sum()))
-        agent = order if everyone else live[order]
-        return agent[i], agent[j]
+        self._cell_order[: live.size] = order if everyone else live[order]
+        cells = side * side + 1
+        if self._pool is None:
+            self._cell_first = np.zeros(cells, np.int64)
+        elif self._grid_block is None or self._grid_block.arrays["first"].size < cells:
+            if self._grid_block is not None:
+                self._grid_block.close()
+            self._grid_block = SharedArrays({"first": (np.int64, (cells + cells // 2,))})  # room to grow
+            self._stale = True
+        if self._pool is not None:
+            self._cell_first = self._grid_block.arrays["first"]
+        self._cell_first[0] = 0
+        np.cumsum(np.bincount(cell, minlength=side * side), out=self._cell_first[1:cells])
+        return side
+
+    def _build_list(self, lo: int, hi: int, side: int) -> None:
+        """This range's neighbour list from the grid: for each living agent of lo..hi, in agent order,
+        the agents of the three rows of three cells around its own (at most SEPARATION_CELL_CAP from
+        each row), itself left out, within 2r. An agent's entries are the same whichever range it is
+        in. Also notes where the range's agents stand, for the next substeps' move test."""
+        r = self.config.separation_radius
+        self._pairs_x[lo:hi], self._pairs_z[lo:hi] = self.x[lo:hi], self.z[lo:hi]
+        live = lo + np.flatnonzero(self.state[lo:hi] < DYING)
+        first_in = self._cell_first
+        cell = self._cell[live]
+        rows = np.stack([cell - side, cell, cell + side], axis=1)  # (agents, 3): the middle cell of each row
+        start = first_in[rows - 1]
+        count = np.minimum(first_in[rows + 2] - start, SEPARATION_CELL_CAP).ravel()
+        start = start.ravel()
+        total = int(count.sum())
+        owner = np.repeat(np.repeat(live, 3), count)
+        neighbour = self._cell_order[np.repeat(start - np.cumsum(count) + count, count) + np.arange(total)]
+        dx, dz = self.x[owner] - self.x[neighbour], self.z[owner] - self.z[neighbour]
+        keep = np.flatnonzero((dx * dx + dz * dz < 4.0 * r * r) & (owner != neighbour))
+        self._range_list = (owner[keep], neighbour[keep])
+
+    def neighbour_list(self) -> tuple[np.ndarray, np.ndarray]:
+        """(agent, neighbour) entries of the list the last push phase used, for a crowd in one range (tests)."""
+        if self.ranges() != 1:
+            raise AIError("the neighbour list is split over the workers' ranges")
+        return self._range_list
 
     # -- outputs
 
@@ -779,11 +1090,26 @@ class CrowdAI:
         fade = np.minimum(fade_in, np.where(action == ACT_DEATH, 1.0, fade_out))
         return np.where(action == NO_ACTION, 0.0, fade)
 
-    def write_layers(self, out: np.ndarray) -> np.ndarray:
-        """Fill the processor's (N, 4, 4) float32 input in place: idle, walk, run, action. Most agents
-        play no action, so the action layer is written for the acting ones only."""
-        if out.shape != (self.n, LAYERS, 4) or out.dtype != np.float32:
+    def write_layers(self, out: np.ndarray | None = None) -> np.ndarray:
+        """The processor's (N, 4, 4) float32 input: idle, walk, run, action, written into `out` in place,
+        or into the AI's own array (None: no copy; the workers write it in shared memory). Returns it."""
+        if out is not None and (out.shape != (self.n, LAYERS, 4) or out.dtype != np.float32):
             raise AIError(f"layers must be float32 ({self.n}, {LAYERS}, 4), got {out.dtype} {out.shape}")
+        ranges = self._ready_ranges() if self.n else 1
+        if ranges == 1:
+            target = self._layer_out if out is None else out
+            self._write_layer_range(target, 0, self.n)
+            return target
+        self._params[P_RANGES], self._params[P_N] = ranges, self.n
+        self._phase(WRITE_LAYERS, ranges)
+        if out is None:
+            return self._layer_out
+        np.copyto(out, self._layer_out)
+        return out
+
+    def _write_layer_range(self, out: np.ndarray, lo: int, hi: int) -> None:
+        """Layers of agents lo..hi. Most agents play no action, so the action layer is written for the
+        acting ones only."""
         m = self.motion
         # The constant columns copied from a run's worth of template (4x a broadcast's speed), then the
         # phase (rounded to float32 once) and the weights (each written by the operation that makes it)
@@ -797,8 +1123,8 @@ class CrowdAI:
             template[:, :, MASK] = -1.0
             self._layer_template = (clips, template)
         template = self._layer_template[1]
-        for start in range(0, self.n, LAYER_RUN):
-            run = slice(start, min(start + LAYER_RUN, self.n))
+        for start in range(lo, hi, LAYER_RUN):
+            run = slice(start, min(start + LAYER_RUN, hi))
             o = out[run]
             o[:] = template[: len(o)]
             phase = self.phase[run].astype(np.float32)
@@ -807,7 +1133,7 @@ class CrowdAI:
             vx, vz = self.vx[run], self.vz[run]
             self._locomotion_weights(np.sqrt(vx * vx + vz * vz), self.walk_top[run], self.speed_factor[run],
                                      out=[o[:, layer, WEIGHT] for layer in range(3)])
-        acting = np.flatnonzero(self.action)
+        acting = lo + np.flatnonzero(self.action[lo:hi])
         if acting.size:
             action = self.action[acting]
             fade = self.action_fade(acting)
@@ -819,7 +1145,6 @@ class CrowdAI:
             # Upper body: weight W against the locomotion's 1 gives the share W / (W + 1) = fade.
             out[acting, 3, WEIGHT] = np.where(upper, np.minimum(fade / np.maximum(1.0 - fade, 1e-12), MAX_ACTION_WEIGHT), fade)
             out[acting, 3, MASK] = np.where(upper, m.upper_body_mask, -1)
-        return out
 
     def layers(self) -> np.ndarray:
         return self.write_layers(np.empty((self.n, LAYERS, 4), np.float32))
@@ -862,11 +1187,14 @@ def _overlap_push(i, j, dx, dz, dist, r: float):
     (j gets its opposite), half the overlap along the pair's direction."""
     inv = 1.0 / np.maximum(dist, 1e-12)
     ux, uz = dx * inv, dz * inv
-    # Coincident agents: a direction made from the pair's agent numbers (deterministic).
+    # Coincident agents: a direction made from the pair's agent numbers (deterministic), pointing from
+    # the higher-numbered agent to the lower, so the pair's two entries push its agents apart.
     same = np.flatnonzero(dist < 1e-9)
     if same.size:
-        angle = 2 * math.pi * np.mod(i[same] * 0.6180339887 + j[same] * 0.7548776662, 1.0)
-        ux[same], uz[same] = np.cos(angle), np.sin(angle)
+        low, high = np.minimum(i[same], j[same]), np.maximum(i[same], j[same])
+        angle = 2 * math.pi * np.mod(low * 0.6180339887 + high * 0.7548776662, 1.0)
+        sign = np.where(i[same] == low, 1.0, -1.0)
+        ux[same], uz[same] = sign * np.cos(angle), sign * np.sin(angle)
     amount = 0.5 * (r - dist)  # each of the two takes half the overlap
     return ux * amount, uz * amount
 

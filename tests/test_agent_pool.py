@@ -1,0 +1,132 @@
+"""The crowd AI stepped by several processes (crowd.sim.agent_pool, issue 20): the same seed gives the
+same crowd, bit for bit, whatever the worker count; the pool starts and stops with the crowd's size
+and settings and leaves no process or shared memory behind; a worker that dies is one line."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from crowd.anim.roles import bake_roles, match_roles
+from crowd.sim.ai import MIN_RANGE, AIConfig, AIError, CrowdAI, PlayerScript, motion_for
+
+STEP = 1.0 / 30.0  # two substeps a step, as the headless loop steps
+AGENTS = 6 * MIN_RANGE  # enough for six ranges
+
+
+@pytest.fixture(scope="module")
+def motion(zombie):
+    roles, _ = match_roles(zombie.clips)
+    baked = bake_roles(zombie, roles)
+    return motion_for(zombie, baked, roles)
+
+
+def _shared_blocks() -> set[str]:
+    shm = Path("/dev/shm")
+    return {p.name for p in shm.iterdir() if p.name.startswith("psm_")} if shm.is_dir() else set()
+
+
+def _state(ai: CrowdAI) -> dict:
+    out = {name: getattr(ai, name).copy() for name in ai._names()}
+    out["layers"] = ai.write_layers().copy()
+    out["hits"] = np.array([ai.player_hits_taken, ai.pair_builds, ai.substeps])
+    return out
+
+
+def _run(motion, workers: int, think_every: int, steps: int = 90, switch_to: int | None = None) -> dict:
+    # A small world and short corpse times, so the player's strikes kill and the dead respawn (both draw
+    # keyed random numbers), and a focus point, as the pipeline sets the camera.
+    config = AIConfig(workers=workers, think_every=think_every, think_from=0, health=1, corpse_time=0.5,
+                      area_per_agent=2.0)
+    ai = CrowdAI(AGENTS, 5, motion, config)
+    try:
+        script = PlayerScript(ai.half_extent * 0.3, strike_every=0.1)
+        ai.focus = (np.array([ai.half_extent * 0.4, -ai.half_extent * 0.5]),)
+        for step in range(steps):
+            if step == steps // 2:  # new settings half-way (as the panel sets them): the same or another worker count
+                ai.set_config(AIConfig(**{**config.__dict__, "workers": workers if switch_to is None else switch_to}))
+            script.update(ai)
+            ai.step(STEP)
+        assert ai.check() == []
+        assert ai.counts()["dead"] + ai.counts()["dying"] > 0 and ai.pair_builds > 2
+        return _state(ai)
+    finally:
+        ai.close()
+
+
+@pytest.mark.parametrize("think_every", [1, 8])
+def test_the_same_seed_gives_the_same_crowd_for_any_worker_count(motion, think_every):
+    before = _shared_blocks()
+    alone = _run(motion, 1, think_every)
+    for workers in (2, 3):
+        other = _run(motion, workers, think_every)
+        differ = [name for name in alone if not np.array_equal(alone[name], other[name])]
+        assert not differ, f"{workers} workers: {differ} differ from one process"
+    switched = _run(motion, 3, think_every, switch_to=1)  # workers stopped half-way, state moved back
+    assert all(np.array_equal(alone[name], switched[name]) for name in alone)
+    assert _shared_blocks() <= before, "shared memory left behind"
+
+
+def test_the_pool_follows_the_crowd_size_and_releases_everything(motion):
+    before = _shared_blocks()
+    ai = CrowdAI(500, 2, motion, AIConfig(workers=3))
+    try:
+        ai.step(STEP)
+        assert ai.ranges() == 1 and ai._pool is None  # a small crowd runs in this process: no workers
+        first = ai.x[:500].copy()
+        ai.resize(AGENTS)
+        ai.step(STEP)
+        assert ai.ranges() == 3 and ai._pool is not None
+        procs = list(ai._pool._procs)
+        assert all(p.is_alive() for p in procs)
+        kept = ai.x[:500].copy()
+        ai.resize(0)
+        ai.step(STEP)
+        ai.resize(AGENTS)
+        ai.step(STEP)
+        assert ai.check() == []
+        ai.resize(200)
+        ai.step(STEP)
+        assert ai.check() == [] and not np.array_equal(kept, first)
+    finally:
+        ai.close()
+    assert not any(p.is_alive() for p in procs)
+    assert _shared_blocks() <= before
+
+
+def test_a_worker_that_dies_is_one_line_not_a_hang(motion):
+    ai = CrowdAI(AGENTS, 3, motion, AIConfig(workers=2))
+    try:
+        ai.step(STEP)
+        ai._pool._procs[0].kill()
+        ai._pool._procs[0].join()
+        with pytest.raises(AIError, match=r"^AI worker 1 exited with code -9$"):
+            ai.step(STEP)
+        assert ai._pool is None  # the pool is gone; the next step starts a new one
+        ai.step(STEP)
+        assert ai.check() == []
+    finally:
+        ai.close()
+
+
+def test_keyed_draws_are_uniform_and_independent_of_who_draws(motion):
+    ai = CrowdAI(10, 1, motion)
+    ids = np.arange(200_000)
+    draws = ai._draws(ids, 1, 2)
+    assert draws.min() >= 0.0 and draws.max() < 1.0
+    assert abs(draws.mean() - 0.5) < 0.005 and abs(np.corrcoef(draws[0], draws[1])[0, 1]) < 0.01
+    np.testing.assert_array_equal(ai._draws(ids[7:9], 1, 2), draws[:, 7:9])  # an agent's numbers, whoever else draws
+    ai.substeps += 1
+    assert not np.array_equal(ai._draws(ids[:10], 1, 2), draws[:, :10])
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="no CPU affinity on this OS")
+def test_zero_workers_means_one_per_core(motion):
+    ai = CrowdAI(AGENTS, 1, motion, AIConfig(workers=0))
+    try:
+        assert ai.ranges() == min(len(os.sched_getaffinity(0)), 6)
+    finally:
+        ai.close()
