@@ -32,6 +32,7 @@ def _shared_blocks() -> set[str]:
 def _state(ai: CrowdAI) -> dict:
     out = {name: getattr(ai, name).copy() for name in ai._names()}
     out["layers"] = ai.write_layers().copy()
+    out["yaw"] = ai.instances().yaw
     out["hits"] = np.array([ai.player_hits_taken, ai.pair_builds, ai.substeps])
     return out
 
@@ -108,6 +109,9 @@ def test_a_worker_that_dies_is_one_line_not_a_hang(motion):
         assert ai._pool is None  # the pool is gone; the next step starts a new one
         ai.step(STEP)
         assert ai.check() == []
+        ai._pool.close()  # as an interrupt while waiting for the workers leaves it
+        ai.step(STEP)
+        assert ai.check() == [] and not ai._pool.closed
     finally:
         ai.close()
 

@@ -191,7 +191,11 @@ class AgentPool:
         try:
             local()
         finally:
-            self._collect(count, None)
+            try:
+                self._collect(count, None)
+            except BaseException:  # interrupted while waiting (Ctrl-C): the semaphores' counts are unknown now
+                self.close()
+                raise
         return self.results[:count, 1:]
 
     def _wake(self, count: int, timeout: float | None) -> None:
@@ -221,6 +225,10 @@ class AgentPool:
 
     def close(self) -> None:
         self._finalizer()
+
+    @property
+    def closed(self) -> bool:
+        return not self._finalizer.alive
 
     @staticmethod
     def _shutdown(procs, go, params, conns, control, results) -> None:

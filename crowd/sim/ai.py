@@ -27,7 +27,14 @@ camera before anything becomes float32.
 Think budget (settings think_every, think_radius, think_from): in a big crowd, zombies far from the
 player and the camera (``focus``) that wander or lie dead think every think_every substeps, a block
 of consecutive agents at a time, and coast at their velocity and phase rate in between; everyone
-else, and every action, is stepped exactly as without it (``_budgeted_substep``).
+else, and every action, is stepped exactly as without it (``_budgeted_think``).
+
+Several cores (setting workers; crowd.sim.agent_pool): a crowd of 2 x MIN_RANGE agents or more is cut
+into ranges of consecutive agents, one per process, its arrays in shared memory; each substep is a few
+phases with a barrier between them (``_substep``). Random draws are keyed by agent and substep and
+each range builds its own neighbour list from one shared grid, so any number of workers gives the
+same crowd, bit for bit. Arrays are changed in place, never rebound, so the workers see every change
+the main process makes between steps (``hit``, the tests' placements).
 """
 
 from __future__ import annotations
@@ -55,7 +62,7 @@ MIN_RANGE = 1_024  # agents a process steps at least: a smaller share saves less
 SEPARATION_CELL_CAP = 48  # neighbours considered per row of three cells (bounds the work when many agents pile up)
 TINTS = np.array([[150, 170, 130], [170, 150, 130], [130, 150, 160], [180, 180, 160], [140, 160, 120], [160, 130, 140]], np.uint8)
 # Phases of a substep (run on every range of agents, a barrier between two) and their numbers' places.
-THINK, PUSH, APPLY, FINISH, WRITE_LAYERS = 1, 2, 3, 4, 5
+THINK, PUSH, APPLY, FINISH, WRITE_LAYERS, HEADINGS = 1, 2, 3, 4, 5, 6
 P_H, P_TIME, P_SUBSTEPS, P_STEPS, P_PLAYER, P_RANGES, P_N, P_BLOCK, P_GAIN, P_HAVE_PAIRS, P_REBUILD, P_SIDE = (
     1, 2, 3, 4, 5, 7, 8, 9, 11, 12, 13, 14)
 P_FOCUS_COUNT, P_FOCUS = 15, 16
@@ -320,7 +327,7 @@ class CrowdAI:
         layout["tint"] = (np.uint8, (n, 4))
         layout.update(_cell=(np.int64, (n,)), _cell_order=(np.intp, (n,)),  # the grid of the neighbour lists' last build
                       _pairs_x=(np.float64, (n,)), _pairs_z=(np.float64, (n,)),  # where the agents stood at it
-                      _layer_out=(np.float32, (n, LAYERS, 4)))
+                      _layer_out=(np.float32, (n, LAYERS, 4)), _yaw_out=(np.float32, (n,)))
         return layout
 
     def _allocate(self, n: int):
@@ -328,6 +335,9 @@ class CrowdAI:
         block the arrays were in before, if any (the caller copies from it, then closes it)."""
         was = self._block
         layout = self._layout(n)
+        if self._grid_block is not None:  # sized for the old crowd: the next build makes one to fit
+            self._grid_block.close()
+            self._grid_block = None
         if self._pool is not None:
             self._block = SharedArrays(layout)
             arrays = self._block.arrays
@@ -568,6 +578,8 @@ class CrowdAI:
         """How many ranges this substep's crowd is cut into (at least MIN_RANGE agents each), with the
         worker pool started, stopped or told of new arrays and settings as that needs."""
         ranges = self.ranges()
+        if self._pool is not None and self._pool.closed:  # it failed or was interrupted: a new one is started
+            self._stop_pool(copy=False)
         if ranges > 1 and self._pool is None:
             self._start_pool(self._workers() - 1)
         if ranges > 1:
@@ -679,6 +691,8 @@ class CrowdAI:
             self._finish_range(lo, hi, h)
         elif code == WRITE_LAYERS:
             self._write_layer_range(self._layer_out, lo, hi)
+        elif code == HEADINGS:
+            np.arctan2(self.hx[lo:hi], self.hz[lo:hi], out=self._yaw_out[lo:hi], casting="same_kind")
         else:
             raise AIError(f"unknown AI phase {code}")
         return (0.0, 0.0, 0.0)
@@ -787,13 +801,17 @@ class CrowdAI:
         group.commit()
 
         # The rest of the range moves on at its velocity and phase rate (and is separated with everyone).
+        # Only those agents are written (`where=`): the range's part of the block and its exact agents
+        # there belong to the processes thinking them, which write them at the same time.
         thinking[blocked] = True
         coasting = ~thinking
-        coast = np.where(thinking, 0.0, h)
-        self.x[lo:hi] += self.vx[lo:hi] * coast
-        self.z[lo:hi] += self.vz[lo:hi] * coast
-        advance_phase(self.phase[lo:hi], self.phase_rate[lo:hi] * coast)
-        self._pending[lo:hi] += coast
+        for position, velocity in ((self.x[lo:hi], self.vx[lo:hi]), (self.z[lo:hi], self.vz[lo:hi])):
+            np.add(position, velocity * h, out=position, where=coasting)
+        phase = self.phase[lo:hi]
+        np.add(phase, self.phase_rate[lo:hi] * h, out=phase, where=coasting)
+        np.subtract(phase, np.floor(phase), out=phase, where=coasting)  # wrapped into [0, 1), as advance_phase does
+        pending = self._pending[lo:hi]
+        np.add(pending, h, out=pending, where=coasting)
         turning = lo + np.flatnonzero(self._coast_turn[lo:hi] & coasting)
         if turning.size:
             self._coast_turns(turning, self.config.turn_rate * h)
@@ -1150,11 +1168,20 @@ class CrowdAI:
         return self.write_layers(np.empty((self.n, LAYERS, 4), np.float32))
 
     def instances(self) -> Instances:
+        """The render's input: positions, headings, scales, tints, variants (fresh arrays, kept by the
+        frame; the headings' arctangents are shared out to the workers, the rest is copies)."""
         pos = np.zeros((self.n, 3))
         pos[:, 0] = self.x
         pos[:, 2] = self.z
         variant = {"head": self.head} if self.motion.head_count else {}
-        return Instances(pos, self.yaw.astype(np.float32), self.scale, self.tint, variant)
+        ranges = self._ready_ranges() if self.n else 1
+        if ranges == 1:
+            yaw = self.yaw.astype(np.float32)
+        else:
+            self._params[P_RANGES], self._params[P_N] = ranges, self.n
+            self._phase(HEADINGS, ranges)
+            yaw = self._yaw_out.copy()
+        return Instances(pos, yaw, self.scale, self.tint, variant)
 
     def check(self) -> list[str]:
         """Invariants every step must keep; empty when all hold (tests, and the stats' `ai_faults`)."""
