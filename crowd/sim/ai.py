@@ -230,9 +230,9 @@ class PlayerScript:
 
 class _Agents:
     """Some of the crowd's per-agent arrays under the AI's own names, for one think: views for a slice
-    (one think block), gathered copies for an index array (the exact agents). ``commit()`` writes back
-    the copies, and every array the think rebound (np.where makes new ones). (The whole crowd thinks
-    through the CrowdAI itself, which has the same names.)"""
+    (a process's range, its part of a think block), gathered copies for an index array (the exact
+    agents). ``commit()`` writes back the copies, and every array the think rebound (np.where makes new
+    ones). ``ids(local)``: the crowd's numbers of its agents, for the keyed random draws."""
 
     def __init__(self, ai: "CrowdAI", selection):
         self._ai, self._selection = ai, selection
