@@ -532,8 +532,10 @@ def main(argv=None) -> int:
     p.set_defaults(run=bench_readback)
     from .error_report import add_parsers
     from .peers import add_parsers as add_peers_parsers
+    from .skate_report import add_parsers as add_skate_parsers
 
     add_parsers(sub)
+    add_skate_parsers(sub)
     add_peers_parsers(sub)
     args = parser.parse_args(argv)
     from crowd.sim.ai import AIError

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, Instances
+from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, Instances, empty_layers
 from ..settings import SETTINGS, group
 from .agent_pool import PARAMS, AgentPool, PoolError, SharedArrays, available_cores
 
@@ -919,9 +919,8 @@ class CrowdAI:
 
         # Locomotion phase: speed over the blended stride (idle plays at its own rate while standing).
         m = self.motion
-        w_idle, _, _, run_t = self._locomotion_weights(speed, a.walk_top, a.speed_factor)
-        stride = m.walk_stride + run_t * (m.run_stride - m.walk_stride)
-        rate = w_idle * (1.0 / m.duration["idle"]) + (1.0 - w_idle) * speed / stride
+        w_idle, _, _, run_t = locomotion_weights(m, speed, a.walk_top, a.speed_factor)
+        rate = phase_rate(m, w_idle, run_t, speed)
         advance_phase(a.phase, rate * move)
         if self.budgeted():
             a.phase_rate[:] = rate  # what the phase advances by until the agent thinks again
@@ -1085,18 +1084,6 @@ class CrowdAI:
 
     # -- outputs
 
-    def _locomotion_weights(self, speed: np.ndarray, walk: np.ndarray, speed_factor: np.ndarray, out=None):
-        """(idle, walk, run weights, run share of the stride) from ground speed: idle → walk up to the
-        agents' walk speeds `walk`, walk → run up to their run speeds (`speed_factor`). `out`: three
-        arrays (a layer's strided weight column, say) the weights are written into by the operations
-        that make them, rounded once, instead of new arrays."""
-        m = self.motion
-        to_walk = np.minimum(speed / walk, 1.0)
-        run_t = np.minimum(np.maximum((speed - walk) / (m.run_speed * speed_factor - walk), 0.0), 1.0)
-        out = out or (None, None, None)
-        return (np.subtract(1.0, to_walk, out=out[0], casting="unsafe"), np.multiply(to_walk, 1.0 - run_t, out=out[1], casting="unsafe"),
-                np.multiply(to_walk, run_t, out=out[2], casting="unsafe"), run_t)
-
     def action_fade(self, agents: np.ndarray | None = None) -> np.ndarray:
         """0..1 per agent (or per agent of `agents`): how much of the action layer shows, cross-faded in
         and, except for death, out again."""
@@ -1149,8 +1136,8 @@ class CrowdAI:
             for layer in range(3):
                 o[:, layer, PHASE] = phase
             vx, vz = self.vx[run], self.vz[run]
-            self._locomotion_weights(np.sqrt(vx * vx + vz * vz), self.walk_top[run], self.speed_factor[run],
-                                     out=[o[:, layer, WEIGHT] for layer in range(3)])
+            locomotion_weights(m, np.sqrt(vx * vx + vz * vz), self.walk_top[run], self.speed_factor[run],
+                               out=[o[:, layer, WEIGHT] for layer in range(3)])
         acting = lo + np.flatnonzero(self.action[lo:hi])
         if acting.size:
             action = self.action[acting]
@@ -1200,6 +1187,42 @@ class CrowdAI:
 
     def counts(self) -> dict[str, int]:
         return {name: int(np.count_nonzero(self.state == code)) for code, name in enumerate(STATE_NAMES)}
+
+
+def locomotion_weights(m: Motion, speed: np.ndarray, walk: np.ndarray, speed_factor: np.ndarray, out=None):
+    """(idle, walk, run weights, run share of the stride) from ground speed: idle → walk up to the
+    agents' walk speeds `walk`, walk → run up to their run speeds (`speed_factor`). `out`: three
+    arrays (a layer's strided weight column, say) the weights are written into by the operations
+    that make them, rounded once, instead of new arrays."""
+    to_walk = np.minimum(speed / walk, 1.0)
+    run_t = np.minimum(np.maximum((speed - walk) / (m.run_speed * speed_factor - walk), 0.0), 1.0)
+    out = out or (None, None, None)
+    return (np.subtract(1.0, to_walk, out=out[0], casting="unsafe"), np.multiply(to_walk, 1.0 - run_t, out=out[1], casting="unsafe"),
+            np.multiply(to_walk, run_t, out=out[2], casting="unsafe"), run_t)
+
+
+def phase_rate(m: Motion, w_idle, run_t, speed):
+    """Cycles a second of the shared locomotion phase: speed over the blended stride, so that feet do
+    not slide (idle plays at its own rate while standing)."""
+    stride = m.walk_stride + run_t * (m.run_stride - m.walk_stride)
+    return w_idle * (1.0 / m.duration["idle"]) + (1.0 - w_idle) * speed / stride
+
+
+def locomotion_layers(m: Motion, speed: float, frames: int, dt: float, speed_factor: float = 1.0):
+    """One agent walking straight at a steady `speed` (m/s) for `frames` frames `dt` apart, as the AI
+    animates it (crowd.anim.foot_skate measures what its feet do): its (frames, 4, 4) float32 layers
+    and the distance (frames,) float64 it has covered at each frame."""
+    walk = np.array([m.walk_speed * speed_factor])
+    speeds = np.array([float(speed)])
+    w = locomotion_weights(m, speeds, walk, np.array([speed_factor]))
+    rate = float(phase_rate(m, w[0], w[3], speeds)[0])
+    t = np.arange(frames) * dt
+    layers = empty_layers(frames, LAYERS)
+    for layer, role in enumerate(("idle", "walk", "run")):
+        layers[:, layer, CLIP] = m.clip[role]
+        layers[:, layer, PHASE] = np.mod(rate * t, 1.0)
+        layers[:, layer, WEIGHT] = float(w[layer][0])
+    return layers, speed * t
 
 
 def _rotate_toward(hx, hz, ux, uz, step: float):

@@ -1,0 +1,99 @@
+"""Foot skate (crowd.anim.foot_skate, issue 21 point 1): a clip built to slide by a known amount is
+measured within 5 %, through the GPU processor and through the float64 reference; a planted foot
+measures no slide; bad input is one line."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from crowd.anim import accuracy
+from crowd.anim.bake import bake
+from crowd.anim.foot_skate import CONTACT_M, SkateError, foot_joints, joint_positions, measure, to_world
+from crowd.asset.model import Channel, Clip, Skeleton
+from crowd.frame import CLIP, PHASE, WEIGHT, empty_layers
+
+SPEED = 1.0  # m/s the agent walks
+RATE = 240.0  # frames a second measured
+LIFT = 1.0 / 15.0  # seconds the foot takes to rise 10 cm (and to come down): key times on the 30 fps bake's grid
+STANCE = 0.6
+
+
+def _sliding_walk(slip: float) -> tuple[Skeleton, Clip, float]:
+    """A hip and a foot. The foot's keys (LINEAR translation, a 1 s loop) move it backward at
+    SPEED - slip whenever it is low (stance, lift and drop) and forward high up, so an agent walking at
+    SPEED sees its foot slide forward at `slip` m/s whenever it is within 3 cm of the ground: 0.6 s of
+    stance and, of each 10 cm rise and fall, the 3 cm nearest the ground (0.3 of LIFT each). Returns the
+    skeleton, the clip and the slide expected in cm per metre walked."""
+    u = SPEED - slip
+    z0 = 0.3
+    times = np.array([0.0, STANCE, STANCE + LIFT, 1.0 - LIFT, 1.0])
+    # Back at u through stance and lift, forward high up, back at u again while coming down to z0.
+    values = np.array([[0.0, 0.0, z0], [0.0, 0.0, z0 - u * STANCE], [0.0, 0.1, z0 - u * (STANCE + LIFT)],
+                       [0.0, 0.1, z0 + u * LIFT], [0.0, 0.0, z0]])
+    skeleton = Skeleton(("hips", "foot_l"), np.array([-1, 0], np.int32), np.zeros((2, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (2, 1)),
+                        np.ones((2, 3)), np.tile(np.eye(4), (2, 1, 1)))
+    clip = Clip("slide", [Channel(1, "translation", "LINEAR", times, values)], 0.0, 1.0, True)
+    contact_s = STANCE + 2 * CONTACT_M / 0.1 * LIFT
+    return skeleton, clip, 100.0 * slip * contact_s / SPEED
+
+
+def _walk(skeleton, palette_or_truth, frames):
+    t = np.arange(frames) / RATE
+    ground = np.stack([np.zeros(frames), SPEED * t], axis=1)
+    world = to_world(joint_positions(palette_or_truth, skeleton, foot_joints(skeleton)), ground, 0.0)
+    return measure(world, 1.0 / RATE, SPEED * t[-1], ["foot_l"])
+
+
+@pytest.mark.parametrize("slip", [0.05, 0.2])
+def test_a_clip_built_to_slide_is_measured_within_5_percent(gl_context, slip):
+    skeleton, clip, expected = _sliding_walk(slip)
+    frames = int(4 * RATE)
+    layers = empty_layers(frames, 1)
+    layers[:, 0, CLIP] = 0
+    layers[:, 0, PHASE] = np.mod(np.arange(frames) / RATE, 1.0)
+    layers[:, 0, WEIGHT] = 1.0
+    baked = bake(skeleton, [clip])
+    for source in (accuracy.gpu_palette(gl_context, baked, layers), accuracy.truth(skeleton, [clip], layers)):
+        skate = _walk(skeleton, source, frames)
+        assert skate.slide_cm_per_m == pytest.approx(expected, rel=0.05), (skate, expected)
+        assert skate.contact_share == pytest.approx((STANCE + 2 * CONTACT_M / 0.1 * LIFT), rel=0.05)
+        # Every contact step is at the slip speed: over the threshold at 20 cm/s, under it at 5 cm/s.
+        assert skate.share_over == (1.0 if slip > 0.1 else 0.0)
+
+
+def test_a_planted_foot_does_not_slide(gl_context):
+    skeleton, clip, expected = _sliding_walk(0.0)
+    assert expected == 0.0
+    frames = int(2 * RATE)
+    layers = empty_layers(frames, 1)
+    layers[:, 0, CLIP] = 0
+    layers[:, 0, PHASE] = np.mod(np.arange(frames) / RATE, 1.0)
+    layers[:, 0, WEIGHT] = 1.0
+    skate = _walk(skeleton, accuracy.gpu_palette(gl_context, bake(skeleton, [clip]), layers), frames)
+    assert skate.slide_cm_per_m < 0.05 and skate.share_over == 0.0  # float32 palette rounding only
+
+
+def test_the_zombie_has_feet_and_toes(zombie):
+    names = [zombie.skeleton.names[j] for j in foot_joints(zombie.skeleton)]
+    assert names == ["foot_l", "foot_r", "toe_l", "toe_r"]
+
+
+@pytest.mark.parametrize("world, dt, walked, message", [
+    (np.zeros((1, 1, 3)), 0.01, 1.0, "frames >= 2"),
+    (np.full((3, 1, 3), np.nan), 0.01, 1.0, "not finite"),
+    (np.zeros((3, 1, 3)), 0.0, 1.0, "dt > 0"),
+    (np.zeros((3, 1, 3)), 0.01, -1.0, "distance >= 0"),
+])
+def test_bad_input_is_one_line(world, dt, walked, message):
+    with pytest.raises(SkateError, match=message) as info:
+        measure(world, dt, walked, ["foot_l"])
+    assert "\n" not in str(info.value)
+
+
+def test_standing_still_reports_no_slide_per_metre_but_a_speed():
+    frames = 11
+    world = np.zeros((frames, 1, 3))
+    world[:, 0, 0] = np.linspace(0.0, 0.01, frames)  # 1 cm over 0.1 s while in contact
+    skate = measure(world, 0.01, 0.0, ["foot_l"])
+    assert np.isnan(skate.slide_cm_per_m) and skate.slide_cm_per_s == pytest.approx(10.0)
