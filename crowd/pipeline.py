@@ -24,6 +24,7 @@ import moderngl
 import numpy as np
 
 from .allocator import keep_freed_memory
+from .anim.foot_skate import FootSkateMonitor
 from .anim.processor import AnimationProcessor, palette_joint_positions
 from .anim.roles import bake_roles, match_roles
 from .asset.gltf import load_character
@@ -37,6 +38,9 @@ from .settings import DEFAULTS, SETTINGS
 from .sim.ai import LAYERS, AIConfig, CrowdAI, PlayerScript, motion_for, upper_body_mask
 from .stages import StageSpec, Stages, build_processor, build_readback, build_renderer, build_weapons
 from .timing import PassTimer
+
+FOOT_SKATE_SAMPLE = 32  # agents whose feet are read back for the stats' foot_skate: 128 entries beside the sockets
+
 
 class PipelineError(ValueError):
     """Bad pipeline configuration; the message is one line."""
@@ -99,6 +103,9 @@ class CrowdPipeline(GLStage):
         # stage, no gather pass, no weapon meshes, and one palette instead of a ring.
         self.stages = Stages.build(ctx, self.character, self.bake, self._spec(self._armed(config)), config.agents)
         self.sync = PaletteSync(self.processor.history, config.agents)
+        # The running crowd's foot skate: FOOT_SKATE_SAMPLE agents' foot joints ride on the socket read-back.
+        self.foot_skate = FootSkateMonitor(self.character.skeleton, FOOT_SKATE_SAMPLE)
+        self._socket_entries: dict[int, int] = {}  # frame -> how many of its gathered entries are weapon sockets
         self.readback_waits: list[float] = []
         self.readback_stalls = 0
         self._pose_lag: deque = deque(maxlen=RING + 1)  # simulated seconds of the last frames
@@ -262,6 +269,7 @@ class CrowdPipeline(GLStage):
     def set_agent_count(self, agents: int) -> None:
         agents = SETTINGS["agents"].check(agents, PipelineError)
         self.ai.resize(agents)
+        self.foot_skate.reset()  # (the sample is spread over the new count)
         self.processor.resize(agents)
         self.layers = np.empty((agents, LAYERS, 4), np.float32)
         self.sync.resize(agents, self.frames)
@@ -273,6 +281,7 @@ class CrowdPipeline(GLStage):
         self.config = dataclasses.replace(self.config, seed=seed)
         old, self.ai = self.ai, CrowdAI(self.agents, seed, self.motion, self.ai.config, self.config.origin)
         old.close()
+        self.foot_skate.reset()
         self.sync.spawned(slice(None), self.frames)
 
     def set_readback_latency(self, latency: int) -> None:
@@ -325,6 +334,8 @@ class CrowdPipeline(GLStage):
             # Before this frame's gather: with N = 3 the slot read now is the one written next.
             with t.cpu("readback"):
                 read = self.readback.fetch(f - self.latency)
+                if read is not None:
+                    read = self._split_feet(read)
             self._run("readback")
             if read is not None:
                 self.readback_waits.append(read.wait_ms)
@@ -338,9 +349,16 @@ class CrowdPipeline(GLStage):
             self.sync.processed(f, fresh=self.processor.runs == 1)  # a new palette: the frames kept before it are gone
         if self.readback is not None and self.agents:
             armed = np.flatnonzero(self.ai.armed())
-            if self.readback.gather(f, self.processor, armed, np.full(armed.size, self.weapons.socket_joint), t):
+            feet, foot_joints = self.foot_skate.entries(self.agents, self.ai.steady)
+            agents = np.concatenate([armed, feet])
+            joints = np.concatenate([np.full(armed.size, self.weapons.socket_joint), foot_joints])
+            if self.readback.gather(f, self.processor, agents, joints, t):
                 self._run("gather")
                 self._run("transfer")
+                self._socket_entries[f] = armed.size
+                sampled = feet[:: max(len(self.foot_skate.feet), 1)]
+                self.foot_skate.sent(f, sampled, instances.position[sampled][:, [0, 2]], instances.yaw[sampled],
+                                     instances.scale[sampled], self.ai.time)
         # Each body's palette: frame F - N where the weapon read-back is from that frame, else this one.
         row_offset = self.sync.row_offsets(None if read is None else read.frame, self.processor.row_offset) if self.agents else 0
         with t.cpu("cull_lod"):
@@ -393,6 +411,16 @@ class CrowdPipeline(GLStage):
         t.end_frame()
         self.frames += 1
         return self.last
+
+    def _split_feet(self, read: SocketRead) -> SocketRead:
+        """The weapons' part of a read-back; the foot joints gathered after the sockets go to the foot-skate monitor."""
+        sockets = self._socket_entries.pop(read.frame, len(read.agents))
+        for old in [k for k in self._socket_entries if k < read.frame]:
+            del self._socket_entries[old]
+        if sockets == len(read.agents):
+            return read
+        self.foot_skate.received(read.frame, read.rows[sockets:])
+        return dataclasses.replace(read, agents=read.agents[:sockets], joints=read.joints[:sockets], rows=read.rows[:sockets])
 
     def refresh_counts(self) -> None:
         """Wait for the GPU cull's counts of every queued frame, so ``renderer.last`` and the weapons'

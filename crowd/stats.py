@@ -69,6 +69,9 @@ def pipeline_stats(pipeline) -> dict:
         "weapons": weapon_stats(p),
         "weapon_error_mm": None if p.weapons is None else _round(p.weapon_error_mm()),
         "readback_wait_ms": readback_wait(p),
+        # The running crowd's foot skate (crowd.anim.foot_skate), from the sampled agents' feet on the
+        # socket read-back; None without a read-back (nobody armed) or before any of them walked 0.5 m.
+        "foot_skate": None if p.readback is None else p.foot_skate.summary(),
     }
 
 

@@ -97,3 +97,34 @@ def test_standing_still_reports_no_slide_per_metre_but_a_speed():
     world[:, 0, 0] = np.linspace(0.0, 0.01, frames)  # 1 cm over 0.1 s while in contact
     skate = measure(world, 0.01, 0.0, ["foot_l"])
     assert np.isnan(skate.slide_cm_per_m) and skate.slide_cm_per_s == pytest.approx(10.0)
+
+
+def test_the_running_crowd_s_feet_come_back_on_the_read_back_as_the_reference_puts_them(gl_context):
+    """The stats' foot_skate: the sampled agents' feet, read back with the sockets (never waited for),
+    are where the float64 reference puts them for the layers and transforms of the frame they were read
+    from, within 1 mm; the summary is finite."""
+    from crowd.gl import Offscreen
+    from crowd.pipeline import CrowdPipeline, PipelineConfig
+
+    with Offscreen(gl_context, (160, 90)) as target, CrowdPipeline(gl_context, PipelineConfig(agents=200)) as p:
+        kept = {}
+        for f in range(90):
+            p.frame(target.framebuffer, 1.0 / 30.0)
+            instances = p.ai.instances()  # the frame's own: nothing moves after its AI step
+            kept[f] = (p.layers.copy(), instances.position[:, [0, 2]].copy(), instances.yaw.copy(), instances.scale.copy())
+        monitor = p.foot_skate
+        clips = [p.character.clip(c.name) for c in p.bake.clips]
+        checked = 0
+        for agent, track in monitor._tracks.items():
+            frame, _, ground, world = track[-1]
+            layers, positions, yaw, scale = kept[frame]
+            truth = accuracy.truth(p.character.skeleton, clips, layers[agent][None], p.processor.masks)
+            model = joint_positions(truth, p.character.skeleton, monitor.feet)
+            expected = to_world(model, positions[agent][None], yaw[agent], float(scale[agent]))[0]
+            np.testing.assert_allclose(ground, positions[agent])
+            assert np.abs(world - expected).max() < 1e-3, (agent, frame)
+            checked += 1
+        assert checked >= 10 and p.readback_stalls == 0
+        summary = monitor.summary()
+        assert summary is not None and summary["agents"] >= 1
+        assert all(np.isfinite(summary[k]) and summary[k] >= 0 for k in ("slide_cm_per_m", "worst_cm_per_m", "share_over"))

@@ -18,11 +18,13 @@ threshold); none of the crowd systems this project compares with reports it.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..asset.model import Skeleton
+from .processor import palette_joint_positions
 
 CONTACT_M = 0.03  # metres above a joint's lowest point within which it is in contact with the ground
 SKATE_SPEED_M_S = 0.10  # a contact frame step faster than this counts as skating
@@ -42,9 +44,7 @@ def joint_positions(matrices: np.ndarray, skeleton: Skeleton, joints) -> np.ndar
     """(F, K, 3) model-space positions of `joints` from skinning matrices (F, J, 3|4, 4) (the palette, or
     the reference's): each matrix applied to its joint's bind-pose position."""
     joints = np.asarray(joints, np.int64)
-    bind = np.linalg.inv(skeleton.inverse_bind[joints])[:, :3, 3]  # (K, 3) joint positions at bind time
-    m = np.asarray(matrices, np.float64)[:, joints, :3, :]
-    return np.einsum("fkij,kj->fki", m[..., :3], bind) + m[..., 3]
+    return palette_joint_positions(np.asarray(matrices)[:, joints, :3, :], skeleton.inverse_bind[joints])
 
 
 def to_world(model: np.ndarray, ground: np.ndarray, yaw, scale=1.0) -> np.ndarray:
@@ -73,22 +73,24 @@ class FootSkate:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
 
 
-def measure(world: np.ndarray, dt: float, walked_m: float, names) -> FootSkate:
-    """The foot skate of foot-joint trajectories `world` (F, K, 3) in metres, `dt` seconds apart, over
-    which the agent walked `walked_m` metres."""
+def measure(world: np.ndarray, dt, walked_m: float, names) -> FootSkate:
+    """The foot skate of foot-joint trajectories `world` (F, K, 3) in metres, `dt` seconds apart (one
+    number, or one per frame step: (F - 1,)), over which the agent walked `walked_m` metres."""
     world = np.asarray(world, np.float64)
     if world.ndim != 3 or world.shape[2] != 3 or world.shape[0] < 2 or world.shape[1] != len(names) or not len(names):
         raise SkateError(f"foot skate needs (frames >= 2, feet >= 1, 3) positions, got {world.shape} for {len(names)} feet")
     if not np.all(np.isfinite(world)):
         raise SkateError("foot skate: a foot position is not finite")
-    if not (np.isfinite(dt) and dt > 0) or not (np.isfinite(walked_m) and walked_m >= 0):
-        raise SkateError(f"foot skate needs dt > 0 and a distance >= 0, got {dt!r} and {walked_m!r}")
+    dt = np.broadcast_to(np.asarray(dt, np.float64), (world.shape[0] - 1,)) if np.ndim(dt) == 0 else np.asarray(dt, np.float64)
+    if dt.shape != (world.shape[0] - 1,) or not np.all(np.isfinite(dt) & (dt > 0)) or not (np.isfinite(walked_m) and walked_m >= 0):
+        raise SkateError(f"foot skate needs dt > 0 for each of the {world.shape[0] - 1} steps and a distance >= 0, got {walked_m!r}")
+    dt = dt[:, None]
     height = world[..., 1]
     contact = height <= height.min(axis=0) + CONTACT_M
     both = contact[1:] & contact[:-1]  # (F - 1, K): steps between two contact frames
     step = np.linalg.norm(world[1:][..., [0, 2]] - world[:-1][..., [0, 2]], axis=2)
     slide = np.where(both, step, 0.0).sum(axis=0)  # metres per joint
-    contact_time = both.sum(axis=0) * dt
+    contact_time = np.where(both, dt, 0.0).sum(axis=0)
     steps = int(both.sum())
     per_m = 100.0 * slide / walked_m if walked_m > 0 else np.full(len(names), np.nan)
     return FootSkate(
@@ -97,3 +99,79 @@ def measure(world: np.ndarray, dt: float, walked_m: float, names) -> FootSkate:
         share_over=float(np.count_nonzero(both & (step > SKATE_SPEED_M_S * dt)) / steps) if steps else 0.0,
         contact_share=float(steps / both.size), walked_m=float(walked_m),
         per_joint={str(n): round(float(v), 4) for n, v in zip(names, per_m)})
+
+
+class FootSkateMonitor:
+    """The running crowd's foot skate, from a small read-back: `sample` agents, spread over the crowd,
+    have their foot joints read back with the weapons' sockets through the same ring, never waited for
+    (crowd.draw.readback), and composed with the transforms those agents had in the frame read. Each
+    sampled agent keeps a window of its last `window` frames; a frame missing from the ring, a respawn,
+    or anything but locomotion (an action, dying) starts its window again, so every window is one steady
+    stretch of walking or running."""
+
+    def __init__(self, skeleton: Skeleton, sample: int = 32, window: int = 240, min_walk_m: float = 0.5):
+        self.feet = foot_joints(skeleton)
+        self.names = [skeleton.names[j] for j in self.feet]
+        self._inverse_bind = skeleton.inverse_bind[self.feet]
+        self.sample, self.window, self.min_walk_m = int(sample), int(window), float(min_walk_m)
+        self._sent: dict[int, tuple] = {}  # frame -> (agents, ground (k, 2), yaw (k,), scale (k,), time)
+        self._tracks: dict[int, deque] = {}  # agent -> (frame, time, ground (2,), feet world (K, 3)), oldest first
+
+    def reset(self) -> None:
+        """Forget every window (a new crowd: the same agent numbers are other agents now)."""
+        self._sent.clear()
+        self._tracks.clear()
+
+    def entries(self, agents: int, steady) -> tuple[np.ndarray, np.ndarray]:
+        """(agents, joints) to gather this frame: the sampled agents that are in steady locomotion
+        (`steady(indices)`: a bool for each) times the foot joints."""
+        if not self.feet or not self.sample or not agents:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        picked = np.unique(np.linspace(0, agents - 1, min(self.sample, agents)).astype(np.int64))
+        picked = picked[steady(picked)]
+        for a in set(self._tracks) - set(picked.tolist()):
+            del self._tracks[a]  # out of the sample, or no longer walking: its stretch ends here
+        return np.repeat(picked, len(self.feet)), np.tile(np.asarray(self.feet, np.int64), picked.size)
+
+    def sent(self, frame: int, agents: np.ndarray, ground: np.ndarray, yaw: np.ndarray, scale: np.ndarray, time: float) -> None:
+        """The transforms of the agents whose feet were gathered in `frame` (one entry per agent)."""
+        self._sent[frame] = (agents, np.asarray(ground, np.float64), np.asarray(yaw, np.float64), np.asarray(scale, np.float64), float(time))
+        for old in [f for f in self._sent if f < frame - 8]:
+            del self._sent[old]  # frames whose read-back never came (a reset ring)
+
+    def received(self, frame: int, rows: np.ndarray) -> None:
+        """The foot rows (k x K, 3, 4) read back for `frame`, in the order ``entries`` gave."""
+        sent = self._sent.pop(frame, None)
+        if sent is None or not len(sent[0]):
+            return
+        agents, ground, yaw, scale, t = sent
+        k = len(self.feet)
+        model = palette_joint_positions(np.asarray(rows).reshape(len(agents), k, 3, 4), self._inverse_bind)
+        world = to_world(model, ground, yaw, scale[:, None])
+        for i, a in enumerate(agents.tolist()):
+            track = self._tracks.setdefault(a, deque(maxlen=self.window))
+            if track and track[-1][0] != frame - 1:
+                track.clear()  # a frame missing: the stretch starts again
+            track.append((frame, t, ground[i], world[i]))
+
+    def summary(self) -> dict | None:
+        """The crowd's foot skate over the sampled agents' windows that walked at least min_walk_m:
+        mean and worst slide (cm per metre walked), and the share of contact steps over the speed
+        threshold; None while no window has walked that far."""
+        results = []
+        for track in self._tracks.values():
+            if len(track) < 3:
+                continue
+            t = np.array([e[1] for e in track])
+            ground = np.array([e[2] for e in track])
+            walked = float(np.linalg.norm(np.diff(ground, axis=0), axis=1).sum())
+            if walked < self.min_walk_m or np.any(np.diff(t) <= 0):
+                continue
+            results.append(measure(np.array([e[3] for e in track]), np.diff(t), walked, self.names))
+        if not results:
+            return None
+        return {"agents": len(results), "slide_cm_per_m": round(float(np.mean([r.slide_cm_per_m for r in results])), 4),
+                "worst_cm_per_m": round(float(np.max([r.worst_cm_per_m for r in results])), 4),
+                "share_over": round(float(np.mean([r.share_over for r in results])), 4),
+                "walked_m": round(float(np.sum([r.walked_m for r in results])), 3),
+                "contact_m": CONTACT_M, "skate_speed_m_s": SKATE_SPEED_M_S}

@@ -458,6 +458,12 @@ class CrowdAI:
     def alive(self) -> np.ndarray:
         return self.state < DYING
 
+    def steady(self, agents: np.ndarray) -> np.ndarray:
+        """Whether each of `agents` is in plain locomotion: wandering or chasing, playing no action (the
+        foot-skate sample asks for its few agents only)."""
+        state = self.state[agents]
+        return (self.action[agents] == NO_ACTION) & ((state == WANDER) | (state == CHASE))
+
     def armed(self) -> np.ndarray:
         """Living agents holding a weapon (a dying one has dropped it)."""
         return (self.weapon >= 0) & (self.state < DYING)
