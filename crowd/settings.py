@@ -203,9 +203,9 @@ _ALL = (
     Setting("bake_fps", "clips", "rate", 30.0, f'bake rate in frames per second, or "{SOURCE_RATE}": each clip at its own key rate',
             label="bake rate", low=1, high=240, slider=(5, 60)),
     Setting("precision", "clips", "choice", "f32", "storage of the animation texture", choices=("f32", "f16")),
-    Setting("interpolation", "clips", "choice", "qt_lerp",
+    Setting("interpolation", "clips", "choice", "qt_corrected",
             "how keys are sampled and layers blended (docs/BENCHMARKS.md says why the default is the default)",
-            choices=("dq_lerp", "qt_lerp", "qt_cubic")),
+            choices=("dq_lerp", "qt_lerp", "qt_corrected", "qt_cubic")),
     # what is drawn
     Setting("weapons", "features", "bool", True, "armed zombies carry weapons (off: no socket read-back, no gather pass)"),
     Setting("readback_latency", "features", "int", 2, "frames between gathering a weapon socket and the CPU reading it",

@@ -4,7 +4,8 @@
 //
 // Defines set by crowd/anim/processor.py: LAYERS (1..4), REST_THRESHOLD, HAS_SCALE (joint scale texture
 // exists), HAS_MASKS (joint mask texture exists), MAX_JOINTS, and the interpolation:
-// none (dq_lerp), INTERPOLATION_QT (qt_lerp) or INTERPOLATION_QT with INTERPOLATION_CUBIC (qt_cubic).
+// none (dq_lerp), INTERPOLATION_QT (qt_lerp), INTERPOLATION_QT with INTERPOLATION_CORRECTED and its SLERP_FIT_A and
+// SLERP_FIT_B (qt_corrected), or INTERPOLATION_QT with INTERPOLATION_CUBIC (qt_cubic).
 
 uniform sampler2D u_anim;        // AnimationTexture (2J, rows): texel 2j = real, 2j+1 = dual of joint j
 #ifdef HAS_SCALE
@@ -86,6 +87,18 @@ vec3 key_translation(vec4 r, vec4 d) {
 }
 #endif
 
+#ifdef INTERPOLATION_CORRECTED
+// qt_corrected's nlerp weight (crowd.anim.processor.corrected_weight says how it was fitted): u moved so
+// that nlerp between keys with dot product d turns by u times their angle, as slerp does.
+float corrected_weight(float u, float d) {
+    d = clamp(d, 0.0, 1.0);
+    float a = SLERP_FIT_A.x + d * (SLERP_FIT_A.y + d * SLERP_FIT_A.z);
+    float b = SLERP_FIT_B.x + d * (SLERP_FIT_B.y + d * SLERP_FIT_B.z);
+    float c = u - 0.5;
+    return u + u * c * (u - 1.0) * (1.0 - d) * (a * c * c + b);
+}
+#endif
+
 #ifdef INTERPOLATION_CUBIC
 // Uniform Catmull-Rom between p1 and p2 (Horner form, the same as crowd.anim.processor._catmull_rom).
 vec4 catmull_rom(vec4 p0, vec4 p1, vec4 p2, vec4 p3, float u) {
@@ -154,7 +167,11 @@ void sample_layer(vec4 layer, int joint, out vec4 real, out vec4 second, out flo
     second = vec4(ts.xyz, 0.0);
     scale = ts.w;
 #else
+#ifdef INTERPOLATION_CORRECTED
+    real = r1 + (r2 - r1) * corrected_weight(u, dot(r1, r2));  // nlerp that turns as slerp does
+#else
     real = r1 + (r2 - r1) * u;
+#endif
     second = vec4(t1 + (t2 - t1) * u, 0.0);
     scale = s1 + (s2 - s1) * u;
 #endif

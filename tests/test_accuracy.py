@@ -135,9 +135,10 @@ def test_crowd_bench_error_quick_runs_the_default_and_the_stability_cases(tmp_pa
     assert bench_main(["error", "--quick", "--json", str(out)]) == 0
     report = json.loads(out.read_text())
     (row,) = report["rows"]
-    assert (row["bake_fps"], row["storage"], row["interpolation"]) == (30.0, "f32", "qt_lerp") and row["default"]
+    assert (row["bake_fps"], row["storage"], row["interpolation"]) == (30.0, "f32", "qt_corrected") and row["default"]
     assert len(report["stability"]) == 6 and all(c["passed"] for c in report["stability"])
-    assert 0.48 < row["max_error_mm"] < 0.49  # the attack's maximum, searched for
+    # ACL's bar: 0.1 mm on the 3 cm shell, searched for; qt_lerp's nlerp had 0.485 mm at the attack's hand_r_socket.
+    assert row["max_error_mm"] < 0.1 and all(v < 0.1 for v in row["models"]["zombie"]["per_clip_max_mm"].values())
 
 
 def test_crowd_bench_error_refuses_unknown_interpolations(capsys):

@@ -98,7 +98,7 @@ def test_f16_bake_matches_its_float64_model(gl_context, zombie, interpolation):
 
 
 def test_bad_interpolation_is_refused(gl_context, zombie_bake):
-    with pytest.raises(ProcessorError, match="interpolation must be one of dq_lerp, qt_lerp, qt_cubic"):
+    with pytest.raises(ProcessorError, match="interpolation must be one of dq_lerp, qt_lerp, qt_corrected, qt_cubic"):
         AnimationProcessor(gl_context, zombie_bake, 1, interpolation="slerp")
 
 
@@ -367,3 +367,47 @@ def test_auto_path_follows_the_context(gl_context, zombie_bake):
         assert proc.path == ("compute" if gl_context.version_code >= 430 else "fragment")
     finally:
         proc.release()
+
+
+def _slerp_angle_error(u, d):
+    """Rotation angle (rad) between qt_corrected's nlerp at weight u and slerp, for keys with dot d."""
+    from crowd.anim.processor import corrected_weight
+
+    half = np.arccos(d)
+    w = corrected_weight(u, d)
+    return 2.0 * np.abs(np.arctan2(w * np.sin(half), 1.0 - w + w * np.cos(half)) - u * half)
+
+
+def _search_max(lo_d: float, hi_d: float) -> float:
+    """The largest error over u in [0, 1] and d in [lo_d, hi_d]: a grid, then its best cells refined
+    three times on finer grids around them (a maximum is searched for, not sampled)."""
+    u, d = np.meshgrid(np.linspace(0.0, 1.0, 401), np.linspace(lo_d, hi_d, 401))
+    e = _slerp_angle_error(u, d)
+    best = 0.0
+    for k in np.argsort(e.ravel())[-8:]:
+        cu, cd = u.ravel()[k], d.ravel()[k]
+        su, sd = 1.0 / 400, (hi_d - lo_d) / 400
+        for _ in range(3):
+            gu, gd = np.meshgrid(np.clip(np.linspace(cu - su, cu + su, 41), 0, 1), np.clip(np.linspace(cd - sd, cd + sd, 41), lo_d, hi_d))
+            ge = _slerp_angle_error(gu, gd)
+            i = np.argmax(ge)
+            cu, cd, su, sd = gu.ravel()[i], gd.ravel()[i], su / 10, sd / 10
+        best = max(best, float(ge.max()))
+    return best
+
+
+def test_corrected_nlerp_tracks_slerp():
+    """qt_corrected (crowd.anim.processor.SLERP_FIT, bench/slerp_fit.py): the largest rotation error
+    against slerp, searched for, within the bounds the code states, and far below plain nlerp's."""
+    assert _search_max(0.95, 1.0) < 7e-7  # keys up to 36 degrees apart: float32's own rounding
+    assert _search_max(0.0, 1.0) < 1.2e-3  # keys up to a half turn apart (nlerp: 0.14 rad)
+    u = np.linspace(0.0, 1.0, 1001)
+    for d in (0.5, 0.9, 0.99, 0.999):
+        half = np.arccos(d)
+        nlerp = 2.0 * np.abs(np.arctan2(u * np.sin(half), 1.0 - u + u * np.cos(half)) - u * half).max()
+        assert _slerp_angle_error(u, d).max() < nlerp / 100
+    from crowd.anim.processor import corrected_weight
+
+    d = np.linspace(0.0, 1.0, 11)  # the keys themselves, and the middle, are where nlerp already is exact
+    assert np.all(corrected_weight(0.0, d) == 0.0) and np.all(corrected_weight(1.0, d) == 1.0)
+    assert np.allclose(corrected_weight(0.5, d), 0.5)

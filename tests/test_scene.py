@@ -74,7 +74,7 @@ def test_a_failed_save_leaves_the_old_file_whole(tmp_path, monkeypatch):
     ("[clips]\nprecision = 'f8'", "clips.precision"),
     ("[clips]\nbake_fps = 0", "clips.bake_fps: bake rate must be 1 to 240 fps or 'source'"),
     ("[clips]\nbake_fps = 'sauce'", "clips.bake_fps: bake rate must be 1 to 240"),
-    ("[clips]\ninterpolation = 'slerp'", "clips.interpolation: interpolation must be one of dq_lerp, qt_lerp, qt_cubic"),
+    ("[clips]\ninterpolation = 'slerp'", "clips.interpolation: interpolation must be one of dq_lerp, qt_lerp, qt_corrected, qt_cubic"),
     ("[clips]\nroles = { jump = 'run' }", "unknown role 'jump'"),
     ("[features]\nlod_distances = [40.0, 14.0, 90.0]", "features.lod_distances: LOD distances must be three numbers above 0, each no larger than the next"),
     ("[features]\nlod_distances = [14.0, 40.0]", "features.lod_distances: LOD distances must be three numbers above 0, each no larger than the next, got [14.0, 40.0]"),

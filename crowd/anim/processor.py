@@ -63,8 +63,25 @@ GROUP_SIZE = 256
 # - dq_lerp: the DQ keys lerped blindly and normalised; layers blended as dual quaternions (DLB);
 # - qt_lerp: each key split into rotation and translation; rotations nlerped, translations lerped;
 #   layers blended the same way (ozz-animation's blending job, and the float64 reference's semantics);
+# - qt_corrected: as qt_lerp, with the nlerp's weight corrected so that it tracks slerp (below);
 # - qt_cubic: as qt_lerp, with Catmull-Rom through four keys instead of the lerp between two.
 INTERPOLATIONS = SETTINGS["interpolation"].choices
+# qt_corrected's weight: nlerp at weight u' = u + u (u - 1/2) (u - 1) (1 - d) (A(d) (u - 1/2)^2 + B(d)), d the keys'
+# dot product, A and B quadratics in d, turns by u times the keys' angle, as slerp does: to within 6.6e-7 rad
+# of rotation for keys up to 36 degrees apart (d >= 0.95) and 1.1e-3 rad for keys a half turn apart, where
+# nlerp is off by 1.0e-3 and 0.14 rad. The (1 - d) factor is the shape of nlerp's own error (it vanishes as the keys
+# meet), so the fit holds its ratio to it near d = 1, where keys usually are. Fitted by weighted least
+# squares, bench/slerp_fit.py; the error's maxima over (u, d) are searched in tests/test_processor.py.
+SLERP_FIT = (1.007417582391, -1.563037689162, 0.556641371575, 0.848875584203, -0.236418056665, 0.054274391573)  # A's, then B's
+
+
+def corrected_weight(u, d):
+    """qt_corrected's nlerp weight (float64; shaders/processor_common.glsl has it in float32)."""
+    d = np.clip(d, 0.0, 1.0)
+    a = SLERP_FIT[0] + d * (SLERP_FIT[1] + d * SLERP_FIT[2])
+    b = SLERP_FIT[3] + d * (SLERP_FIT[4] + d * SLERP_FIT[5])
+    c = u - 0.5
+    return u + u * c * (u - 1.0) * (1.0 - d) * (a * c * c + b)
 DEFAULT_INTERPOLATION = DEFAULTS["interpolation"]  # chosen by crowd-bench error: see docs/BENCHMARKS.md
 # Agents side by side in one palette texture row: keeps textures under 4096 texels wide, a size every
 # GL 3.3+ driver we target accepts (GL_MAX_TEXTURE_SIZE is 16384 on llvmpipe, 32768 on NVIDIA).
@@ -140,8 +157,9 @@ def _sample_keys(texels, scales, table, clip, phase, interpolation):
         inv = 1.0 / np.linalg.norm(r, axis=-1, keepdims=True)
         return r * inv, d * inv, s1 + (s2 - s1) * u[..., 0]
     t1, t2 = _translation(r1, d1), _translation(r2, d2)
-    if interpolation == "qt_lerp":
-        q = r1 + (r2 - r1) * u
+    if interpolation in ("qt_lerp", "qt_corrected"):
+        w = corrected_weight(u, np.sum(r1 * r2, axis=-1, keepdims=True)) if interpolation == "qt_corrected" else u
+        q = r1 + (r2 - r1) * w
         return q / np.linalg.norm(q, axis=-1, keepdims=True), t1 + (t2 - t1) * u, s1 + (s2 - s1) * u[..., 0]
     # qt_cubic: the outer keys wrap around a loop (its closing frame repeats frame 0, so frame 0's
     # predecessor is frame count - 2 and the closing frame's successor is frame 1) and are extrapolated
@@ -288,6 +306,10 @@ class AnimationProcessor(GLStage):
             defines["INTERPOLATION_QT"] = 1
         if interpolation == "qt_cubic":
             defines["INTERPOLATION_CUBIC"] = 1
+        if interpolation == "qt_corrected":
+            defines["INTERPOLATION_CORRECTED"] = 1
+            defines["SLERP_FIT_A"] = "vec3({:.12f}, {:.12f}, {:.12f})".format(*SLERP_FIT[:3])
+            defines["SLERP_FIT_B"] = "vec3({:.12f}, {:.12f}, {:.12f})".format(*SLERP_FIT[3:])
         if path == "compute":
             self.program = ctx.compute_shader(load_shader("processor.comp.glsl", defines))
         else:
