@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-COLORS = {"dq_lerp": (0.85, 0.33, 0.10, 1.0), "qt_lerp": (0.00, 0.45, 0.74, 1.0), "qt_cubic": (0.47, 0.67, 0.19, 1.0)}
+COLORS = {"dq_lerp": (0.85, 0.33, 0.10, 1.0), "qt_lerp": (0.00, 0.45, 0.74, 1.0), "qt_corrected": (0.49, 0.18, 0.56, 1.0),
+          "qt_cubic": (0.47, 0.67, 0.19, 1.0)}
 FRONT_COLOR = (0.10, 0.10, 0.10, 1.0)
 
 
