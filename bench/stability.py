@@ -7,6 +7,9 @@ Contract: ``run_cases(ctx, character, interpolation, fps, precision)`` → list 
 - antipodal blends: a clip blended with itself stored as -q (the same rotations, opposite signs);
 - equal-weight opposite rotations: +θ and -θ blended 50/50, θ swept from 0 to 180°;
 - 64-joint chains: random 2 to 4 layer blends of a 64-joint, 3.2 m chain, on both processor paths;
+- 256-joint chains: the same for 256 joints (the most a skeleton may have), 3.2 m long;
+- keys up to a half turn apart: a root turning 30 to 170 degrees from one 30 fps key to the next;
+- joint scale 1e-4 and 1e4: an arm with its elbow scaled by each, while the root turns;
 - phase near 1.0: every clip at phases a float32 ulp from 0 and 1, and at 1 and 2 exactly;
 - 10 hours of play: the AI's phase accumulator after 2,160,000 substeps of 1/60 s;
 - dt spikes: the crowd AI through frame times of 0, 1 µs, 0.25 s, 3 s and 10,000 s.
@@ -32,6 +35,8 @@ from crowd.gl import has_compute
 TARGET_MM = 1.0  # the default configuration's max shell error on the built-in zombie
 NUMERIC_MM = 0.01  # float32 arithmetic alone on a skeleton of a few joints, well inside 1 m
 CHAIN_MM = 0.2  # 64 levels: D * 4 * eps * |p| = 64 * 4 * 6e-8 * 6.4 m ≈ 0.1 mm, doubled
+LONG_CHAIN_MM = 0.8  # 256 levels of a chain as long: four times that
+ROUNDINGS = 32 * 2.0 ** -24  # a few float32 roundings per level, relative to the size they round (scale cases)
 AMBIGUOUS_DEG = 0.01  # within this of 90°, +θ and -θ have two equally near blends (identity or 180°)
 
 
@@ -139,16 +144,63 @@ def chain_character(joints: int = 64, length: float = 0.05, fps: int = 30):
     return skeleton, [Clip("wave", wave, 0.0, float(times[-1]), True), Clip("curl", curl, 0.0, float(times[-1]), False)]
 
 
-def long_chains(ctx, interpolation, fps, precision) -> dict:
-    skeleton, clips = chain_character()
+def long_chains(ctx, interpolation, fps, precision, joints: int = 64) -> dict:
+    skeleton, clips = chain_character(joints, 3.2 / joints)
     rng = np.random.default_rng(3)
     samples = accuracy.draw_samples(clips, rng, 50, 300)
     worst = 0.0
     for path in ("compute", "fragment") if has_compute(ctx) else ("fragment",):
         err = _gpu_error(ctx, skeleton, clips, samples.layers, interpolation, fps, precision, path)
         worst = max(worst, float(np.max(err)))
-    return _case("64-joint chains", np.array([worst]), CHAIN_MM,
-                 f"a 64-joint, 3.2 m chain keyed at 30 fps, {len(samples.layers)} single and 2-4 layer poses, compute and fragment paths")
+    return _case(f"{joints}-joint chains", np.array([worst]), CHAIN_MM if joints <= 64 else LONG_CHAIN_MM,
+                 f"a {joints}-joint, 3.2 m chain keyed at 30 fps, {len(samples.layers)} single and 2-4 layer poses, compute and fragment paths")
+
+
+def half_turn_keys(ctx, interpolation, fps, precision) -> dict:
+    """The root of a 0.9 m arm turning by 30, 60, 90, 120, 150 and 170 degrees from one 30 fps key to the
+    next, sampled at 64 phases between them, against slerp. Bound: the arm's reach times the largest
+    rotation error of qt_corrected's weight for keys a half turn apart (1.2e-3 rad, searched for in
+    tests/test_processor.py), plus float32's share; plain nlerp is 0.14 rad off there and fails it."""
+    skeleton = _arm()
+    axis = tf.quat_normalize(np.array([0.2, 0.3, 1.0, 0.0]))[:3]
+    steps = np.radians([30.0, 60.0, 90.0, 120.0, 150.0, 170.0])
+    key_fps = 30.0
+    clips = [Clip(f"turn{int(round(np.degrees(a)))}", [Channel(0, "rotation", "LINEAR", np.array([0.0, 1.0 / key_fps]),
+                                                                np.stack([tf.quat_from_axis_angle(axis, 0.0), tf.quat_from_axis_angle(axis, a)]))],
+                  0.0, 1.0 / key_fps, False) for a in steps]
+    phases = np.linspace(0.0, 1.0, 64)
+    layers = empty_layers(len(clips) * len(phases), 1)
+    layers[:, 0, CLIP] = np.repeat(np.arange(len(clips)), len(phases))
+    layers[:, 0, PHASE] = np.tile(phases, len(clips))
+    layers[:, 0, WEIGHT] = 1.0
+    err = _gpu_error(ctx, skeleton, clips, layers, interpolation, fps, precision)
+    reach_mm = (0.9 + accuracy.SHELL_M) * 1e3
+    return _case("keys up to a half turn apart", err, 1.2e-3 * reach_mm + NUMERIC_MM,
+                 f"a 0.9 m arm's root turning {', '.join(f'{np.degrees(a):.0f}' for a in steps)}° between two keys, 64 phases each")
+
+
+def scale_extremes(ctx, interpolation, fps, precision) -> dict:
+    """A 4-joint arm whose second joint is held at scale 1e-4, then 1e4 (its children's offsets and their
+    shell points scale with it), while the root turns 40 degrees over a second. Bound: NUMERIC_MM plus
+    ROUNDINGS per level of the scaled arm's reach (float32 rounds relative to the sizes involved)."""
+    worst, details = (0.0, 1.0, 0.0), []  # (error over bound, bound, error) of the scale nearest its bound
+    for scale in (1e-4, 1e4):
+        skeleton = _arm()
+        turn = Channel(0, "rotation", "LINEAR", np.array([0.0, 1.0]),
+                       np.stack([tf.quat_from_axis_angle([0.0, 0.0, 1.0], 0.0), tf.quat_from_axis_angle([0.0, 0.0, 1.0], np.radians(40.0))]))
+        held = Channel(1, "scale", "LINEAR", np.array([0.0, 1.0]), np.full((2, 3), scale))
+        clip = Clip("scaled", [turn, held], 0.0, 1.0, False)  # one-shot: a loop would close from 40 degrees back to 0
+        layers = empty_layers(97, 1)
+        layers[:, 0, PHASE] = np.linspace(0.0, 1.0, 97)
+        layers[:, 0, WEIGHT] = 1.0
+        err = _gpu_error(ctx, skeleton, [clip], layers, interpolation, fps, precision)
+        reach_mm = (0.3 + (0.6 + accuracy.SHELL_M) * max(scale, 1.0)) * 1e3
+        bound = NUMERIC_MM + ROUNDINGS * 4 * reach_mm
+        e = float(np.max(err)) * 1e3
+        worst = max(worst, (e / bound, bound, e))
+        details.append(f"scale {scale:g}: {e:.3g} mm (bound {bound:.3g} mm)")
+    return _case("joint scale 1e-4 and 1e4", np.array([worst[2] * 1e-3]), worst[1],
+                 "an arm's elbow held at each scale while the root turns; the one nearest its bound is reported: " + "; ".join(details))
 
 
 def phase_near_one(ctx, character, interpolation, fps, precision) -> dict:
@@ -240,6 +292,9 @@ def run_cases(ctx, character, interpolation: str, fps, precision: str, hours: fl
         antipodal_blends(ctx, character, interpolation, fps, precision),
         opposite_rotations(ctx, interpolation, fps, precision),
         long_chains(ctx, interpolation, fps, precision),
+        long_chains(ctx, interpolation, fps, precision, joints=256),
+        half_turn_keys(ctx, interpolation, fps, precision),
+        scale_extremes(ctx, interpolation, fps, precision),
         phase_near_one(ctx, character, interpolation, fps, precision),
         ten_hours(ctx, character, interpolation, fps, precision, hours),
         dt_spikes(ctx, character, interpolation, fps, precision),

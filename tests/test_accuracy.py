@@ -67,12 +67,19 @@ def test_gpu_error_of_the_default_is_under_a_millimetre_and_dq_blends_are_not(gl
 
 
 def test_stability_cases_pass_with_the_default(gl_context, zombie):
-    cases = stability.run_cases(gl_context, zombie, "qt_lerp", 30.0, "f32", hours=0.25)
-    assert [c["case"] for c in cases] == ["antipodal blends", "equal-weight opposite rotations", "64-joint chains", "phase near 1.0",
+    cases = stability.run_cases(gl_context, zombie, "qt_corrected", 30.0, "f32", hours=0.25)
+    assert [c["case"] for c in cases] == ["antipodal blends", "equal-weight opposite rotations", "64-joint chains", "256-joint chains",
+                                          "keys up to a half turn apart", "joint scale 1e-4 and 1e4", "phase near 1.0",
                                           "clip time after 0.25 hours of play", "dt spikes"]
     for c in cases:
         assert c["passed"], c
         assert 0.0 <= c["max_error_mm"] <= c["bound_mm"]
+
+
+def test_plain_nlerp_fails_keys_a_half_turn_apart(gl_context):
+    """The half-turn case's bound is qt_corrected's: plain nlerp is 0.14 rad off between keys that far apart."""
+    case = stability.half_turn_keys(gl_context, "qt_lerp", 30.0, "f32")
+    assert not case["passed"] and case["max_error_mm"] > 50.0
 
 
 def test_stability_cases_catch_f16_on_long_chains(gl_context):
@@ -112,7 +119,7 @@ def test_crowd_bench_error_end_to_end(tmp_path, gl_context, capsys):
     defaults = [r for r in report["rows"] if r["default"]]
     # The default is the cheapest on the front within 0.1 mm (ACL's bar): only qt_corrected gets there.
     assert len(defaults) == 1 and defaults[0]["interpolation"] == "qt_corrected" and defaults[0]["max_error_mm"] < 0.1
-    assert len(report["stability"]) == 6 and all({"case", "max_error_mm", "bound_mm", "passed"} <= set(c) for c in report["stability"])
+    assert len(report["stability"]) == 9 and all({"case", "max_error_mm", "bound_mm", "passed"} <= set(c) for c in report["stability"])
     # The maximum is searched for, not sampled: with 4 random phases a clip the source-rate qt_lerp row
     # still has the attack's 0.485 mm at hand_r_socket (the 1,201-phase grid of the old report saw 0.39 mm).
     (plain,) = [r for r in report["rows"] if r["interpolation"] == "qt_lerp" and r["bake_fps"] == "source"]
@@ -138,7 +145,7 @@ def test_crowd_bench_error_quick_runs_the_default_and_the_stability_cases(tmp_pa
     report = json.loads(out.read_text())
     (row,) = report["rows"]
     assert (row["bake_fps"], row["storage"], row["interpolation"]) == (30.0, "f32", "qt_corrected") and row["default"]
-    assert len(report["stability"]) == 6 and all(c["passed"] for c in report["stability"])
+    assert len(report["stability"]) == 9 and all(c["passed"] for c in report["stability"])
     # ACL's bar: 0.1 mm on the 3 cm shell, searched for; qt_lerp's nlerp had 0.485 mm at the attack's hand_r_socket.
     assert row["max_error_mm"] < 0.1 and all(v < 0.1 for v in row["models"]["zombie"]["per_clip_max_mm"].values())
 
