@@ -12,8 +12,8 @@ input ``layers``: float32 (N, L, 4) with L = the processor's layer count (1..4);
   - mask: -1 for the whole body, else a row of the processor's joint masks (factor per joint in [0, 1]).
   Per joint, as crowd.anim.reference.blend (its docstring says why each rule), with S the sum of the
   layers' max(weight, 0) (only ratios of weights matter): weights are multiplied by the mask; each
-  layer samples its keys as the interpolation says (INTERPOLATIONS below: by default rotation nlerp
-  and translation lerp); rotations are sign-aligned to the anchor, the first-listed layer with a
+  layer samples its keys as the interpolation says (INTERPOLATIONS below: by default rotation nlerp at
+  a weight corrected to track slerp, and translation lerp); rotations are sign-aligned to the anchor, the first-listed layer with a
   weight above 0 at that joint, and their weighted sum normalised (the anchor's rotation where the
   sum is shorter than CANCELLED_NORM times S), translations and scales are weighted means (dq_lerp
   instead sums the dual quaternions); a joint whose masked weights add up to less than REST_THRESHOLD
