@@ -218,7 +218,7 @@ def run(args) -> int:
         rows.append(row)
         timings[len(rows) - 1] = []
         print(f"{_rate_label(rate):>10} {storage} {interp:<12} max {row['max_error_mm']:9.4f} mm  p99 {row['p99_error_mm']:8.4f} mm  "
-              f"<1mm {row['share_under_1mm']:.4f}  {row['bytes']:>9,} B  max at {_where(row['worst'])}")
+              f"<1mm {row['share_under_1mm']:.4f}  <0.1mm {row['share_under_0_1mm']:.4f}  {row['bytes']:>9,} B  max at {_where(row['worst'])}")
 
     # Cost: two passes, the second in reverse order, so drift on the machine shows as spread.
     query = ctx.query(time=True)
@@ -257,14 +257,15 @@ def run(args) -> int:
     for k, row in enumerate(rows):
         row["pareto"] = k in front
         row["default"] = k == default
-    print(f"\n{'rate':>10} {'stor':>4} {'interp':<12} {'max mm':>9} {'p99 mm':>9} {'<1mm':>7} {'ms ' + str(cost_agents[0]):>10} "
+    print(f"\n{'rate':>10} {'stor':>4} {'interp':<12} {'max mm':>9} {'p99 mm':>9} {'<1mm':>7} {'<0.1mm':>7} {'ms ' + str(cost_agents[0]):>10} "
           f"{'ms ' + str(cost_agents[1]):>11} {'spread':>7} {'bytes':>9} {'':8} max at")
     for row in rows:
         mark = "default" if row["default"] else ("front" if row["pareto"] else "")
         cost = (f"{row['gpu_ms_10k']:10.4f} {row['gpu_ms_100k']:11.4f} {row['gpu_ms_spread']:7.1%}" if measured
                 else f"{'GPU ms not measured here':>30}")
         print(f"{_rate_label(row['bake_fps']):>10} {row['storage']:>4} {row['interpolation']:<12} {row['max_error_mm']:9.4f} "
-              f"{row['p99_error_mm']:9.4f} {row['share_under_1mm']:7.4f} {cost} {row['bytes']:>9,} {mark:8} {_where(row['worst'])}")
+              f"{row['p99_error_mm']:9.4f} {row['share_under_1mm']:7.4f} {row['share_under_0_1mm']:7.4f} {cost} {row['bytes']:>9,} {mark:8} "
+              f"{_where(row['worst'])}")
     if not measured:
         print(f"GPU ms not measured here: {info['gl_renderer']}'s timer queries answer 0 or 1 ns; the front and the default are by error "
               "and bytes")

@@ -113,7 +113,8 @@ def test_crowd_bench_error_end_to_end(tmp_path, gl_context, capsys):
     assert rc == 0
     report = json.loads(out.read_text())
     assert set(report) >= {"device", "rows", "stability"}
-    keys = {"bake_fps", "storage", "interpolation", "max_error_mm", "p99_error_mm", "share_under_1mm", "gpu_ms_10k", "gpu_ms_100k",
+    keys = {"bake_fps", "storage", "interpolation", "max_error_mm", "p99_error_mm", "share_under_1mm", "share_under_0_1mm",
+            "gpu_ms_10k", "gpu_ms_100k",
             "bytes", "default"}
     assert len(report["rows"]) == 4 and all(keys <= set(r) for r in report["rows"])
     defaults = [r for r in report["rows"] if r["default"]]
