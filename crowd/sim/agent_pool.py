@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import signal
 import sys
 import traceback
 import types
@@ -101,6 +102,9 @@ def _serve(index: int, go, done, params_name: str, results_name: str, conn, make
     index)`` steps them (the AI, which this module does not import)."""
     from ..allocator import keep_freed_memory
 
+    # Ctrl-C in a terminal reaches the whole process group: the main process handles it (and closes the
+    # pool); a worker printing its own KeyboardInterrupt traceback would only be noise.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     keep_freed_memory()  # the same malloc settings as the main process: 4x faster numpy temporaries
     control = SharedArrays({"params": (np.float64, (PARAMS,))}, params_name)
     results_block = SharedArrays({"results": (np.float64, (index + 1, RESULTS))}, results_name)  # a prefix of the main's
