@@ -538,7 +538,6 @@ class CrowdAI:
         p[P_FOCUS_COUNT] = len(self.focus)
         for f, point in enumerate(self.focus):
             p[P_FOCUS + 2 * f:P_FOCUS + 2 * f + 2] = point
-        p[P_RANGES], p[P_N] = ranges, self.n
         if self.budgeted():
             k, b = self.config.think_every, self.substeps % self.config.think_every
             p[P_BLOCK], p[P_BLOCK + 1] = b * self.n // k, (b + 1) * self.n // k
@@ -565,15 +564,11 @@ class CrowdAI:
         """Phase `code` on every range: range 0 here, ranges 1.. in the workers. Returns each range's
         answer, (ranges, 3)."""
         p = self._params
-        p[0] = code
+        p[0], p[P_RANGES], p[P_N] = code, ranges, self.n
         if ranges == 1:
             return np.array([self.run_phase(code, p, -1)], np.float64)
         mine = []
-        try:
-            theirs = self._pool.run(code, ranges - 1, lambda: mine.append(self.run_phase(code, p, -1)))
-        except PoolError as error:
-            self._stop_pool(copy=False)
-            raise AIError(str(error)) from None
+        theirs = self._on_pool(self._pool.run, code, ranges - 1, lambda: mine.append(self.run_phase(code, p, -1)))
         return np.concatenate([np.array([mine[0]], np.float64), theirs[:, :3]])
 
     def _workers(self) -> int:
@@ -599,12 +594,17 @@ class CrowdAI:
             message = dict(block=(self._block.name, self._block.layout), grid=(grid.name, grid.layout) if grid else None,
                            config=self.config, motion=self.motion, seed=self.seed, origin=self.origin,
                            half_extent=self.half_extent, n=self.n)
-            try:
-                self._pool.sync([message] * self._pool.workers)
-            except PoolError as error:
-                self._stop_pool(copy=False)
-                raise AIError(str(error)) from None
+            self._on_pool(self._pool.sync, [message] * self._pool.workers)
             self._stale = False
+
+    def _on_pool(self, call, *args):
+        """`call(*args)` on the pool; a worker that failed or exited is the AI's one line, and the pool is
+        dropped (the arrays stay where they are; the next substep starts a new pool)."""
+        try:
+            return call(*args)
+        except PoolError as error:
+            self._stop_pool(copy=False)
+            raise AIError(str(error)) from None
 
     def _start_pool(self, workers: int) -> None:
         """Start the workers and move the agents' arrays (and the neighbour list) into shared memory."""
@@ -692,7 +692,7 @@ class CrowdAI:
                 self._build_list(lo, hi, int(p[P_SIDE]))
             self._range["push"] = self._push_range(lo, hi, float(p[P_GAIN]))
         elif code == APPLY:
-            self._apply_range(lo, hi)
+            self._apply_range(lo, hi, self._range.pop("push"))
         elif code == FINISH:
             self._finish_range(lo, hi, h)
         elif code == WRITE_LAYERS:
@@ -726,9 +726,8 @@ class CrowdAI:
                     farthest = max(farthest, float(np.max(moved2)))
         return (float(self.player_hits_taken - hits), float(self._respawns), farthest)
 
-    def _apply_range(self, lo: int, hi: int) -> None:
-        """Agents lo..hi: their separation pushes, then the world's bounds."""
-        push = self._range.pop("push")
+    def _apply_range(self, lo: int, hi: int, push) -> None:
+        """Agents lo..hi: their separation pushes (``_push_range``'s), then the world's bounds."""
         if push is not None:
             agents, push_x, push_z = push
             self.x[agents] += push_x
@@ -740,9 +739,7 @@ class CrowdAI:
         pushes and bounds first)."""
         state, self._range = self._range, None
         if "near" in state:
-            self._range = state
-            self._apply_range(lo, hi)
-            self._range = None
+            self._apply_range(lo, hi, state["push"])
             group = _Agents(self, slice(lo, hi))
             self._think_b(group, h, h, h, *state["near"])
             group.commit()
@@ -813,9 +810,7 @@ class CrowdAI:
         coasting = ~thinking
         for position, velocity in ((self.x[lo:hi], self.vx[lo:hi]), (self.z[lo:hi], self.vz[lo:hi])):
             np.add(position, velocity * h, out=position, where=coasting)
-        phase = self.phase[lo:hi]
-        np.add(phase, self.phase_rate[lo:hi] * h, out=phase, where=coasting)
-        np.subtract(phase, np.floor(phase), out=phase, where=coasting)  # wrapped into [0, 1), as advance_phase does
+        advance_phase(self.phase[lo:hi], self.phase_rate[lo:hi] * h, where=coasting)
         pending = self._pending[lo:hi]
         np.add(pending, h, out=pending, where=coasting)
         turning = lo + np.flatnonzero(self._coast_turn[lo:hi] & coasting)
@@ -1050,12 +1045,12 @@ class CrowdAI:
         cells = side * side + 1
         if self._pool is None:
             self._cell_first = np.zeros(cells, np.int64)
-        elif self._grid_block is None or self._grid_block.arrays["first"].size < cells:
-            if self._grid_block is not None:
-                self._grid_block.close()
-            self._grid_block = SharedArrays({"first": (np.int64, (cells + cells // 2,))})  # room to grow
-            self._stale = True
-        if self._pool is not None:
+        else:
+            if self._grid_block is None or self._grid_block.arrays["first"].size < cells:
+                if self._grid_block is not None:
+                    self._grid_block.close()
+                self._grid_block = SharedArrays({"first": (np.int64, (cells + cells // 2,))})  # room to grow
+                self._stale = True  # the workers map the new block before the push phase
             self._cell_first = self._grid_block.arrays["first"]
         self._cell_first[0] = 0
         np.cumsum(np.bincount(cell, minlength=side * side), out=self._cell_first[1:cells])
@@ -1069,7 +1064,7 @@ class CrowdAI:
         r = self.config.separation_radius
         self._pairs_x[lo:hi], self._pairs_z[lo:hi] = self.x[lo:hi], self.z[lo:hi]
         live = lo + np.flatnonzero(self.state[lo:hi] < DYING)
-        first_in = self._cell_first
+        first_in = self._cell_first  # where each cell's agents start in the grid's order
         cell = self._cell[live]
         rows = np.stack([cell - side, cell, cell + side], axis=1)  # (agents, 3): the middle cell of each row
         start = first_in[rows - 1]
@@ -1111,7 +1106,6 @@ class CrowdAI:
             target = self._layer_out if out is None else out
             self._write_layer_range(target, 0, self.n)
             return target
-        self._params[P_RANGES], self._params[P_N] = ranges, self.n
         self._phase(WRITE_LAYERS, ranges)
         if out is None:
             return self._layer_out
@@ -1171,7 +1165,6 @@ class CrowdAI:
         if ranges == 1:
             yaw = self.yaw.astype(np.float32)
         else:
-            self._params[P_RANGES], self._params[P_N] = ranges, self.n
             self._phase(HEADINGS, ranges)
             yaw = self._yaw_out.copy()
         return Instances(pos, yaw, self.scale, self.tint, variant)
@@ -1255,14 +1248,15 @@ def _overlap_push(i, j, dx, dz, dist, r: float):
     return ux * amount, uz * amount
 
 
-def advance_phase(phase: np.ndarray, step) -> np.ndarray:
-    """Advance float64 clip phases in place by `step` (cycles) and wrap them into [0, 1).
+def advance_phase(phase: np.ndarray, step, where=True) -> np.ndarray:
+    """Advance float64 clip phases in place by `step` (cycles) and wrap them into [0, 1); `where`: only
+    those phases (the others are left unwritten: another process may own them).
 
     Why phases and not a clock: a float32 clock of seconds has a 2 ms step after 10 hours (16 ms
     after 3 days), so phase = time / duration would jitter by whole key intervals; a wrapped float64
     phase keeps its 1e-16 resolution forever (crowd-bench error's "10 hours" case measures both)."""
-    phase += step
-    phase -= np.floor(phase)
+    np.add(phase, step, out=phase, where=where)
+    np.subtract(phase, np.floor(phase), out=phase, where=where)
     return phase
 
 
