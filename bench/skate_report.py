@@ -1,5 +1,6 @@
 """``crowd-bench skate``: foot skate (crowd.anim.foot_skate) of the AI's locomotion, per clip at its
-natural speed and for the idle/walk/run blends at speeds from 0 to the run speed.
+natural speed, for the idle/walk/run blends at speeds from 0 to the run speed, and at the two worst
+speeds, searched for: below the walk's slowest playback (idle fading in) and from there to the run.
 
 Each case is one agent walking straight at a steady speed for ``--seconds``, animated as the AI
 animates it (crowd.sim.ai.locomotion_layers: the blend weights from its speed and one phase advanced by
@@ -11,6 +12,7 @@ slide that the reference shows too is in the clips and the blending, not in the 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -24,11 +26,48 @@ def cases(motion, speeds: int) -> list[tuple[str, float]]:
     return out
 
 
-def measure_cases(ctx, character, bake, motion, speeds: int = 10, seconds: float = 4.0, rate: float = 120.0) -> list[dict]:
-    """Foot skate of every case, on the GPU and on the float64 reference."""
+def _slide(skeleton, clips, feet, names, motion, speed: float, frames: int, dt: float, palette=None):
+    """One straight walk at `speed`: its foot skate through `palette` (the GPU's), or the reference's."""
     from crowd.anim import accuracy
-    from crowd.anim.foot_skate import foot_joints, joint_positions, measure, to_world
-    from crowd.sim.ai import LAYERS, locomotion_layers
+    from crowd.anim.foot_skate import joint_positions, measure, to_world
+    from crowd.sim.ai import locomotion_layers
+
+    layers, walked = locomotion_layers(motion, speed, frames, dt)
+    matrices = accuracy.truth(skeleton, clips, layers) if palette is None else palette(layers)
+    ground = np.stack([np.zeros(frames), walked], axis=1)  # straight ahead, along the agent's front (+z)
+    return measure(to_world(joint_positions(matrices, skeleton, feet), ground, 0.0), dt, float(walked[-1]), names)
+
+
+def worst_speed(score, low: float, high: float, grid: int = 24, rounds: int = 12) -> float:
+    """The speed in [low, high] at which `score(speed)` (the reference's worst foot, cm/m) is largest: a
+    grid, then golden-section search in the bracket around the grid's best. The slide is a smooth
+    function of speed between the blend's corners, so the grid finds the bump and the search its top."""
+    speeds = np.linspace(low, high, grid)
+    scores = [score(float(v)) for v in speeds]
+    best = int(np.nanargmax(scores))
+    a, b = float(speeds[max(best - 1, 0)]), float(speeds[min(best + 1, grid - 1)])
+    ratio = (math.sqrt(5.0) - 1.0) / 2.0
+    c, d = b - ratio * (b - a), a + ratio * (b - a)
+    fc, fd = score(c), score(d)
+    for _ in range(rounds):
+        if fc >= fd:
+            b, d, fd = d, c, fc
+            c = b - ratio * (b - a)
+            fc = score(c)
+        else:
+            a, c, fc = c, d, fd
+            d = a + ratio * (b - a)
+            fd = score(d)
+    top = max([(scores[best], float(speeds[best])), (fc, c), (fd, d)])
+    return top[1]
+
+
+def measure_cases(ctx, character, bake, motion, speeds: int = 10, seconds: float = 4.0, rate: float = 120.0, search: bool = True) -> list[dict]:
+    """Foot skate of every case, on the GPU and on the float64 reference. With `search`, two more
+    cases: the worst speed below the walk's slowest playback (where idle fades in) and the worst from
+    there to the run speed, each found by search on the reference (``worst_speed``)."""
+    from crowd.anim import accuracy
+    from crowd.anim.foot_skate import foot_joints
 
     skeleton = character.skeleton
     feet = foot_joints(skeleton)
@@ -36,19 +75,19 @@ def measure_cases(ctx, character, bake, motion, speeds: int = 10, seconds: float
         raise SystemExit(f"crowd-bench skate: no joint of {character.name!r} is named like a foot, ankle, toe or ball")
     names = [skeleton.names[j] for j in feet]
     frames, dt = max(2, int(round(seconds * rate))), 1.0 / rate
-    runs = [(name, v, *locomotion_layers(motion, v, frames, dt)) for name, v in cases(motion, speeds)]
-    layers = np.concatenate([r[2] for r in runs])
     clips = [character.clip(c.name) for c in bake.clips]
-    palette = accuracy.gpu_palette(ctx, bake, layers)
-    truth = accuracy.truth(skeleton, clips, layers)
+    chosen = cases(motion, speeds)
+    if search:
+        score = lambda v: _slide(skeleton, clips, feet, names, motion, v, frames, dt).worst_cm_per_m
+        slowest = motion.walk_slowest * motion.walk_speed
+        chosen.append(("worst below slowest walk", worst_speed(score, 0.02 * slowest, slowest)))
+        chosen.append(("worst walk to run", worst_speed(score, slowest, motion.run_speed)))
+    gpu = lambda layers: accuracy.gpu_palette(ctx, bake, layers)
     rows = []
-    for k, (name, speed, _, walked) in enumerate(runs):
-        part = slice(k * frames, (k + 1) * frames)
-        ground = np.stack([np.zeros(frames), walked], axis=1)  # straight ahead, along the agent's front (+z)
+    for name, speed in chosen:
         row = {"case": name, "speed_m_s": round(speed, 4), "frames": frames, "dt_s": dt}
-        for source, matrices in (("gpu", palette[part]), ("reference", truth[part])):
-            world = to_world(joint_positions(matrices, skeleton, feet), ground, 0.0)
-            row[source] = measure(world, dt, float(walked[-1]), names).as_dict()
+        for source, palette in (("gpu", gpu), ("reference", None)):
+            row[source] = _slide(skeleton, clips, feet, names, motion, speed, frames, dt, palette).as_dict()
         rows.append(row)
     return rows
 
@@ -68,13 +107,13 @@ def run(args) -> int:
     motion = motion_for(character, bake, roles)
     ctx = headless_context()
     info = describe(ctx)
-    rows = measure_cases(ctx, character, bake, motion, args.speeds, args.seconds, args.rate)
+    rows = measure_cases(ctx, character, bake, motion, args.speeds, args.seconds, args.rate, not args.no_search)
     print(f"{info['gl_renderer']} | {character.name} | contact: within {CONTACT_M * 100:.0f} cm of the joint's lowest point; "
           f"skating: faster than {SKATE_SPEED_M_S * 100:.0f} cm/s | {args.seconds} s at {args.rate:.0f} Hz a case")
-    print(f"{'case':>18} {'m/s':>6} {'GPU cm/m':>9} {'worst':>7} {'cm/s':>6} {'over':>6} {'ref cm/m':>9} {'worst':>7} {'contact':>8}")
+    print(f"{'case':>25} {'m/s':>6} {'GPU cm/m':>9} {'worst':>7} {'cm/s':>6} {'over':>6} {'ref cm/m':>9} {'worst':>7} {'contact':>8}")
     for r in rows:
         g, t = r["gpu"], r["reference"]
-        print(f"{r['case']:>18} {r['speed_m_s']:>6.2f} {g['slide_cm_per_m']:>9.3f} {g['worst_cm_per_m']:>7.3f} {g['slide_cm_per_s']:>6.2f} "
+        print(f"{r['case']:>25} {r['speed_m_s']:>6.2f} {g['slide_cm_per_m']:>9.3f} {g['worst_cm_per_m']:>7.3f} {g['slide_cm_per_s']:>6.2f} "
               f"{g['share_over']:>6.1%} {t['slide_cm_per_m']:>9.3f} {t['worst_cm_per_m']:>7.3f} {g['contact_share']:>8.1%}")
     if args.json:
         from crowd.files import atomic_write_bytes
@@ -91,5 +130,6 @@ def add_parsers(sub) -> None:
     p.add_argument("--speeds", type=int, default=10, help="blend speeds from 0 to the run speed")
     p.add_argument("--seconds", type=float, default=4.0, help="seconds walked a case")
     p.add_argument("--rate", type=float, default=120.0, help="frames a second measured")
-    p.add_argument("--json", type=Path)
+    p.add_argument("--no-search", action="store_true", help="leave out the searched worst speeds (two extra cases)")
+    p.add_argument("--json", type=Path, help="write the rows here as JSON (atomically)")
     p.set_defaults(run=run)

@@ -128,3 +128,46 @@ def test_the_running_crowd_s_feet_come_back_on_the_read_back_as_the_reference_pu
         summary = monitor.summary()
         assert summary is not None and summary["agents"] >= 1
         assert all(np.isfinite(summary[k]) and summary[k] >= 0 for k in ("slide_cm_per_m", "worst_cm_per_m", "share_over"))
+
+
+def _zombie_walk(zombie, speed: float, seconds: float = 3.2, rate: float = 120.0):
+    """The float64 reference's foot skate of the built-in zombie walking straight at `speed`, animated
+    as the AI animates it."""
+    from crowd.anim.roles import bake_roles, match_roles
+    from crowd.sim.ai import locomotion_layers, motion_for
+
+    roles, _ = match_roles(zombie.clips)
+    baked = bake_roles(zombie, roles)
+    motion = motion_for(zombie, baked, roles)
+    frames = int(seconds * rate)
+    layers, walked = locomotion_layers(motion, speed, frames, 1.0 / rate)
+    truth = accuracy.truth(zombie.skeleton, [zombie.clip(c.name) for c in baked.clips], layers)
+    feet = foot_joints(zombie.skeleton)
+    world = to_world(joint_positions(truth, zombie.skeleton, feet), np.stack([np.zeros(frames), walked], axis=1), 0.0)
+    return motion, layers, measure(world, 1.0 / rate, float(walked[-1]), [zombie.skeleton.names[j] for j in feet])
+
+
+def test_the_built_in_walk_and_run_plant_their_feet(zombie):
+    """Their legs are solved for feet that stand still in world space while low (crowd.asset.zombie,
+    "Planted feet"): keyed angles had slid 33 cm (walk) and 4.4 cm (run) per metre. Measured: 0.39 and
+    0.56 cm/m for the worst foot joint, the rest being the 30 fps keys' interpolation."""
+    motion, _, _ = _zombie_walk(zombie, 0.0, seconds=0.1)
+    for speed in (motion.walk_speed, motion.run_speed):
+        skate = _zombie_walk(zombie, speed)[2]
+        assert skate.worst_cm_per_m < 1.0, (speed, skate)
+
+
+def test_a_slow_walk_is_the_walk_played_slower(zombie):
+    """Between the walk's slowest playback and its own speed the walk plays alone, at speed over its
+    stride, so its planted feet keep pace; below that idle fades in at that slowest rate."""
+    motion, _, _ = _zombie_walk(zombie, 0.0, seconds=0.1)
+    slowest = motion.walk_slowest * motion.walk_speed
+    assert 0.25 <= motion.walk_slowest < 1.0
+    for speed in (slowest * 1.01, 0.5 * (slowest + motion.walk_speed)):
+        _, layers, skate = _zombie_walk(zombie, speed)
+        assert layers[0, :3, WEIGHT].tolist() == [0.0, 1.0, 0.0]
+        assert layers[1, 0, PHASE] - layers[0, 0, PHASE] == pytest.approx(speed / motion.walk_stride / 120.0, rel=1e-5)
+        assert skate.worst_cm_per_m < 1.0, (speed, skate)
+    _, layers, _ = _zombie_walk(zombie, 0.5 * slowest, seconds=0.1)
+    assert layers[0, :3, WEIGHT].tolist() == pytest.approx([0.5, 0.5, 0.0])
+    assert layers[1, 0, PHASE] - layers[0, 0, PHASE] == pytest.approx(slowest / motion.walk_stride / 120.0, rel=1e-5)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import math
 from pathlib import Path
@@ -550,7 +551,7 @@ _PARAMS = (
     "hips_x hips_y hips_z hips_pitch hips_yaw hips_roll spine_pitch spine_yaw chest_pitch chest_yaw chest_roll "
     "neck_pitch head_pitch head_roll head_yaw jaw"
 ).split()
-_SIDE_PARAMS = "shrug arm_down arm_fwd arm_twist elbow wrist thigh_flex thigh_abd knee ankle toe".split()
+_SIDE_PARAMS = "shrug arm_down arm_fwd arm_twist elbow wrist thigh_flex thigh_twist thigh_abd knee ankle toe".split()
 TAU = 2.0 * math.pi
 
 
@@ -600,7 +601,7 @@ def _pose_to_joints(p: dict[str, np.ndarray], n: int) -> tuple[dict[str, np.ndar
         arm = _q(g("arm_twist"), -g("arm_fwd"), -g("arm_down"), "xzy")
         forearm = _q(0.0, -g("elbow"), 0.0)
         hand = _q(0.0, 0.0, -g("wrist"))
-        thigh = _q(-g("thigh_flex"), 0.0, g("thigh_abd"))
+        thigh = _q(-g("thigh_flex"), g("thigh_twist"), g("thigh_abd"))
         shin = _q(g("knee"), 0.0, 0.0)
         foot = _q(g("ankle"), 0.0, 0.0)
         toe = _q(g("toe"), 0.0, 0.0)
@@ -643,6 +644,186 @@ def _keyed(p, keys: list[tuple[float, dict[str, float]]], base: dict[str, np.nda
     return base
 
 
+# ------------------------------------------------------------------------------------------------
+# Planted feet (issue 21, point 2). The legs of the locomotion clips and of idle are not keyed by angle:
+# each foot follows a path in model space that keeps it still in world space while it carries weight,
+# and the leg's angles are solved for it by inverse kinematics. Keyed angles had let feet slide 33 cm
+# for every metre walked (docs/ACCURACY.md, "Foot skate").
+#
+# The path of one foot over a cycle, for a body moving forward at `stride` metres a cycle:
+# - stance, for `duty` of the cycle around its mid-stance phase: flat on the ground, still in world
+#   space, so in model space it moves backward at exactly the body's speed;
+# - swing: for the first and last `lift` share of the swing it rises (or comes down) straight up in
+#   world space, still over the same spot; in between it travels forward one stride, toes pitched down.
+# A foot below the contact height (3 cm above its lowest) therefore never moves horizontally in world
+# space, which is what crowd-bench skate measures (the 30 fps keys' interpolation leaves 0.4 to 0.6 cm/m). Both clips keep their mid-stances at the same phases,
+# so that in a walk-run blend (one phase for both) their stance feet move together.
+
+
+@dataclasses.dataclass(frozen=True)
+class _Gait:
+    stride: float  # metres the body covers a cycle (the clip's stride)
+    duty: float  # share of the cycle a foot carries weight
+    lift: float  # share of the swing, at each end, in which the foot moves only up or down
+    mid_stance: float  # phase of the left foot's mid-stance; the right one's is half a cycle later
+    height: tuple[float, float]  # swing height of the ankle (left, right), metres
+    toe_down: tuple[float, float]  # toes-down pitch at mid-swing (left, right), radians
+    toe_out: tuple[float, float]  # yaw of each foot, toes outward, radians
+    width: float = 0.10  # the feet's distance from the midline
+    reach: float = 0.0  # model-space z of the ankle at mid-stance
+
+
+STANCE_ANKLE_Y = 0.085  # the rest-pose foot on the ground: its lowest sole point (see _ground) at y = 0
+_TOE_FROM_ANKLE = np.array([0.0, -0.065, 0.135])  # toe joint from the foot joint at rest
+
+
+def _smootherstep(x):
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * x * (x * (6.0 * x - 15.0) + 10.0)
+
+
+def _foot_path(g: _Gait, side: int, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Model-space targets (n, 3) of one foot's ankle and toe joints at phases `p` (side 0 left, 1 right)."""
+    mid = g.mid_stance + 0.5 * side
+    delta = np.mod(p - mid + 0.5, 1.0) - 0.5  # phase since mid-stance, in [-0.5, 0.5)
+    stance = np.abs(delta) <= 0.5 * g.duty
+    u = np.where(stance, 0.0, np.mod(delta - 0.5 * g.duty, 1.0) / (1.0 - g.duty))  # share of the swing done
+    travel = _smootherstep((u - g.lift) / (1.0 - 2.0 * g.lift))  # share of the stride travelled in world space
+    since_mid = np.where(stance, delta, 0.5 * g.duty + u * (1.0 - g.duty))  # body travel since mid-stance, cycles
+    z = g.reach + g.stride * (travel - since_mid)
+    # Straight up (or down) to the swing's height, which clears the contact height at once even in a
+    # blend that gives this clip a small weight, then forward in a low arc.
+    rise = np.minimum(_smootherstep(u / g.lift), _smootherstep((1.0 - u) / g.lift))
+    rise = np.where(stance, 0.0, rise)
+    y = STANCE_ANKLE_Y + g.height[side] * rise * (1.0 + 0.25 * np.sin(math.pi * travel))
+    sign = 1.0 if side == 0 else -1.0
+    ankle = np.stack([np.full_like(p, sign * g.width), y, z], axis=1)
+    pitch = np.where(stance, 0.0, g.toe_down[side] * np.sin(math.pi * travel) ** 2)
+    yaw = np.full_like(p, sign * g.toe_out[side])
+    toe = ankle + tf.quat_rotate(_q(pitch, yaw, 0.0), _TOE_FROM_ANKLE)
+    return ankle, toe
+
+
+_LEG_PARAMS = ("thigh_flex", "thigh_twist", "thigh_abd", "knee", "ankle")
+
+
+def _guess_legs(skeleton: Skeleton, a: dict[str, np.ndarray], targets, n: int) -> None:
+    """A starting point for _plant, in place: each leg bent in its own plane, knee forward, as the law
+    of cosines gives it for the hip-to-ankle distance (hips rotation ignored; the solver corrects it)."""
+    rot, hips_t = _pose_to_joints({**a, **{f"{k}_{s}": np.zeros(n) for k in _LEG_PARAMS for s in "lr"}}, n)
+    g = _globals(skeleton, rot, hips_t)
+    for side, s in enumerate("lr"):
+        thigh, shin, foot = (skeleton.index(f"{j}_{s}") for j in ("thigh", "shin", "foot"))
+        upper = np.linalg.norm(skeleton.rest_translation[shin])
+        lower = np.linalg.norm(skeleton.rest_translation[foot])
+        d = targets[side][0] - g[:, thigh, :3, 3]
+        dist = np.clip(np.linalg.norm(d, axis=1), abs(upper - lower) + 1e-3, upper + lower - 1e-4)
+        bend = math.pi - np.arccos((upper * upper + lower * lower - dist * dist) / (2 * upper * lower))
+        lean = np.arcsin(np.clip(lower * np.sin(bend) / dist, -1.0, 1.0))  # thigh ahead of the hip-ankle line
+        a[f"thigh_flex_{s}"] = np.arctan2(d[:, 2], -d[:, 1]) + lean
+        a[f"knee_{s}"] = bend
+        a[f"thigh_abd_{s}"] = np.zeros(n)
+        a[f"thigh_twist_{s}"] = np.zeros(n)
+        toe = targets[side][1] - targets[side][0]
+        pitch = np.arctan2(-toe[:, 1], toe[:, 2]) - math.atan2(-_TOE_FROM_ANKLE[1], _TOE_FROM_ANKLE[2])
+        a[f"ankle_{s}"] = pitch - (a["hips_pitch"] - a[f"thigh_flex_{s}"] + bend)
+
+
+def _plant(p: np.ndarray, a: dict[str, np.ndarray], targets, iterations: int = 200) -> dict[str, np.ndarray]:
+    """Solve both legs' angles (`_LEG_PARAMS`) so that the ankle and toe joints reach `targets`
+    ((ankle, toe) per side, each (n, 3)), starting from the keyed angles in `a` (which pick the
+    knee-forward solution). Damped Gauss-Newton on a numerical Jacobian: the generator runs once, and
+    the two legs are independent, so one pose evaluation perturbs the same angle of both."""
+    skeleton = _skeleton()
+    n = p.shape[0]
+    joints = [[skeleton.index(f"foot_{s}"), skeleton.index(f"toe_{s}")] for s in "lr"]
+    goal = np.stack([np.concatenate(t, axis=1) for t in targets])  # (2, n, 6)
+
+    def residual(params):
+        rot, hips_t = _pose_to_joints(params, n)
+        g = _globals(skeleton, rot, hips_t)
+        return np.stack([np.concatenate([g[:, j, :3, 3] for j in js], axis=1) for js in joints]) - goal
+
+    a = {k: np.array(v, dtype=np.float64, copy=True) for k, v in a.items()}
+    _guess_legs(skeleton, a, targets, n)
+    eps, eye = 1e-6, np.eye(len(_LEG_PARAMS))
+    damping = np.full((2, n), 1e-3)  # Levenberg-Marquardt: per side and key, lowered on success
+    r = residual(a)
+    cost = np.sum(r * r, axis=-1)
+    for _ in range(iterations):
+        if np.max(np.abs(r)) < 1e-9:
+            break
+        jac = np.empty((2, n, 6, len(_LEG_PARAMS)))
+        for k, name in enumerate(_LEG_PARAMS):
+            moved = dict(a)
+            for s in "lr":
+                moved[f"{name}_{s}"] = a[f"{name}_{s}"] + eps
+            jac[..., k] = (residual(moved) - r) / eps
+        jt = np.swapaxes(jac, -1, -2)
+        jtj = jt @ jac
+        step = np.linalg.solve(jtj + damping[..., None, None] * eye, -(jt @ r[..., None]))[..., 0]
+        trial = dict(a)
+        for i, s in enumerate("lr"):
+            for k, name in enumerate(_LEG_PARAMS):
+                trial[f"{name}_{s}"] = a[f"{name}_{s}"] + step[i, :, k]
+        r_trial = residual(trial)
+        cost_trial = np.sum(r_trial * r_trial, axis=-1)
+        better = cost_trial < cost
+        for i, s in enumerate("lr"):
+            for name in _LEG_PARAMS:
+                key = f"{name}_{s}"
+                a[key] = np.where(better[i], trial[key], a[key])
+        r = np.where(better[..., None], r_trial, r)
+        cost = np.where(better, cost_trial, cost)
+        damping = np.where(better, damping / 3.0, damping * 4.0)
+    worst = float(np.max(np.abs(residual(a))))
+    if worst > 1e-6:  # a foot out of the leg's reach: the gait's hips are too high for its stride
+        raise AssertionError(f"the legs do not reach their feet: {worst * 1000:.3f} mm off")
+    return a
+
+
+def _planted(p: np.ndarray, a: dict[str, np.ndarray], gait: _Gait) -> dict[str, np.ndarray]:
+    targets = [_foot_path(gait, side, p) for side in (0, 1)]
+    a = dict(a)
+    a["hips_y"] = np.asarray(a["hips_y"], np.float64) - _reach_drop(a, targets, p.shape[0])
+    return _plant(p, a, targets)
+
+
+def _reach_drop(a: dict[str, np.ndarray], targets, n: int, slack: float = 0.985) -> np.ndarray:
+    """How far to lower the hips at each key of a loop so that both ankles are within `slack` of the
+    leg's full length (a straight knee is a singular, snapping pose): the largest need nearby, smoothed,
+    so the hips do not jerk."""
+    skeleton = _skeleton()
+    rot, hips_t = _pose_to_joints(a, n)
+    g = _globals(skeleton, rot, hips_t)
+    need = np.zeros(n)
+    for side, s in enumerate("lr"):
+        leg = slack * (np.linalg.norm(skeleton.rest_translation[skeleton.index(f"shin_{s}")])
+                       + np.linalg.norm(skeleton.rest_translation[skeleton.index(f"foot_{s}")]))
+        d = targets[side][0] - g[:, skeleton.index(f"thigh_{s}"), :3, 3]
+        flat = np.minimum(d[:, 0] ** 2 + d[:, 2] ** 2, leg * leg)
+        need = np.maximum(need, np.maximum(0.0, -d[:, 1] - np.sqrt(leg * leg - flat)))
+    widened = np.max([np.roll(need, k) for k in range(-3, 4)], axis=0)
+    return np.mean([np.roll(widened, k) for k in range(-2, 3)], axis=0)
+
+
+SHAMBLE_GAIT = _Gait(stride=0.9, duty=0.6, lift=0.2, mid_stance=0.3, height=(0.09, 0.07), toe_down=(0.25, 0.2),
+                     toe_out=(0.1, 0.25))
+RUN_GAIT = _Gait(stride=2.3, duty=0.3, lift=0.08, mid_stance=0.3, height=(0.22, 0.22), toe_down=(0.5, 0.5),
+                 toe_out=(0.08, 0.08))
+
+
+def _standing(p: np.ndarray, a: dict[str, np.ndarray], toe_out=(0.12, 0.2), reach=(0.02, -0.03)) -> dict[str, np.ndarray]:
+    """Both feet flat and still where they stand (idle sways its hips over them)."""
+    targets = []
+    for side in (0, 1):
+        sign = 1.0 if side == 0 else -1.0
+        ankle = np.tile([sign * 0.11, STANCE_ANKLE_Y, reach[side]], (p.shape[0], 1))
+        toe = ankle + tf.quat_rotate(_q(0.0, np.full(p.shape, sign * toe_out[side]), 0.0), _TOE_FROM_ANKLE)
+        targets.append((ankle, toe))
+    return _plant(p, a, targets)
+
+
 def _shamble(p):
     a = _neutral(p.shape[0])
     c, s = np.cos(TAU * p), np.sin(TAU * p)
@@ -669,20 +850,16 @@ def _shamble(p):
     a["arm_twist_r"] = -0.4
     a["elbow_r"] = 0.4 + 0.1 * s
     a["wrist_r"] = 0.35
-    # Left leg steps cleanly (heel strike at p = 0); the right one drags (heel strike at p = 0.5).
-    a["thigh_flex_l"] = 0.05 + 0.3 * c
-    a["knee_l"] = 0.12 + 0.85 * _bump(p, 0.75, 0.13)
-    a["ankle_l"] = -0.2 * c + 0.45 * _bump(p, 0.58, 0.07)
-    a["thigh_flex_r"] = 0.05 - 0.24 * c
-    a["knee_r"] = 0.15 + 0.45 * _bump(p, 0.25, 0.13)
-    a["ankle_r"] = 0.2 + 0.15 * c + 0.3 * _bump(p, 0.08, 0.07)  # toes dragging
-    a["thigh_abd_r"] = 0.06
-    return a
+    # The legs are solved for SHAMBLE_GAIT's foot paths: the left one steps high, the right one limps,
+    # low and toes down. The hips sit low enough for the legs to reach the ends of the stride.
+    a["hips_y"] = -0.08 + 0.03 * np.cos(2 * TAU * (p - SHAMBLE_GAIT.mid_stance))  # highest over a planted foot
+    return _planted(p, a, SHAMBLE_GAIT)
 
 
 def _run(p):
     a = _neutral(p.shape[0])
-    c, s = np.cos(TAU * p), np.sin(TAU * p)
+    p_strike = p - RUN_GAIT.mid_stance + 0.5 * RUN_GAIT.duty  # phase since the left heel strike
+    c, s = np.cos(TAU * p_strike), np.sin(TAU * p_strike)
     a["hips_x"] = 0.025 * s
     a["hips_pitch"] = 0.25
     a["hips_yaw"] = 0.2 * c
@@ -702,13 +879,8 @@ def _run(p):
     a["arm_fwd_r"] = 1.0 + 0.5 * c
     a["elbow_r"] = 0.9 - 0.4 * c
     a["wrist_r"] = 0.4
-    a["thigh_flex_l"] = 0.25 + 0.6 * c
-    a["knee_l"] = 0.35 + 1.35 * _bump(p, 0.7, 0.15)
-    a["ankle_l"] = -0.25 * c + 0.5 * _bump(p, 0.45, 0.08)
-    a["thigh_flex_r"] = 0.25 - 0.6 * c
-    a["knee_r"] = 0.35 + 1.35 * _bump(p, 0.2, 0.15)
-    a["ankle_r"] = 0.25 * c + 0.5 * _bump(p, 0.95, 0.08)
-    return a
+    a["hips_y"] = -0.15 + 0.03 * np.cos(2 * TAU * (p - RUN_GAIT.mid_stance))  # _planted lowers it where the stride needs
+    return _planted(p, a, RUN_GAIT)
 
 
 def _idle(p):
@@ -729,12 +901,8 @@ def _idle(p):
         a[f"arm_fwd_{side}"] = 0.25 + 0.08 * np.sin(TAU * p + ph)
         a[f"elbow_{side}"] = 0.3 + 0.05 * np.sin(TAU * p + ph + 0.5)
         a[f"wrist_{side}"] = 0.3
-        a[f"thigh_flex_{side}"] = 0.1
-        a[f"knee_{side}"] = 0.2
-        a[f"thigh_abd_{side}"] = 0.05
-    a["ankle_l"] = 0.1
-    a["ankle_r"] = 0.1
-    return a
+    a["hips_y"] = -0.03  # knees a little bent over the planted feet
+    return _standing(p, a)
 
 
 def _attack(p):
@@ -817,11 +985,17 @@ def _crawl(p):
 
 
 
+def _foot_markers(g: _Gait) -> dict[str, float]:
+    """The phases at which each foot comes down (its heel strike)."""
+    return {"left_foot_down": float(np.mod(g.mid_stance - 0.5 * g.duty, 1.0)),
+            "right_foot_down": float(np.mod(g.mid_stance + 0.5 - 0.5 * g.duty, 1.0))}
+
+
 # name, authoring function, duration (s), loop, phase markers, stride (m per cycle), keep feet grounded
 CLIP_SPECS = [
-    ("idle", _idle, 3.0, True, {}, None, True),
-    ("shamble", _shamble, 1.6, True, {"left_foot_down": 0.0, "right_foot_down": 0.5}, 0.9, True),
-    ("run", _run, 0.7, True, {"left_foot_down": 0.0, "right_foot_down": 0.5}, 2.3, False),
+    ("idle", _idle, 3.0, True, {}, None, False),
+    ("shamble", _shamble, 1.6, True, _foot_markers(SHAMBLE_GAIT), SHAMBLE_GAIT.stride, False),
+    ("run", _run, 0.7, True, _foot_markers(RUN_GAIT), RUN_GAIT.stride, False),
     ("attack", _attack, 1.2, False, {"impact": 0.48}, None, True),
     ("hit", _hit, 0.6, False, {}, None, True),
     ("death", _death, 2.2, False, {}, None, False),
@@ -829,16 +1003,27 @@ CLIP_SPECS = [
 ]
 
 
-def _ground(skeleton: Skeleton, joints: dict[str, np.ndarray], hips_t: np.ndarray) -> np.ndarray:
-    """Lift or drop the hips so the lowest foot point rests on the ground at every key (no floating, no sinking)."""
-
+def _globals(skeleton: Skeleton, joints: dict[str, np.ndarray], hips_t: np.ndarray) -> np.ndarray:
+    """Model-space joint matrices (n, J, 4, 4) of n keys of joint rotations and hips positions."""
     n = hips_t.shape[0]
     rot = np.broadcast_to(skeleton.rest_rotation, (n,) + skeleton.rest_rotation.shape).copy()
     for name, q in joints.items():
         rot[:, skeleton.index(name)] = q
     tr = np.broadcast_to(skeleton.rest_translation, (n,) + skeleton.rest_translation.shape).copy()
     tr[:, 0] = hips_t
-    g = global_matrices(skeleton, LocalPose(tr, rot, np.ones(tr.shape)))
+    return global_matrices(skeleton, LocalPose(tr, rot, np.ones(tr.shape)))
+
+
+@functools.cache
+def _skeleton() -> Skeleton:
+    """The skeleton the clips are authored on (read only)."""
+    return build_skeleton()
+
+
+def _ground(skeleton: Skeleton, joints: dict[str, np.ndarray], hips_t: np.ndarray) -> np.ndarray:
+    """Lift or drop the hips so the lowest foot point rests on the ground at every key (no floating, no sinking)."""
+
+    g = _globals(skeleton, joints, hips_t)
     # Sole points under the heel and the toe of each foot, in the foot/toe joints' frames.
     lows = []
     for side in "lr":

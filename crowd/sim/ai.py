@@ -72,6 +72,7 @@ _MASK64 = (1 << 64) - 1
 DEFAULT_WALK_SPEED = 1.0  # m/s, for imported walks without a stride (their feet will slide)
 DEFAULT_RUN_SPEED = 3.0
 RUN_OVER_WALK = 1.8  # top speed of a runner over a walker when one clip plays both
+WALK_SLOWEST = 0.25  # the slowest a walk plays, as a share of its own rate (Motion.walk_slowest)
 
 
 class AIError(ValueError):
@@ -150,6 +151,9 @@ class Motion:
     head_count: int = 0
     weapon_count: int = 0
     notes: tuple = ()
+    # Share of the walk speed down to which the walk plays alone, slowed (locomotion_weights): where its
+    # slowed rate is idle's own, so the phase's rate does not jump as idle fades in; within [1/4, 1].
+    walk_slowest: float = 1.0
 
     @staticmethod
     def from_bake(bake, roles: dict, strides: dict, upper_body_mask: int = -1, head_count: int = 0, weapon_count: int = 0,
@@ -176,8 +180,9 @@ class Motion:
                 run_stride = DEFAULT_RUN_SPEED * duration["run"]
                 notes.append(f"run clip {roles['run']!r} has no stride; it moves at {DEFAULT_RUN_SPEED} m/s and its feet may slide")
             run_speed = max(run_stride / duration["run"], walk_speed * 1.01)
+        slowest = duration["walk"] / duration["idle"] if duration["idle"] > 0 else WALK_SLOWEST
         return Motion(clip, duration, walk_stride, run_stride, walk_speed, run_speed, int(upper_body_mask), int(head_count),
-                      int(weapon_count), tuple(notes))
+                      int(weapon_count), tuple(notes), float(np.clip(slowest, WALK_SLOWEST, 1.0)))
 
 
 def upper_body_mask(skeleton) -> np.ndarray | None:
@@ -920,8 +925,8 @@ class CrowdAI:
 
         # Locomotion phase: speed over the blended stride (idle plays at its own rate while standing).
         m = self.motion
-        w_idle, _, _, run_t = locomotion_weights(m, speed, a.walk_top, a.speed_factor)
-        rate = phase_rate(m, w_idle, run_t, speed)
+        run_t = locomotion_weights(m, speed, a.walk_top, a.speed_factor)[3]
+        rate = phase_rate(m, speed, a.walk_top, run_t)
         advance_phase(a.phase, rate * move)
         if self.budgeted():
             a.phase_rate[:] = rate  # what the phase advances by until the agent thinks again
@@ -1189,22 +1194,30 @@ class CrowdAI:
 
 
 def locomotion_weights(m: Motion, speed: np.ndarray, walk: np.ndarray, speed_factor: np.ndarray, out=None):
-    """(idle, walk, run weights, run share of the stride) from ground speed: idle → walk up to the
-    agents' walk speeds `walk`, walk → run up to their run speeds (`speed_factor`). `out`: three
-    arrays (a layer's strided weight column, say) the weights are written into by the operations
-    that make them, rounded once, instead of new arrays."""
-    to_walk = np.minimum(speed / walk, 1.0)
+    """(idle, walk, run weights, run share of the stride) from ground speed, for agents whose walk
+    speeds are `walk` and run speeds `m.run_speed * speed_factor`:
+    - from the walk's slowest playback (``m.walk_slowest`` of `walk`) up to `walk` the walk plays alone,
+      slowed down (phase_rate), so its planted feet keep pace with the ground;
+    - below that it blends with idle, at the slowest playback;
+    - from `walk` to the run speed the walk blends into the run, one phase for both.
+    `out`: three arrays (a layer's strided weight column, say) the weights are written into by the
+    operations that make them, rounded once, instead of new arrays."""
+    to_walk = np.minimum(speed / (m.walk_slowest * walk), 1.0)
     run_t = np.minimum(np.maximum((speed - walk) / (m.run_speed * speed_factor - walk), 0.0), 1.0)
     out = out or (None, None, None)
     return (np.subtract(1.0, to_walk, out=out[0], casting="unsafe"), np.multiply(to_walk, 1.0 - run_t, out=out[1], casting="unsafe"),
             np.multiply(to_walk, run_t, out=out[2], casting="unsafe"), run_t)
 
 
-def phase_rate(m: Motion, w_idle, run_t, speed):
-    """Cycles a second of the shared locomotion phase: speed over the blended stride, so that feet do
-    not slide (idle plays at its own rate while standing)."""
+def phase_rate(m: Motion, speed, walk, run_t):
+    """Cycles a second of the shared locomotion phase, for agents at `speed` whose walk speeds are
+    `walk` and whose run shares are `run_t` (locomotion_weights): speed over the blended stride, so that
+    a planted foot keeps pace with the ground. Below the walk's slowest playback the walk's weight
+    falls instead of its rate, so the rate stays there: its planted foot, at that weight, still moves
+    with the ground (idle's feet stand still). Standing agents play idle at its own rate."""
     stride = m.walk_stride + run_t * (m.run_stride - m.walk_stride)
-    return w_idle * (1.0 / m.duration["idle"]) + (1.0 - w_idle) * speed / stride
+    moving = np.maximum(speed, m.walk_slowest * walk) / stride
+    return np.where(speed > 0.0, moving, 1.0 / max(m.duration["idle"], 1e-3))
 
 
 def locomotion_layers(m: Motion, speed: float, frames: int, dt: float, speed_factor: float = 1.0):
@@ -1214,7 +1227,7 @@ def locomotion_layers(m: Motion, speed: float, frames: int, dt: float, speed_fac
     walk = np.array([m.walk_speed * speed_factor])
     speeds = np.array([float(speed)])
     w = locomotion_weights(m, speeds, walk, np.array([speed_factor]))
-    rate = float(phase_rate(m, w[0], w[3], speeds)[0])
+    rate = float(phase_rate(m, speeds, walk, w[3])[0])
     t = np.arange(frames) * dt
     layers = empty_layers(frames, LAYERS)
     for layer, role in enumerate(("idle", "walk", "run")):
