@@ -234,6 +234,8 @@ _ALL = (
     _ai("separation_stiffness", 15.0, "1/s: share of an overlap removed per second (clamped at 1 per substep)", low=0),
     _ai("max_accel", 6.0, "m/s^2, steering acceleration limit", low=0, open_low=True),
     _ai("turn_rate", 5.0, "rad/s, heading turn limit", low=0, open_low=True),
+    _ai("plant_feet", True, "feet kept planted through turns and pushes: a turning zombie near the player or the camera pivots "
+        "on the foot it stands on, and a push along its heading steps its legs (docs/ACCURACY.md)", kind="bool"),
     _ai("arrive_distance", 1.5, "metres over which a zombie slows down as it arrives", low=0, open_low=True),
     _ai("wander_radius", 6.0, "metres, how far a wandering zombie picks its next point", low=0, open_low=True),
     _ai("wander_speed", 0.6, "share of the zombie's walk speed while wandering", low=0),

@@ -23,8 +23,10 @@ from crowd.sim.ai import (
     AIConfig,
     AIError,
     CrowdAI,
+    FOOT_SAMPLES,
     PlayerScript,
     motion_for,
+    turn_about_planted_foot,
 )
 from crowd.frame import CLIP, MASK, PHASE, WEIGHT, validate_layers
 from crowd.anim.roles import bake_roles, match_roles
@@ -231,10 +233,11 @@ def test_walk_phase_follows_ground_speed_so_feet_do_not_slide(motion):
     z0, phase0 = ai.z[0], ai.phase[0]
     run(ai, 120)
     travelled = ai.z[0] - z0
-    cycles = (ai.phase[0] - phase0) % 1.0 + int(travelled / motion.walk_stride)
+    stride = motion.walk_stride * float(ai.scale[0])  # the agent's size scales its stride
+    cycles = (ai.phase[0] - phase0) % 1.0 + int(travelled / stride)
     layers = ai.layers()
     assert layers[0, 1, WEIGHT] == pytest.approx(1.0)  # all walk at the walk speed
-    assert cycles * motion.walk_stride == pytest.approx(travelled, rel=0.01)
+    assert cycles * stride == pytest.approx(travelled, rel=0.01)
 
 
 def test_hit_death_lie_still_and_respawn_at_an_edge(motion):
@@ -299,3 +302,60 @@ def test_a_tiny_separation_radius_in_a_huge_world_needs_no_huge_grid(motion):
     ai.player = np.array([4000.0, 4000.0])  # nobody chases, nobody walks: only separation moves the ten
     run(ai, 60)
     assert nearest_neighbour(ai.pos[:10]).min() > 5e-4  # they started 0.2 mm apart
+
+
+def test_a_push_along_the_heading_moves_the_phase_as_a_step_would(motion):
+    """A walking agent pushed forward by d covers d of ground its feet did not step: its locomotion
+    phase moves on by d over the stride (back for a push from the front), so a planted foot stays put.
+    A standing agent (idle's weight over a half) is left alone: its push is a slide."""
+    ai = CrowdAI(8, 1, motion)
+    agents = np.arange(3)
+    ai.state[agents] = CHASE
+    ai.hx[agents], ai.hz[agents] = 0.6, 0.8
+    speeds = np.array([motion.walk_speed, motion.walk_speed, 0.1 * motion.walk_slowest * motion.walk_speed])
+    ai.vx[agents], ai.vz[agents] = 0.6 * speeds, 0.8 * speeds
+    ai.walk_top[agents] = motion.walk_speed
+    ai.speed_factor[agents] = 1.0
+    ai.scale[agents] = 1.0
+    ai.phase[agents] = 0.5
+    push = np.array([0.05, -0.05, 0.05])
+    ai._step_with_push(agents, 0.6 * push, 0.8 * push)
+    assert ai.phase[agents].tolist() == pytest.approx([0.5 + 0.05 / motion.walk_stride, 0.5 - 0.05 / motion.walk_stride, 0.5])
+    sideways = np.array([0.05])
+    before = ai.phase[:1].copy()
+    ai._step_with_push(agents[:1], 0.8 * sideways, -0.6 * sideways)  # across the heading: no step can follow it
+    assert ai.phase[:1] == pytest.approx(before)
+
+
+def test_a_turn_pivots_on_the_planted_foot(motion, zombie):
+    """turn_about_planted_foot shifts a turning agent so that the middle of its foot joints on the
+    ground stays where it is in world space (the foot it stands on, not its origin, is the pivot); in a
+    run's flight, with no foot down, it turns about its origin."""
+    from crowd.asset.model import foot_joints
+    from crowd.asset.pose import global_matrices, sample_clip
+
+    assert motion.pivots is not None and motion.pivots.shape == (3, FOOT_SAMPLES + 1, 3)
+    phases = np.arange(FOOT_SAMPLES) / FOOT_SAMPLES  # on the table's grid
+    n = phases.size
+    yaw0, yaw1 = 0.3, 0.3 + 0.15
+    hx0, hz0, hx1, hz1 = (np.full(n, v) for v in (math.sin(yaw0), math.cos(yaw0), math.sin(yaw1), math.cos(yaw1)))
+    scale = np.full(n, 1.05)
+    sk = zombie.skeleton
+    feet = foot_joints(sk)
+    world = lambda hx, hz, p: np.stack([hz * p[:, 0] + hx * p[:, 1], -hx * p[:, 0] + hz * p[:, 1]], axis=1)
+    for role, r in (("shamble", 1), ("run", 2)):
+        weights = [np.zeros(n), np.zeros(n), np.zeros(n)]
+        weights[r][:] = 1.0
+        dx, dz = turn_about_planted_foot(motion, phases, weights, hx0, hz0, hx1, hz1, scale)
+        # The truth, from the clip's own forward kinematics at those phases and the next sample.
+        grid = np.arange(FOOT_SAMPLES + 1) / FOOT_SAMPLES
+        pos = global_matrices(sk, sample_clip(sk, zombie.clip(role), grid))[:, feet][..., :3, 3]
+        down = pos[..., 1] - pos[..., 1].min(axis=0) <= 0.03
+        planted = down.any(axis=1)[:-1] & down.any(axis=1)[1:]
+        pivot = (pos[:-1] * down[:-1, :, None]).sum(axis=1) / np.maximum(down[:-1].sum(axis=1), 1)[:, None]
+        pivot = pivot[:, [0, 2]] * scale[0]
+        after = world(hx1, hz1, pivot) + np.stack([dx, dz], axis=1)
+        assert np.abs(after - world(hx0, hz0, pivot))[planted].max() < 1e-12, role
+        assert np.abs(dx[planted]).max() > 0.005, role  # a real shift: the pivot is not the origin
+        assert np.all(dx[~planted] == 0.0) and np.all(dz[~planted] == 0.0), role
+    assert not planted.all()  # the run has its flight

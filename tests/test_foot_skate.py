@@ -171,3 +171,32 @@ def test_a_slow_walk_is_the_walk_played_slower(zombie):
     _, layers, _ = _zombie_walk(zombie, 0.5 * slowest, seconds=0.1)
     assert layers[0, :3, WEIGHT].tolist() == pytest.approx([0.5, 0.5, 0.0])
     assert layers[1, 0, PHASE] - layers[0, 0, PHASE] == pytest.approx(slowest / motion.walk_stride / 120.0, rel=1e-5)
+
+
+def test_a_bigger_zombie_takes_longer_strides(zombie):
+    """Agents are drawn at their own size, and their strides with them: the phase's rate divides by the
+    scaled stride (a 1.08 zombie at the same speed steps 1.08 times slower)."""
+    from crowd.sim.ai import phase_rate
+
+    motion, _, _ = _zombie_walk(zombie, 0.0, seconds=0.1)
+    speed, walk = np.array([motion.walk_speed]), np.array([motion.walk_speed])
+    plain = phase_rate(motion, speed, walk, np.zeros(1))
+    assert phase_rate(motion, speed, walk, np.zeros(1), np.array([1.08])) == pytest.approx(plain / 1.08)
+
+
+def test_a_crowd_walking_straight_does_not_slide(zombie):
+    """crowd-bench skate --crowd: a wandering crowd's slide filed by what each agent did. The cases add
+    up to the total, and frames of straight walking slide well under 1 cm/m (turns and pushes are what is
+    left, docs/ACCURACY.md)."""
+    from bench.skate_report import CROWD_CASES, crowd_breakdown
+    from crowd.anim.roles import bake_roles, match_roles
+    from crowd.sim.ai import motion_for
+
+    roles, _ = match_roles(zombie.clips)
+    baked = bake_roles(zombie, roles)
+    report = crowd_breakdown(zombie, baked, motion_for(zombie, baked, roles), agents=120, steps=90, sample=12)
+    cases = report["cases"]
+    assert list(cases) == list(CROWD_CASES) and report["walked_m"] > 5.0
+    assert sum(c["cm_per_m"] for c in cases.values()) == pytest.approx(report["total_cm_per_m"], abs=1e-3)
+    straight = cases["walks straight"]
+    assert straight["frames"] > 100 and straight["cm_per_m"] < 0.5, report

@@ -23,21 +23,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..asset.model import Skeleton
+from ..asset.model import CONTACT_M, Skeleton, foot_joints
 from .processor import palette_joint_positions
 
-CONTACT_M = 0.03  # metres above a joint's lowest point within which it is in contact with the ground
+__all__ = ["CONTACT_M", "SKATE_SPEED_M_S", "FootSkate", "FootSkateMonitor", "SkateError", "foot_joints", "joint_positions",
+           "measure", "to_world"]
 SKATE_SPEED_M_S = 0.10  # a contact frame step faster than this counts as skating
-FOOT_WORDS = ("foot", "ankle", "toe", "ball")
 
 
 class SkateError(ValueError):
     """Bad input to the foot-skate measure; the message is one line."""
-
-
-def foot_joints(skeleton: Skeleton) -> list[int]:
-    """The joints named like a foot, an ankle, a toe or a ball, in skeleton order."""
-    return [j for j, name in enumerate(skeleton.names) if any(word in name.lower() for word in FOOT_WORDS)]
 
 
 def joint_positions(matrices: np.ndarray, skeleton: Skeleton, joints) -> np.ndarray:

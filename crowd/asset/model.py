@@ -23,6 +23,17 @@ PACKED_UV_SPAN = 16.0
 PATHS = {"translation": 3, "rotation": 4, "scale": 3}
 
 
+# Feet: the joints the foot-skate measure watches (crowd.anim.foot_skate) and the AI turns agents about
+# (crowd.sim.ai), found by name, and the height above its lowest point within which one is on the ground.
+FOOT_WORDS = ("foot", "ankle", "toe", "ball")
+CONTACT_M = 0.03
+
+
+def foot_joints(skeleton: "Skeleton") -> list[int]:
+    """The joints named like a foot, an ankle, a toe or a ball, in skeleton order."""
+    return [j for j, name in enumerate(skeleton.names) if any(word in name.lower() for word in FOOT_WORDS)]
+
+
 class ModelError(ValueError):
     """A character, clip or mesh that breaks the contract. The message is one line and names the culprit."""
 

@@ -39,12 +39,15 @@ the main process makes between steps (``hit``, the tests' placements).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
+from ..asset.model import CONTACT_M, foot_joints
+from ..asset.pose import global_matrices, sample_clip
 from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, Instances, empty_layers
 from ..settings import SETTINGS, group
 from .agent_pool import PARAMS, AgentPool, PoolError, SharedArrays, available_cores
@@ -72,6 +75,7 @@ _MASK64 = (1 << 64) - 1
 DEFAULT_WALK_SPEED = 1.0  # m/s, for imported walks without a stride (their feet will slide)
 DEFAULT_RUN_SPEED = 3.0
 RUN_OVER_WALK = 1.8  # top speed of a runner over a walker when one clip plays both
+FOOT_SAMPLES = 64  # phases a locomotion clip's pivot is tabled at (Motion.pivots)
 WALK_SLOWEST = 0.25  # the slowest a walk plays, as a share of its own rate (Motion.walk_slowest)
 
 
@@ -99,6 +103,7 @@ class AIConfig:
     separation_stiffness: float = _AI['separation_stiffness']
     max_accel: float = _AI['max_accel']
     turn_rate: float = _AI['turn_rate']
+    plant_feet: bool = _AI['plant_feet']
     arrive_distance: float = _AI['arrive_distance']
     wander_radius: float = _AI['wander_radius']
     wander_speed: float = _AI['wander_speed']
@@ -154,6 +159,10 @@ class Motion:
     # Share of the walk speed down to which the walk plays alone, slowed (locomotion_weights): where its
     # slowed rate is idle's own, so the phase's rate does not jump as idle fades in; within [1/4, 1].
     walk_slowest: float = 1.0
+    # Where agents pivot when they turn (turn_about_planted_foot): per clip (idle, walk, run) and phase
+    # (FOOT_SAMPLES + 1 evenly spaced, the last at phase 1), the model-space (x, z) of the middle of the
+    # foot joints on the ground and 1 where one is (3, FOOT_SAMPLES + 1, 3); None: about their origin.
+    pivots: np.ndarray | None = dataclasses.field(default=None, compare=False)
 
     @staticmethod
     def from_bake(bake, roles: dict, strides: dict, upper_body_mask: int = -1, head_count: int = 0, weapon_count: int = 0,
@@ -208,7 +217,63 @@ def motion_for(character, bake, roles: dict, clip_speed: dict | None = None) -> 
     mask_row = 0 if upper_body_mask(character.skeleton) is not None else -1
     heads = len({m.piece for m in character.meshes if m.group == "head"})
     weapons = len(character.props) if character.sockets else 0
-    return Motion.from_bake(bake, roles, strides, mask_row, heads, weapons, clip_speed)
+    return dataclasses.replace(Motion.from_bake(bake, roles, strides, mask_row, heads, weapons, clip_speed),
+                               pivots=pivot_table(character, roles))
+
+
+def pivot_table(character, roles: dict) -> np.ndarray | None:
+    """Motion.pivots from the character's own clips (float64 forward kinematics), or None for a
+    skeleton without joints named like feet."""
+    skeleton = character.skeleton
+    feet = foot_joints(skeleton)
+    if not feet:
+        return None
+    phases = np.linspace(0.0, 1.0, FOOT_SAMPLES + 1)
+    table = np.zeros((3, FOOT_SAMPLES + 1, 3))
+    for r, role in enumerate(("idle", "walk", "run")):
+        if roles.get(role):
+            g = global_matrices(skeleton, sample_clip(skeleton, character.clip(roles[role]), phases))
+            pos = g[:, feet][..., :3, 3]  # (phases, K, 3)
+            down = pos[..., 1] - pos[..., 1].min(axis=0) <= CONTACT_M  # the foot joints on the ground
+            count = down.sum(axis=1)
+            share = down / np.maximum(count, 1)[:, None]
+            table[r, :, 0] = (share * pos[..., 0]).sum(axis=1)
+            table[r, :, 1] = (share * pos[..., 2]).sum(axis=1)
+            table[r, :, 2] = count > 0
+    return table
+
+
+def turn_about_planted_foot(m: Motion, phase, weights, hx0, hz0, hx1, hz1, scale) -> tuple[np.ndarray, np.ndarray]:
+    """The ground shift (dx, dz) that turns agents from heading (hx0, hz0) to (hx1, hz1) about the foot
+    they stand on instead of about their origin, as a walker pivots on its stance foot: that foot stays
+    where it is in world space. Each locomotion clip's pivot at a phase is the middle of its foot joints
+    within the contact height (above each one's own lowest point): one foot's heel and toe, or both
+    feet's (Motion.pivots); the agent's is the mean of its clips' pivots, weighted by their layer weights
+    (`weights`: idle, walk, run) among the clips with a foot down, if those weigh half or more; else (a
+    run's flight) no shift. A planted foot still turns with the body (a foot lock would twist the leg
+    instead), so its joints slide by their distance from the pivot times the turn."""
+    n = np.shape(phase)[0]
+    if m.pivots is None or n == 0:
+        return np.zeros(n), np.zeros(n)
+    f = np.asarray(phase, np.float64) * FOOT_SAMPLES
+    i = np.minimum(np.maximum(np.floor(f), 0), FOOT_SAMPLES - 1).astype(np.int64)
+    u = f - i
+    mx, mz, down = np.zeros(n), np.zeros(n), np.zeros(n)
+    for r, w in enumerate(weights):
+        if not np.any(w):
+            continue  # a clip nobody here plays (idle for walkers, run for most): no gathers
+        a, b = m.pivots[r, i], m.pivots[r, i + 1]
+        on = w * np.minimum(a[:, 2], b[:, 2])  # a clip whose foot lifts between the two samples does not count
+        mx += on * (a[:, 0] + u * (b[:, 0] - a[:, 0]))
+        mz += on * (a[:, 1] + u * (b[:, 1] - a[:, 1]))
+        down += on
+    planted = down >= 0.5
+    inv = scale / np.maximum(down, 1e-12)
+    mx, mz = mx * inv, mz * inv
+    # Model (x, z) to world for a heading (hx, hz), the front: (hz x + hx z, -hx x + hz z).
+    dx = (hz0 - hz1) * mx + (hx0 - hx1) * mz
+    dz = (hx1 - hx0) * mx + (hz0 - hz1) * mz
+    return np.where(planted, dx, 0.0), np.where(planted, dz, 0.0)
 
 
 class PlayerScript:
@@ -737,7 +802,26 @@ class CrowdAI:
             agents, push_x, push_z = push
             self.x[agents] += push_x
             self.z[agents] += push_z
+            if self.config.plant_feet:
+                self._step_with_push(agents, push_x, push_z)
         self._bound(lo, hi)
+
+    def _step_with_push(self, agents: np.ndarray, push_x: np.ndarray, push_z: np.ndarray) -> None:
+        """A push along a walking agent's heading moves its body as its own steps do, so its locomotion
+        phase moves with it (backward for a push from the front): the planted foot stays where it stands.
+        In a blend at walk-or-run weight w (1 - idle's), the stance foot moves w x the blended stride per
+        cycle; below w = 1/2 the push is left a slide rather than spin the legs."""
+        m = self.motion
+        speed = np.sqrt(self.vx[agents] ** 2 + self.vz[agents] ** 2)
+        w_idle, _, _, run_t = locomotion_weights(m, speed, self.walk_top[agents], self.speed_factor[agents])
+        stepping = (w_idle <= 0.5) & (self.state[agents] < DYING)
+        if not np.any(stepping):
+            return
+        stride = (1.0 - w_idle) * (m.walk_stride + run_t * (m.run_stride - m.walk_stride)) * self.scale[agents]
+        along = push_x * self.hx[agents] + push_z * self.hz[agents]
+        phase = self.phase[agents]
+        advance_phase(phase, np.where(stepping, along / np.maximum(stride, 1e-9), 0.0))
+        self.phase[agents] = phase
 
     def _finish_range(self, lo: int, hi: int, h: float) -> None:
         """The finish phase: heading and phase of this process's agents (and, without the budget, their
@@ -917,16 +1001,22 @@ class CrowdAI:
         budgeted = np.ndim(h) > 0
         if budgeted:
             turning &= h > 0.0  # agents that do not think here (exact ones inside a block) keep their heading
+        hx0, hz0 = a.hx, a.hz
         ux, uz = self._turn(a, turning, gx, gz, glen, cfg.turn_rate * substep)
+        self._pivot(a, np.flatnonzero(turning & (a.action == NO_ACTION) & ((a.hx != hx0) | (a.hz != hz0))), hx0, hz0, speed)
         if budgeted:  # those not at their goal yet turn on toward it, a substep's worth at a time, until they think again
             np.copyto(a._goal_x, ux)
             np.copyto(a._goal_z, uz)
             np.copyto(a._coast_turn, turning & ((a.hx != ux) | (a.hz != uz)))
 
-        # Locomotion phase: speed over the blended stride (idle plays at its own rate while standing).
+        # Locomotion phase: speed over the blended stride (idle plays at its own rate while standing),
+        # for the share of the motion along the heading. A heading that lags the motion (it turns at
+        # turn_rate) walks forward only that share; the planted feet keep pace with it, and the rest is a
+        # sideways slide no forward clip can follow (crowd.anim.foot_skate measures it).
         m = self.motion
         run_t = locomotion_weights(m, speed, a.walk_top, a.speed_factor)[3]
-        rate = phase_rate(m, speed, a.walk_top, run_t)
+        forward = np.minimum(np.maximum((a.vx * a.hx + a.vz * a.hz) / np.maximum(speed, 1e-12), 0.0), 1.0)
+        rate = phase_rate(m, speed, a.walk_top, run_t, a.scale) * np.where(speed > 0.0, forward, 1.0)
         advance_phase(a.phase, rate * move)
         if self.budgeted():
             a.phase_rate[:] = rate  # what the phase advances by until the agent thinks again
@@ -950,13 +1040,31 @@ class CrowdAI:
 
     def _coast_turns(self, coasting: np.ndarray, step: float) -> None:
         """Between thinks: the budgeted agents still turning (`coasting`, indices) turn toward the goal
-        their last think set, by `step` as an exact agent turns each substep, snapping when within it."""
+        their last think set, by `step` as an exact agent turns each substep, snapping when within it.
+        They turn about their origin: a coasting agent is far from the player and the camera, where a
+        foot's pivot is not seen, and pivoting them cost 1 ms a step at 100,000 agents on one core."""
         hx, hz, ux, uz = self.hx[coasting], self.hz[coasting], self._goal_x[coasting], self._goal_z[coasting]
         near = hx * ux + hz * uz >= math.cos(step)
         rx, rz = _rotate_toward(hx, hz, ux, uz, step)
         self.hx[coasting] = np.where(near, ux, rx)
         self.hz[coasting] = np.where(near, uz, rz)
         self._coast_turn[coasting[near]] = False
+
+    def _pivot(self, a, turned: np.ndarray, hx0: np.ndarray, hz0: np.ndarray, speed: np.ndarray) -> None:
+        """Shift the agents `turned` (indices into the group `a`) so that they turned about the foot they
+        stand on (turn_about_planted_foot)."""
+        if not turned.size or self.motion.pivots is None or not self.config.plant_feet:
+            return
+        weights = locomotion_weights(self.motion, speed[turned], a.walk_top[turned], a.speed_factor[turned])[:3]
+        dx, dz = turn_about_planted_foot(self.motion, a.phase[turned], weights, hx0[turned], hz0[turned], a.hx[turned],
+                                         a.hz[turned], a.scale[turned])
+        a.x[turned], a.z[turned] = self._inside(a.x[turned] + dx, a.z[turned] + dz)
+
+    def _inside(self, x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Ground positions clamped into the world square (a pivot at its edge must not step out)."""
+        e = self.half_extent
+        return (np.minimum(np.maximum(x, self.origin[0] - e), self.origin[0] + e),
+                np.minimum(np.maximum(z, self.origin[1] - e), self.origin[1] + e))
 
     def _bound(self, lo: int, hi: int) -> None:
         """World bounds for agents lo..hi: clamp, and stop the velocity component that points out."""
@@ -1209,13 +1317,14 @@ def locomotion_weights(m: Motion, speed: np.ndarray, walk: np.ndarray, speed_fac
             np.multiply(to_walk, run_t, out=out[2], casting="unsafe"), run_t)
 
 
-def phase_rate(m: Motion, speed, walk, run_t):
+def phase_rate(m: Motion, speed, walk, run_t, scale=1.0):
     """Cycles a second of the shared locomotion phase, for agents at `speed` whose walk speeds are
     `walk` and whose run shares are `run_t` (locomotion_weights): speed over the blended stride, so that
     a planted foot keeps pace with the ground. Below the walk's slowest playback the walk's weight
     falls instead of its rate, so the rate stays there: its planted foot, at that weight, still moves
-    with the ground (idle's feet stand still). Standing agents play idle at its own rate."""
-    stride = m.walk_stride + run_t * (m.run_stride - m.walk_stride)
+    with the ground (idle's feet stand still). Standing agents play idle at its own rate. `scale`: the
+    agents' sizes, which their strides grow with (the skinning shader scales the whole model)."""
+    stride = (m.walk_stride + run_t * (m.run_stride - m.walk_stride)) * scale
     moving = np.maximum(speed, m.walk_slowest * walk) / stride
     return np.where(speed > 0.0, moving, 1.0 / max(m.duration["idle"], 1e-3))
 
