@@ -214,11 +214,59 @@ def motion_for(character, bake, roles: dict, clip_speed: dict | None = None) -> 
     an upper body (the processor gets `upper_body_mask(skeleton)` as its masks); heads are the pieces of
     the "head" variation group; weapons are the props the character can hold in a socket."""
     strides = {c.name: (c.stride or 0.0) for c in character.clips}
+    measured = []
+    for role in ("walk", "run"):
+        name = roles.get(role)
+        if name and strides.get(name, 0.0) <= 0.0 and name not in measured:
+            stride = stride_from_feet(character, character.clip(name))
+            if stride is not None:
+                strides[name] = stride
+                measured.append(name)
     mask_row = 0 if upper_body_mask(character.skeleton) is not None else -1
     heads = len({m.piece for m in character.meshes if m.group == "head"})
     weapons = len(character.props) if character.sockets else 0
-    return dataclasses.replace(Motion.from_bake(bake, roles, strides, mask_row, heads, weapons, clip_speed),
-                               pivots=pivot_table(character, roles))
+    motion = Motion.from_bake(bake, roles, strides, mask_row, heads, weapons, clip_speed)
+    notes = motion.notes + tuple(f"clip {name!r} has no stride; measured from its planted feet: {strides[name]:.3f} m a cycle"
+                                 for name in measured)
+    return dataclasses.replace(motion, pivots=pivot_table(character, roles), notes=notes)
+
+
+def stride_from_feet(character, clip, samples: int = 240) -> float | None:
+    """Metres a cycle the body of an in-place locomotion clip covers, measured from its feet: while a
+    foot joint is within the contact height of its lowest point, it carries weight, and the body should
+    move forward (+Z, the character's front) as fast as that foot moves back. The stride is the one that
+    leaves the least slide in world space per metre walked, summed over every foot joint and contact
+    step: the foot-skate measure itself (crowd.anim.foot_skate). None when the skeleton has no joint
+    named like a foot or its feet are never on the ground. Clips that
+    travel (root motion) have their stride from crowd.asset.root_motion instead."""
+    skeleton = character.skeleton
+    feet = foot_joints(skeleton)
+    if not feet:
+        return None
+    phases = np.linspace(0.0, 1.0, samples + 1)
+    pos = global_matrices(skeleton, sample_clip(skeleton, clip, phases))[:, feet][..., :3, 3]
+    down = pos[..., 1] <= pos[..., 1].min(axis=0) + CONTACT_M
+    both = down[1:] & down[:-1]
+    if np.count_nonzero(both) < max(8, samples // 20):
+        return None
+    step = np.diff(pos, axis=0)[both]  # (steps, 3) model-space moves of feet on the ground
+    dx, dz = step[:, 0], step[:, 2]
+
+    def slide(stride):  # metres slid in world space per metre walked, walking `stride` metres a cycle
+        return np.hypot(dx, dz + stride / samples).sum() / stride
+
+    # Golden-section search over the strides the feet's own backward moves span: the slide per metre
+    # falls as the stride nears the stance feet's speed and rises past it.
+    low, high = 1e-3, max(float(-dz.min()) * samples, 2e-3)
+    ratio = (math.sqrt(5.0) - 1.0) / 2.0
+    for _ in range(60):
+        a, b = high - ratio * (high - low), low + ratio * (high - low)
+        if slide(a) <= slide(b):
+            high = b
+        else:
+            low = a
+    stride = 0.5 * (low + high)
+    return stride if np.isfinite(slide(stride)) else None
 
 
 def pivot_table(character, roles: dict) -> np.ndarray | None:
