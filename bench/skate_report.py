@@ -12,10 +12,11 @@ slide that the reference shows too is in the clips and the blending, not in the 
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
+
+from crowd.search import golden_section_max
 
 
 def cases(motion, speeds: int) -> list[tuple[str, float]]:
@@ -46,20 +47,8 @@ def worst_speed(score, low: float, high: float, grid: int = 24, rounds: int = 12
     scores = [score(float(v)) for v in speeds]
     best = int(np.nanargmax(scores))
     a, b = float(speeds[max(best - 1, 0)]), float(speeds[min(best + 1, grid - 1)])
-    ratio = (math.sqrt(5.0) - 1.0) / 2.0
-    c, d = b - ratio * (b - a), a + ratio * (b - a)
-    fc, fd = score(c), score(d)
-    for _ in range(rounds):
-        if fc >= fd:
-            b, d, fd = d, c, fc
-            c = b - ratio * (b - a)
-            fc = score(c)
-        else:
-            a, c, fc = c, d, fd
-            d = a + ratio * (b - a)
-            fd = score(d)
-    top = max([(scores[best], float(speeds[best])), (fc, c), (fd, d)])
-    return top[1]
+    x, fx = golden_section_max(score, a, b, rounds)
+    return x if fx > scores[best] else float(speeds[best])
 
 
 def measure_cases(ctx, character, bake, motion, speeds: int = 10, seconds: float = 4.0, rate: float = 120.0, search: bool = True) -> list[dict]:
@@ -104,7 +93,7 @@ def crowd_breakdown(character, bake, motion, agents: int, steps: int = 300, dt: 
     speed against its walk speed, and whether its heading changed). Figures are cm per metre walked by
     all of them together, so the cases add up to the total."""
     from crowd.anim import accuracy
-    from crowd.anim.foot_skate import CONTACT_M, foot_joints, joint_positions, to_world
+    from crowd.anim.foot_skate import contact_steps, foot_joints, joint_positions, to_world
     from crowd.sim.ai import CHASE, WANDER, CrowdAI
 
     skeleton = character.skeleton
@@ -130,10 +119,8 @@ def crowd_breakdown(character, bake, motion, agents: int, steps: int = 300, dt: 
                 continue
             model = joint_positions(accuracy.truth(skeleton, clips, layers[run, i]), skeleton, feet)
             world = to_world(model, ground[run, i], yaw[run, i], float(ai.scale[picked[i]]))
-            height = world[..., 1]
-            contact = height <= height.min(axis=0) + CONTACT_M
-            both = contact[1:] & contact[:-1]
-            step = np.where(both, np.linalg.norm(np.diff(world[..., [0, 2]], axis=0), axis=2), 0.0).sum(axis=1)
+            both, moves = contact_steps(world)
+            step = np.where(both, moves, 0.0).sum(axis=1)
             turned = np.abs(np.angle(np.exp(1j * np.diff(yaw[run, i])))) > 1e-9
             rel = speed[run[1:], i]
             kind = np.where(rel < motion.walk_slowest, 1, np.where(rel <= 1.0 + 1e-9, 0, 2)) * 2 + turned  # CROWD_CASES' order

@@ -26,8 +26,8 @@ import numpy as np
 from ..asset.model import CONTACT_M, Skeleton, foot_joints
 from .processor import palette_joint_positions
 
-__all__ = ["CONTACT_M", "SKATE_SPEED_M_S", "FootSkate", "FootSkateMonitor", "SkateError", "foot_joints", "joint_positions",
-           "measure", "to_world"]
+__all__ = ["CONTACT_M", "SKATE_SPEED_M_S", "FootSkate", "FootSkateMonitor", "SkateError", "contact_steps", "foot_joints",
+           "joint_positions", "measure", "to_world"]
 SKATE_SPEED_M_S = 0.10  # a contact frame step faster than this counts as skating
 
 
@@ -80,10 +80,7 @@ def measure(world: np.ndarray, dt, walked_m: float, names) -> FootSkate:
     if dt.shape != (world.shape[0] - 1,) or not np.all(np.isfinite(dt) & (dt > 0)) or not (np.isfinite(walked_m) and walked_m >= 0):
         raise SkateError(f"foot skate needs dt > 0 for each of the {world.shape[0] - 1} steps and a distance >= 0, got {walked_m!r}")
     dt = dt[:, None]
-    height = world[..., 1]
-    contact = height <= height.min(axis=0) + CONTACT_M
-    both = contact[1:] & contact[:-1]  # (F - 1, K): steps between two contact frames
-    step = np.linalg.norm(world[1:][..., [0, 2]] - world[:-1][..., [0, 2]], axis=2)
+    both, step = contact_steps(world)
     slide = np.where(both, step, 0.0).sum(axis=0)  # metres per joint
     contact_time = np.where(both, dt, 0.0).sum(axis=0)
     steps = int(both.sum())
@@ -94,6 +91,16 @@ def measure(world: np.ndarray, dt, walked_m: float, names) -> FootSkate:
         share_over=float(np.count_nonzero(both & (step > SKATE_SPEED_M_S * dt)) / steps) if steps else 0.0,
         contact_share=float(steps / both.size), walked_m=float(walked_m),
         per_joint={str(n): round(float(v), 4) for n, v in zip(names, per_m)})
+
+
+def contact_steps(world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For foot-joint trajectories (F, K, 3) in world space: which frame steps (F - 1, K) are between two
+    frames in contact (within CONTACT_M of the joint's lowest point over the sequence), and each step's
+    horizontal move in metres (F - 1, K)."""
+    height = world[..., 1]
+    contact = height <= height.min(axis=0) + CONTACT_M
+    step = np.linalg.norm(world[1:][..., [0, 2]] - world[:-1][..., [0, 2]], axis=2)
+    return contact[1:] & contact[:-1], step
 
 
 class FootSkateMonitor:

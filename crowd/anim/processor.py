@@ -13,9 +13,9 @@ input ``layers``: float32 (N, L, 4) with L = the processor's layer count (1..4);
   Per joint, as crowd.anim.reference.blend (its docstring says why each rule), with S the sum of the
   layers' max(weight, 0) (only ratios of weights matter): weights are multiplied by the mask; each
   layer samples its keys as the interpolation says (INTERPOLATIONS below: by default rotation nlerp at
-  a weight corrected to track slerp, and translation lerp); rotations are sign-aligned to the anchor, the first-listed layer with a
-  weight above 0 at that joint, and their weighted sum normalised (the anchor's rotation where the
-  sum is shorter than CANCELLED_NORM times S), translations and scales are weighted means (dq_lerp
+  a weight corrected to track slerp, and translation lerp); rotations are sign-aligned to the anchor,
+  the first-listed layer with a weight above 0 at that joint, and their weighted sum normalised (the
+  anchor's rotation where the sum is shorter than CANCELLED_NORM times S), translations and scales are weighted means (dq_lerp
   instead sums the dual quaternions); a joint whose masked weights add up to less than REST_THRESHOLD
   times S takes the rest pose. Then the hierarchy is concatenated and multiplied by the inverse bind.
 
@@ -82,6 +82,8 @@ def corrected_weight(u, d):
     b = SLERP_FIT[3] + d * (SLERP_FIT[4] + d * SLERP_FIT[5])
     c = u - 0.5
     return u + u * c * (u - 1.0) * (1.0 - d) * (a * c * c + b)
+
+
 DEFAULT_INTERPOLATION = DEFAULTS["interpolation"]  # chosen by crowd-bench error: see docs/BENCHMARKS.md
 # Agents side by side in one palette texture row: keeps textures under 4096 texels wide, a size every
 # GL 3.3+ driver we target accepts (GL_MAX_TEXTURE_SIZE is 16384 on llvmpipe, 32768 on NVIDIA).

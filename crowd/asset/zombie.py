@@ -656,8 +656,9 @@ def _keyed(p, keys: list[tuple[float, dict[str, float]]], base: dict[str, np.nda
 # - swing: for the first and last `lift` share of the swing it rises (or comes down) straight up in
 #   world space, still over the same spot; in between it travels forward one stride, toes pitched down.
 # A foot below the contact height (3 cm above its lowest) therefore never moves horizontally in world
-# space, which is what crowd-bench skate measures (the 30 fps keys' interpolation leaves 0.4 to 0.6 cm/m). Both clips keep their mid-stances at the same phases,
-# so that in a walk-run blend (one phase for both) their stance feet move together.
+# space, which is what crowd-bench skate measures (the 30 fps keys' interpolation leaves 0.4 to 0.6
+# cm/m). Both clips keep their mid-stances at the same phases, so that in a walk-run blend (one phase
+# for both) their stance feet move together.
 
 
 @dataclasses.dataclass(frozen=True)
@@ -699,9 +700,25 @@ def _foot_path(g: _Gait, side: int, p: np.ndarray) -> tuple[np.ndarray, np.ndarr
     sign = 1.0 if side == 0 else -1.0
     ankle = np.stack([np.full_like(p, sign * g.width), y, z], axis=1)
     pitch = np.where(stance, 0.0, g.toe_down[side] * np.sin(math.pi * travel) ** 2)
-    yaw = np.full_like(p, sign * g.toe_out[side])
-    toe = ankle + tf.quat_rotate(_q(pitch, yaw, 0.0), _TOE_FROM_ANKLE)
-    return ankle, toe
+    return ankle, _toe_of(ankle, pitch, np.full_like(p, sign * g.toe_out[side]))
+
+
+def _toe_of(ankle: np.ndarray, pitch, yaw) -> np.ndarray:
+    """Where the toe joint is for a foot at `ankle` (n, 3), pitched toes down by `pitch` and turned by `yaw`."""
+    return ankle + tf.quat_rotate(_q(pitch, yaw, 0.0), _TOE_FROM_ANKLE)
+
+
+def _leg(skeleton: Skeleton, s: str) -> tuple[int, float, float]:
+    """A leg's thigh joint and its upper and lower bone lengths (side "l" or "r")."""
+    length = lambda name: float(np.linalg.norm(skeleton.rest_translation[skeleton.index(f"{name}_{s}")]))
+    return skeleton.index(f"thigh_{s}"), length("shin"), length("foot")
+
+
+def _hip_joints(skeleton: Skeleton, a: dict[str, np.ndarray], n: int) -> list[np.ndarray]:
+    """Model-space positions (n, 3) of the left and right thigh joints under the pose `a`."""
+    rot, hips_t = _pose_to_joints(a, n)
+    g = _globals(skeleton, rot, hips_t)
+    return [g[:, _leg(skeleton, s)[0], :3, 3] for s in "lr"]
 
 
 _LEG_PARAMS = ("thigh_flex", "thigh_twist", "thigh_abd", "knee", "ankle")
@@ -710,13 +727,10 @@ _LEG_PARAMS = ("thigh_flex", "thigh_twist", "thigh_abd", "knee", "ankle")
 def _guess_legs(skeleton: Skeleton, a: dict[str, np.ndarray], targets, n: int) -> None:
     """A starting point for _plant, in place: each leg bent in its own plane, knee forward, as the law
     of cosines gives it for the hip-to-ankle distance (hips rotation ignored; the solver corrects it)."""
-    rot, hips_t = _pose_to_joints({**a, **{f"{k}_{s}": np.zeros(n) for k in _LEG_PARAMS for s in "lr"}}, n)
-    g = _globals(skeleton, rot, hips_t)
+    hips = _hip_joints(skeleton, a, n)  # the leg's own angles do not move its hip joint
     for side, s in enumerate("lr"):
-        thigh, shin, foot = (skeleton.index(f"{j}_{s}") for j in ("thigh", "shin", "foot"))
-        upper = np.linalg.norm(skeleton.rest_translation[shin])
-        lower = np.linalg.norm(skeleton.rest_translation[foot])
-        d = targets[side][0] - g[:, thigh, :3, 3]
+        _, upper, lower = _leg(skeleton, s)
+        d = targets[side][0] - hips[side]
         dist = np.clip(np.linalg.norm(d, axis=1), abs(upper - lower) + 1e-3, upper + lower - 1e-4)
         bend = math.pi - np.arccos((upper * upper + lower * lower - dist * dist) / (2 * upper * lower))
         lean = np.arcsin(np.clip(lower * np.sin(bend) / dist, -1.0, 1.0))  # thigh ahead of the hip-ankle line
@@ -731,9 +745,10 @@ def _guess_legs(skeleton: Skeleton, a: dict[str, np.ndarray], targets, n: int) -
 
 def _plant(p: np.ndarray, a: dict[str, np.ndarray], targets, iterations: int = 200) -> dict[str, np.ndarray]:
     """Solve both legs' angles (`_LEG_PARAMS`) so that the ankle and toe joints reach `targets`
-    ((ankle, toe) per side, each (n, 3)), starting from the keyed angles in `a` (which pick the
-    knee-forward solution). Damped Gauss-Newton on a numerical Jacobian: the generator runs once, and
-    the two legs are independent, so one pose evaluation perturbs the same angle of both."""
+    ((ankle, toe) per side, each (n, 3)), with the rest of the pose `a` as it is, starting from
+    _guess_legs (which picks the knee-forward solution). Damped Gauss-Newton on a numerical Jacobian:
+    the generator runs once, and the two legs are independent, so one pose evaluation perturbs the same
+    angle of both."""
     skeleton = _skeleton()
     n = p.shape[0]
     joints = [[skeleton.index(f"foot_{s}"), skeleton.index(f"toe_{s}")] for s in "lr"]
@@ -794,13 +809,12 @@ def _reach_drop(a: dict[str, np.ndarray], targets, n: int, slack: float = 0.985)
     leg's full length (a straight knee is a singular, snapping pose): the largest need nearby, smoothed,
     so the hips do not jerk."""
     skeleton = _skeleton()
-    rot, hips_t = _pose_to_joints(a, n)
-    g = _globals(skeleton, rot, hips_t)
+    hips = _hip_joints(skeleton, a, n)
     need = np.zeros(n)
     for side, s in enumerate("lr"):
-        leg = slack * (np.linalg.norm(skeleton.rest_translation[skeleton.index(f"shin_{s}")])
-                       + np.linalg.norm(skeleton.rest_translation[skeleton.index(f"foot_{s}")]))
-        d = targets[side][0] - g[:, skeleton.index(f"thigh_{s}"), :3, 3]
+        _, upper, lower = _leg(skeleton, s)
+        leg = slack * (upper + lower)
+        d = targets[side][0] - hips[side]
         flat = np.minimum(d[:, 0] ** 2 + d[:, 2] ** 2, leg * leg)
         need = np.maximum(need, np.maximum(0.0, -d[:, 1] - np.sqrt(leg * leg - flat)))
     widened = np.max([np.roll(need, k) for k in range(-3, 4)], axis=0)
@@ -819,8 +833,7 @@ def _standing(p: np.ndarray, a: dict[str, np.ndarray], toe_out=(0.12, 0.2), reac
     for side in (0, 1):
         sign = 1.0 if side == 0 else -1.0
         ankle = np.tile([sign * 0.11, STANCE_ANKLE_Y, reach[side]], (p.shape[0], 1))
-        toe = ankle + tf.quat_rotate(_q(0.0, np.full(p.shape, sign * toe_out[side]), 0.0), _TOE_FROM_ANKLE)
-        targets.append((ankle, toe))
+        targets.append((ankle, _toe_of(ankle, 0.0, np.full(p.shape, sign * toe_out[side]))))
     return _plant(p, a, targets)
 
 

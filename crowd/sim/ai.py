@@ -49,6 +49,7 @@ import numpy as np
 from ..asset.model import CONTACT_M, foot_joints
 from ..asset.pose import global_matrices, sample_clip
 from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, Instances, empty_layers
+from ..search import golden_section_max
 from ..settings import SETTINGS, group
 from .agent_pool import PARAMS, AgentPool, PoolError, SharedArrays, available_cores
 
@@ -217,7 +218,7 @@ def motion_for(character, bake, roles: dict, clip_speed: dict | None = None) -> 
     measured = []
     for role in ("walk", "run"):
         name = roles.get(role)
-        if name and strides.get(name, 0.0) <= 0.0 and name not in measured:
+        if name and strides.get(name, 0.0) <= 0.0:  # (a walk that is also the run has its stride by now)
             stride = stride_from_feet(character, character.clip(name))
             if stride is not None:
                 strides[name] = stride
@@ -231,21 +232,31 @@ def motion_for(character, bake, roles: dict, clip_speed: dict | None = None) -> 
     return dataclasses.replace(motion, pivots=pivot_table(character, roles), notes=notes)
 
 
+def _feet_over_cycle(character, clip, samples: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """A clip's foot joints at samples + 1 evenly spaced phases from 0 to 1 (float64 forward kinematics):
+    their model-space positions (samples + 1, K, 3) and whether each is on the ground, within the contact
+    height of its own lowest point; None for a skeleton without joints named like feet."""
+    skeleton = character.skeleton
+    feet = foot_joints(skeleton)
+    if not feet:
+        return None
+    g = global_matrices(skeleton, sample_clip(skeleton, clip, np.linspace(0.0, 1.0, samples + 1)))
+    pos = g[:, feet][..., :3, 3]
+    return pos, pos[..., 1] - pos[..., 1].min(axis=0) <= CONTACT_M
+
+
 def stride_from_feet(character, clip, samples: int = 240) -> float | None:
     """Metres a cycle the body of an in-place locomotion clip covers, measured from its feet: while a
     foot joint is within the contact height of its lowest point, it carries weight, and the body should
     move forward (+Z, the character's front) as fast as that foot moves back. The stride is the one that
     leaves the least slide in world space per metre walked, summed over every foot joint and contact
     step: the foot-skate measure itself (crowd.anim.foot_skate). None when the skeleton has no joint
-    named like a foot or its feet are never on the ground. Clips that
-    travel (root motion) have their stride from crowd.asset.root_motion instead."""
-    skeleton = character.skeleton
-    feet = foot_joints(skeleton)
-    if not feet:
+    named like a foot or its feet are never on the ground. Clips that travel (root motion) have their
+    stride from crowd.asset.root_motion instead."""
+    cycle = _feet_over_cycle(character, clip, samples)
+    if cycle is None:
         return None
-    phases = np.linspace(0.0, 1.0, samples + 1)
-    pos = global_matrices(skeleton, sample_clip(skeleton, clip, phases))[:, feet][..., :3, 3]
-    down = pos[..., 1] <= pos[..., 1].min(axis=0) + CONTACT_M
+    pos, down = cycle
     both = down[1:] & down[:-1]
     if np.count_nonzero(both) < max(8, samples // 20):
         return None
@@ -255,34 +266,21 @@ def stride_from_feet(character, clip, samples: int = 240) -> float | None:
     def slide(stride):  # metres slid in world space per metre walked, walking `stride` metres a cycle
         return np.hypot(dx, dz + stride / samples).sum() / stride
 
-    # Golden-section search over the strides the feet's own backward moves span: the slide per metre
-    # falls as the stride nears the stance feet's speed and rises past it.
-    low, high = 1e-3, max(float(-dz.min()) * samples, 2e-3)
-    ratio = (math.sqrt(5.0) - 1.0) / 2.0
-    for _ in range(60):
-        a, b = high - ratio * (high - low), low + ratio * (high - low)
-        if slide(a) <= slide(b):
-            high = b
-        else:
-            low = a
-    stride = 0.5 * (low + high)
-    return stride if np.isfinite(slide(stride)) else None
+    # Over the strides the feet's own backward moves span, the slide per metre falls as the stride nears
+    # the stance feet's speed and rises past it.
+    stride, least = golden_section_max(lambda x: -slide(x), 1e-3, max(float(-dz.min()) * samples, 2e-3), 60)
+    return stride if np.isfinite(least) else None
 
 
 def pivot_table(character, roles: dict) -> np.ndarray | None:
     """Motion.pivots from the character's own clips (float64 forward kinematics), or None for a
     skeleton without joints named like feet."""
-    skeleton = character.skeleton
-    feet = foot_joints(skeleton)
-    if not feet:
+    if not foot_joints(character.skeleton):
         return None
-    phases = np.linspace(0.0, 1.0, FOOT_SAMPLES + 1)
     table = np.zeros((3, FOOT_SAMPLES + 1, 3))
     for r, role in enumerate(("idle", "walk", "run")):
         if roles.get(role):
-            g = global_matrices(skeleton, sample_clip(skeleton, character.clip(roles[role]), phases))
-            pos = g[:, feet][..., :3, 3]  # (phases, K, 3)
-            down = pos[..., 1] - pos[..., 1].min(axis=0) <= CONTACT_M  # the foot joints on the ground
+            pos, down = _feet_over_cycle(character, character.clip(roles[role]), FOOT_SAMPLES)
             count = down.sum(axis=1)
             share = down / np.maximum(count, 1)[:, None]
             table[r, :, 0] = (share * pos[..., 0]).sum(axis=1)
@@ -865,7 +863,7 @@ class CrowdAI:
         stepping = (w_idle <= 0.5) & (self.state[agents] < DYING)
         if not np.any(stepping):
             return
-        stride = (1.0 - w_idle) * (m.walk_stride + run_t * (m.run_stride - m.walk_stride)) * self.scale[agents]
+        stride = (1.0 - w_idle) * blended_stride(m, run_t, self.scale[agents])
         along = push_x * self.hx[agents] + push_z * self.hz[agents]
         phase = self.phase[agents]
         advance_phase(phase, np.where(stepping, along / np.maximum(stride, 1e-9), 0.0))
@@ -1050,8 +1048,11 @@ class CrowdAI:
         if budgeted:
             turning &= h > 0.0  # agents that do not think here (exact ones inside a block) keep their heading
         hx0, hz0 = a.hx, a.hz
+        m = self.motion
+        weights = locomotion_weights(m, speed, a.walk_top, a.speed_factor)  # (idle, walk, run, run share)
         ux, uz = self._turn(a, turning, gx, gz, glen, cfg.turn_rate * substep)
-        self._pivot(a, np.flatnonzero(turning & (a.action == NO_ACTION) & ((a.hx != hx0) | (a.hz != hz0))), hx0, hz0, speed)
+        self._pivot(a, np.flatnonzero(turning & (a.action == NO_ACTION) & ((a.hx != hx0) | (a.hz != hz0))), hx0, hz0,
+                    weights[:3])
         if budgeted:  # those not at their goal yet turn on toward it, a substep's worth at a time, until they think again
             np.copyto(a._goal_x, ux)
             np.copyto(a._goal_z, uz)
@@ -1061,8 +1062,7 @@ class CrowdAI:
         # for the share of the motion along the heading. A heading that lags the motion (it turns at
         # turn_rate) walks forward only that share; the planted feet keep pace with it, and the rest is a
         # sideways slide no forward clip can follow (crowd.anim.foot_skate measures it).
-        m = self.motion
-        run_t = locomotion_weights(m, speed, a.walk_top, a.speed_factor)[3]
+        run_t = weights[3]
         forward = np.minimum(np.maximum((a.vx * a.hx + a.vz * a.hz) / np.maximum(speed, 1e-12), 0.0), 1.0)
         rate = phase_rate(m, speed, a.walk_top, run_t, a.scale) * np.where(speed > 0.0, forward, 1.0)
         advance_phase(a.phase, rate * move)
@@ -1098,14 +1098,13 @@ class CrowdAI:
         self.hz[coasting] = np.where(near, uz, rz)
         self._coast_turn[coasting[near]] = False
 
-    def _pivot(self, a, turned: np.ndarray, hx0: np.ndarray, hz0: np.ndarray, speed: np.ndarray) -> None:
+    def _pivot(self, a, turned: np.ndarray, hx0: np.ndarray, hz0: np.ndarray, weights) -> None:
         """Shift the agents `turned` (indices into the group `a`) so that they turned about the foot they
-        stand on (turn_about_planted_foot)."""
+        stand on (turn_about_planted_foot); `weights`: the group's idle, walk and run weights."""
         if not turned.size or self.motion.pivots is None or not self.config.plant_feet:
             return
-        weights = locomotion_weights(self.motion, speed[turned], a.walk_top[turned], a.speed_factor[turned])[:3]
-        dx, dz = turn_about_planted_foot(self.motion, a.phase[turned], weights, hx0[turned], hz0[turned], a.hx[turned],
-                                         a.hz[turned], a.scale[turned])
+        dx, dz = turn_about_planted_foot(self.motion, a.phase[turned], [w[turned] for w in weights], hx0[turned], hz0[turned],
+                                         a.hx[turned], a.hz[turned], a.scale[turned])
         a.x[turned], a.z[turned] = self._inside(a.x[turned] + dx, a.z[turned] + dz)
 
     def _inside(self, x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1365,6 +1364,11 @@ def locomotion_weights(m: Motion, speed: np.ndarray, walk: np.ndarray, speed_fac
             np.multiply(to_walk, run_t, out=out[2], casting="unsafe"), run_t)
 
 
+def blended_stride(m: Motion, run_t, scale=1.0):
+    """Metres a cycle of the walk-run blend at run share `run_t`, for agents of size `scale`."""
+    return (m.walk_stride + run_t * (m.run_stride - m.walk_stride)) * scale
+
+
 def phase_rate(m: Motion, speed, walk, run_t, scale=1.0):
     """Cycles a second of the shared locomotion phase, for agents at `speed` whose walk speeds are
     `walk` and whose run shares are `run_t` (locomotion_weights): speed over the blended stride, so that
@@ -1372,8 +1376,7 @@ def phase_rate(m: Motion, speed, walk, run_t, scale=1.0):
     falls instead of its rate, so the rate stays there: its planted foot, at that weight, still moves
     with the ground (idle's feet stand still). Standing agents play idle at its own rate. `scale`: the
     agents' sizes, which their strides grow with (the skinning shader scales the whole model)."""
-    stride = (m.walk_stride + run_t * (m.run_stride - m.walk_stride)) * scale
-    moving = np.maximum(speed, m.walk_slowest * walk) / stride
+    moving = np.maximum(speed, m.walk_slowest * walk) / blended_stride(m, run_t, scale)
     return np.where(speed > 0.0, moving, 1.0 / max(m.duration["idle"], 1e-3))
 
 
