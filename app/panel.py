@@ -24,6 +24,7 @@ AGENTS, TIME_SCALE, CROSSFADE = SETTINGS["agents"], SETTINGS["time_scale"], SETT
 CLIP_SPEED, WEIGHT, BAKE_FPS = SETTINGS["clip_speed"], SETTINGS["layer_weight"], SETTINGS["bake_fps"]
 LOD, LATENCY = SETTINGS["lod_distances"], SETTINGS["readback_latency"]
 PRECISIONS, INTERPOLATIONS = SETTINGS["precision"].choices, SETTINGS["interpolation"].choices
+BOUND = SETTINGS["compression_bound_mm"]
 CULL_PATHS = SETTINGS["cull"].choices
 
 HISTORY_SECONDS = 5.0
@@ -41,6 +42,7 @@ class Panel:
         self._source_rate = bake.fps == SOURCE_RATE
         self._bake_fps = BAKE_FPS.default if self._source_rate else float(bake.fps)
         self._precision, self._interpolation = bake.precision, session.pipeline.processor.interpolation
+        self._bound_mm = bake.bound_mm
         self._seed = session.pipeline.config.seed
         self._held = {layer: [False, 1.0] for layer in range(4)}
         self._weights_selected_only = False
@@ -203,15 +205,21 @@ class Panel:
             _, self._bake_fps = imgui.slider_float("bake fps", self._bake_fps, *BAKE_FPS.slider, "%.0f")
         _, index = imgui.combo("precision", PRECISIONS.index(self._precision), list(PRECISIONS))
         self._precision = PRECISIONS[index]
+        if self._precision == "compressed":
+            _, self._bound_mm = imgui.slider_float("bound (mm)", self._bound_mm, *BOUND.slider, "%.3f", imgui.SliderFlags_.logarithmic)
         _, index = imgui.combo("interpolation", INTERPOLATIONS.index(self._interpolation), list(INTERPOLATIONS))
         self._interpolation = INTERPOLATIONS[index]
         if imgui.button("re-bake"):
-            self.apply("rebake", SOURCE_RATE if self._source_rate else round(self._bake_fps), self._precision, self._interpolation)
+            self.apply("rebake", SOURCE_RATE if self._source_rate else round(self._bake_fps), self._precision, self._interpolation,
+                       self._bound_mm)
         imgui.same_line()
         if imgui.button("measure error"):
             self.apply("measure_error")
         rate = "source rate" if p.bake.fps == SOURCE_RATE else f"{p.bake.fps:g} fps"
         imgui.text(f"baked: {len(p.bake.clips)} clips at {rate}, {p.bake.precision}, {p.processor.interpolation}, {p.bake.nbytes:,} bytes")
+        if p.bake.compression is not None:
+            c = p.bake.compression
+            imgui.text(f"compressed {c['ratio']:.2f}:1 against f32, keys within {c['max_key_error_mm']:.3g} mm (bound {c['bound_mm']:g} mm)")
         if s.bake_error is not None:
             e = s.bake_error
             imgui.text(f"shell error against float64: max {e['max_error_mm']:.3g} mm, p99 {e['p99_error_mm']:.3g} mm "

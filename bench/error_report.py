@@ -2,7 +2,8 @@
 extreme cases, measured on the GPU against the float64 reference.
 
 Each configuration is a bake rate (10, 15, 30, 60 fps or each clip's source rate), a storage (f32,
-f16) and an interpolation (crowd.anim.processor.INTERPOLATIONS). For each one:
+f16, or compressed at an error bound: "compressed@0.5" is 0.5 mm, bench.stability.parse_storage) and
+an interpolation (crowd.anim.processor.INTERPOLATIONS). For each one:
 
 - error: crowd.anim.accuracy's 3 cm shell error of the GPU processor's palette against the float64
   reference, over every clip of the built-in zombie and of each ``--model``: every clip alone at
@@ -14,7 +15,10 @@ f16) and an interpolation (crowd.anim.processor.INTERPOLATIONS). For each one:
   random samples (a search for the maximum would bias them);
 - cost: the processor's GPU ms (timer query around the dispatch, median) for two crowd sizes of the
   same kind of blends, in two passes over all configurations (the second in reverse order), and the
-  bytes of animation data on the GPU.
+  bytes of animation data on the GPU;
+- compressed rows also carry the bake's own report (``compression``: bytes, ratio to the f32 bake,
+  largest key error) and their stiff and extreme cases (``stability``), each case's bound raised by
+  the compression bound.
 
 The Pareto front and the default: configuration X beats Y when it is no less accurate, no slower
 (run times within TIE of each other count as equal; the pass-to-pass spread on the H100 is 10x smaller)
@@ -154,15 +158,21 @@ def run(args) -> int:
     from crowd.asset.gltf import load_character
     from crowd.frame import MAX_LAYERS
     from crowd.anim.processor import INTERPOLATIONS, AnimationProcessor
-    from .stability import run_cases
+    from .stability import parse_storage, run_cases
 
     if args.quick:  # the default configuration and the stability cases, small enough for CI (seconds on llvmpipe)
         from crowd.settings import DEFAULTS
 
-        args.rates, args.storage, args.interpolations = str(DEFAULTS["bake_fps"]), DEFAULTS["precision"], DEFAULTS["interpolation"]
+        args.rates, args.interpolations = str(DEFAULTS["bake_fps"]), DEFAULTS["interpolation"]
+        args.storage = f"{DEFAULTS['precision']},compressed@{DEFAULTS['compression_bound_mm']:g}"  # the default, and the compressed bake
         args.per_clip, args.blends, args.cost_agents, args.repeats = 50, 500, "1000,10000", 5
     rates = [SOURCE_RATE if r.strip() == SOURCE_RATE else float(r) for r in args.rates.split(",")]
     storages = args.storage.split(",")
+    for st in storages:
+        try:
+            parse_storage(st)
+        except ValueError as exc:
+            raise SystemExit(f"crowd-bench error: {exc}") from None
     interpolations = args.interpolations.split(",")
     for i in interpolations:
         if i not in INTERPOLATIONS:
@@ -191,7 +201,8 @@ def run(args) -> int:
         key = (m.name, rate, storage)
         if key not in bakes:
             try:
-                bakes[key] = bake(m.character.skeleton, m.clips, rate, storage)
+                precision, bound_mm = parse_storage(storage)
+                bakes[key] = bake(m.character.skeleton, m.clips, rate, precision, bound_mm=bound_mm)
             except BakeError as exc:
                 bakes[key] = exc
         return bakes[key]
@@ -212,12 +223,15 @@ def run(args) -> int:
         row["max_error_mm"] = max(s["max_error_mm"] for s in per_model.values())
         row["zombie_max_error_mm"] = per_model["zombie"]["max_error_mm"]
         row["bytes"] = per_model["zombie"]["bytes"]
+        zombie_bake = baked_for(models[0], rate, storage)
+        if not isinstance(zombie_bake, BakeError) and zombie_bake.compression is not None:
+            row["compression"] = zombie_bake.compression
         row["models"] = per_model
         if skipped:
             row["skipped"] = skipped
         rows.append(row)
         timings[len(rows) - 1] = []
-        print(f"{_rate_label(rate):>10} {storage} {interp:<12} max {row['max_error_mm']:9.4f} mm  p99 {row['p99_error_mm']:8.4f} mm  "
+        print(f"{_rate_label(rate):>10} {storage:>4} {interp:<12} max {row['max_error_mm']:9.4f} mm  p99 {row['p99_error_mm']:8.4f} mm  "
               f"<1mm {row['share_under_1mm']:.4f}  <0.1mm {row['share_under_0_1mm']:.4f}  {row['bytes']:>9,} B  max at {_where(row['worst'])}")
 
     # Cost: two passes, the second in reverse order, so drift on the machine shows as spread.
@@ -257,6 +271,10 @@ def run(args) -> int:
     for k, row in enumerate(rows):
         row["pareto"] = k in front
         row["default"] = k == default
+    # The compressed bake is a new path: its stiff and extreme cases run whether or not it is the default.
+    for k, row in enumerate(rows):
+        if row.get("compression") is not None and not args.no_stability:
+            row["stability"] = stability if k == default else run_cases(ctx, zombie, row["interpolation"], row["bake_fps"], row["storage"], hours=args.hours)
     print(f"\n{'rate':>10} {'stor':>4} {'interp':<12} {'max mm':>9} {'p99 mm':>9} {'<1mm':>7} {'<0.1mm':>7} {'ms ' + str(cost_agents[0]):>10} "
           f"{'ms ' + str(cost_agents[1]):>11} {'spread':>7} {'bytes':>9} {'':8} max at")
     for row in rows:
@@ -269,6 +287,14 @@ def run(args) -> int:
     if not measured:
         print(f"GPU ms not measured here: {info['gl_renderer']}'s timer queries answer 0 or 1 ns; the front and the default are by error "
               "and bytes")
+    for row in rows:
+        if row.get("compression") is not None:
+            c = row["compression"]
+            print(f"compressed ({_rate_label(row['bake_fps'])}, {row['storage']}, {row['interpolation']}): {c['bytes']:,} B, {c['ratio']:.2f}:1 "
+                  f"against f32 ({c['f32_bytes']:,} B), keys within {c['max_key_error_mm']:.4f} mm of the bound {c['bound_mm']:g} mm "
+                  f"(at {c['worst']}); max over searched phases and blends {row['max_error_mm']:.4f} mm")
+            for case in [] if row["default"] else row.get("stability", []):  # the default's cases are printed below
+                print(f"  {'pass' if case['passed'] else 'FAIL'} {case['case']:<34} max {case['max_error_mm']:.3g} mm (bound {case['bound_mm']:.3g} mm)")
     for r in rejected:
         print(f"not the default: {_rate_label(r['bake_fps'])} {r['storage']} {r['interpolation']} fails {'; '.join(r['failed'])}")
     if default is None:

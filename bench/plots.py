@@ -105,7 +105,10 @@ def error_plot(report: dict, path: Path, size: tuple[int, int] = (1600, 1000)) -
         implot.set_next_line_style(imgui.ImVec4(0.6, 0.0, 0.0, 1.0), 2.0)
         implot.plot_inf_lines(f"{target:g} mm target", np.array([target]))
         for interp, color in COLORS.items():
-            for storage, marker in (("f32", implot.Marker_.circle), ("f16", implot.Marker_.square)):
+            storages = sorted({r["storage"] for r in rows if r["interpolation"] == interp})
+            markers = {"f32": implot.Marker_.circle, "f16": implot.Marker_.square}  # compressed bakes (one per bound): triangles
+            for storage in storages:
+                marker = markers.get(storage, implot.Marker_.up)
                 idx = [i for i, r in enumerate(rows) if r["interpolation"] == interp and r["storage"] == storage]
                 if not idx:
                     continue

@@ -55,6 +55,7 @@ class PipelineConfig:
     roles: dict = field(default_factory=dict)
     bake_fps: float | str = DEFAULTS["bake_fps"]  # or "source": each clip at its own key rate
     precision: str = DEFAULTS["precision"]
+    compression_bound_mm: float = DEFAULTS["compression_bound_mm"]  # the compressed bake's error bound (precision "compressed")
     interpolation: str = DEFAULTS["interpolation"]
     processor_path: str = DEFAULTS["processor"]
     shadows: bool = DEFAULTS["shadows"]
@@ -92,7 +93,7 @@ class CrowdPipeline(GLStage):
         self.character = load_character(config.model, scale=SETTINGS["model_scale"].check(config.model_scale, PipelineError))
         self.roles, self.role_notes = match_roles(self.character.clips, config.roles)
         # Leave out what the scene does not need: only the clips the roles play are baked.
-        self.bake = bake_roles(self.character, self.roles, config.bake_fps, config.precision)
+        self.bake = bake_roles(self.character, self.roles, config.bake_fps, config.precision, config.compression_bound_mm)
         self.latency = SETTINGS["readback_latency"].check(config.readback_latency, PipelineError)
         self.clip_speed: dict[str, float] = {}  # clip name → playback speed (time scale), where not 1
         self.motion = motion_for(self.character, self.bake, self.roles)
@@ -223,12 +224,13 @@ class CrowdPipeline(GLStage):
         self.ai.set_config(config)
         self.config = dataclasses.replace(self.config, ai=self.ai.config)
 
-    def rebake(self, fps: float | str, precision: str, interpolation: str | None = None) -> None:
-        """Bake the scene's clips again at another rate or precision, or process them with another
-        interpolation, live: a new bake and processor replace the old ones (released), and the crowd
-        keeps its state."""
+    def rebake(self, fps: float | str, precision: str, interpolation: str | None = None, bound_mm: float | None = None) -> None:
+        """Bake the scene's clips again at another rate, precision or compression bound, or process them
+        with another interpolation, live: a new bake and processor replace the old ones (released), and
+        the crowd keeps its state."""
         interpolation = self.config.interpolation if interpolation is None else interpolation
-        bake = bake_roles(self.character, self.roles, fps, precision)
+        bound_mm = self.config.compression_bound_mm if bound_mm is None else bound_mm
+        bake = bake_roles(self.character, self.roles, fps, precision, bound_mm)
         for i, clip in enumerate(bake.clips):  # loop settings made in the panel survive the re-bake
             old = next((c for c in self.bake.clips if c.name == clip.name), None)
             if old is not None:
@@ -236,7 +238,8 @@ class CrowdPipeline(GLStage):
         spec = dataclasses.replace(self._spec(), interpolation=interpolation)
         self.stages.replace("processor", build_processor(self.ctx, bake, spec, self.agents))
         self.bake = bake
-        self.config = dataclasses.replace(self.config, bake_fps=bake.fps, precision=precision, interpolation=interpolation)
+        self.config = dataclasses.replace(self.config, bake_fps=bake.fps, precision=precision, interpolation=interpolation,
+                                          compression_bound_mm=bake.bound_mm)
         self.sync.reset()
         if self.readback is not None:
             self.readback.reset()

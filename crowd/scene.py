@@ -5,7 +5,7 @@ baked), the AI's settings, the features it switches on (weapons, shadows, LOD, c
 
     [scene]        name, model ("" = the built-in zombie; relative paths are from the scene's folder),
                    and the ``scene`` settings (agents, seed)
-    [clips]        the ``clips`` settings (bake_fps, precision, interpolation), and
+    [clips]        the ``clips`` settings (bake_fps, precision, compression_bound_mm, interpolation), and
                    roles = { walk = "shamble", ... }, speed = { shamble = 1.2, ... } (playback speed),
                    loop = { attack = true, ... }
     [features]     the ``features`` settings (weapons, readback_latency, shadows, culling, occlusion,
@@ -59,6 +59,7 @@ class Scene:
     seed: int = DEFAULTS["seed"]
     bake_fps: float | str = DEFAULTS["bake_fps"]  # or "source"
     precision: str = DEFAULTS["precision"]
+    compression_bound_mm: float = DEFAULTS["compression_bound_mm"]
     interpolation: str = DEFAULTS["interpolation"]
     roles: dict = field(default_factory=dict)
     clip_speed: dict = field(default_factory=dict)  # clip name → playback speed
@@ -104,7 +105,7 @@ class Scene:
 
     def pipeline_config(self) -> PipelineConfig:
         return PipelineConfig(agents=self.agents, seed=self.seed, model=self.model, model_scale=self.model_scale, roles=dict(self.roles), bake_fps=self.bake_fps,
-                              precision=self.precision, interpolation=self.interpolation, processor_path=self.processor, shadows=self.shadows, culling=self.culling,
+                              precision=self.precision, compression_bound_mm=self.compression_bound_mm, interpolation=self.interpolation, processor_path=self.processor, shadows=self.shadows, culling=self.culling,
                               occlusion=self.occlusion, lod_distances=tuple(self.lod_distances), ai=self.ai, weapons=self.weapons,
                               readback_latency=self.readback_latency, cull=self.cull)
 

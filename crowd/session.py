@@ -172,15 +172,17 @@ class CrowdSession(GLStage):
 
     # -- rendering features
 
-    def rebake(self, fps: float | str, precision: str, interpolation: str | None = None) -> None:
-        """Bake again at another rate ("source": each clip at its own key rate) or precision, or process
-        with another interpolation."""
+    def rebake(self, fps: float | str, precision: str, interpolation: str | None = None, bound_mm: float | None = None) -> None:
+        """Bake again at another rate ("source": each clip at its own key rate), precision or compression
+        bound, or process with another interpolation."""
         fps = SETTINGS["bake_fps"].check(fps, SessionError)
         SETTINGS["precision"].check(precision, SessionError)
         if interpolation is not None:
             SETTINGS["interpolation"].check(interpolation, SessionError)
+        if bound_mm is not None:
+            bound_mm = SETTINGS["compression_bound_mm"].check(bound_mm, SessionError)
         try:
-            self.pipeline.rebake(fps, precision, interpolation)
+            self.pipeline.rebake(fps, precision, interpolation, bound_mm)
         except BakeError as exc:
             raise SessionError(str(exc)) from None
         self.bake_error = None
@@ -244,6 +246,7 @@ class CrowdSession(GLStage):
             "agents": self.set_agent_count, "seed": self.set_seed, "time_scale": self.set_time_scale,
             "bake_fps": lambda v: self.rebake(v, bake.precision), "precision": lambda v: self.rebake(bake.fps, v),
             "interpolation": lambda v: self.rebake(bake.fps, bake.precision, v), "processor": self.set_processor_path,
+            "compression_bound_mm": lambda v: self.rebake(bake.fps, bake.precision, bound_mm=v),
             "shadows": self.set_shadows, "culling": self.set_culling, "occlusion": self.set_occlusion, "weapons": self.set_weapons,
             "lod_distances": lambda v: self.set_lod_distances(*SETTINGS["lod_distances"].check(v, SessionError)),
             "readback_latency": self.set_readback_latency, "cull": self.set_cull_path,
@@ -363,7 +366,7 @@ class CrowdSession(GLStage):
         authored = {c.name: c.loop for c in p.character.clips if c.name in bake_loops}
         return dataclasses.replace(
             self.scene, agents=p.agents, seed=p.config.seed, bake_fps=p.bake.fps, precision=p.bake.precision,
-            interpolation=p.processor.interpolation,
+            compression_bound_mm=p.bake.bound_mm, interpolation=p.processor.interpolation,
             roles=dict(p.config.roles), clip_speed=dict(p.clip_speed),
             clip_loop={k: v for k, v in bake_loops.items() if authored.get(k) != v}, ai=p.ai.config,
             weapons=p.config.weapons, readback_latency=p.latency, shadows=p.renderer.shadows, culling=p.renderer.culling, occlusion=p.config.occlusion,

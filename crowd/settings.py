@@ -202,7 +202,12 @@ _ALL = (
     # the bake
     Setting("bake_fps", "clips", "rate", 30.0, f'bake rate in frames per second, or "{SOURCE_RATE}": each clip at its own key rate',
             label="bake rate", low=1, high=240, slider=(5, 60)),
-    Setting("precision", "clips", "choice", "f32", "storage of the animation texture", choices=("f32", "f16")),
+    Setting("precision", "clips", "choice", "f32",
+            "storage of the animation texture: f32, f16, or compressed (each track quantised to its own range, within compression_bound_mm)",
+            choices=("f32", "f16", "compressed")),
+    Setting("compression_bound_mm", "clips", "float", 0.5,
+            "millimetres: the largest error the compressed bake may add at any key (ACL's 3 cm shell); only with precision compressed",
+            label="compression bound", low=0.001, high=100, slider=(0.01, 2.0)),
     Setting("interpolation", "clips", "choice", "qt_corrected",
             "how keys are sampled and layers blended (docs/BENCHMARKS.md says why the default is the default)",
             choices=("dq_lerp", "qt_lerp", "qt_corrected", "qt_cubic")),

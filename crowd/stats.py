@@ -55,7 +55,7 @@ def pipeline_stats(pipeline) -> dict:
         "layers": p.processor.layer_count,
         "bake": {"fps": p.bake.fps, "precision": p.bake.precision, "interpolation": p.processor.interpolation,
                  "clips": [c.name for c in p.bake.clips],
-                 "rows": p.bake.rows, "bytes": p.bake.nbytes},
+                 "rows": p.bake.rows, "bytes": p.bake.nbytes, "compression": p.bake.compression},
         "roles": p.roles,
         "ai": {"states": p.ai.counts(), "player_hits_taken": p.ai.player_hits_taken, "faults": p.ai.check(),
                "notes": list(p.motion.notes),

@@ -38,7 +38,7 @@ void main() {
         m = compose(Affine(s_local0[base + p], s_local1[base + p], s_local2[base + p]), m);
         p = parent_of(p);
     }
-    m = compose(m, stored_affine(joint, 0));  // row 0 holds the inverse bind pose
+    m = compose(m, stored_affine(joint, 0, 0));  // row 0 holds the inverse bind pose
     int y = agent / u_agents_per_row + u_row_offset;
     int layer = y / u_palette_rows;
     ivec3 texel = ivec3((agent % u_agents_per_row) * u_joints + joint, y - layer * u_palette_rows, layer);

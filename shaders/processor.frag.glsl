@@ -23,7 +23,7 @@ void main() {
         m = compose(blended_local(agent, p), m);
         p = parent_of(p);
     }
-    m = compose(m, stored_affine(joint, 0));  // row 0 holds the inverse bind pose
+    m = compose(m, stored_affine(joint, 0, 0));  // row 0 holds the inverse bind pose
     o_row0 = m.r0;
     o_row1 = m.r1;
     o_row2 = m.r2;

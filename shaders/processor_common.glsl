@@ -3,11 +3,17 @@
 // Its float64 twin is crowd.anim.processor.reference_palette: change one, change the other.
 //
 // Defines set by crowd/anim/processor.py: LAYERS (1..4), REST_THRESHOLD, HAS_SCALE (joint scale texture
-// exists), HAS_MASKS (joint mask texture exists), MAX_JOINTS, and the interpolation:
+// exists), HAS_MASKS (joint mask texture exists), MAX_JOINTS, COMPRESSED (the clips' keys are packed
+// words, crowd.anim.compress, and u_anim holds only the inverse bind and rest rows), and the interpolation:
 // none (dq_lerp), INTERPOLATION_QT (qt_lerp), INTERPOLATION_QT with INTERPOLATION_CORRECTED and its SLERP_FIT_A and
 // SLERP_FIT_B (qt_corrected), or INTERPOLATION_QT with INTERPOLATION_CUBIC (qt_cubic).
 
 uniform sampler2D u_anim;        // AnimationTexture (2J, rows): texel 2j = real, 2j+1 = dual of joint j
+#ifdef COMPRESSED
+uniform usampler2D u_keys;       // packed key words, u_key_width a row (crowd.anim.compress)
+uniform usampler2D u_tracks;     // (4J, clips): four RGBA32UI texels of track headers per (clip, joint)
+uniform int u_key_width;
+#endif
 #ifdef HAS_SCALE
 uniform sampler2D u_anim_scale;  // (J, rows): uniform joint scale per frame
 #endif
@@ -20,7 +26,8 @@ uniform sampler2D u_layers;      // (LAYERS * agents_per_row, rows): clip, phase
 uniform int u_joints;
 uniform int u_agents;
 uniform int u_agents_per_row;
-uniform int u_rest_row;
+uniform int u_rest_row;        // the rest pose's row of u_anim
+uniform int u_rest_scale_row;  // and of u_anim_scale (a compressed bake's u_anim has two rows only)
 
 // Rows of an affine 3x4 matrix.
 struct Affine {
@@ -68,22 +75,93 @@ float joint_scale(int joint, int row) {
 #endif
 }
 
-// A stored key as it is (the inverse bind pose in row 0, the rest pose in the last row), made unit
+// A stored key as it is (the inverse bind pose in row 0, the rest pose in row u_rest_row), made unit
 // first: f16 keys are unit only to within about 1e-3, which at 1 m from the origin is a millimetre.
-Affine stored_affine(int joint, int row) {
+Affine stored_affine(int joint, int row, int scale_row) {
     vec4 r = texelFetch(u_anim, ivec2(2 * joint, row), 0);
     float inv = 1.0 / length(r);
-    return dq_affine(r * inv, texelFetch(u_anim, ivec2(2 * joint + 1, row), 0) * inv, joint_scale(joint, row));
+    return dq_affine(r * inv, texelFetch(u_anim, ivec2(2 * joint + 1, row), 0) * inv, joint_scale(joint, scale_row));
 }
 
 int parent_of(int joint) {
     return texelFetch(u_parents, ivec2(joint, 0), 0).x;
 }
 
+#ifdef COMPRESSED
+uint key_word(int index) {
+    int y = index / u_key_width;
+    return texelFetch(u_keys, ivec2(index - y * u_key_width, y), 0).x;
+}
+
+// Field `bit` (< 64) of `bits` (1..20) bits of the 64-bit value hi:lo.
+uint key_field(uint lo, uint hi, int bit, uint mask) {
+    if (bit >= 32) return (hi >> uint(bit - 32)) & mask;
+    uint low_part = lo >> uint(bit);
+    return (bit == 0 ? low_part : low_part | (hi << uint(32 - bit))) & mask;
+}
+
+// Key `key` of a track: its three components low + k * step, the k packed `bits` bits each after
+// `lead` bits (2 where each key names its own dropped component, in `index`; else 0), key after key
+// from the track's first word (crowd.anim.compress's format).
+vec3 track_key(uvec4 low, uvec4 step, uint meta, int key, int lead, out uint index) {
+    int bits = int(meta & 31u);
+    vec3 v = uintBitsToFloat(low.xyz);
+    index = 0u;
+    if (bits == 0) return v;  // a constant track
+    int key_bits = 3 * bits + lead;
+    int bit = key * key_bits;
+    int word = int(meta >> 8u) + (bit >> 5);
+    int shift = bit & 31;
+    uint w0 = key_word(word);
+    uint w1 = key_word(word + 1);
+    uint lo = shift == 0 ? w0 : (w0 >> uint(shift)) | (w1 << uint(32 - shift));
+    uint hi = w1 >> uint(shift);
+    if (shift + key_bits > 64) hi |= key_word(word + 2) << uint(32 - shift);  // shift >= 2 here
+    uint mask = (1u << uint(bits)) - 1u;
+    index = lo & 3u;
+    uvec3 k = uvec3(key_field(lo, hi, lead, mask), key_field(lo, hi, lead + bits, mask), key_field(lo, hi, lead + 2 * bits, mask));
+    return v + vec3(k) * uintBitsToFloat(step.xyz);
+}
+
+// Key `key` of joint `joint` in clip `clip`: its rotation (unit, the dropped component rebuilt >= 0)
+// and translation.
+void compressed_key(int clip, int joint, int key, out vec4 r, out vec3 t) {
+    uvec4 h0 = texelFetch(u_tracks, ivec2(4 * joint, clip), 0);
+    uvec4 h1 = texelFetch(u_tracks, ivec2(4 * joint + 1, clip), 0);
+    uint drop = (h0.w >> 5u) & 7u;
+    uint own;
+    vec3 v = track_key(h0, h1, h0.w, key, drop == PER_KEY ? 2 : 0, own);
+    if (drop == PER_KEY) drop = own;
+    float c = sqrt(max(1.0 - dot(v, v), 0.0));
+    r = drop == 3u ? vec4(v, c) : drop == 2u ? vec4(v.xy, c, v.z) : drop == 1u ? vec4(v.x, c, v.yz) : vec4(c, v);
+    r *= inversesqrt(dot(r, r));
+    uvec4 h2 = texelFetch(u_tracks, ivec2(4 * joint + 2, clip), 0);
+    t = (h1.w & 31u) == 0u ? uintBitsToFloat(h2.xyz) : track_key(h2, texelFetch(u_tracks, ivec2(4 * joint + 3, clip), 0), h1.w, key, 0, own);
+}
+#endif
+
+// Key `key` of clip `clip` (at texture row `row` of an uncompressed bake) of joint `joint`, as a dual
+// quaternion (real, dual): stored as it is, or rebuilt from a compressed key.
+void key_dq(int clip, int joint, int row, int key, out vec4 r, out vec4 d) {
+#ifdef COMPRESSED
+    vec3 t;
+    compressed_key(clip, joint, key, r, t);
+    d = 0.5 * vec4(t.x * r.w + t.y * r.z - t.z * r.y, -t.x * r.z + t.y * r.w + t.z * r.x, t.x * r.y - t.y * r.x + t.z * r.w, -dot(t, r.xyz));
+#else
+    r = texelFetch(u_anim, ivec2(2 * joint, row), 0);
+    d = texelFetch(u_anim, ivec2(2 * joint + 1, row), 0);
+#endif
+}
+
 #ifdef INTERPOLATION_QT
-// Translation of a stored key; f16 keys are not exactly unit, hence the division by |r|^2.
-vec3 key_translation(vec4 r, vec4 d) {
-    return dq_translation(r, d) / dot(r, r);
+// The same key as rotation and translation; f16 keys are not exactly unit, hence the division by |r|^2.
+void key_rt(int clip, int joint, int row, int key, out vec4 r, out vec3 t) {
+#ifdef COMPRESSED
+    compressed_key(clip, joint, key, r, t);
+#else
+    r = texelFetch(u_anim, ivec2(2 * joint, row), 0);
+    t = dq_translation(r, texelFetch(u_anim, ivec2(2 * joint + 1, row), 0)) / dot(r, r);
+#endif
 }
 #endif
 
@@ -111,20 +189,27 @@ vec4 catmull_rom(vec4 p0, vec4 p1, vec4 p2, vec4 p3, float u) {
 // `second` is the dual part. qt_lerp / qt_cubic: each key split into rotation and translation, the
 // rotation nlerped (or Catmull-Rom'd) and made unit, the translation lerped; `second` is (t, 0).
 void sample_layer(vec4 layer, int joint, out vec4 real, out vec4 second, out float scale) {
-    vec4 info = texelFetch(u_clips, ivec2(int(layer.x), 0), 0);
+    int clip = int(layer.x);
+    vec4 info = texelFetch(u_clips, ivec2(clip, 0), 0);
     bool looping = info.w > 0.5;
     float phase = looping ? fract(layer.y) : clamp(layer.y, 0.0, 1.0);
     float f = phase * (info.y - 1.0);
     float i0 = clamp(floor(f), 0.0, info.y - 2.0);
     float u = f - i0;
-    int row = int(info.x + i0);
-    vec4 r1 = texelFetch(u_anim, ivec2(2 * joint, row), 0);
-    vec4 d1 = texelFetch(u_anim, ivec2(2 * joint + 1, row), 0);
-    vec4 r2 = texelFetch(u_anim, ivec2(2 * joint, row + 1), 0);
-    vec4 d2 = texelFetch(u_anim, ivec2(2 * joint + 1, row + 1), 0);
+    int key = int(i0);
+    int row = int(info.x) + key;
     float s1 = joint_scale(joint, row);
     float s2 = joint_scale(joint, row + 1);
 #if !defined(INTERPOLATION_QT)
+    vec4 r1, d1, r2, d2;
+    key_dq(clip, joint, row, key, r1, d1);
+    key_dq(clip, joint, row + 1, key + 1, r2, d2);
+#ifdef COMPRESSED
+    if (dot(r1, r2) < 0.0) {  // compressed keys carry the sign of their rebuilt component, not the track's
+        r2 = -r2;
+        d2 = -d2;
+    }
+#endif
     real = r1 + (r2 - r1) * u;
     // Aligned unit keys have a non-negative dot product, so |real| >= sqrt(1/2) here.
     float inv = 1.0 / length(real);
@@ -132,23 +217,28 @@ void sample_layer(vec4 layer, int joint, out vec4 real, out vec4 second, out flo
     second = (d1 + (d2 - d1) * u) * inv;
     scale = s1 + (s2 - s1) * u;
 #else
-    vec3 t1 = key_translation(r1, d1);
-    vec3 t2 = key_translation(r2, d2);
+    vec4 r1, r2;
+    vec3 t1, t2;
+    key_rt(clip, joint, row, key, r1, t1);
+    key_rt(clip, joint, row + 1, key + 1, r2, t2);
+#ifdef COMPRESSED
+    if (dot(r1, r2) < 0.0) r2 = -r2;  // compressed keys carry the sign of their rebuilt component, not the track's
+#endif
 #ifdef INTERPOLATION_CUBIC
     // The outer keys: around a loop, frame 0's predecessor is frame count - 2 (the closing frame
     // repeats frame 0) and the closing frame's successor is frame 1; a one-shot clip extrapolates.
     int first = int(info.x);
     int last = int(info.y) - 1;
-    bool at_start = row == first;
-    bool at_end = row + 1 == first + last;
-    int prev_row = at_start ? (looping ? first + last - 1 : row) : row - 1;
-    int next_row = at_end ? (looping ? first + 1 : row + 1) : row + 2;
-    vec4 r0 = texelFetch(u_anim, ivec2(2 * joint, prev_row), 0);
-    vec4 r3 = texelFetch(u_anim, ivec2(2 * joint, next_row), 0);
-    vec3 t0 = key_translation(r0, texelFetch(u_anim, ivec2(2 * joint + 1, prev_row), 0));
-    vec3 t3 = key_translation(r3, texelFetch(u_anim, ivec2(2 * joint + 1, next_row), 0));
-    float s0 = joint_scale(joint, prev_row);
-    float s3 = joint_scale(joint, next_row);
+    bool at_start = key == 0;
+    bool at_end = key + 1 == last;
+    int prev_key = at_start ? (looping ? last - 1 : key) : key - 1;
+    int next_key = at_end ? (looping ? 1 : key + 1) : key + 2;
+    vec4 r0, r3;
+    vec3 t0, t3;
+    key_rt(clip, joint, first + prev_key, prev_key, r0, t0);
+    key_rt(clip, joint, first + next_key, next_key, r3, t3);
+    float s0 = joint_scale(joint, first + prev_key);
+    float s3 = joint_scale(joint, first + next_key);
     // Keys across the loop seam may hold the other sign (a joint that spins a full turn).
     if (dot(r0, r1) < 0.0) r0 = -r0;
     if (dot(r3, r2) < 0.0) r3 = -r3;
@@ -235,7 +325,7 @@ Affine blended_local(int agent, int joint) {
             scale[l] = 0.0;
         }
     }
-    if (!(total > 0.0) || total < REST_THRESHOLD * layer_sum) return stored_affine(joint, u_rest_row);
+    if (!(total > 0.0) || total < REST_THRESHOLD * layer_sum) return stored_affine(joint, u_rest_row, u_rest_scale_row);
     // The anchor's parts, picked last to first with constant indices: no array is indexed by a value
     // known only at run time, which would put the arrays in slow local memory.
     vec4 anchor_real = real[LAYERS - 1];

@@ -144,11 +144,16 @@ def test_crowd_bench_error_quick_runs_the_default_and_the_stability_cases(tmp_pa
     out = tmp_path / "quick.json"
     assert bench_main(["error", "--quick", "--json", str(out)]) == 0
     report = json.loads(out.read_text())
-    (row,) = report["rows"]
+    row, packed = report["rows"]
     assert (row["bake_fps"], row["storage"], row["interpolation"]) == (30.0, "f32", "qt_corrected") and row["default"]
     assert len(report["stability"]) == 9 and all(c["passed"] for c in report["stability"])
     # ACL's bar: 0.1 mm on the 3 cm shell, searched for; qt_lerp's nlerp had 0.485 mm at the attack's hand_r_socket.
     assert row["max_error_mm"] < 0.1 and all(v < 0.1 for v in row["models"]["zombie"]["per_clip_max_mm"].values())
+    # The compressed bake at its default bound, with its own stiff cases (bounds raised by 0.5 mm).
+    assert packed["storage"] == "compressed@0.5" and not packed["default"] and packed["compression"]["ratio"] >= 8.0
+    assert packed["max_error_mm"] <= 0.5 and packed["bytes"] * 8 < row["bytes"]
+    assert len(packed["stability"]) == 9 and all(c["passed"] for c in packed["stability"])
+    assert all("raised by the compression bound, 0.5 mm" in c["detail"] for c in packed["stability"])
 
 
 def test_crowd_bench_error_refuses_unknown_interpolations(capsys):

@@ -33,8 +33,8 @@ from ..asset.model import Clip, Skeleton
 from .bake import AnimationBake
 from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, empty_layers
 from .processor import DEFAULT_INTERPOLATION, AnimationProcessor
+from .shell import SHELL_M, shell_error, shell_points  # noqa: F401  (part of this module's contract)
 
-SHELL_M = 0.03
 # The maximum search over one clip's phase (ClipMaxima). Seeds: 240 per second of clip, 8 between two
 # 30 fps keys, and at least SEEDS_PER_KEY between two of the clip's own keys (so a clip keyed at 120 fps
 # gets 4 too), at most MAX_SEEDS a clip; nlerp against slerp peaks twice between two keys (near a
@@ -143,23 +143,6 @@ def measure_gpu(ctx, skeleton: Skeleton, bake: AnimationBake, layers: np.ndarray
                 interpolation: str = DEFAULT_INTERPOLATION, path: str = "auto", masks=None) -> np.ndarray:
     """(P, J, 6) shell errors of the GPU processor's palette for `layers`, against the float64 truth."""
     return shell_error(gpu_palette(ctx, bake, layers, interpolation, path, masks), truth_matrices, shell_points(skeleton))
-
-
-def shell_points(skeleton: Skeleton, radius: float = SHELL_M) -> np.ndarray:
-    """(J, 6, 4) homogeneous bind-space points: each joint's position ± radius along its bind axes."""
-    bind = np.linalg.inv(skeleton.inverse_bind)  # (J, 4, 4) joint → model space at bind time
-    axes = bind[:, :3, :3] / np.linalg.norm(bind[:, :3, :3], axis=1, keepdims=True)  # unit columns
-    offsets = np.concatenate([axes, -axes], axis=2).transpose(0, 2, 1) * radius  # (J, 6, 3)
-    points = np.ones((skeleton.joint_count, 6, 4))
-    points[..., :3] = bind[:, None, :3, 3] + offsets
-    return points
-
-
-def shell_error(palette: np.ndarray, truth_matrices: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(P, J, 6) metres between the shell points skinned by `palette` ((P, J, 3, 4) rows, any float)
-    and by the float64 truth ((P, J, 3|4, 4))."""
-    delta = np.asarray(palette, np.float64)[..., :3, :] - np.asarray(truth_matrices, np.float64)[..., :3, :]
-    return np.linalg.norm(np.einsum("pjrc,jkc->pjkr", delta, points), axis=-1)
 
 
 def summarise(errors_m: np.ndarray) -> dict:

@@ -22,6 +22,12 @@ Quaternius' hedgehog) gets ``scale``: (rows, J) uniform scale per joint and fram
 it get ``scale = None``, and no scale texture exists. Non-uniform joint scale is approximated by its
 geometric mean, and the bake says so in ``warnings``.
 
+Compressed: with precision "compressed" the clips' keys are quantised per track to the error bound
+``bound_mm`` (crowd.anim.compress says how): ``packed`` holds what the GPU decodes, ``texels`` the
+float64 decode of the same keys (the processor's twin reads it; only its rows 0 and ``rest_row`` are
+uploaded), and ``compression`` reports the bytes, the ratio to the f32 bake and the largest key error.
+Joint scale, where a character has it, stays an f32 texture.
+
 Storage error: every bake measures what its storage (f16 or f32) does to the keys it stores
 (``storage_error``: each joint skinned by the rounded keys against the float64 keys, at every stored
 frame) and warns where that exceeds STORAGE_WARN_M (1 mm), naming the joint, clip and frame, with what
@@ -36,11 +42,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import reference
+from .compress import MAX_BITS, CompressedKeys, compress
 from .. import transforms as tf
 from ..asset.model import Clip, ModelError, Skeleton
 from ..settings import DEFAULTS, SETTINGS, SOURCE_RATE
 
-PRECISIONS = dict(zip(SETTINGS["precision"].choices, (np.float32, np.float16)))
+PRECISIONS = {"f32": np.float32, "f16": np.float16}  # texture storage; "compressed" stores crowd.anim.compress's words
+COMPRESSED = "compressed"
+DEFAULT_BOUND_MM = DEFAULTS["compression_bound_mm"]
 # The default rate, chosen by `crowd-bench error` (docs/BENCHMARKS.md) with the processor's default
 # interpolation: the cheapest configuration that keeps the built-in zombie within 1 mm. Its clips have
 # 30 keys per second; at 15 fps the attack swing is 97 mm off.
@@ -78,6 +87,10 @@ class AnimationBake:
     fps: float | str  # the asked rate, or SOURCE_RATE (each ClipInfo has the actual rate)
     precision: str
     warnings: list[str] = field(default_factory=list)
+    # precision "compressed": the packed keys the GPU decodes; `texels` then holds their float64 decode
+    # (the processor's twin reads it) and only its rows 0 and rest_row reach the GPU.
+    packed: CompressedKeys | None = None
+    bound_mm: float = DEFAULT_BOUND_MM  # the compression bound asked (kept for a later re-bake; used when compressed)
 
     @property
     def joint_count(self) -> int:
@@ -97,9 +110,36 @@ class AnimationBake:
         return np.array([[c.first_row, c.frame_count, c.fps, float(c.loop)] for c in self.clips], dtype=np.float32).reshape(-1, 4)
 
     @property
+    def gpu_texels(self) -> np.ndarray:
+        """The DQ texture's rows as uploaded: every row, or for a compressed bake the inverse bind and the rest pose."""
+        if self.packed is None:
+            return self.texels
+        return self.texels[[0, self.rest_row]].astype(np.float32)
+
+    @property
     def nbytes(self) -> int:
-        """Bytes of animation data on the GPU: DQ texture, scale texture if any, hierarchy, clip table."""
-        return int(self.texels.nbytes + (0 if self.scale is None else self.scale.nbytes) + self.parents.astype(np.int32).nbytes + self.clip_table.nbytes)
+        """Bytes of animation data on the GPU: DQ texture, packed keys if any, scale texture if any,
+        hierarchy, clip table."""
+        packed = 0 if self.packed is None else self.packed.nbytes
+        scale = 0 if self.scale is None else self.scale.nbytes
+        return int(self.gpu_texels.nbytes + packed + scale + self.parents.astype(np.int32).nbytes + self.clip_table.nbytes)
+
+    @property
+    def f32_nbytes(self) -> int:
+        """What the same bake takes in f32: the compression ratio's denominator."""
+        scale = 0 if self.scale is None else self.scale.size * 4
+        return int(self.texels.size * 4 + scale + self.parents.astype(np.int32).nbytes + self.clip_table.nbytes)
+
+    @property
+    def compression(self) -> dict | None:
+        """A compressed bake's bound, bytes, ratio to f32 and largest key error; None for f32 and f16."""
+        k = self.packed
+        if k is None:
+            return None
+        clip, key, joint = k.worst
+        return {"bound_mm": k.bound_m * 1e3, "max_key_error_mm": k.max_error_m * 1e3, "bytes": self.nbytes, "f32_bytes": self.f32_nbytes,
+                "ratio": self.f32_nbytes / self.nbytes, "worst": f"clip {self.clips[clip].name!r}, frame {key}, joint {self.joint_names[joint]!r}",
+                "mean_rotation_bits": float(k.rotation_bits.mean()), "mean_translation_bits": float(k.translation_bits.mean())}
 
     def clip_index(self, name: str) -> int:
         for i, c in enumerate(self.clips):
@@ -175,11 +215,14 @@ def _source_intervals(clip: Clip) -> int:
     return _intervals(clip.duration / min(steps))
 
 
-def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, precision: str = "f32", max_rows: int = MAX_ROWS) -> AnimationBake:
-    """Bake the given clips (only those: pass the scene's clips, not every clip of the file)."""
+def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, precision: str = "f32", max_rows: int = MAX_ROWS,
+         bound_mm: float = DEFAULT_BOUND_MM) -> AnimationBake:
+    """Bake the given clips (only those: pass the scene's clips, not every clip of the file). With
+    precision "compressed", `bound_mm` is the largest error the compression may add at a key."""
     skeleton.validate()
     SETTINGS["bake_fps"].check(fps, BakeError)
     SETTINGS["precision"].check(precision, BakeError)
+    bound_mm = SETTINGS["compression_bound_mm"].check(bound_mm, BakeError)
     names = [c.name for c in clips]
     if len(set(names)) != len(names):
         raise BakeError("the same clip is listed twice")
@@ -208,6 +251,7 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, 
     if needed > max_rows:
         raise BakeError(f"{needed} frames do not fit a {max_rows}-row texture: bake fewer clips or at a lower rate than {fps} fps")
     infos = []
+    clip_keys = []  # per clip (rotation, translation, scale) float64: the compressor's input
     row = 1
     for clip, n in zip(clips, intervals):
         phases = np.arange(n + 1, dtype=np.float64) / n
@@ -219,6 +263,7 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, 
         real_rows.append(qr)
         dual_rows.append(qd)
         scale_rows.append(_uniform_scale(pose.scale, f"clip {clip.name!r}", warnings))
+        clip_keys.append((qr, pose.translation, scale_rows[-1]))
         actual = n / clip.duration if clip.duration > 0 else (1.0 if fps == SOURCE_RATE else float(fps))
         infos.append(ClipInfo(clip.name, row, n + 1, actual, clip.loop, clip.duration))
         row += n + 1
@@ -236,7 +281,7 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, 
     texels[:, 0::2] = real
     texels[:, 1::2] = dual
     scale = np.concatenate(scale_rows)
-    dtype = PRECISIONS[precision]
+    dtype = PRECISIONS.get(precision, np.float32)
     if not np.all(np.isfinite(texels)) or not np.all(np.isfinite(scale)):
         raise BakeError("baked transforms hold NaN or Inf")
     if precision == "f16" and (np.max(np.abs(texels)) > 60000.0 or np.max(np.abs(scale)) > 60000.0):
@@ -245,6 +290,8 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, 
     needs_scale = deviation > SCALE_EPS
     if 1e-6 < deviation <= SCALE_EPS:
         warnings.append(f"joint scale deviates from 1 by at most {deviation:.2g}; treated as 1 (no scale texture)")
+    if precision == COMPRESSED:
+        return _compressed(skeleton, texels, scale if needs_scale else None, clip_keys, infos, fps, bound_mm, warnings)
     stored_scale = scale.astype(dtype) if needs_scale else None
     # Warn, not refuse: f16 is a deliberate trade of accuracy for half the bytes, and its floor on a
     # human-sized character is about the 1 mm target itself (the built-in zombie's f16 keys are 1.03 mm
@@ -269,7 +316,31 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, 
         fps=fps if fps == SOURCE_RATE else float(fps),
         precision=precision,
         warnings=warnings,
+        bound_mm=bound_mm,
     )
+
+
+def _compressed(skeleton: Skeleton, texels: np.ndarray, scale: np.ndarray | None, clip_keys, infos: list[ClipInfo], fps, bound_mm: float,
+                warnings: list[str]) -> AnimationBake:
+    """The compressed bake: the clips' keys packed within the bound (crowd.anim.compress); `texels`
+    keeps rows 0 and the rest row as they are, and the clips' rows become the packed keys' float64 decode."""
+    scale_of = [np.ones(k[0].shape[:2]) if scale is None else scale[i.first_row : i.first_row + i.frame_count] for k, i in zip(clip_keys, infos)]
+    try:
+        packed = compress(skeleton, [(q, t, s) for (q, t, _), s in zip(clip_keys, scale_of)], bound_mm * 1e-3)
+    except ValueError as exc:  # more keys than the track headers address
+        raise BakeError(str(exc)) from None
+    decoded = texels.copy()
+    for info, (q, t) in zip(infos, packed.decoded):
+        real, dual = tf.dq_from_rt(q, t)
+        decoded[info.first_row : info.first_row + info.frame_count, 0::2] = real
+        decoded[info.first_row : info.first_row + info.frame_count, 1::2] = dual
+    if packed.max_error_m > packed.bound_m:
+        clip, key, joint = packed.worst
+        warnings.append(f"compressed keys move joint {skeleton.names[joint]!r} {_length(packed.max_error_m)} (clip {infos[clip].name!r}, "
+                        f"frame {key}), more than the bound of {bound_mm:g} mm: {MAX_BITS} bits a component do not reach it")
+    return AnimationBake(joint_names=skeleton.names, parents=skeleton.parents.astype(np.int32).copy(), texels=decoded,
+                         scale=None if scale is None else scale.astype(np.float32), clips=infos, fps=fps if fps == SOURCE_RATE else float(fps),
+                         precision=COMPRESSED, warnings=warnings, packed=packed, bound_mm=bound_mm)
 
 
 def _length(metres: float) -> str:

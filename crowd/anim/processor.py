@@ -52,6 +52,7 @@ import numpy as np
 from .. import transforms as tf
 from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, validate_layers, validate_masks
 from .bake import AnimationBake
+from .compress import PER_KEY
 from ..gl import GLStage, gpu_bytes, has_compute, load_shader
 from ..settings import DEFAULTS, SETTINGS
 from .reference import CANCELLED_NORM, REST_THRESHOLD, aligned_sign
@@ -292,9 +293,17 @@ class AnimationProcessor(GLStage):
         self.layer_rows = 1  # texture rows per layer of the planes
         self.slot_layers = 1  # layers one ring slot spans
 
-        dtype = "f4" if bake.precision == "f32" else "f2"
-        self.anim_texture = self._texture("animation", (2 * jc, bake.rows), 4, bake.texels, dtype)
+        compressed = bake.packed is not None
+        dtype = "f2" if bake.precision == "f16" else "f4"
+        anim_rows = bake.gpu_texels
+        self.anim_texture = self._texture("animation", (2 * jc, anim_rows.shape[0]), 4, anim_rows, dtype)
         self.scale_texture = None if bake.scale is None else self._texture("animation", (jc, bake.rows), 1, bake.scale, dtype)
+        self.keys_texture = self.tracks_texture = None
+        if compressed:
+            words = bake.packed.word_texture
+            self.keys_texture = self._texture("animation", (words.shape[1], words.shape[0]), 1, words, "u4")
+            tracks = bake.packed.tracks  # (C, J, 4, 4)
+            self.tracks_texture = self._texture("animation", (4 * jc, tracks.shape[0]), 4, tracks, "u4")
         self.parents_texture = self._texture("animation", (jc, 1), 1, bake.parents.astype(np.int32), "i4")
         self.clips_texture = self._texture("animation", (len(bake.clips), 1), 4, bake.clip_table, "f4")
         self.masks_texture = None if self.masks is None else self._texture("animation", (jc, self.masks.shape[0]), 1, self.masks, "f4")
@@ -302,6 +311,9 @@ class AnimationProcessor(GLStage):
                    "MAX_JOINTS": MAX_JOINTS}
         if self.scale_texture is not None:
             defines["HAS_SCALE"] = 1
+        if compressed:
+            defines["COMPRESSED"] = 1
+            defines["PER_KEY"] = f"{PER_KEY}u"
         if self.masks_texture is not None:
             defines["HAS_MASKS"] = 1
         if interpolation != "dq_lerp":
@@ -317,14 +329,17 @@ class AnimationProcessor(GLStage):
         else:
             self.program = ctx.program(vertex_shader=load_shader("processor.vert.glsl"), geometry_shader=load_shader("processor.geom.glsl"),
                                        fragment_shader=load_shader("processor.frag.glsl", defines))
-        samplers = {"u_anim": 0, "u_parents": 1, "u_clips": 2, "u_layers": 3, "u_anim_scale": 4, "u_masks": 5}
+        samplers = {"u_anim": 0, "u_parents": 1, "u_clips": 2, "u_layers": 3, "u_anim_scale": 4, "u_masks": 5, "u_keys": 6, "u_tracks": 7}
         for name, unit in samplers.items():
             if name in self.program:
                 self.program[name] = unit
         self._set("u_joints", jc)
         self._set("u_agents_per_row", self.agents_per_row)
         self._set("u_agents_per_group", self.agents_per_group)
-        self._set("u_rest_row", bake.rest_row)
+        self._set("u_rest_row", anim_rows.shape[0] - 1)
+        self._set("u_rest_scale_row", bake.rest_row)
+        if compressed:
+            self._set("u_key_width", words.shape[1])
         self._set("u_row_offset", 0)
         self.layers_texture = None
         self.planes: tuple = ()
@@ -549,6 +564,9 @@ class AnimationProcessor(GLStage):
             self.scale_texture.use(4)
         if self.masks_texture is not None:
             self.masks_texture.use(5)
+        if self.keys_texture is not None:
+            self.keys_texture.use(6)
+            self.tracks_texture.use(7)
         self._set("u_agents", self.agents)
         if self.path == "compute":
             for unit, plane in enumerate(self.planes):

@@ -103,8 +103,9 @@ def clips_used(roles: dict[str, str | None]) -> list[str]:
     return out
 
 
-def bake_roles(character, roles: dict[str, str | None], fps: float | str = DEFAULT_FPS, precision: str = "f32"):
+def bake_roles(character, roles: dict[str, str | None], fps: float | str = DEFAULT_FPS, precision: str = "f32", bound_mm: float | None = None):
     """The bake of a character's role clips and nothing else: a scene bakes only what it plays."""
-    from .bake import bake
+    from .bake import DEFAULT_BOUND_MM, bake
 
-    return bake(character.skeleton, [character.clip(n) for n in clips_used(roles)], fps, precision)
+    return bake(character.skeleton, [character.clip(n) for n in clips_used(roles)], fps, precision,
+                bound_mm=DEFAULT_BOUND_MM if bound_mm is None else bound_mm)
