@@ -177,3 +177,13 @@ def test_processor_uploads_only_what_the_compressed_bake_needs(gl_context, compr
     finally:
         small.release()
         big.release()
+
+
+def test_a_bake_of_no_clips_compresses_to_nothing_and_still_runs(gl_context, zombie):
+    b = bake(zombie.skeleton, [], 30.0, "compressed")
+    assert b.compression["worst"] is None and b.compression["max_key_error_mm"] == 0.0
+    proc = AnimationProcessor(gl_context, b)
+    try:
+        assert proc.gpu_bytes()["animation"] == b.nbytes
+    finally:
+        proc.release()

@@ -137,9 +137,11 @@ class AnimationBake:
         if k is None:
             return None
         clip, key, joint = k.worst
+        worst = f"clip {self.clips[clip].name!r}, frame {key}, joint {self.joint_names[joint]!r}" if self.clips else None
         return {"bound_mm": k.bound_m * 1e3, "max_key_error_mm": k.max_error_m * 1e3, "bytes": self.nbytes, "f32_bytes": self.f32_nbytes,
-                "ratio": self.f32_nbytes / self.nbytes, "worst": f"clip {self.clips[clip].name!r}, frame {key}, joint {self.joint_names[joint]!r}",
-                "mean_rotation_bits": float(k.rotation_bits.mean()), "mean_translation_bits": float(k.translation_bits.mean())}
+                "ratio": self.f32_nbytes / self.nbytes, "worst": worst,
+                "mean_rotation_bits": float(k.rotation_bits.mean()) if k.rotation_bits.size else 0.0,
+                "mean_translation_bits": float(k.translation_bits.mean()) if k.translation_bits.size else 0.0}
 
     def clip_index(self, name: str) -> int:
         for i, c in enumerate(self.clips):

@@ -80,9 +80,15 @@ class CompressedKeys:
         return out.reshape(rows, width)
 
     @property
+    def header_texture(self) -> np.ndarray:
+        """uint32 (clips, 4J, 4) the header texture holds: a bake of no clips still gets one (unread) row."""
+        c, j = self.tracks.shape[:2]
+        return self.tracks.reshape(c, 4 * j, 4) if c else np.zeros((1, 4 * j, 4), np.uint32)
+
+    @property
     def nbytes(self) -> int:
-        """Bytes on the GPU: the word texture and the track headers."""
-        return int(self.word_texture.nbytes + self.tracks.nbytes)
+        """Bytes on the GPU: the word texture and the header texture."""
+        return int(self.word_texture.nbytes + self.header_texture.nbytes)
 
 
 def _f32(x) -> np.ndarray:

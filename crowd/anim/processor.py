@@ -302,8 +302,8 @@ class AnimationProcessor(GLStage):
         if compressed:
             words = bake.packed.word_texture
             self.keys_texture = self._texture("animation", (words.shape[1], words.shape[0]), 1, words, "u4")
-            tracks = bake.packed.tracks  # (C, J, 4, 4)
-            self.tracks_texture = self._texture("animation", (4 * jc, tracks.shape[0]), 4, tracks, "u4")
+            headers = bake.packed.header_texture
+            self.tracks_texture = self._texture("animation", (4 * jc, headers.shape[0]), 4, headers, "u4")
         self.parents_texture = self._texture("animation", (jc, 1), 1, bake.parents.astype(np.int32), "i4")
         self.clips_texture = self._texture("animation", (len(bake.clips), 1), 4, bake.clip_table, "f4")
         self.masks_texture = None if self.masks is None else self._texture("animation", (jc, self.masks.shape[0]), 1, self.masks, "f4")
