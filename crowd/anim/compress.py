@@ -17,8 +17,8 @@ Format (what shaders/processor_common.glsl decodes under COMPRESSED; ``decode`` 
   1/2, and carries its index in 2 bits ahead of its components ("smallest three");
 - b = 0 is a constant track: every key is `low` (the middle of the track's range);
 - keys are packed back to back, 3b bits each (3b + 2 with their own index), from bit 0 of the track's
-  first 32-bit word of ``words``
-  (tracks start on whole words; two zero words close the stream, so a decoder may always read three);
+  first 32-bit word of ``words`` (tracks start on whole words; two zero words close the stream, so a
+  decoder may always read three);
 - ``tracks``: uint32 (C, J, 4, 4), four RGBA32UI texels per (clip, joint): (rotation low xyz, rotation
   meta), (rotation step xyz, translation meta), (translation low xyz, 0), (translation step xyz, 0),
   floats as their bits; meta = first word << 8 | dropped component << 5 | b, the dropped component
@@ -26,10 +26,10 @@ Format (what shaders/processor_common.glsl decodes under COMPRESSED; ``decode`` 
 
 Widths: ACL's search, per clip, to KEY_SHARE of the bound (below, why not all of it). First the
 smallest width for every rotation and one for every translation that keep the clip within half of that
-each and within it together, then each
-track in turn, from the leaves up, lowered as far as the clip stays within it. The error is
-ACL's: the float64 shell error (crowd.anim.shell) of every joint at every key, the decoded keys against
-the bake's own. A lowered track changes only its joint's subtree, so only that is recomputed.
+each and within it together; then each track in turn, from the leaves up, lowered as far as the clip
+stays within it. The error is ACL's: the float64 shell error (crowd.anim.shell) of every joint at every
+key, the decoded keys against the bake's own. A lowered track changes only its joint's subtree, so only
+that is recomputed.
 
 Keys are not dropped (ACL also removes keys that interpolation rebuilds within the bound): every frame
 stays a key, so the decoder finds a key by its index, with no search.
@@ -290,6 +290,8 @@ def compress(skeleton: Skeleton, clips: list[tuple[np.ndarray, np.ndarray, np.nd
                 streams.append(track.fields(int(bits)) if bits else (np.zeros(0, np.int64), np.zeros((track.values.shape[0], 0), np.int64)))
                 headers.append((low, step, int(bits), track.header_drop(int(bits))))
     words, firsts = _pack(streams)
+    if words.size >= 1 << 24:  # checked before a first word is shifted into a header's 24 bits
+        raise ValueError(f"compressed keys need {words.size:,} words; track headers address at most {1 << 24:,}")
     tracks = np.zeros((len(clips) * jc, TRACK_TEXELS, 4), np.uint32)
     for k in range(len(clips) * jc):
         (rlow, rstep, rb, drop), (tlow, tstep, tb, _) = headers[2 * k], headers[2 * k + 1]
@@ -297,8 +299,6 @@ def compress(skeleton: Skeleton, clips: list[tuple[np.ndarray, np.ndarray, np.nd
         tracks[k, 1, :3], tracks[k, 1, 3] = _float_bits(rstep), (firsts[2 * k + 1] << 8) | tb
         tracks[k, 2, :3] = _float_bits(tlow)
         tracks[k, 3, :3] = _float_bits(tstep)
-    if words.size >= 1 << 24:
-        raise ValueError(f"compressed keys need {words.size:,} words; track headers address at most {1 << 24:,}")
     return CompressedKeys(words, tracks.reshape(len(clips), jc, TRACK_TEXELS, 4), decoded, float(bound_m), worst, worst_at,
                           rot_bits, tr_bits)
 
