@@ -3,6 +3,7 @@ use only what they ask for."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -74,6 +75,9 @@ def test_a_failed_save_leaves_the_old_file_whole(tmp_path, monkeypatch):
     ("[clips]\nprecision = 'f8'", "clips.precision"),
     ("[clips]\nbake_fps = 0", "clips.bake_fps: bake rate must be 1 to 240 fps or 'source'"),
     ("[clips]\nbake_fps = 'sauce'", "clips.bake_fps: bake rate must be 1 to 240"),
+    ("[clips]\ncompression_bound_mm = nan", "clips.compression_bound_mm: compression bound must be a number from 0.001 to 100, got nan"),
+    ("[clips]\ncompression_bound_mm = 0", "clips.compression_bound_mm: compression bound must be a number from 0.001 to 100, got 0"),
+    ("[clips]\ncompression_bound_mm = '0.5'", "clips.compression_bound_mm: compression bound must be a number"),
     ("[clips]\ninterpolation = 'slerp'", "clips.interpolation: interpolation must be one of dq_lerp, qt_lerp, qt_corrected, qt_cubic"),
     ("[clips]\nroles = { jump = 'run' }", "unknown role 'jump'"),
     ("[features]\nlod_distances = [40.0, 14.0, 90.0]", "features.lod_distances: LOD distances must be three numbers above 0, each no larger than the next"),
@@ -128,3 +132,15 @@ def test_cli_keeps_the_defaults_when_the_scene_file_is_broken(tmp_path):
     assert out.returncode == 0, out.stderr
     assert "scene.agents: agent count must be a whole number" in out.stderr and "running the default scene instead" in out.stderr
     assert "Traceback" not in out.stderr and (tmp_path / "x.png").exists()
+
+
+def test_a_compressed_scene_runs_and_keeps_its_bound_through_a_save(tmp_path, gl_context):
+    path = tmp_path / "packed.toml"
+    path.write_text("[scene]\nagents = 3\n[clips]\nprecision = 'compressed'\ncompression_bound_mm = 0.2\n")
+    scene = load_scene(path)
+    assert (scene.precision, scene.compression_bound_mm) == ("compressed", 0.2)
+    stats = run_headless(dataclasses.replace(scene.pipeline_config(), weapons=False, shadows=False), 2, SIZE, ctx=gl_context)
+    assert stats["bake"]["precision"] == "compressed" and stats["bake"]["compression"]["bound_mm"] == 0.2
+    assert stats["bake"]["compression"]["max_key_error_mm"] <= 0.2 and stats["nan_count"] == 0
+    save_scene(scene, tmp_path / "again.toml")
+    assert load_scene(tmp_path / "again.toml").compression_bound_mm == 0.2
