@@ -187,3 +187,22 @@ def test_a_bake_of_no_clips_compresses_to_nothing_and_still_runs(gl_context, zom
         assert proc.gpu_bytes()["animation"] == b.nbytes
     finally:
         proc.release()
+
+
+@pytest.mark.parametrize("path", ["compute", "fragment"])
+def test_joint_scale_and_the_rest_pose_read_their_own_rows(gl_context, path):
+    """A compressed bake keeps only two rows of dual quaternions (inverse bind, rest) but the whole f32
+    scale texture: the rest fallback must read the rest row of each. Weights of 0 give the rest pose."""
+    sk, clips = _spinner(np.linspace(0.0, 90.0, 31))
+    n = 31
+    grow = np.repeat(np.linspace(1.0, 2.5, n)[:, None], 3, axis=1)
+    clips[0].channels.append(Channel(1, "scale", "LINEAR", clips[0].channels[0].times, grow))
+    b = bake(sk, clips, 30.0, "compressed", bound_mm=0.5)
+    assert b.scale is not None and b.gpu_texels.shape[0] == 2
+    layers = empty_layers(64, MAX_LAYERS)
+    layers[:, 0, PHASE] = np.linspace(0.0, 1.0, 64)
+    layers[:32, 0, WEIGHT] = 1.0  # the rest have no weight: the rest pose
+    gpu = accuracy.gpu_palette(gl_context, b, layers, "qt_corrected", path)
+    np.testing.assert_allclose(gpu, reference_palette(b, layers, interpolation="qt_corrected"), atol=GPU_TWIN_TOL)
+    truth = accuracy.truth(sk, clips, layers)
+    assert accuracy.shell_error(gpu, truth, accuracy.shell_points(sk)).max() <= 0.5e-3
