@@ -533,9 +533,11 @@ def main(argv=None) -> int:
     from .error_report import add_parsers
     from .peers import add_parsers as add_peers_parsers
     from .skate_report import add_parsers as add_skate_parsers
+    from .storage_cost import add_parsers as add_storage_cost_parsers
 
     add_parsers(sub)
     add_skate_parsers(sub)
+    add_storage_cost_parsers(sub)
     add_peers_parsers(sub)
     args = parser.parse_args(argv)
     from crowd.sim.ai import AIError

@@ -206,3 +206,18 @@ def test_joint_scale_and_the_rest_pose_read_their_own_rows(gl_context, path):
     np.testing.assert_allclose(gpu, reference_palette(b, layers, interpolation="qt_corrected"), atol=GPU_TWIN_TOL)
     truth = accuracy.truth(sk, clips, layers)
     assert accuracy.shell_error(gpu, truth, accuracy.shell_points(sk)).max() <= 0.5e-3
+
+
+def test_crowd_bench_storage_cost_times_every_storage_on_both_paths(tmp_path, gl_context):
+    import json
+
+    from bench.cli import main as bench_main
+
+    out = tmp_path / "cost.json"
+    assert bench_main(["storage-cost", "--agents", "64,256", "--repeats", "1", "--storage", "f32,compressed@0.5",
+                       "--interpolations", "qt_corrected", "--json", str(out)]) == 0
+    report = json.loads(out.read_text())
+    rows = {(r["storage"], r["path"]): r for r in report["rows"]}
+    assert set(rows) == {(s, p) for s in ("f32", "compressed@0.5") for p in ("compute", "fragment")}
+    assert rows[("compressed@0.5", "compute")]["bytes"] * 8 < rows[("f32", "compute")]["bytes"]
+    assert all(set(r["gpu_ms"]) == {"64", "256"} for r in rows.values())
