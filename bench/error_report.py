@@ -136,6 +136,13 @@ def _model_errors(ctx, m: _Model, baked, interp: str) -> tuple[np.ndarray, dict]
     return e, summary
 
 
+def _progress(line: str) -> None:
+    """What a long run is doing, on stderr (stdout holds the report)."""
+    import sys
+
+    print(line, file=sys.stderr, flush=True)
+
+
 def _time_processor(query, proc, layers, repeats: int) -> float:
     """Median GPU ms of the processor's dispatch (or draw) for these layers."""
     proc.resize(layers.shape[0])
@@ -234,6 +241,7 @@ def run(args) -> int:
               f"<1mm {row['share_under_1mm']:.4f}  <0.1mm {row['share_under_0_1mm']:.4f}  {row['bytes']:>9,} B  max at {_where(row['worst'])}")
 
     # Cost: two passes, the second in reverse order, so drift on the machine shows as spread.
+    _progress(f"timing the processor for {len(configs)} configurations at {cost_agents[0]:,} and {cost_agents[1]:,} agents, two passes")
     query = ctx.query(time=True)
     for order in (range(len(configs)), reversed(range(len(configs)))):
         for k in order:
@@ -261,7 +269,7 @@ def run(args) -> int:
             default = k
             break
         r = rows[k]
-        cases = run_cases(ctx, zombie, r["interpolation"], r["bake_fps"], r["storage"], hours=args.hours)
+        cases = run_cases(ctx, zombie, r["interpolation"], r["bake_fps"], r["storage"], hours=args.hours, progress=_progress)
         if all(c["passed"] for c in cases):
             default, stability = k, cases
             break
@@ -275,7 +283,8 @@ def run(args) -> int:
     for k, row in enumerate(rows):
         usual = row["bake_fps"] == DEFAULTS["bake_fps"] and row["interpolation"] == DEFAULTS["interpolation"]
         if row.get("compression") is not None and usual and not args.no_stability:
-            row["stability"] = stability if k == default else run_cases(ctx, zombie, row["interpolation"], row["bake_fps"], row["storage"], hours=args.hours)
+            row["stability"] = stability if k == default else run_cases(ctx, zombie, row["interpolation"], row["bake_fps"], row["storage"],
+                                                                        hours=args.hours, progress=_progress)
     print(f"\n{'rate':>10} {'stor':>4} {'interp':<12} {'max mm':>9} {'p99 mm':>9} {'<1mm':>7} {'<0.1mm':>7} {'ms ' + str(cost_agents[0]):>10} "
           f"{'ms ' + str(cost_agents[1]):>11} {'spread':>7} {'bytes':>9} {'':8} max at")
     for row in rows:

@@ -23,6 +23,7 @@ bound: the compressor keeps every key within it (crowd.anim.compress), on any sk
 
 from __future__ import annotations
 
+import time
 from fractions import Fraction
 
 import numpy as np
@@ -308,20 +309,27 @@ def dt_spikes(ctx, character, interpolation, fps, precision, agents: int = 200) 
     return _case("dt spikes", np.array([worst]), TARGET_MM, detail, ok=not faults and jump <= 1e-9)
 
 
-def run_cases(ctx, character, interpolation: str, fps, precision: str, hours: float = 10.0) -> list[dict]:
+def run_cases(ctx, character, interpolation: str, fps, precision: str, hours: float = 10.0, progress=None) -> list[dict]:
     """Every case for one configuration; `precision` is a storage name (parse_storage). A compressed
-    bake may move every key by up to its bound, so each case's bound grows by that much there."""
-    cases = [
-        antipodal_blends(ctx, character, interpolation, fps, precision),
-        opposite_rotations(ctx, interpolation, fps, precision),
-        long_chains(ctx, interpolation, fps, precision),
-        long_chains(ctx, interpolation, fps, precision, joints=256),
-        half_turn_keys(ctx, interpolation, fps, precision),
-        scale_extremes(ctx, interpolation, fps, precision),
-        phase_near_one(ctx, character, interpolation, fps, precision),
-        ten_hours(ctx, character, interpolation, fps, precision, hours),
-        dt_spikes(ctx, character, interpolation, fps, precision),
+    bake may move every key by up to its bound, so each case's bound grows by that much there.
+    `progress(line)`, when given, hears each case's name and seconds as it finishes."""
+    steps = [
+        lambda: antipodal_blends(ctx, character, interpolation, fps, precision),
+        lambda: opposite_rotations(ctx, interpolation, fps, precision),
+        lambda: long_chains(ctx, interpolation, fps, precision),
+        lambda: long_chains(ctx, interpolation, fps, precision, joints=256),
+        lambda: half_turn_keys(ctx, interpolation, fps, precision),
+        lambda: scale_extremes(ctx, interpolation, fps, precision),
+        lambda: phase_near_one(ctx, character, interpolation, fps, precision),
+        lambda: ten_hours(ctx, character, interpolation, fps, precision, hours),
+        lambda: dt_spikes(ctx, character, interpolation, fps, precision),
     ]
+    cases = []
+    for step in steps:
+        start = time.perf_counter()
+        cases.append(step())
+        if progress is not None:
+            progress(f"stability ({precision}, {interpolation}): {cases[-1]['case']} in {time.perf_counter() - start:.1f} s")
     kind, bound_mm = parse_storage(precision)
     if kind == COMPRESSED:
         for case in cases:
