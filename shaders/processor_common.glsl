@@ -123,29 +123,52 @@ vec3 track_key(uvec4 low, uvec4 step, uint meta, int key, int lead, out uint ind
     return v + vec3(k) * uintBitsToFloat(step.xyz);
 }
 
-// Key `key` of joint `joint` in clip `clip`: its rotation (unit, the dropped component rebuilt >= 0)
-// and translation.
-void compressed_key(int clip, int joint, int key, out vec4 r, out vec3 t) {
-    uvec4 h0 = texelFetch(u_tracks, ivec2(4 * joint, clip), 0);
-    uvec4 h1 = texelFetch(u_tracks, ivec2(4 * joint + 1, clip), 0);
-    uint drop = (h0.w >> 5u) & 7u;
+// One (clip, joint)'s track headers, fetched once per layer sample for all the keys it reads.
+struct Tracks {
+    uvec4 rotation_low;   // low xyz, meta
+    uvec4 rotation_step;  // step xyz, the translation's meta
+    uvec4 translation_low;
+    uvec4 translation_step;  // fetched only where the translation moves
+};
+
+Tracks clip_tracks(int clip, int joint) {
+    Tracks h;
+    h.rotation_low = texelFetch(u_tracks, ivec2(4 * joint, clip), 0);
+    h.rotation_step = texelFetch(u_tracks, ivec2(4 * joint + 1, clip), 0);
+    h.translation_low = texelFetch(u_tracks, ivec2(4 * joint + 2, clip), 0);
+    h.translation_step = (h.rotation_step.w & 31u) == 0u ? uvec4(0u) : texelFetch(u_tracks, ivec2(4 * joint + 3, clip), 0);
+    return h;
+}
+
+// Key `key` of a joint's tracks: its rotation (unit, the dropped component rebuilt >= 0) and translation.
+void compressed_key(Tracks h, int key, out vec4 r, out vec3 t) {
+    uint drop = (h.rotation_low.w >> 5u) & 7u;
     uint own;
-    vec3 v = track_key(h0, h1, h0.w, key, drop == PER_KEY ? 2 : 0, own);
+    vec3 v = track_key(h.rotation_low, h.rotation_step, h.rotation_low.w, key, drop == PER_KEY ? 2 : 0, own);
     if (drop == PER_KEY) drop = own;
     float c = sqrt(max(1.0 - dot(v, v), 0.0));
     r = drop == 3u ? vec4(v, c) : drop == 2u ? vec4(v.xy, c, v.z) : drop == 1u ? vec4(v.x, c, v.yz) : vec4(c, v);
     r *= inversesqrt(dot(r, r));
-    uvec4 h2 = texelFetch(u_tracks, ivec2(4 * joint + 2, clip), 0);
-    t = (h1.w & 31u) == 0u ? uintBitsToFloat(h2.xyz) : track_key(h2, texelFetch(u_tracks, ivec2(4 * joint + 3, clip), 0), h1.w, key, 0, own);
+    t = track_key(h.translation_low, h.translation_step, h.rotation_step.w, key, 0, own);  // a constant track reads no words
+}
+#else
+struct Tracks {
+    int none;  // an uncompressed bake reads its keys by texture row
+};
+
+Tracks clip_tracks(int clip, int joint) {
+    Tracks h;
+    h.none = 0;
+    return h;
 }
 #endif
 
-// Key `key` of clip `clip` (at texture row `row` of an uncompressed bake) of joint `joint`, as a dual
-// quaternion (real, dual): stored as it is, or rebuilt from a compressed key.
-void key_dq(int clip, int joint, int row, int key, out vec4 r, out vec4 d) {
+// Key `key` (at texture row `row` of an uncompressed bake) of joint `joint`, whose clip's headers are
+// `h`, as a dual quaternion (real, dual): stored as it is, or rebuilt from a compressed key.
+void key_dq(Tracks h, int joint, int row, int key, out vec4 r, out vec4 d) {
 #ifdef COMPRESSED
     vec3 t;
-    compressed_key(clip, joint, key, r, t);
+    compressed_key(h, key, r, t);
     d = 0.5 * vec4(t.x * r.w + t.y * r.z - t.z * r.y, -t.x * r.z + t.y * r.w + t.z * r.x, t.x * r.y - t.y * r.x + t.z * r.w, -dot(t, r.xyz));
 #else
     r = texelFetch(u_anim, ivec2(2 * joint, row), 0);
@@ -155,9 +178,9 @@ void key_dq(int clip, int joint, int row, int key, out vec4 r, out vec4 d) {
 
 #ifdef INTERPOLATION_QT
 // The same key as rotation and translation; f16 keys are not exactly unit, hence the division by |r|^2.
-void key_rt(int clip, int joint, int row, int key, out vec4 r, out vec3 t) {
+void key_rt(Tracks h, int joint, int row, int key, out vec4 r, out vec3 t) {
 #ifdef COMPRESSED
-    compressed_key(clip, joint, key, r, t);
+    compressed_key(h, key, r, t);
 #else
     r = texelFetch(u_anim, ivec2(2 * joint, row), 0);
     t = dq_translation(r, texelFetch(u_anim, ivec2(2 * joint + 1, row), 0)) / dot(r, r);
@@ -202,8 +225,9 @@ void sample_layer(vec4 layer, int joint, out vec4 real, out vec4 second, out flo
     float s2 = joint_scale(joint, row + 1);
 #if !defined(INTERPOLATION_QT)
     vec4 r1, d1, r2, d2;
-    key_dq(clip, joint, row, key, r1, d1);
-    key_dq(clip, joint, row + 1, key + 1, r2, d2);
+    Tracks tracks = clip_tracks(clip, joint);
+    key_dq(tracks, joint, row, key, r1, d1);
+    key_dq(tracks, joint, row + 1, key + 1, r2, d2);
 #ifdef COMPRESSED
     if (dot(r1, r2) < 0.0) {  // compressed keys carry the sign of their rebuilt component, not the track's
         r2 = -r2;
@@ -219,8 +243,9 @@ void sample_layer(vec4 layer, int joint, out vec4 real, out vec4 second, out flo
 #else
     vec4 r1, r2;
     vec3 t1, t2;
-    key_rt(clip, joint, row, key, r1, t1);
-    key_rt(clip, joint, row + 1, key + 1, r2, t2);
+    Tracks tracks = clip_tracks(clip, joint);
+    key_rt(tracks, joint, row, key, r1, t1);
+    key_rt(tracks, joint, row + 1, key + 1, r2, t2);
 #ifdef COMPRESSED
     if (dot(r1, r2) < 0.0) r2 = -r2;  // compressed keys carry the sign of their rebuilt component, not the track's
 #endif
@@ -235,8 +260,8 @@ void sample_layer(vec4 layer, int joint, out vec4 real, out vec4 second, out flo
     int next_key = at_end ? (looping ? 1 : key + 1) : key + 2;
     vec4 r0, r3;
     vec3 t0, t3;
-    key_rt(clip, joint, first + prev_key, prev_key, r0, t0);
-    key_rt(clip, joint, first + next_key, next_key, r3, t3);
+    key_rt(tracks, joint, first + prev_key, prev_key, r0, t0);
+    key_rt(tracks, joint, first + next_key, next_key, r3, t3);
     float s0 = joint_scale(joint, first + prev_key);
     float s3 = joint_scale(joint, first + next_key);
     // Keys across the loop seam may hold the other sign (a joint that spins a full turn).
