@@ -160,13 +160,13 @@ def run(args) -> int:
     import moderngl
 
     from crowd.anim import accuracy
-    from crowd.anim.bake import SOURCE_RATE, BakeError, bake
+    from crowd.anim.bake import SOURCE_RATE, BakeError
     from crowd.gl import describe, headless_context
     from crowd.asset.gltf import load_character
     from crowd.frame import MAX_LAYERS
     from crowd.anim.processor import INTERPOLATIONS, AnimationProcessor
     from crowd.settings import DEFAULTS
-    from .stability import parse_storage, run_cases
+    from .stability import bake_storage, parse_storage, run_cases
 
     if args.quick:  # the default configuration and the stability cases, small enough for CI (seconds on llvmpipe)
         args.rates, args.interpolations = str(DEFAULTS["bake_fps"]), DEFAULTS["interpolation"]
@@ -207,8 +207,7 @@ def run(args) -> int:
         key = (m.name, rate, storage)
         if key not in bakes:
             try:
-                precision, bound_mm = parse_storage(storage)
-                bakes[key] = bake(m.character.skeleton, m.clips, rate, precision, bound_mm=bound_mm)
+                bakes[key] = bake_storage(m.character.skeleton, m.clips, rate, storage)
             except BakeError as exc:
                 bakes[key] = exc
         return bakes[key]

@@ -57,7 +57,8 @@ def parse_storage(storage: str) -> tuple[str, float]:
         raise ValueError(f"storage {storage!r}: the bound after @ must be a number of millimetres") from None
 
 
-def _bake(skeleton, clips, fps, storage):
+def bake_storage(skeleton, clips, fps, storage: str):
+    """The bake of `clips` at `fps` in a storage name's precision and bound (parse_storage)."""
     precision, bound_mm = parse_storage(storage)
     return bake(skeleton, clips, fps, precision, bound_mm=bound_mm)
 
@@ -87,7 +88,7 @@ def _held(name: str, q: np.ndarray, duration: float = 0.1) -> Clip:
 
 
 def _gpu_error(ctx, skeleton, clips, layers, interpolation, fps, precision, path="auto", masks=None):
-    baked = _bake(skeleton, clips, fps, precision)
+    baked = bake_storage(skeleton, clips, fps, precision)
     truth = accuracy.truth(skeleton, clips, layers, masks)
     return accuracy.measure_gpu(ctx, skeleton, baked, layers, truth, interpolation, path, masks)
 
@@ -110,7 +111,7 @@ def antipodal_blends(ctx, character, interpolation, fps, precision) -> dict:
     layers[0::3, 1, WEIGHT] = 0.5 + 1e-3
     layers[1::3, 0, WEIGHT] = 0.5 + 1e-3
     all_clips = clips + negated
-    baked = _bake(character.skeleton, all_clips, fps, precision)
+    baked = bake_storage(character.skeleton, all_clips, fps, precision)
     blended = accuracy.gpu_palette(ctx, baked, layers, interpolation)
     alone = layers.copy()
     alone[:, 1, WEIGHT] = 0.0
@@ -264,7 +265,7 @@ def ten_hours(ctx, character, interpolation, fps, precision, hours: float = 10.0
     layers[:, 0, PHASE] = np.concatenate([phase, exact, naive]).astype(np.float32)
     truth_layers = layers.copy()
     truth_layers[:, 0, PHASE] = np.tile(exact, 3).astype(np.float32)
-    baked = _bake(character.skeleton, list(character.clips), fps, precision)
+    baked = bake_storage(character.skeleton, list(character.clips), fps, precision)
     truth = accuracy.truth(character.skeleton, list(character.clips), truth_layers)
     err = accuracy.measure_gpu(ctx, character.skeleton, baked, layers, truth, interpolation)
     n = len(step)

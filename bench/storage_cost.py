@@ -19,20 +19,20 @@ PASSES = 3
 
 def run(args) -> int:
     from crowd.anim import accuracy
-    from crowd.anim.bake import bake
     from crowd.anim.processor import AnimationProcessor
     from crowd.asset.gltf import load_character
     from crowd.frame import MAX_LAYERS
     from crowd.gl import describe, has_compute, headless_context
     from crowd.settings import SETTINGS
     from .error_report import UNTIMED_MS, _time_processor
-    from .stability import parse_storage
+    from .stability import bake_storage, parse_storage
 
     storages = args.storage.split(",")
     interpolations = args.interpolations.split(",")
     agents = [int(a) for a in args.agents.split(",")]
     try:
-        parsed = {s: parse_storage(s) for s in storages}
+        for s in storages:
+            parse_storage(s)
         for i in interpolations:
             SETTINGS["interpolation"].check(i)
     except ValueError as exc:
@@ -41,12 +41,12 @@ def run(args) -> int:
     info = describe(ctx)
     paths = ["compute", "fragment"] if has_compute(ctx) else ["fragment"]
     zombie = load_character(None)
-    bakes = {s: bake(zombie.skeleton, list(zombie.clips), args.fps, precision, bound_mm=bound) for s, (precision, bound) in parsed.items()}
+    bakes = {s: bake_storage(zombie.skeleton, list(zombie.clips), args.fps, s) for s in storages}
     layers = [accuracy.draw_samples(zombie.clips, np.random.default_rng(args.seed), 0, n).layers for n in agents]
     query = ctx.query(time=True)
     keys = [(s, i, p) for s in storages for i in interpolations for p in paths]
     times: dict = {k: [] for k in keys}
-    for order in [keys, keys[::-1], keys][:PASSES]:
+    for order in (keys, keys[::-1], keys):  # PASSES of them
         for s, i, p in order:
             proc = AnimationProcessor(ctx, bakes[s], MAX_LAYERS, interpolation=i, path=p)
             try:

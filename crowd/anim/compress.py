@@ -43,6 +43,7 @@ import numpy as np
 
 from .. import transforms as tf
 from ..asset.model import Skeleton
+from ..asset.pose import global_matrices
 from .shell import shell_points
 
 # Keys are kept within this share of the bound. A clip alone is measured as a whole, so its joints'
@@ -152,9 +153,14 @@ class _Track:
         index = np.argmax(np.abs(q), axis=1)
         return cls(_kept(q, index), PER_KEY, index)
 
-    def decode(self, bits: int) -> np.ndarray:
+    def quantised(self, bits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(low, step, integers (F, 3)) of the track at `bits`."""
         low, step = _range(self.values, bits)
-        v = low + _integers(self.values, low, step, bits) * step
+        return low, step, _integers(self.values, low, step, bits)
+
+    def decode(self, bits: int) -> np.ndarray:
+        low, step, ints = self.quantised(bits)
+        v = low + ints * step
         if self.drop < 0:
             return v
         return _rebuild(v, np.full(v.shape[0], self.header_drop(bits)) if self.index is None or bits == 0 else self.index)
@@ -165,19 +171,22 @@ class _Track:
             return int(self.index[0])
         return max(self.drop, 0)
 
-    def fields(self, bits: int) -> tuple[np.ndarray, np.ndarray]:
-        """(widths (n,), integers (F, n)) of each key's fields as packed: its index first, where it has one."""
-        low, step = _range(self.values, bits)
-        ints = _integers(self.values, low, step, bits)
-        if self.index is None:
+    @staticmethod
+    def fields(ints: np.ndarray, bits: int, index: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """(widths (n,), integers (F, n)) of each key's fields as packed: its index first, where it has
+        one; a constant track packs nothing."""
+        if bits == 0:
+            return np.zeros(0, np.int64), np.zeros((ints.shape[0], 0), np.int64)
+        if index is None:
             return np.full(3, bits), ints
-        return np.array([2, bits, bits, bits]), np.concatenate([self.index[:, None], ints], axis=1)
+        return np.array([2, bits, bits, bits]), np.concatenate([index[:, None], ints], axis=1)
 
 
 class _ClipSearch:
     """One clip's exact skinned shell points, and the error of any per-track decode of it."""
 
     def __init__(self, skeleton: Skeleton, rotation, translation, scale, joint_points: np.ndarray):
+        self.skeleton = skeleton
         self.parents = skeleton.parents
         jc = skeleton.joint_count
         self.rotation, self.translation = rotation, translation
@@ -187,7 +196,7 @@ class _ClipSearch:
         self.rot = [_Track.rotation(rotation[:, j]) for j in range(jc)]
         self.tr = [_Track(translation[:, j], -1) for j in range(jc)]
         self.local = tf.trs_to_mat4(translation, rotation, self.scale3)  # (F, J, 4, 4)
-        self.exact = self._chain(self.local)
+        self.exact = global_matrices(skeleton, self.local)
         self.exact_points = self.exact[..., :3, :] @ self.points  # (F, J, 3, 6)
         self.glob = self.exact.copy()
         self.err = np.zeros((rotation.shape[0], jc))  # (F, J): max over the shell points
@@ -199,12 +208,6 @@ class _ClipSearch:
             if self.parents[i] >= 0 and inside[self.parents[i]]:
                 inside[i] = True
         return inside
-
-    def _chain(self, local: np.ndarray) -> np.ndarray:
-        glob = np.empty_like(local)
-        for j, p in enumerate(self.parents):
-            glob[:, j] = local[:, j] if p < 0 else glob[:, p] @ local[:, j]
-        return glob
 
     def set_joint(self, j: int, rotation: np.ndarray, translation: np.ndarray) -> None:
         """Decode joint j's tracks as given (F, 4) and (F, 3); its subtree's error follows. Every joint
@@ -223,7 +226,7 @@ class _ClipSearch:
     def set_all(self, rotation: np.ndarray, translation: np.ndarray) -> None:
         """Decode every joint's tracks as given (F, J, 4) and (F, J, 3), composed afresh."""
         self.local = tf.trs_to_mat4(translation, rotation, self.scale3)
-        self.glob = self._chain(self.local)
+        self.glob = global_matrices(self.skeleton, self.local)
         self._measure(np.arange(len(self.parents)))
 
     def _measure(self, joints: np.ndarray) -> None:
@@ -286,8 +289,8 @@ def compress(skeleton: Skeleton, clips: list[tuple[np.ndarray, np.ndarray, np.nd
     for c, s in enumerate(searches):
         for j in range(jc):
             for track, bits in ((s.rot[j], rot_bits[c, j]), (s.tr[j], tr_bits[c, j])):
-                low, step = _range(track.values, int(bits))
-                streams.append(track.fields(int(bits)) if bits else (np.zeros(0, np.int64), np.zeros((track.values.shape[0], 0), np.int64)))
+                low, step, ints = track.quantised(int(bits))
+                streams.append(_Track.fields(ints, int(bits), track.index))
                 headers.append((low, step, int(bits), track.header_drop(int(bits))))
     words, firsts = _pack(streams)
     if words.size >= 1 << 24:  # checked before a first word is shifted into a header's 24 bits

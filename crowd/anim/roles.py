@@ -12,7 +12,7 @@ actions (attack, hit, death) stay unassigned and are simply not played. Only ass
 
 from __future__ import annotations
 
-from .bake import DEFAULT_FPS
+from .bake import DEFAULT_BOUND_MM, DEFAULT_FPS
 
 ROLES = ("idle", "walk", "run", "attack", "hit", "death")
 ROLE_WORDS = {
@@ -103,9 +103,9 @@ def clips_used(roles: dict[str, str | None]) -> list[str]:
     return out
 
 
-def bake_roles(character, roles: dict[str, str | None], fps: float | str = DEFAULT_FPS, precision: str = "f32", bound_mm: float | None = None):
+def bake_roles(character, roles: dict[str, str | None], fps: float | str = DEFAULT_FPS, precision: str = "f32",
+               bound_mm: float = DEFAULT_BOUND_MM):
     """The bake of a character's role clips and nothing else: a scene bakes only what it plays."""
-    from .bake import DEFAULT_BOUND_MM, bake
+    from .bake import bake
 
-    return bake(character.skeleton, [character.clip(n) for n in clips_used(roles)], fps, precision,
-                bound_mm=DEFAULT_BOUND_MM if bound_mm is None else bound_mm)
+    return bake(character.skeleton, [character.clip(n) for n in clips_used(roles)], fps, precision, bound_mm=bound_mm)
