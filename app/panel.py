@@ -54,6 +54,7 @@ class Panel:
         "pause": "set_paused", "step": "step_once", "clip_speed": "set_clip_speed", "clip_loop": "set_clip_loop",
         "play": "play", "weight": "set_weight", "rebake": "rebake", "measure_error": "measure_error", "lod": "set_lod_distances", "culling": "set_culling", "occlusion": "set_occlusion",
         "shadows": "set_shadows", "weapons": "set_weapons", "latency": "set_readback_latency", "cull": "set_cull_path",
+        "foot_lock": "set_foot_lock",
     }
 
     def apply(self, action: str, *args, **kwargs) -> bool:
@@ -246,6 +247,14 @@ class Panel:
         changed, on = imgui.checkbox("weapons", p.config.weapons)
         if changed:
             self.apply("weapons", on)
+        imgui.same_line()
+        changed, on = imgui.checkbox("foot lock", p.config.foot_lock)
+        if changed:
+            self.apply("foot_lock", on)
+        lock = p.foot_lock_state()
+        if not lock["on"] and p.config.foot_lock:
+            imgui.same_line()
+            imgui.text(f"(off: {lock['why']})")
         changed, latency = imgui.slider_int("read-back latency (frames)", p.latency, *LATENCY.slider)
         if changed:
             self.apply("latency", latency)

@@ -143,10 +143,14 @@ def _progress(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
 
-def _time_processor(query, proc, layers, repeats: int) -> float:
-    """Median GPU ms of the processor's dispatch (or draw) for these layers."""
+def _time_processor(query, proc, layers, repeats: int, motion=None, dt: float = 0.0) -> float:
+    """Median GPU ms of the processor's dispatch (or draw) for these layers (and, for a processor with the
+    foot lock, this agent motion, applied again at each run: the crowd walks on)."""
     proc.resize(layers.shape[0])
-    proc.upload(layers)
+    if proc.legs is not None:
+        proc.upload(layers, motion, dt)
+    else:
+        proc.upload(layers)
     times = []
     for k in range(repeats + 3):
         with query:

@@ -86,15 +86,17 @@ CROWD_CASES = ("walks straight", "walks and turns", "stands or shuffles, straigh
 
 
 def crowd_breakdown(character, bake, motion, agents: int, steps: int = 300, dt: float = 1.0 / 30.0, sample: int = 32,
-                    seed: int = 1) -> dict:
+                    seed: int = 1, foot_lock: bool = False) -> dict:
     """Where a wandering crowd's foot skate comes from, on the float64 reference: `sample` agents of a
     crowd of `agents` stepped `steps` times, their feet over stretches of steady locomotion (wandering or
     chasing) of 1 s or more, each contact frame step's slide filed under what the agent did in it (its
     speed against its walk speed, and whether its heading changed). Figures are cm per metre walked by
-    all of them together, so the cases add up to the total."""
+    all of them together, so the cases add up to the total. With `foot_lock` the feet are the baked
+    keys' through the processor's float64 twin with the lock's twin (crowd.anim.foot_lock) run over
+    every step; without, the source clips' (the reference)."""
     from crowd.anim import accuracy
     from crowd.anim.foot_skate import contact_steps, foot_joints, joint_positions, to_world
-    from crowd.sim.ai import CHASE, WANDER, CrowdAI
+    from crowd.sim.ai import CHASE, WANDER, CrowdAI, upper_body_mask
 
     skeleton = character.skeleton
     feet = foot_joints(skeleton)
@@ -110,6 +112,20 @@ def crowd_breakdown(character, bake, motion, agents: int, steps: int = 300, dt: 
         state.append(ai.state[picked].copy())
         speed.append(np.hypot(ai.vx[picked], ai.vz[picked]) / ai.walk_top[picked])
     layers, ground, yaw, state, speed = map(np.array, (layers, ground, yaw, state, speed))
+    locked = None
+    if foot_lock:
+        from crowd.anim.foot_lock import FootLockTwin, bake_legs
+        from crowd.anim.processor import reference_palette
+
+        twin = FootLockTwin(bake_legs(skeleton, bake), picked.size)
+        masks = upper_body_mask(skeleton)
+        scale = ai.scale[picked].astype(np.float64)
+        locked = []
+        for f in range(steps):
+            step = ground[f] - ground[max(f - 1, 0)]
+            lock_motion = np.column_stack([step, np.mod(yaw[f], 2.0 * np.pi), scale])
+            locked.append(reference_palette(bake, layers[f], masks, foot_lock=twin, motion=lock_motion, dt=dt if f else 0.0))
+        locked = np.array(locked)
     slide, frames, walked = np.zeros(len(CROWD_CASES)), np.zeros(len(CROWD_CASES), np.int64), 0.0
     min_frames = int(round(1.0 / dt))
     for i in range(picked.size):
@@ -117,7 +133,8 @@ def crowd_breakdown(character, bake, motion, agents: int, steps: int = 300, dt: 
         for run in np.split(steady, np.flatnonzero(np.diff(steady) > 1) + 1):
             if run.size < min_frames:
                 continue
-            model = joint_positions(accuracy.truth(skeleton, clips, layers[run, i]), skeleton, feet)
+            matrices = accuracy.truth(skeleton, clips, layers[run, i]) if locked is None else locked[run, i]
+            model = joint_positions(matrices, skeleton, feet)
             world = to_world(model, ground[run, i], yaw[run, i], float(ai.scale[picked[i]]))
             both, moves = contact_steps(world)
             step = np.where(both, moves, 0.0).sum(axis=1)
@@ -128,7 +145,7 @@ def crowd_breakdown(character, bake, motion, agents: int, steps: int = 300, dt: 
             np.add.at(frames, kind, 1)
             walked += float(np.linalg.norm(np.diff(ground[run, i], axis=0), axis=1).sum())
     per_m = 100.0 * slide / max(walked, 1e-12) / len(feet)
-    return {"agents": agents, "sampled": int(picked.size), "steps": steps, "dt_s": dt, "walked_m": round(walked, 3),
+    return {"agents": agents, "foot_lock": foot_lock, "sampled": int(picked.size), "steps": steps, "dt_s": dt, "walked_m": round(walked, 3),
             "total_cm_per_m": round(float(per_m.sum()), 4),
             "cases": {name: {"cm_per_m": round(float(v), 4), "frames": int(f)} for name, v, f in zip(CROWD_CASES, per_m, frames)}}
 

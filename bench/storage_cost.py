@@ -4,7 +4,9 @@ bound) and interpolation, on both processor paths, side by side in one run.
 ``crowd-bench error`` times only the path "auto" takes, once per configuration it also searches for errors;
 this times every (storage, interpolation, path) in passes that alternate them (forward, backward, forward),
 so drift on the machine shows as spread, for 4-layer random blends of the built-in zombie's clips. Medians of
-the passes are reported, with the bytes of animation data each storage puts on the GPU.
+the passes are reported, with the bytes of animation data each storage puts on the GPU. With ``--foot-lock``
+the compute path is timed again with the foot lock (crowd.anim.foot_lock), each agent stepping 1 cm a run
+in a direction of its own, so its legs are held, solved and stepped as a walking crowd's are.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ PASSES = 3
 
 def run(args) -> int:
     from crowd.anim import accuracy
+    from crowd.anim.foot_lock import bake_legs
     from crowd.anim.processor import AnimationProcessor
     from crowd.asset.gltf import load_character
     from crowd.frame import MAX_LAYERS
@@ -43,29 +46,36 @@ def run(args) -> int:
     zombie = load_character(None)
     bakes = {s: bake_storage(zombie.skeleton, list(zombie.clips), args.fps, s) for s in storages}
     layers = [accuracy.draw_samples(zombie.clips, np.random.default_rng(args.seed), 0, n).layers for n in agents]
+    rng = np.random.default_rng(args.seed)
+    motion = []
+    for n in agents:
+        heading = rng.uniform(0.0, 2.0 * np.pi, n)
+        motion.append(np.column_stack([0.01 * np.sin(heading), 0.01 * np.cos(heading), heading, np.ones(n)]).astype(np.float32))
     query = ctx.query(time=True)
-    keys = [(s, i, p) for s in storages for i in interpolations for p in paths]
+    locks = (False, True) if args.foot_lock else (False,)
+    keys = [(s, i, p, lock) for s in storages for i in interpolations for p in paths for lock in locks if not (lock and p != "compute")]
     times: dict = {k: [] for k in keys}
     for order in (keys, keys[::-1], keys):  # PASSES of them
-        for s, i, p in order:
-            proc = AnimationProcessor(ctx, bakes[s], MAX_LAYERS, interpolation=i, path=p)
+        for s, i, p, lock in order:
+            proc = AnimationProcessor(ctx, bakes[s], MAX_LAYERS, interpolation=i, path=p,
+                                      legs=bake_legs(zombie.skeleton, bakes[s]) if lock else None)
             try:
-                times[(s, i, p)].append([_time_processor(query, proc, l, args.repeats) for l in layers])
+                times[(s, i, p, lock)].append([_time_processor(query, proc, l, args.repeats, m, 1.0 / 60.0) for l, m in zip(layers, motion)])
             finally:
                 proc.release()
     measured = any(v > UNTIMED_MS for t in times.values() for pair in t for v in pair)
     print(f"{info['gl_renderer']} | {info['gl_version']} | {args.fps:g} fps bakes, {MAX_LAYERS}-layer blends, {PASSES} passes alternated")
     rows = []
-    for (s, i, p), t in times.items():
+    for (s, i, p, lock), t in times.items():
         t = np.array(t)  # (passes, sizes)
         median = np.median(t, axis=0)
-        row = {"storage": s, "interpolation": i, "path": p, "bytes": bakes[s].nbytes,
+        row = {"storage": s, "interpolation": i, "path": p, "foot_lock": lock, "bytes": bakes[s].nbytes,
                "gpu_ms": {str(n): (float(m) if measured else None) for n, m in zip(agents, median)},
                "spread": (float((t[:, -1].max() - t[:, -1].min()) / median[-1]) if measured and median[-1] > 0 else None)}
         rows.append(row)
         cells = "  ".join(f"{n:,}: {m:.4f} ms" for n, m in zip(agents, median)) if measured else "GPU ms not measured here"
         spread = f"  spread {row['spread']:.1%}" if row["spread"] is not None else ""
-        print(f"{s:>16} {i:<12} {p:<8} {bakes[s].nbytes:>9,} B  {cells}{spread}")
+        print(f"{s:>16} {i:<12} {p + (' +lock' if lock else ''):<14} {bakes[s].nbytes:>9,} B  {cells}{spread}")
     if not measured:
         print(f"GPU ms not measured here: {info['gl_renderer']}'s timer queries answer 0 or 1 ns")
     if args.json:
@@ -87,5 +97,6 @@ def add_parsers(sub) -> None:
     p.add_argument("--fps", type=float, default=30.0, help="bake rate")
     p.add_argument("--repeats", type=int, default=30, help="timed runs per size and pass")
     p.add_argument("--seed", type=int, default=8)
+    p.add_argument("--foot-lock", action="store_true", help="also time the compute path with the foot lock")
     p.add_argument("--json", type=Path)
     p.set_defaults(run=run)

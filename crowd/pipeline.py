@@ -24,6 +24,7 @@ import moderngl
 import numpy as np
 
 from .allocator import keep_freed_memory
+from .anim.foot_lock import bake_legs
 from .anim.foot_skate import FootSkateMonitor
 from .anim.processor import AnimationProcessor, palette_joint_positions
 from .anim.roles import bake_roles, match_roles
@@ -68,6 +69,7 @@ class PipelineConfig:
     weapons: bool = DEFAULTS["weapons"]  # armed agents carry weapons (AIConfig.armed_share says how many)
     readback_latency: int = DEFAULTS["readback_latency"]  # frames between gathering a socket and the CPU reading it
     cull: str = DEFAULTS["cull"]  # "auto", "gpu" or "cpu": where culling, LOD and the instance lists are made
+    foot_lock: bool = DEFAULTS["foot_lock"]  # planted feet held by the processor (the compute path; crowd.anim.foot_lock)
 
 
 @dataclass
@@ -94,6 +96,8 @@ class CrowdPipeline(GLStage):
         self.roles, self.role_notes = match_roles(self.character.clips, config.roles)
         # Leave out what the scene does not need: only the clips the roles play are baked.
         self.bake = bake_roles(self.character, self.roles, config.bake_fps, config.precision, config.compression_bound_mm)
+        self.legs = bake_legs(self.character.skeleton, self.bake)  # what the foot lock holds, if it runs
+        self._lock_ground: np.ndarray | None = None  # each agent's ground point (x, z) at the last run, float64
         self.latency = SETTINGS["readback_latency"].check(config.readback_latency, PipelineError)
         self.clip_speed: dict[str, float] = {}  # clip name → playback speed (time scale), where not 1
         self.motion = motion_for(self.character, self.bake, self.roles)
@@ -148,7 +152,8 @@ class CrowdPipeline(GLStage):
         c = self.config
         return StageSpec(layers=LAYERS, masks=upper_body_mask(self.character.skeleton), processor_path=c.processor_path,
                          interpolation=c.interpolation, lod_distances=c.lod_distances, shadows=c.shadows, culling=c.culling,
-                         occlusion=c.occlusion, armed=self.readback is not None if armed is None else armed, readback_latency=self.latency, cull=c.cull)
+                         occlusion=c.occlusion, armed=self.readback is not None if armed is None else armed, readback_latency=self.latency, cull=c.cull,
+                         foot_lock=c.foot_lock, legs=self.legs)
 
     # -- run-time settings: the panel and the command line both come through these
 
@@ -235,9 +240,11 @@ class CrowdPipeline(GLStage):
             old = next((c for c in self.bake.clips if c.name == clip.name), None)
             if old is not None:
                 bake.clips[i] = dataclasses.replace(clip, loop=old.loop)
-        spec = dataclasses.replace(self._spec(), interpolation=interpolation)
+        legs = bake_legs(self.character.skeleton, bake)
+        spec = dataclasses.replace(self._spec(), interpolation=interpolation, legs=legs)
         self.stages.replace("processor", build_processor(self.ctx, bake, spec, self.agents))
-        self.bake = bake
+        self.bake, self.legs = bake, legs
+        self._lock_ground = None
         self.config = dataclasses.replace(self.config, bake_fps=bake.fps, precision=precision, interpolation=interpolation,
                                           compression_bound_mm=bake.bound_mm)
         self.sync.reset()
@@ -252,9 +259,47 @@ class CrowdPipeline(GLStage):
         processor = build_processor(self.ctx, self.bake, dataclasses.replace(self._spec(), processor_path=path), self.agents)
         self.stages.replace("processor", processor)
         self.config = dataclasses.replace(self.config, processor_path=path)
+        self._lock_ground = None
         self.sync.reset()
         if self.readback is not None:
             self.readback.reset()
+
+    def set_foot_lock(self, on: bool) -> None:
+        """The foot lock on (a processor that holds planted feet, with its state buffers) or off (a
+        processor without them, the lock's code compiled out), live; the crowd keeps its state."""
+        on = SETTINGS["foot_lock"].check(on, PipelineError)
+        processor = build_processor(self.ctx, self.bake, dataclasses.replace(self._spec(), foot_lock=on), self.agents)
+        self.stages.replace("processor", processor)
+        self.config = dataclasses.replace(self.config, foot_lock=on)
+        self._lock_ground = None
+        self.sync.reset()
+        if self.readback is not None:
+            self.readback.reset()
+
+    def foot_lock_state(self) -> dict:
+        """Whether the processor holds feet now, which, and why not where it does not."""
+        if self.processor.legs is not None:
+            return {"on": True, "legs": list(self.processor.legs.names)}
+        why = ("off in the scene" if not self.config.foot_lock else "no leg found (an ankle under a knee under a hip)" if not len(self.legs)
+               else "the fragment path has no state to keep it in (it runs on the compute path)")
+        return {"on": False, "legs": list(self.legs.names), "why": why}
+
+    def _lock_motion(self) -> np.ndarray:
+        """Each agent's ground step since the last run (float64, so a world far from the origin loses
+        nothing to float32), yaw and scale: the foot lock's input. A new agent, or the first run after
+        the processor was made, steps 0; a respawn steps as far as it was moved, which the lock reads as
+        a teleport."""
+        ground = np.stack([self.ai.x, self.ai.z], axis=1)
+        last = self._lock_ground
+        if last is None or len(last) != len(ground):
+            kept = np.array(ground) if last is None else np.concatenate([last[: len(ground)], ground[len(last):]])
+            last = kept
+        motion = np.empty((len(ground), 4), np.float32)
+        motion[:, :2] = ground - last
+        motion[:, 2] = np.mod(self.ai.yaw, 2.0 * np.pi)
+        motion[:, 3] = self.ai.scale
+        self._lock_ground = ground
+        return motion
 
     def set_clip_speed(self, name: str, speed: float) -> None:
         """A clip's playback speed (three.js's timeScale). Locomotion clips move the zombie faster too, so
@@ -285,6 +330,8 @@ class CrowdPipeline(GLStage):
         old, self.ai = self.ai, CrowdAI(self.agents, seed, self.motion, self.ai.config, self.config.origin)
         old.close()
         self.foot_skate.reset()
+        self.processor.reset_lock()  # other agents now: nothing held is theirs
+        self._lock_ground = None
         self.sync.spawned(slice(None), self.frames)
 
     def set_readback_latency(self, latency: int) -> None:
@@ -319,6 +366,7 @@ class CrowdPipeline(GLStage):
         f = self.frames
         if overrides:
             overrides.validate(len(self.bake.clips), LAYERS)
+        sim_time = self.ai.time
         with t.cpu("ai"):
             if self.player_script is not None:
                 self.player_script.update(self.ai)
@@ -344,7 +392,10 @@ class CrowdPipeline(GLStage):
                 self.readback_waits.append(read.wait_ms)
                 self.readback_stalls += int(read.stalled)
         with t.cpu("upload"):
-            self.processor.upload(layers)
+            if self.processor.legs is not None:
+                self.processor.upload(layers, self._lock_motion(), self.ai.time - sim_time)
+            else:
+                self.processor.upload(layers)
         if self.agents:
             with t.gpu("process"):
                 self.processor.run()

@@ -73,6 +73,7 @@ class Scene:
     lod_distances: tuple = DEFAULTS["lod_distances"]
     processor: str = DEFAULTS["processor"]
     cull: str = DEFAULTS["cull"]
+    foot_lock: bool = DEFAULTS["foot_lock"]
     camera: CameraSetting | None = None
 
     def with_overrides(self, source: str = "command line", **values) -> "Scene":
@@ -107,7 +108,7 @@ class Scene:
         return PipelineConfig(agents=self.agents, seed=self.seed, model=self.model, model_scale=self.model_scale, roles=dict(self.roles), bake_fps=self.bake_fps,
                               precision=self.precision, compression_bound_mm=self.compression_bound_mm, interpolation=self.interpolation, processor_path=self.processor, shadows=self.shadows, culling=self.culling,
                               occlusion=self.occlusion, lod_distances=tuple(self.lod_distances), ai=self.ai, weapons=self.weapons,
-                              readback_latency=self.readback_latency, cull=self.cull)
+                              readback_latency=self.readback_latency, cull=self.cull, foot_lock=self.foot_lock)
 
 
 # The keys of each table: the settings of its group, and the few structured keys only scenes have.

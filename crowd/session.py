@@ -219,6 +219,9 @@ class CrowdSession(GLStage):
     def set_occlusion(self, on: bool) -> None:
         self.pipeline.set_occlusion(SETTINGS["occlusion"].check(on, SessionError))
 
+    def set_foot_lock(self, on: bool) -> None:
+        self.pipeline.set_foot_lock(SETTINGS["foot_lock"].check(on, SessionError))
+
     def set_shadows(self, on: bool) -> None:
         self.pipeline.set_shadows(SETTINGS["shadows"].check(on, SessionError))
 
@@ -249,7 +252,7 @@ class CrowdSession(GLStage):
             "compression_bound_mm": lambda v: self.rebake(bake.fps, bake.precision, bound_mm=v),
             "shadows": self.set_shadows, "culling": self.set_culling, "occlusion": self.set_occlusion, "weapons": self.set_weapons,
             "lod_distances": lambda v: self.set_lod_distances(*SETTINGS["lod_distances"].check(v, SessionError)),
-            "readback_latency": self.set_readback_latency, "cull": self.set_cull_path,
+            "readback_latency": self.set_readback_latency, "cull": self.set_cull_path, "foot_lock": self.set_foot_lock,
         }
         if name == "model_scale":
             SETTINGS[name].check(value, SessionError)
@@ -370,7 +373,7 @@ class CrowdSession(GLStage):
             roles=dict(p.config.roles), clip_speed=dict(p.clip_speed),
             clip_loop={k: v for k, v in bake_loops.items() if authored.get(k) != v}, ai=p.ai.config,
             weapons=p.config.weapons, readback_latency=p.latency, shadows=p.renderer.shadows, culling=p.renderer.culling, occlusion=p.config.occlusion,
-            lod_distances=tuple(p.renderer.lod_distances), processor=p.config.processor_path, cull=p.config.cull,
+            lod_distances=tuple(p.renderer.lod_distances), processor=p.config.processor_path, cull=p.config.cull, foot_lock=p.config.foot_lock,
             camera=CameraSetting(tuple(float(v) for v in cam.eye), tuple(float(v) for v in cam.target), float(cam.fov_y)))
 
     def save(self, path) -> Path | None:

@@ -221,6 +221,9 @@ _ALL = (
             "occlusion culling against the previous frame's depth pyramid (the gpu cull path; docs/BENCHMARKS.md says where it pays)"),
     Setting("lod_distances", "features", "ascending", (14.0, 40.0, 90.0), "metres from the camera where LOD1, LOD2 and LOD3 start",
             label="LOD distances", low=0, open_low=True, slider=(1, 500)),
+    Setting("foot_lock", "features", "bool", True,
+            "feet that carry weight stay where they came down: the processor holds each planted foot through turns, pushes and "
+            "blends, and solves the leg to it (two-bone IK; the compute path only; docs/ACCURACY.md)"),
     Setting("processor", "features", "choice", "auto", "animation processor path: compute where GL 4.3 exists, else fragment",
             label="processor path", choices=("auto", "compute", "fragment")),
     Setting("cull", "features", "choice", "auto",

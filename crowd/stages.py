@@ -42,6 +42,8 @@ class StageSpec:
     occlusion: bool = DEFAULTS["occlusion"]
     cull: str = DEFAULTS["cull"]
     armed: bool = False  # somebody carries a weapon: the read-back stage and weapon meshes exist
+    foot_lock: bool = DEFAULTS["foot_lock"]
+    legs: object = None  # the character's legs (crowd.anim.foot_lock.Legs) the lock would hold, or None
     readback_latency: int = DEFAULTS["readback_latency"]
 
     @property
@@ -51,8 +53,13 @@ class StageSpec:
 
 
 def build_processor(ctx: moderngl.Context, bake: AnimationBake, spec: StageSpec, agents: int = 0) -> AnimationProcessor:
-    processor = AnimationProcessor(ctx, bake, spec.layers, masks=spec.masks, path=spec.processor_path,
-                                   history=spec.history, interpolation=spec.interpolation)
+    path = spec.processor_path
+    if path == "auto":
+        path = "compute" if has_compute(ctx) else "fragment"
+    # The foot lock runs where it can: on the compute path, for a character with legs.
+    legs = spec.legs if spec.foot_lock and path == "compute" else None
+    processor = AnimationProcessor(ctx, bake, spec.layers, masks=spec.masks, path=path,
+                                   history=spec.history, interpolation=spec.interpolation, legs=legs)
     try:
         processor.resize(agents)
     except BaseException:

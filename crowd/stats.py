@@ -72,6 +72,7 @@ def pipeline_stats(pipeline) -> dict:
         # The running crowd's foot skate (crowd.anim.foot_skate), from the sampled agents' feet on the
         # socket read-back; None without a read-back (nobody armed) or before any of them walked 0.5 m.
         "foot_skate": None if p.readback is None else p.foot_skate.summary(),
+        "foot_lock": p.foot_lock_state(),
     }
 
 

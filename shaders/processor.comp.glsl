@@ -15,6 +15,9 @@ uniform int u_palette_rows;  // texture rows per layer
 shared vec4 s_local0[256];
 shared vec4 s_local1[256];
 shared vec4 s_local2[256];
+#ifdef FOOT_LOCK
+#include "foot_lock.glsl"
+#endif
 
 void main() {
     int t = int(gl_LocalInvocationIndex);
@@ -30,8 +33,16 @@ void main() {
         s_local2[t] = m.r2;
     }
     barrier();
-    if (!working) return;
     int base = slot * u_joints;
+#ifdef FOOT_LOCK
+    // The first leg's ankle invocation locks the agent's feet, leg after leg: it rewrites their locals,
+    // which every invocation of the agent reads after the barrier (reached by all, working or not).
+    if (working && joint == u_leg_joints[0].w) {
+        for (int leg = 0; leg < LEG_COUNT; ++leg) lock_leg(agent, base, leg);
+    }
+    barrier();
+#endif
+    if (!working) return;
     Affine m = Affine(s_local0[t], s_local1[t], s_local2[t]);
     int p = parent_of(joint);
     for (int k = 0; k < MAX_JOINTS && p >= 0; ++k) {

@@ -215,9 +215,11 @@ def test_crowd_bench_storage_cost_times_every_storage_on_both_paths(tmp_path, gl
 
     out = tmp_path / "cost.json"
     assert bench_main(["storage-cost", "--agents", "64,256", "--repeats", "1", "--storage", "f32,compressed@0.5",
-                       "--interpolations", "qt_corrected", "--json", str(out)]) == 0
+                       "--interpolations", "qt_corrected", "--foot-lock", "--json", str(out)]) == 0
     report = json.loads(out.read_text())
-    rows = {(r["storage"], r["path"]): r for r in report["rows"]}
+    rows = {(r["storage"], r["path"]): r for r in report["rows"] if not r["foot_lock"]}
     assert set(rows) == {(s, p) for s in ("f32", "compressed@0.5") for p in ("compute", "fragment")}
+    locked = {(r["storage"], r["path"]) for r in report["rows"] if r["foot_lock"]}
+    assert locked == {(s, "compute") for s in ("f32", "compressed@0.5")}  # the lock runs on the compute path only
     assert rows[("compressed@0.5", "compute")]["bytes"] * 8 < rows[("f32", "compute")]["bytes"]
     assert all(set(r["gpu_ms"]) == {"64", "256"} for r in rows.values())

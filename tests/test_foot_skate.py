@@ -99,27 +99,35 @@ def test_standing_still_reports_no_slide_per_metre_but_a_speed():
     assert np.isnan(skate.slide_cm_per_m) and skate.slide_cm_per_s == pytest.approx(10.0)
 
 
-def test_the_running_crowd_s_feet_come_back_on_the_read_back_as_the_reference_puts_them(gl_context):
+@pytest.mark.parametrize("foot_lock", [False, True])
+def test_the_running_crowd_s_feet_come_back_on_the_read_back_as_the_reference_puts_them(gl_context, foot_lock):
     """The stats' foot_skate: the sampled agents' feet, read back with the sockets (never waited for),
-    are where the float64 reference puts them for the layers and transforms of the frame they were read
-    from, within 1 mm; the summary is finite."""
+    are those of the frame they were read from, within 1 mm: where the float64 reference puts them for
+    that frame's layers and transforms, and with the foot lock (whose state the reference does not
+    follow through a crowd) where that frame's palette, read at once, put them; the summary is finite."""
     from crowd.gl import Offscreen
     from crowd.pipeline import CrowdPipeline, PipelineConfig
 
-    with Offscreen(gl_context, (160, 90)) as target, CrowdPipeline(gl_context, PipelineConfig(agents=200)) as p:
+    with Offscreen(gl_context, (160, 90)) as target, CrowdPipeline(gl_context, PipelineConfig(agents=200, foot_lock=foot_lock)) as p:
+        if foot_lock and p.processor.legs is None:
+            pytest.skip("the foot lock runs on the compute path (GL 4.3)")
         kept = {}
         for f in range(90):
             p.frame(target.framebuffer, 1.0 / 30.0)
             instances = p.ai.instances()  # the frame's own: nothing moves after its AI step
-            kept[f] = (p.layers.copy(), instances.position[:, [0, 2]].copy(), instances.yaw.copy(), instances.scale.copy())
+            palette = p.processor.read_palette() if foot_lock else None
+            kept[f] = (p.layers.copy(), instances.position[:, [0, 2]].copy(), instances.yaw.copy(), instances.scale.copy(), palette)
         monitor = p.foot_skate
         clips = [p.character.clip(c.name) for c in p.bake.clips]
         checked = 0
         for agent, track in monitor._tracks.items():
             frame, _, ground, world = track[-1]
-            layers, positions, yaw, scale = kept[frame]
-            truth = accuracy.truth(p.character.skeleton, clips, layers[agent][None], p.processor.masks)
-            model = joint_positions(truth, p.character.skeleton, monitor.feet)
+            layers, positions, yaw, scale, palette = kept[frame]
+            if palette is None:
+                matrices = accuracy.truth(p.character.skeleton, clips, layers[agent][None], p.processor.masks)
+            else:
+                matrices = palette[agent][None]
+            model = joint_positions(matrices, p.character.skeleton, monitor.feet)
             expected = to_world(model, positions[agent][None], yaw[agent], float(scale[agent]))[0]
             np.testing.assert_allclose(ground, positions[agent])
             assert np.abs(world - expected).max() < 1e-3, (agent, frame)

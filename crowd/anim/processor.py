@@ -53,6 +53,7 @@ from .. import transforms as tf
 from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, validate_layers, validate_masks
 from .bake import AnimationBake
 from .compress import PER_KEY
+from . import foot_lock as lock
 from ..gl import GLStage, gpu_bytes, has_compute, load_shader
 from ..settings import DEFAULTS, SETTINGS
 from .reference import CANCELLED_NORM, REST_THRESHOLD, aligned_sign
@@ -116,6 +117,22 @@ def palette_limits(ctx: moderngl.Context) -> tuple[int, int]:
 def texel_code(x, y) -> np.ndarray:
     """uint32 code of palette texels (x, y), as shaders/palette.glsl reads it."""
     return np.asarray(x, np.uint32) | (np.asarray(y, np.uint32) << np.uint32(TEXEL_ROW_SHIFT))
+
+
+def check_motion(motion, agents: int) -> np.ndarray:
+    """The foot lock's per-agent motion (N, 4) float32: ground step x, z (finite), yaw (finite), scale (> 0)."""
+    if motion is None:
+        raise ProcessorError("the foot lock needs each agent's motion (ground step x, z, yaw, scale) with its layers")
+    m = np.ascontiguousarray(motion, np.float32)
+    if m.shape != (agents, 4):
+        raise ProcessorError(f"agent motion must be ({agents}, 4) (ground step x, z, yaw, scale), got {np.shape(motion)}")
+    if not np.all(np.isfinite(m)):
+        bad = int(np.flatnonzero(~np.all(np.isfinite(m), axis=1))[0])
+        raise ProcessorError(f"agent motion of agent {bad} is not finite: {m[bad].tolist()}")
+    if np.any(m[:, 3] <= 0):
+        bad = int(np.flatnonzero(m[:, 3] <= 0)[0])
+        raise ProcessorError(f"agent {bad} has scale {float(m[bad, 3])}; the foot lock needs a scale > 0")
+    return m
 
 
 def check_interpolation(interpolation) -> str:
@@ -187,11 +204,13 @@ def _sample_keys(texels, scales, table, clip, phase, interpolation):
     return q / np.linalg.norm(q, axis=-1, keepdims=True), _catmull_rom(t0, t1, t2, t3, u), _catmull_rom(s0, s1, s2, s3, u[..., 0])
 
 
-def reference_palette(bake: AnimationBake, layers, masks=None, interpolation: str = DEFAULT_INTERPOLATION) -> np.ndarray:
+def reference_palette(bake: AnimationBake, layers, masks=None, interpolation: str = DEFAULT_INTERPOLATION,
+                      foot_lock: lock.FootLockTwin | None = None, motion=None, dt: float = 0.0) -> np.ndarray:
     """Float64 model of the processor on the same baked keys: (N, J, 3, 4) skinning matrix rows.
 
     The bake's own error against the source clips is measured elsewhere (crowd.anim.accuracy, issue 7's
-    report); this function isolates what the GPU adds: float32 arithmetic.
+    report); this function isolates what the GPU adds: float32 arithmetic. With `foot_lock` (the twin
+    of a processor built with legs) the frame's `motion` and `dt` advance its state as a run does.
     """
     interpolation = check_interpolation(interpolation)
     masks = validate_masks(masks, bake.joint_count)
@@ -246,6 +265,8 @@ def reference_palette(bake: AnimationBake, layers, masks=None, interpolation: st
         d = np.where(cancelled, np.take_along_axis(second, anchor[None, ..., None], axis=0)[0], d)
         d = np.where(low[..., None], rest_d[None], d)
         local = tf.dq_to_mat4(r, d, s)
+    if foot_lock is not None:
+        local = foot_lock.apply(local, bake.parents, motion, dt)
     glob = np.empty_like(local)
     for j, p in enumerate(bake.parents):
         glob[:, j] = local[:, j] if p < 0 else glob[:, p] @ local[:, j]
@@ -263,8 +284,8 @@ class AnimationProcessor(GLStage):
     """Owns the bake's GPU textures, the layers texture and the palette planes, and releases them."""
 
     def __init__(self, ctx: moderngl.Context, bake: AnimationBake, layer_count: int = MAX_LAYERS, masks=None, path: str = "auto",
-                 history: int = 1, interpolation: str = DEFAULT_INTERPOLATION):
-        self._own: dict[str, list] = {"animation": [], "palette": [], "layers": [], "processor_quad": []}
+                 history: int = 1, interpolation: str = DEFAULT_INTERPOLATION, legs: lock.Legs | None = None):
+        self._own: dict[str, list] = {"animation": [], "palette": [], "layers": [], "processor_quad": [], "foot_lock": []}
         self.program = None
         SETTINGS["processor"].check(path, ProcessorError)
         if not 1 <= layer_count <= MAX_LAYERS:
@@ -278,6 +299,13 @@ class AnimationProcessor(GLStage):
             path = "compute" if has_compute(ctx) else "fragment"
         if path == "compute" and not has_compute(ctx):
             raise ProcessorError(f"the compute path needs GL 4.3, this context has {ctx.version_code}")
+        # The foot lock (crowd.anim.foot_lock): legs given and found, on the compute path, whose shared
+        # memory holds an agent's locals between the blend and the composition.
+        self.legs = legs if legs is not None and len(legs) else None
+        if self.legs is not None and path != "compute":
+            raise ProcessorError("the foot lock runs on the compute path (GL 4.3); the fragment path has no state to keep it in")
+        self._lock_state = self._lock_motion = None
+        self._lock_decay, self._step_advance = 1.0, 0.0
         self.ctx = ctx
         self.bake = bake
         self.path = path
@@ -316,6 +344,11 @@ class AnimationProcessor(GLStage):
             defines["PER_KEY"] = f"{PER_KEY}u"
         if self.masks_texture is not None:
             defines["HAS_MASKS"] = 1
+        if self.legs is not None:
+            defines.update(FOOT_LOCK=1, LEG_COUNT=len(self.legs), CORRECTION_EPS=f"{lock.CORRECTION_EPS:.1e}",
+                           **{name: repr(float(getattr(lock, name))) for name in ("CONTACT_M", "STEP_SHIFT_M", "STEP_TWIST_RAD", "HOLD_SHIFT_M",
+                                                                                  "HOLD_TWIST_RAD", "STEP_LIFT_M", "RESET_M", "RESET_RAD",
+                                                                                  "MIN_FORWARD_HORIZONTAL")})
         if interpolation != "dq_lerp":
             defines["INTERPOLATION_QT"] = 1
         if interpolation == "qt_cubic":
@@ -340,6 +373,11 @@ class AnimationProcessor(GLStage):
         self._set("u_rest_scale_row", bake.rest_row)
         if compressed:
             self._set("u_key_width", words.shape[1])
+        if self.legs is not None:
+            self.program["u_leg_joints"].write(np.ascontiguousarray(self.legs.joints, np.int32).tobytes())
+            self.program["u_leg_toe"].write(np.ascontiguousarray(self.legs.toe, np.int32).tobytes())
+            self.program["u_leg_forward"].write(np.ascontiguousarray(self.legs.forward, np.float32).tobytes())
+            self.program["u_leg_lowest"].write(np.ascontiguousarray(self.legs.lowest, np.float32).tobytes())
         self._set("u_row_offset", 0)
         self.layers_texture = None
         self.planes: tuple = ()
@@ -394,11 +432,39 @@ class AnimationProcessor(GLStage):
         if not isinstance(agents, (int, np.integer)) or agents < 0:
             raise ProcessorError(f"agent count must be a whole number >= 0, got {agents!r}")
         agents = int(agents)
-        if self.palette_rows(agents) == self.palette_rows() and self.planes and agents:
-            self.agents = agents  # the same texture rows: the agents kept keep their palette history
-            self._update_quad()
+        try:
+            if self.palette_rows(agents) == self.palette_rows() and self.planes and agents:
+                self.agents = agents  # the same texture rows: the agents kept keep their palette history
+                self._update_quad()
+                return
+            self._allocate(agents, keep=True)
+        finally:
+            self._resize_lock(self.agents)
+
+    def _resize_lock(self, agents: int) -> None:
+        """The foot lock's state (a vec4 per agent and leg) and motion (a vec4 per agent) buffers, for
+        `agents`: the agents kept keep their state, new ones start free with nothing carried."""
+        if self.legs is None:
             return
-        self._allocate(agents, keep=True)
+        size = agents * len(self.legs) * 16
+        if self._lock_state is not None and self._lock_state.size == size and agents:
+            return
+        old, old_objects = self._lock_state, self._own["foot_lock"]
+        self._own["foot_lock"] = []
+        self._lock_state = self._lock_motion = None
+        try:
+            if agents:
+                state = self.ctx.buffer(reserve=size)
+                self._own["foot_lock"].append(state)
+                state.clear()
+                if old is not None:
+                    self.ctx.copy_buffer(state, old, size=min(size, old.size))
+                self._lock_motion = self.ctx.buffer(reserve=agents * 16)
+                self._own["foot_lock"].append(self._lock_motion)
+                self._lock_state = state
+        finally:
+            for obj in old_objects:
+                obj.release()
 
     def _allocate(self, agents: int, keep: bool = False) -> None:
         rows = self.palette_rows(agents)
@@ -530,11 +596,21 @@ class AnimationProcessor(GLStage):
 
     # -- the pass
 
-    def upload(self, layers) -> None:
-        """Validate and upload this frame's layers (N, L, 4); N must equal the agent count."""
+    def upload(self, layers, motion=None, dt: float = 0.0) -> None:
+        """Validate and upload this frame's layers (N, L, 4); N must equal the agent count. With the foot
+        lock, also each agent's `motion` (N, 4): its ground step since the last run (x, z, metres, from
+        float64 positions), yaw and scale, and the frame's simulated seconds `dt`."""
         a = validate_layers(layers, len(self.bake.clips), 0 if self.masks is None else self.masks.shape[0], self.layer_count)
         if a.shape[0] != self.agents:
             raise ProcessorError(f"layers are for {a.shape[0]} agents, the processor holds {self.agents}")
+        if self.legs is not None:
+            m = check_motion(motion, self.agents)
+            if not (isinstance(dt, (int, float, np.floating)) and math.isfinite(dt) and dt >= 0):
+                raise ProcessorError(f"the foot lock needs a frame time >= 0 seconds, got {dt!r}")
+            self._lock_decay = math.exp(-float(dt) / lock.RELEASE_S)
+            self._step_advance = float(dt) / lock.STEP_S
+            if self.agents:
+                self._lock_motion.write(m)
         if self.agents == 0:
             return
         # Whole texture rows straight from the array (no padded copy), then the last, partial row.
@@ -567,6 +643,11 @@ class AnimationProcessor(GLStage):
         if self.keys_texture is not None:
             self.keys_texture.use(6)
             self.tracks_texture.use(7)
+        if self.legs is not None:
+            self._lock_state.bind_to_storage_buffer(0)
+            self._lock_motion.bind_to_storage_buffer(1)
+            self._set("u_lock_decay", self._lock_decay)
+            self._set("u_step_advance", self._step_advance)
         self._set("u_agents", self.agents)
         if self.path == "compute":
             for unit, plane in enumerate(self.planes):
@@ -575,7 +656,9 @@ class AnimationProcessor(GLStage):
             gx = min(groups, 32768)
             self.program.run(gx, math.ceil(groups / gx), 1)
             # Later passes read the palette through texelFetch (and the readback through pack buffers).
-            self.ctx.memory_barrier(moderngl.TEXTURE_FETCH_BARRIER_BIT | moderngl.PIXEL_BUFFER_BARRIER_BIT | moderngl.TEXTURE_UPDATE_BARRIER_BIT)
+            # The foot lock's next run reads the state this one wrote.
+            self.ctx.memory_barrier(moderngl.TEXTURE_FETCH_BARRIER_BIT | moderngl.PIXEL_BUFFER_BARRIER_BIT | moderngl.TEXTURE_UPDATE_BARRIER_BIT
+                                    | moderngl.SHADER_STORAGE_BARRIER_BIT)
         else:
             self._framebuffer.viewport = (0, 0, self.agents_per_row * self.joint_count, self.layer_rows)
             self._framebuffer.use()
@@ -584,9 +667,21 @@ class AnimationProcessor(GLStage):
         self.runs += 1
         return True
 
-    def process(self, layers) -> bool:
-        self.upload(layers)
+    def process(self, layers, motion=None, dt: float = 0.0) -> bool:
+        self.upload(layers, motion, dt)
         return self.run()
+
+    def reset_lock(self) -> None:
+        """Every leg free with nothing carried (a new crowd in the same slots)."""
+        if self._lock_state is not None:
+            self._lock_state.clear()
+
+    def read_lock_state(self) -> np.ndarray:
+        """(N, legs, 4) float32 foot-lock state (synchronous: tests only): engaged legs (hold x, z, yaw, 1),
+        free ones (the correction carried x, z, yaw, 0)."""
+        if self._lock_state is None:
+            return np.zeros((0, 0 if self.legs is None else len(self.legs), 4), np.float32)
+        return np.frombuffer(self._lock_state.read(), np.float32).reshape(self.agents, len(self.legs), 4)
 
     def set_clip_loop(self, clip: int, loop: bool) -> None:
         """Loop a clip (its phase wraps) or play it once (its phase clamps): the clip table is rewritten."""
@@ -637,6 +732,7 @@ class AnimationProcessor(GLStage):
         for group in list(self._own):
             self._release_group(group)
         self.planes, self.layers_texture, self._framebuffer = (), None, None
+        self._lock_state = self._lock_motion = None
         if self.program is not None:
             self.program.release()
             self.program = None
