@@ -39,6 +39,29 @@ def _slide(skeleton, clips, feet, names, motion, speed: float, frames: int, dt: 
     return measure(to_world(joint_positions(matrices, skeleton, feet), ground, 0.0), dt, float(walked[-1]), names)
 
 
+def _locked_slide(skeleton, bake, legs, feet, names, motion, speed: float, frames: int, dt: float, processor=None):
+    """The same straight walk with the foot lock: frame after frame through `processor` (one agent, the
+    GPU's lock), or through the float64 twin of both."""
+    from crowd.anim.foot_lock import FootLockTwin
+    from crowd.anim.foot_skate import joint_positions, measure, to_world
+    from crowd.anim.processor import reference_palette
+    from crowd.sim.ai import locomotion_layers
+
+    layers, walked = locomotion_layers(motion, speed, frames, dt)
+    twin = FootLockTwin(legs, 1)
+    matrices = []
+    for f in range(frames):
+        step = walked[f] - walked[f - 1] if f else 0.0
+        agent = np.array([[0.0, step, 0.0, 1.0]], np.float32)  # straight ahead along +z, front +z, scale 1
+        if processor is None:
+            matrices.append(reference_palette(bake, layers[f:f + 1], foot_lock=twin, motion=agent, dt=dt if f else 0.0)[0])
+        else:
+            processor.process(layers[f:f + 1], agent, dt if f else 0.0)
+            matrices.append(processor.read_palette()[0].astype(np.float64))
+    ground = np.stack([np.zeros(frames), walked], axis=1)
+    return measure(to_world(joint_positions(np.array(matrices), skeleton, feet), ground, 0.0), dt, float(walked[-1]), names)
+
+
 def worst_speed(score, low: float, high: float, grid: int = 24, rounds: int = 12) -> float:
     """The speed in [low, high] at which `score(speed)` (the reference's worst foot, cm/m) is largest: a
     grid, then golden-section search in the bracket around the grid's best. The slide is a smooth
@@ -56,7 +79,10 @@ def measure_cases(ctx, character, bake, motion, speeds: int = 10, seconds: float
     cases: the worst speed below the walk's slowest playback (where idle fades in) and the worst from
     there to the run speed, each found by search on the reference (``worst_speed``)."""
     from crowd.anim import accuracy
+    from crowd.anim.foot_lock import bake_legs
     from crowd.anim.foot_skate import foot_joints
+    from crowd.anim.processor import AnimationProcessor
+    from crowd.gl import has_compute
 
     skeleton = character.skeleton
     feet = foot_joints(skeleton)
@@ -72,12 +98,29 @@ def measure_cases(ctx, character, bake, motion, speeds: int = 10, seconds: float
         chosen.append(("worst below slowest walk", worst_speed(score, 0.02 * slowest, slowest)))
         chosen.append(("worst walk to run", worst_speed(score, slowest, motion.run_speed)))
     gpu = lambda layers: accuracy.gpu_palette(ctx, bake, layers)
+    legs = bake_legs(skeleton, bake)
+    locked = None
+    if search and len(legs):  # the lock moves the worst speeds: searched again, on the lock's float64 twin
+        score = lambda v: _locked_slide(skeleton, bake, legs, feet, names, motion, v, frames, dt).worst_cm_per_m
+        chosen.append(("worst below slowest, locked", worst_speed(score, 0.02 * slowest, slowest)))
+        chosen.append(("worst walk to run, locked", worst_speed(score, slowest, motion.run_speed)))
+    if len(legs) and has_compute(ctx):
+        locked = AnimationProcessor(ctx, bake, 4, path="compute", legs=legs)
+        locked.resize(1)
     rows = []
-    for name, speed in chosen:
-        row = {"case": name, "speed_m_s": round(speed, 4), "frames": frames, "dt_s": dt}
-        for source, palette in (("gpu", gpu), ("reference", None)):
-            row[source] = _slide(skeleton, clips, feet, names, motion, speed, frames, dt, palette).as_dict()
-        rows.append(row)
+    try:
+        for name, speed in chosen:
+            row = {"case": name, "speed_m_s": round(speed, 4), "frames": frames, "dt_s": dt}
+            for source, palette in (("gpu", gpu), ("reference", None)):
+                row[source] = _slide(skeleton, clips, feet, names, motion, speed, frames, dt, palette).as_dict()
+            if locked is not None:  # with the foot lock: the GPU's, and the float64 twin's of the baked keys
+                locked.reset_lock()
+                row["gpu_locked"] = _locked_slide(skeleton, bake, legs, feet, names, motion, speed, frames, dt, locked).as_dict()
+                row["reference_locked"] = _locked_slide(skeleton, bake, legs, feet, names, motion, speed, frames, dt).as_dict()
+            rows.append(row)
+    finally:
+        if locked is not None:
+            locked.release()
     return rows
 
 
@@ -123,7 +166,7 @@ def crowd_breakdown(character, bake, motion, agents: int, steps: int = 300, dt: 
         locked = []
         for f in range(steps):
             step = ground[f] - ground[max(f - 1, 0)]
-            lock_motion = np.column_stack([step, np.mod(yaw[f], 2.0 * np.pi), scale])
+            lock_motion = np.column_stack([step, np.sin(yaw[f]) * scale, np.cos(yaw[f]) * scale])
             locked.append(reference_palette(bake, layers[f], masks, foot_lock=twin, motion=lock_motion, dt=dt if f else 0.0))
         locked = np.array(locked)
     slide, frames, walked = np.zeros(len(CROWD_CASES)), np.zeros(len(CROWD_CASES), np.int64), 0.0
@@ -164,28 +207,35 @@ def run(args) -> int:
     bake = bake_roles(character, roles)
     motion = motion_for(character, bake, roles)
     if args.crowd:
-        report = crowd_breakdown(character, bake, motion, args.crowd)
+        reports = [crowd_breakdown(character, bake, motion, args.crowd, foot_lock=lock) for lock in (False, True)]
+        report = reports[0]
         print(f"{character.name} | a crowd of {args.crowd}: {report['sampled']} agents sampled, {report['steps']} steps of "
-              f"{report['dt_s']:.4f} s, {report['walked_m']:.1f} m walked in steady stretches of 1 s or more (float64 reference)")
-        print(f"{'frames where the agent':>32} {'cm/m':>8} {'frames':>8}")
+              f"{report['dt_s']:.4f} s, {report['walked_m']:.1f} m walked in steady stretches of 1 s or more (float64 reference; "
+              f"with the lock, the baked keys through the processor's and the lock's float64 twins)")
+        print(f"{'frames where the agent':>32} {'cm/m':>8} {'locked':>8} {'frames':>8}")
         for name, case in report["cases"].items():
-            print(f"{name:>32} {case['cm_per_m']:>8.3f} {case['frames']:>8}")
-        print(f"{'total':>32} {report['total_cm_per_m']:>8.3f}")
+            print(f"{name:>32} {case['cm_per_m']:>8.3f} {reports[1]['cases'][name]['cm_per_m']:>8.3f} {case['frames']:>8}")
+        print(f"{'total':>32} {report['total_cm_per_m']:>8.3f} {reports[1]['total_cm_per_m']:>8.3f}")
         if args.json:
             from crowd.files import atomic_write_bytes
 
-            atomic_write_bytes(Path(args.json), json.dumps(report, indent=1).encode())
+            atomic_write_bytes(Path(args.json), json.dumps({"without_lock": reports[0], "with_lock": reports[1]}, indent=1).encode())
         return 0
     ctx = headless_context()
     info = describe(ctx)
     rows = measure_cases(ctx, character, bake, motion, args.speeds, args.seconds, args.rate, not args.no_search)
     print(f"{info['gl_renderer']} | {character.name} | contact: within {CONTACT_M * 100:.0f} cm of the joint's lowest point; "
           f"skating: faster than {SKATE_SPEED_M_S * 100:.0f} cm/s | {args.seconds} s at {args.rate:.0f} Hz a case")
-    print(f"{'case':>25} {'m/s':>6} {'GPU cm/m':>9} {'worst':>7} {'cm/s':>6} {'over':>6} {'ref cm/m':>9} {'worst':>7} {'contact':>8}")
+    print(f"{'case':>25} {'m/s':>6} {'GPU cm/m':>9} {'worst':>7} {'cm/s':>6} {'over':>6} {'ref cm/m':>9} {'worst':>7} {'contact':>8}"
+          f" | {'locked GPU':>10} {'worst':>7} {'over':>6} {'twin':>7}")
     for r in rows:
         g, t = r["gpu"], r["reference"]
+        lock = ""
+        if "gpu_locked" in r:
+            gl, tl = r["gpu_locked"], r["reference_locked"]
+            lock = f" | {gl['slide_cm_per_m']:>10.3f} {gl['worst_cm_per_m']:>7.3f} {gl['share_over']:>6.1%} {tl['slide_cm_per_m']:>7.3f}"
         print(f"{r['case']:>25} {r['speed_m_s']:>6.2f} {g['slide_cm_per_m']:>9.3f} {g['worst_cm_per_m']:>7.3f} {g['slide_cm_per_s']:>6.2f} "
-              f"{g['share_over']:>6.1%} {t['slide_cm_per_m']:>9.3f} {t['worst_cm_per_m']:>7.3f} {g['contact_share']:>8.1%}")
+              f"{g['share_over']:>6.1%} {t['slide_cm_per_m']:>9.3f} {t['worst_cm_per_m']:>7.3f} {g['contact_share']:>8.1%}{lock}")
     if args.json:
         from crowd.files import atomic_write_bytes
 

@@ -50,7 +50,7 @@ def run(args) -> int:
     motion = []
     for n in agents:
         heading = rng.uniform(0.0, 2.0 * np.pi, n)
-        motion.append(np.column_stack([0.01 * np.sin(heading), 0.01 * np.cos(heading), heading, np.ones(n)]).astype(np.float32))
+        motion.append(np.column_stack([0.01 * np.sin(heading), 0.01 * np.cos(heading), np.sin(heading), np.cos(heading)]).astype(np.float32))
     query = ctx.query(time=True)
     locks = (False, True) if args.foot_lock else (False,)
     keys = [(s, i, p, lock) for s in storages for i in interpolations for p in paths for lock in locks if not (lock and p != "compute")]

@@ -9,7 +9,7 @@
 // RESET_M, RESET_RAD, CORRECTION_EPS, MIN_FORWARD_HORIZONTAL.
 
 layout(std430, binding = 0) buffer FootLockState { vec4 lock_state[]; };       // agent * LEG_COUNT + leg
-layout(std430, binding = 1) readonly buffer AgentMotion { vec4 agent_motion[]; };  // ground step x, z; yaw; scale
+layout(std430, binding = 1) readonly buffer AgentMotion { vec4 agent_motion[]; };  // ground step x, z; front x, z times the scale
 uniform ivec4 u_leg_joints[LEG_COUNT];  // hip's parent (-1: none), hip, knee, ankle
 uniform int u_leg_toe[LEG_COUNT];       // the toe joint (-1: none)
 uniform vec3 u_leg_forward[LEG_COUNT];  // the foot's forward axis in the ankle's bind frame
@@ -96,9 +96,9 @@ void lock_leg(int agent, int base, int leg) {
     vec3 forward = linear_part(ankle) * u_leg_forward[leg];
     bool has_yaw = length(forward.xz) > MIN_FORWARD_HORIZONTAL * length(forward);
     vec4 motion = agent_motion[agent];
-    float yaw = motion.z, scale = motion.w;
-    float foot_yaw = yaw + atan(forward.x, forward.z);
-    float cy = cos(yaw), sy = sin(yaw);
+    float scale = length(motion.zw);
+    float sy = motion.z / scale, cy = motion.w / scale;  // the front: (sin yaw, cos yaw)
+    float foot_yaw = atan(sy, cy) + atan(forward.x, forward.z);
     vec2 ankle_w = scale * vec2(cy * p.x + sy * p.z, -sy * p.x + cy * p.z);  // from the ground point, world orientation
     vec3 toe_m = t - p;
     vec2 toe_w = scale * vec2(cy * toe_m.x + sy * toe_m.z, -sy * toe_m.x + cy * toe_m.z);  // the toe from the ankle

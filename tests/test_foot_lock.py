@@ -185,7 +185,7 @@ class Course:
         return np.stack([self.x, self.z], 1) - before
 
     def motion(self, step):
-        return np.column_stack([step, np.mod(self.yaw, 2 * np.pi), self.scale]).astype(np.float32)
+        return np.column_stack([step, np.sin(self.yaw) * self.scale, np.cos(self.yaw) * self.scale]).astype(np.float32)
 
 
 def _feet_world(palette, skeleton, course):
@@ -261,7 +261,8 @@ def test_legs_with_nothing_to_correct_get_the_unlocked_palette_bit_for_bit(gl_co
     _, bake, legs, roles = walker
     n = 40
     layers = _walk_layers(bake, roles, n, np.linspace(0, 1, n, endpoint=False))
-    motion = np.column_stack([np.zeros((n, 2)), np.linspace(0, 6, n), np.full(n, 1.0)]).astype(np.float32)
+    yaw = np.linspace(0, 6, n)
+    motion = np.column_stack([np.zeros((n, 2)), np.sin(yaw), np.cos(yaw)]).astype(np.float32)
     plain = AnimationProcessor(gl_context, bake, 4, path="compute")
     locked = AnimationProcessor(gl_context, bake, 4, path="compute", legs=legs)
     try:
@@ -281,7 +282,7 @@ def test_legs_with_nothing_to_correct_get_the_unlocked_palette_bit_for_bit(gl_co
     (None, DT, "needs each agent's motion"),
     (np.zeros((3, 3)), DT, r"must be \(4, 4\)"),
     (np.array([[0, 0, 0, 1]] * 3 + [[np.nan, 0, 0, 1]]), DT, "agent 3 is not finite"),
-    (np.array([[0, 0, 0, 1]] * 3 + [[0, 0, 0, 0]]), DT, "agent 3 has scale 0.0"),
+    (np.array([[0, 0, 0, 1]] * 3 + [[0, 0, 0, 0]]), DT, "agent 3 has front"),
     (np.array([[0, 0, 0, 1]] * 4), -0.1, "frame time >= 0"),
     (np.array([[0, 0, 0, 1]] * 4), float("nan"), "frame time >= 0"),
     (np.array([[0, 0, 0, 1]] * 4), float("inf"), "frame time >= 0"),
@@ -336,7 +337,7 @@ def test_the_lock_buffers_follow_the_agents_and_keep_the_kept_agents_state(gl_co
             proc.resize(n)
             assert proc.gpu_bytes()["foot_lock"] == n * len(legs) * 16 + n * 16
             if n:
-                proc.process(_walk_layers(bake, roles, n, 0.3), np.column_stack([np.zeros((n, 3)), np.ones(n)]), DT)
+                proc.process(_walk_layers(bake, roles, n, 0.3), np.column_stack([np.zeros((n, 3)), np.ones(n)]), DT)  # facing +z
         before = proc.read_lock_state()
         proc.resize(9)
         assert np.array_equal(proc.read_lock_state()[:7], before)

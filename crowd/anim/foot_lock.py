@@ -8,6 +8,9 @@ processor, after the layers are blended and before the hierarchy is composed:
 - **Legs.** Every joint named like a foot or an ankle (not a toe or a ball) under a knee under a hip
   is a leg's ankle (at most MAX_LEGS legs, none sharing a joint); its toe is the child the foot points
   to. A joint is *down* within CONTACT_M of the lowest height it reaches in the bake's looping clips.
+- **Input,** per agent and frame, one vec4: its ground step since the last frame (computed by the CPU
+  in float64), and its front (sin and cos of its yaw) times its scale: no trigonometry on the CPU, and
+  16 bytes an agent (0.26 ms for 100,000 agents where yaw and scale apart cost 3.5 ms).
 - **State,** per agent and leg, one vec4 in a GPU buffer: FREE (the correction still carried, decaying
   as exp(-dt / RELEASE_S)), HELD (the ankle's point and the foot's world yaw, held), HELD_TOE (the toe's
   point: the heel is up and the foot rolls about its toe, as the clip has it), or STEPPING (the
@@ -262,16 +265,19 @@ class FootLockTwin:
     def apply(self, local: np.ndarray, parents, motion: np.ndarray, dt: float) -> np.ndarray:
         """Advance the state by one frame and return the locked locals (N, J, 4, 4) float64. `local`
         is the blended local pose (N, J, 4, 4), `motion` (N, 4): the agent's ground step since the last
-        frame (x, z), its yaw and its scale; `dt` the simulated seconds of the frame."""
+        frame (x, z) and its front (x, z: sin and cos of its yaw) times its scale; `dt` the simulated
+        seconds of the frame."""
         local = np.array(local, np.float64)
         n = local.shape[0]
         if n != len(self.state):
             raise ModelError(f"the foot lock holds {len(self.state)} agents, got a pose of {n}")
         motion = np.asarray(motion, np.float64).reshape(n, 4)
-        step, yaw, scale = motion[:, :2], motion[:, 2], motion[:, 3]
+        step = motion[:, :2]
+        scale = np.hypot(motion[:, 2], motion[:, 3])
+        sy, cy = motion[:, 2] / scale, motion[:, 3] / scale  # the front: (sin yaw, cos yaw)
+        yaw = np.arctan2(sy, cy)
         dt = max(float(dt), 0.0)
         decay = math.exp(-dt / RELEASE_S)
-        cy, sy = np.cos(yaw), np.sin(yaw)
 
         def world(v):  # model-space (x, z) of (N, 3) points or vectors -> world orientation, metres
             return scale[:, None] * np.stack([cy * v[:, 0] + sy * v[:, 2], -sy * v[:, 0] + cy * v[:, 2]], 1)

@@ -120,18 +120,20 @@ def texel_code(x, y) -> np.ndarray:
 
 
 def check_motion(motion, agents: int) -> np.ndarray:
-    """The foot lock's per-agent motion (N, 4) float32: ground step x, z (finite), yaw (finite), scale (> 0)."""
+    """The foot lock's per-agent motion (N, 4) float32: ground step x, z and front x, z times the scale,
+    all finite, the front not 0."""
     if motion is None:
-        raise ProcessorError("the foot lock needs each agent's motion (ground step x, z, yaw, scale) with its layers")
+        raise ProcessorError("the foot lock needs each agent's motion (ground step x, z, front x, z times scale) with its layers")
     m = np.ascontiguousarray(motion, np.float32)
     if m.shape != (agents, 4):
-        raise ProcessorError(f"agent motion must be ({agents}, 4) (ground step x, z, yaw, scale), got {np.shape(motion)}")
+        raise ProcessorError(f"agent motion must be ({agents}, 4) (ground step x, z, front x, z times scale), got {np.shape(motion)}")
     if not np.all(np.isfinite(m)):
         bad = int(np.flatnonzero(~np.all(np.isfinite(m), axis=1))[0])
         raise ProcessorError(f"agent motion of agent {bad} is not finite: {m[bad].tolist()}")
-    if np.any(m[:, 3] <= 0):
-        bad = int(np.flatnonzero(m[:, 3] <= 0)[0])
-        raise ProcessorError(f"agent {bad} has scale {float(m[bad, 3])}; the foot lock needs a scale > 0")
+    size = np.hypot(m[:, 2], m[:, 3])
+    if np.any(~(size > 1e-12)):
+        bad = int(np.flatnonzero(~(size > 1e-12))[0])
+        raise ProcessorError(f"agent {bad} has front {m[bad, 2:].tolist()} times its scale; the foot lock needs one of length > 0")
     return m
 
 
@@ -599,7 +601,7 @@ class AnimationProcessor(GLStage):
     def upload(self, layers, motion=None, dt: float = 0.0) -> None:
         """Validate and upload this frame's layers (N, L, 4); N must equal the agent count. With the foot
         lock, also each agent's `motion` (N, 4): its ground step since the last run (x, z, metres, from
-        float64 positions), yaw and scale, and the frame's simulated seconds `dt`."""
+        float64 positions) and its front (x, z) times its scale, and the frame's simulated seconds `dt`."""
         a = validate_layers(layers, len(self.bake.clips), 0 if self.masks is None else self.masks.shape[0], self.layer_count)
         if a.shape[0] != self.agents:
             raise ProcessorError(f"layers are for {a.shape[0]} agents, the processor holds {self.agents}")
