@@ -12,7 +12,7 @@ layout(std430, binding = 0) buffer FootLockState { vec4 lock_state[]; };       /
 layout(std430, binding = 1) readonly buffer AgentMotion { vec4 agent_motion[]; };  // ground step x, z; front x, z times the scale
 uniform ivec4 u_leg_joints[LEG_COUNT];  // hip's parent (-1: none), hip, knee, ankle
 uniform int u_leg_toe[LEG_COUNT];       // the toe joint (-1: none)
-uniform vec3 u_leg_forward[LEG_COUNT];  // the foot's forward axis in the ankle's bind frame
+uniform vec3 u_leg_forward[LEG_COUNT];  // the foot's forward axis in the ankle's rest-pose frame
 uniform vec2 u_leg_lowest[LEG_COUNT];   // the ankle's and the toe's lowest heights
 uniform float u_lock_decay;             // exp(-dt / RELEASE_S) for this frame
 uniform float u_step_advance;           // dt / STEP_S: a step's progress this frame
@@ -106,14 +106,26 @@ void lock_leg(int agent, int base, int leg) {
     bool toe_down = t.y <= u_leg_lowest[leg].y + CONTACT_M / scale;
     int index = agent * LEG_COUNT + leg;
     vec4 s = lock_state[index];
-    bool engaged = s.w == HELD || s.w == HELD_TOE;
     bool stepping = s.w >= STEPPING;
+    bool kept = s.w == HELD || s.w == HELD_TOE || stepping;  // a point held (a stepping foot's: where it left)
     // The correction (crowd.anim.foot_lock.FootLockTwin): the foot turned about its ankle by c.z, then
     // shifted by c.xy, so that its held point (the ankle's, or the toe's) is where it is held.
-    float cyaw = engaged ? wrap_angle(s.z - foot_yaw) : s.z * u_lock_decay;
-    vec2 hold_xy = s.xy - motion.xy - (s.w == HELD_TOE ? turn_xz(toe_w, cyaw) : vec2(0.0));
-    vec3 c = vec3(engaged ? hold_xy - ankle_w : s.xy * u_lock_decay, cyaw);
-    if (length(c.xy) > RESET_M * scale || abs(c.z) > RESET_RAD) c = vec3(0.0);  // a respawn or a teleport
+    float cyaw = kept ? wrap_angle(s.z - foot_yaw) : s.z * u_lock_decay;
+    vec2 hold_xy = s.xy - motion.xy;
+    vec3 c = vec3(kept ? hold_xy - (s.w == HELD_TOE ? turn_xz(toe_w, cyaw) : vec2(0.0)) - ankle_w : s.xy * u_lock_decay, cyaw);
+    bool reset = length(c.xy) > RESET_M * scale || abs(c.z) > RESET_RAD;  // a respawn or a teleport
+    if (reset) c = vec3(0.0);
+    // A step: the foot rises and comes down, and moves from where it left to where its clip puts it in
+    // the middle half, clear of the ground.
+    float progress = stepping ? s.w - STEPPING + u_step_advance : 0.0;
+    bool landed = stepping && (progress >= 1.0 || reset);
+    float lift = 0.0;
+    if (stepping) {
+        float e = min(progress, 1.0);
+        float m = clamp((e - 0.25) * 2.0, 0.0, 1.0);
+        c *= 1.0 - m * m * m * (m * (6.0 * m - 15.0) + 10.0);
+        lift = landed ? 0.0 : STEP_LIFT_M * sin(3.141592653589793 * e) / scale;
+    }
     bool hold = (ankle_down || toe_down) && has_yaw;
     // Held too far: a step where every other leg is held (the earlier legs' states are this run's, the
     // later ones' the last run's, as in the twin), and beyond the hold limits anyway (a hop).
@@ -125,20 +137,11 @@ void lock_leg(int agent, int base, int leg) {
         if (other != leg && w != HELD && w != HELD_TOE) planted = false;
     }
     bool start = over && (planted || shift > HOLD_SHIFT_M * scale || abs(c.z) > HOLD_TWIST_RAD);
-    // A step: the correction it started from eases to 0 while the foot rises and comes down.
-    float progress = stepping ? s.w - STEPPING + u_step_advance : 0.0;
-    bool landed = stepping && progress >= 1.0;
-    float lift = 0.0;
-    if (stepping) {
-        float e = min(progress, 1.0);
-        c = s.xyz * (1.0 - e * e * e * (e * (6.0 * e - 15.0) + 10.0));
-        lift = landed ? 0.0 : STEP_LIFT_M * sin(3.141592653589793 * e) / scale;
-    }
     hold = hold && (!stepping || landed);
     bool by_toe = hold && !ankle_down;  // held by the ankle while it is down, else by the toe (the heel is up)
     vec2 point = ankle_w + c.xy + (by_toe ? turn_xz(toe_w, c.z) : vec2(0.0));
-    lock_state[index] = start ? vec4(c, STEPPING)
-                      : stepping && !landed ? vec4(s.xyz, STEPPING + progress)
+    lock_state[index] = start ? vec4(ankle_w + c.xy, wrap_angle(foot_yaw + c.z), STEPPING)
+                      : stepping && !landed ? vec4(hold_xy, s.z, STEPPING + progress)
                       : hold ? vec4(point, wrap_angle(foot_yaw + c.z), by_toe ? HELD_TOE : HELD) : vec4(c, FREE);
     if (!(length(c.xy) > CORRECTION_EPS * scale || abs(c.z) > CORRECTION_EPS || lift > 0.0)) return;  // as the clips put it
     vec2 d = vec2(cy * c.x - sy * c.y, sy * c.x + cy * c.y) / scale;

@@ -352,3 +352,45 @@ def test_the_lock_buffers_follow_the_agents_and_keep_the_kept_agents_state(gl_co
         assert plain.gpu_bytes()["foot_lock"] == 0  # off: no buffer
     finally:
         plain.release()
+
+
+def test_legs_without_foot_names_are_found_by_their_shape():
+    # CesiumMan's kind: "leg_joint_L_1" to "_5"; a tail that hangs low but does not rise is no leg.
+    names = ["pelvis", "leg_L_1", "leg_L_2", "leg_L_3", "leg_L_5", "leg_R_1", "leg_R_2", "leg_R_3", "leg_R_5", "spine", "head", "tail_1", "tail_2", "tail_3"]
+    parents = [-1, 0, 1, 2, 3, 0, 5, 6, 7, 0, 9, 0, 11, 12]
+    pos = [(0, 0.9, 0), (0.1, 0.88, 0), (0.1, 0.48, 0.01), (0.1, 0.08, -0.01), (0.1, 0.02, 0.12), (-0.1, 0.88, 0), (-0.1, 0.48, 0.01),
+           (-0.1, 0.08, -0.01), (-0.1, 0.02, 0.12), (0, 1.3, 0), (0, 1.7, 0), (0, 0.85, -0.2), (0, 0.6, -0.4), (0, 0.1, -0.5)]
+    legs = fl.find_legs(_skeleton(names, parents, pos))
+    assert set(legs.names) == {"leg_L_3", "leg_R_3"}
+    assert {names[t] for t in legs.toe} == {"leg_L_5", "leg_R_5"}
+
+
+def test_cesium_man_s_legs_are_found():
+    from conftest import shared
+
+    from crowd.asset.gltf import load_character
+
+    character = load_character(shared("CesiumMan.glb"))
+    legs = fl.find_legs(character.skeleton)
+    assert set(legs.names) == {"leg_joint_L_3", "leg_joint_R_3"}
+    assert np.all(legs.lowest[:, 0] > 0.05) and np.all(legs.lowest[:, 0] < 0.12)  # Z-up in the file, Y-up as composed
+
+
+def test_the_pipeline_reports_and_switches_the_lock(gl_context):
+    from crowd.gl import Offscreen
+    from crowd.pipeline import CrowdPipeline, PipelineConfig
+
+    with Offscreen(gl_context, (96, 54)) as target, CrowdPipeline(gl_context, PipelineConfig(agents=20)) as p:
+        p.frame(target.framebuffer, 1 / 30)
+        if gl_context.version_code >= 430:
+            assert p.foot_lock_state() == {"on": True, "legs": ["foot_l", "foot_r"]}
+            assert p.gpu_bytes()["foot_lock"] == 20 * 2 * 16 + 20 * 16
+        p.set_foot_lock(False)
+        p.frame(target.framebuffer, 1 / 30)
+        assert p.foot_lock_state()["why"] == "off in the scene" and p.gpu_bytes()["foot_lock"] == 0
+        p.set_foot_lock(True)
+        p.set_processor_path("fragment")
+        p.frame(target.framebuffer, 1 / 30)
+        state = p.foot_lock_state()
+        assert not state["on"] and "fragment path" in state["why"] and p.gpu_bytes()["foot_lock"] == 0
+        assert p.processor.nan_rows() == 0

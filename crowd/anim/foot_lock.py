@@ -6,15 +6,16 @@ gaits whose feet do not move together (docs/ACCURACY.md, "Foot skate"). The lock
 processor, after the layers are blended and before the hierarchy is composed:
 
 - **Legs.** Every joint named like a foot or an ankle (not a toe or a ball) under a knee under a hip
-  is a leg's ankle (at most MAX_LEGS legs, none sharing a joint); its toe is the child the foot points
-  to. A joint is *down* within CONTACT_M of the lowest height it reaches in the bake's looping clips.
+  is a leg's ankle (at most MAX_LEGS legs, none sharing a joint); where none is named so, a leg is told
+  by its shape (``find_legs``). Its toe is the child the foot points to. A joint is *down* within
+  CONTACT_M of the lowest height it reaches in the bake's looping clips.
 - **Input,** per agent and frame, one vec4: its ground step since the last frame (computed by the CPU
   in float64), and its front (sin and cos of its yaw) times its scale: no trigonometry on the CPU, and
   16 bytes an agent (0.26 ms for 100,000 agents where yaw and scale apart cost 3.5 ms).
 - **State,** per agent and leg, one vec4 in a GPU buffer: FREE (the correction still carried, decaying
   as exp(-dt / RELEASE_S)), HELD (the ankle's point and the foot's world yaw, held), HELD_TOE (the toe's
-  point: the heel is up and the foot rolls about its toe, as the clip has it), or STEPPING (the
-  correction the step started from, and the step's progress). Points are horizontal offsets in world
+  point: the heel is up and the foot rolls about its toe, as the clip has it), or STEPPING (where the
+  ankle left the ground and its yaw, and the step's progress). Points are horizontal offsets in world
   orientation from the agent's ground point, which the CPU moves by the agent's ground step (computed
   in float64, so a world far from the origin costs no float32 precision).
 - **The correction** is a turn of the foot about its ankle, then a shift, that puts its held point
@@ -25,9 +26,9 @@ processor, after the layers are blended and before the hierarchy is composed:
   it, or turned more than STEP_TWIST_RAD, steps where every other leg is held (the body stands on
   them); beyond HOLD_SHIFT_M or HOLD_TWIST_RAD it steps anyway, a hop (dragging it along instead slid
   it a few centimetres a frame: the crowd's foot skate was measured both ways, docs/ACCURACY.md). A
-  step eases the correction to 0 over STEP_S while the foot rises STEP_LIFT_M and comes down, so it
-  moves while it is clear of the ground. A correction beyond RESET_M or RESET_RAD (a respawn, a
-  teleport) is dropped.
+  step takes STEP_S: the foot rises STEP_LIFT_M and comes down, and moves from where it left to where
+  its clip puts it in the middle half, while it is clear of the ground. A correction beyond RESET_M or
+  RESET_RAD (a respawn, a teleport) is dropped.
 - **The leg.** Where the correction is above CORRECTION_EPS (or the foot is lifted), the ankle's
   target is the animated ankle moved by it (its height is the clip's, plus a step's lift), the foot
   turns about the vertical, and the hip and knee are solved to the target (``solve_leg``, two-bone IK
@@ -46,6 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..asset.model import CONTACT_M, ModelError, Skeleton
+from ..asset.pose import global_matrices, rest_pose
 from .bake import AnimationBake
 
 __all__ = ["CONTACT_M", "CORRECTION_EPS", "HOLD_SHIFT_M", "HOLD_TWIST_RAD", "MAX_LEGS", "RELEASE_S", "STEP_LIFT_M", "STEP_S",
@@ -72,18 +74,19 @@ CORRECTION_EPS = 1e-6  # metres and radians: below it the leg is left as the cli
 # A foot whose forward axis is this close to vertical has no yaw worth holding.
 MIN_FORWARD_HORIZONTAL = 0.25
 FOOT_WORDS = ("foot", "ankle")
+LEG_SHAPE_LOW, LEG_SHAPE_RISE = 0.15, 0.15  # legs told by their shape (_legs_by_shape): shares of the skeleton's height
 NOT_ANKLE_WORDS = ("toe", "ball", "ik", "end", "tip")
 
 
 @dataclass
 class Legs:
     """The legs the lock holds: per leg (hip's parent or -1, hip, knee, ankle), its toe (the ankle's
-    child the foot points to, or -1), the foot's forward axis in the ankle's bind frame, and the lowest
+    child the foot points to, or -1), the foot's forward axis in the ankle's rest-pose frame, and the lowest
     heights of its ankle and toe (model space, metres)."""
 
     joints: np.ndarray  # (K, 4) int32
     toe: np.ndarray  # (K,) int32, -1 where the foot has none
-    forward: np.ndarray  # (K, 3) float64: towards the toe (else model +Z) in the ankle's bind frame, unit
+    forward: np.ndarray  # (K, 3) float64: towards the toe (else model +Z) in the ankle's rest-pose frame, unit
     lowest: np.ndarray  # (K, 2) float64: the ankle's and the toe's lowest height in the bake's looping clips
     names: tuple
 
@@ -109,12 +112,15 @@ def bake_legs(skeleton: Skeleton, bake: AnimationBake) -> Legs:
 
 
 def find_legs(skeleton: Skeleton, heights=None) -> Legs:
-    """The skeleton's legs (at most MAX_LEGS, the lowest ankles in the bind pose first).
-    `heights` maps an ankle or toe joint to its lowest model-space height in the clips; without it the
-    bind pose's height is used."""
+    """The skeleton's legs (at most MAX_LEGS, the lowest ankles in the rest pose first): joints named like
+    a foot or an ankle under a knee under a hip; where none is named so (CesiumMan's "leg_joint_L_3"),
+    any joint near the ground whose parent and grandparent each stand well above the one below
+    (``_legs_by_shape``). `heights` maps an ankle or toe joint to its lowest model-space height in the
+    clips; without it the rest pose's height is used. Positions are the rest pose's in model space, as
+    the processor composes it (a root's own turn included: CesiumMan's file is Z-up)."""
     names = [n.lower() for n in skeleton.names]
     parents = np.asarray(skeleton.parents)
-    bind = np.linalg.inv(np.asarray(skeleton.inverse_bind, np.float64))
+    rest = global_matrices(skeleton, rest_pose(skeleton))[0]
     found = []
     for j, name in enumerate(names):
         if not any(w in name for w in FOOT_WORDS) or any(w in name for w in NOT_ANKLE_WORDS):
@@ -123,11 +129,13 @@ def find_legs(skeleton: Skeleton, heights=None) -> Legs:
         hip = int(parents[knee]) if knee >= 0 else -1
         if hip < 0 or any(any(w in names[k] for w in FOOT_WORDS) for k in (knee, hip)):
             continue  # no leg above it, or a helper under another foot joint
-        thigh = np.linalg.norm(bind[knee, :3, 3] - bind[hip, :3, 3])
-        shin = np.linalg.norm(bind[j, :3, 3] - bind[knee, :3, 3])
+        thigh = np.linalg.norm(rest[knee, :3, 3] - rest[hip, :3, 3])
+        shin = np.linalg.norm(rest[j, :3, 3] - rest[knee, :3, 3])
         if min(thigh, shin) < 1e-4 * max(thigh, shin, 1e-12):
             continue  # a bone of no length: nothing to bend
-        found.append((bind[j, 1, 3], j, knee, hip))
+        found.append((rest[j, 1, 3], j, knee, hip))
+    if not found:
+        found = _legs_by_shape(parents, rest)
     # Each leg's ankle rewrites its hip, knee and ankle while the other legs read their own chains to
     # the root (on the GPU, at the same time): a leg that shares a joint with another's chain is left out.
     kept, used, chains = [], set(), set()
@@ -150,15 +158,33 @@ def find_legs(skeleton: Skeleton, heights=None) -> Legs:
     heights = heights or {}
     for i, (y, j, _, _) in enumerate(found):
         # The foot's forward axis: towards its toe where it has one (the joint that stays down as the
-        # heel lifts), else the model's front; in the ankle's bind frame.
-        rot = bind[j, :3, :3] / np.linalg.norm(bind[j, :3, 0])
-        toes = [c for c in range(len(names)) if parents[c] == j and np.hypot(*(bind[c, [0, 2], 3] - bind[j, [0, 2], 3])) > 1e-6]
-        axis = np.array([0.0, 0.0, 1.0]) if not toes else bind[toes[0], :3, 3] - bind[j, :3, 3]
+        # heel lifts), else the model's front; in the ankle's rest-pose frame.
+        rot = rest[j, :3, :3] / np.linalg.norm(rest[j, :3, 0])
+        toes = [c for c in range(len(names)) if parents[c] == j and np.hypot(*(rest[c, [0, 2], 3] - rest[j, [0, 2], 3])) > 1e-6]
+        axis = np.array([0.0, 0.0, 1.0]) if not toes else rest[toes[0], :3, 3] - rest[j, :3, 3]
         forward[i] = rot.T @ (axis / np.linalg.norm(axis))
         if toes:
             toe[i] = toes[0]
-        lowest[i] = heights.get(j, y), heights.get(toes[0], bind[toes[0], 1, 3]) if toes else NO_TOE
+        lowest[i] = heights.get(j, y), heights.get(toes[0], rest[toes[0], 1, 3]) if toes else NO_TOE
     return Legs(joints, toe, forward, lowest, tuple(skeleton.names[j] for _, j, _, _ in found))
+
+
+def _legs_by_shape(parents: np.ndarray, rest: np.ndarray) -> list:
+    """Legs told by their shape: an ankle in the lowest LEG_SHAPE_LOW of the skeleton's height whose knee
+    stands at least LEG_SHAPE_RISE of that height above it and whose hip as much above the knee."""
+    y = rest[:, 1, 3]
+    span = float(y.max() - y.min())
+    if not span > 0.0:
+        return []
+    found = []
+    for j in range(len(parents)):
+        knee = int(parents[j])
+        hip = int(parents[knee]) if knee >= 0 else -1
+        if hip < 0 or y[j] > y.min() + LEG_SHAPE_LOW * span:
+            continue
+        if y[knee] - y[j] >= LEG_SHAPE_RISE * span and y[hip] - y[knee] >= LEG_SHAPE_RISE * span:
+            found.append((y[j], j, knee, hip))
+    return found
 
 
 def _rotation(axis: np.ndarray, c: np.ndarray, s: np.ndarray) -> np.ndarray:
@@ -299,16 +325,24 @@ class FootLockTwin:
             toe_down = t[:, 1] <= self.legs.lowest[k, 1] + CONTACT_M / scale
             s = self.state[:, k]
             mode = s[:, 3]
-            engaged = (mode == HELD) | (mode == HELD_TOE)
             stepping = mode >= STEPPING
+            kept = (mode == HELD) | (mode == HELD_TOE) | stepping  # a point held (a stepping foot's: where it left)
             # The correction: a turn of the foot about its ankle by c_yaw, then a shift by c_xy, that
             # puts the held point (the ankle's, or the toe's) where it is held.
-            cyaw = np.where(engaged, wrap_angle(s[:, 2] - foot_yaw), s[:, 2] * decay)
-            held_toe = _turn(toe_w, cyaw)
-            hold_xy = s[:, :2] - step - np.where((mode == HELD_TOE)[:, None], held_toe, 0.0)
-            cxy = np.where(engaged[:, None], hold_xy - ankle_w, s[:, :2] * decay)
+            cyaw = np.where(kept, wrap_angle(s[:, 2] - foot_yaw), s[:, 2] * decay)
+            hold_xy = s[:, :2] - step
+            cxy = np.where(kept[:, None], hold_xy - np.where((mode == HELD_TOE)[:, None], _turn(toe_w, cyaw), 0.0) - ankle_w, s[:, :2] * decay)
             reset = (np.hypot(cxy[:, 0], cxy[:, 1]) > RESET_M * scale) | (np.abs(cyaw) > RESET_RAD)
             cxy, cyaw = np.where(reset[:, None], 0.0, cxy), np.where(reset, 0.0, cyaw)
+            # A step: the foot rises and comes down (a half sine of STEP_LIFT_M) and moves from where it
+            # left to where its clip puts it (smootherstep) in the middle half, where it is above 0.7 of
+            # the lift, clear of the ground: until then it stays where it was (moving with the clip from the
+            # start, the toe slid 2 mm a frame as it rose).
+            progress = np.where(stepping, mode - STEPPING + dt / STEP_S, 0.0)
+            landed = stepping & ((progress >= 1.0) | reset)
+            ease = np.where(stepping, 1.0 - _smootherstep(np.clip((progress - 0.25) * 2.0, 0.0, 1.0)), 1.0)
+            cxy, cyaw = cxy * ease[:, None], cyaw * ease
+            lift = np.where(stepping & ~landed, STEP_LIFT_M * np.sin(np.pi * np.minimum(progress, 1.0)), 0.0) / scale
             hold = (ankle_down | toe_down) & has_yaw
             # Held too far: the foot steps where every other leg is held (the earlier legs' states are this
             # frame's, the later ones' the last frame's, as on the GPU), and beyond the hold limits anyway.
@@ -317,22 +351,15 @@ class FootLockTwin:
             others = [j for j in range(len(self.legs)) if j != k]
             planted = np.all(np.isin(self.state[:, others, 3], (HELD, HELD_TOE)), axis=1) if others else np.ones(n, bool)
             start = over & (planted | (shift > HOLD_SHIFT_M * scale) | (np.abs(cyaw) > HOLD_TWIST_RAD))
-            # A step: the correction it started from eases to 0 (smootherstep) while the foot rises and
-            # comes down (a half sine of STEP_LIFT_M), so it moves mostly while it is clear of the ground.
-            progress = np.where(stepping, mode - STEPPING + dt / STEP_S, 0.0)
-            landed = stepping & (progress >= 1.0)
-            ease = 1.0 - _smootherstep(np.minimum(progress, 1.0))
-            cxy = np.where(stepping[:, None], s[:, :2] * ease[:, None], cxy)
-            cyaw = np.where(stepping, s[:, 2] * ease, cyaw)
-            lift = np.where(stepping & ~landed, STEP_LIFT_M * np.sin(np.pi * np.minimum(progress, 1.0)), 0.0) / scale
             hold &= ~stepping | landed
             # Held by the ankle while it is down (the foot flat, or its heel striking), else by the toe.
             by_toe = hold & ~ankle_down
             point = ankle_w + cxy + np.where(by_toe[:, None], _turn(toe_w, cyaw), 0.0)
             held = np.column_stack([point, wrap_angle(foot_yaw + cyaw), np.where(by_toe, HELD_TOE, HELD)])
+            leaving = np.column_stack([ankle_w + cxy, wrap_angle(foot_yaw + cyaw), np.full(n, STEPPING)])
             free = np.column_stack([cxy, cyaw, np.full(n, FREE)])
-            self.state[:, k] = np.where(start[:, None], np.column_stack([cxy, cyaw, np.full(n, STEPPING)]),
-                                        np.where((stepping & ~landed)[:, None], np.column_stack([s[:, :3], STEPPING + progress]),
+            self.state[:, k] = np.where(start[:, None], leaving,
+                                        np.where((stepping & ~landed)[:, None], np.column_stack([hold_xy, s[:, 2], STEPPING + progress]),
                                                  np.where(hold[:, None], held, free)))
             shift = np.hypot(cxy[:, 0], cxy[:, 1])
             act = (shift > CORRECTION_EPS * scale) | (np.abs(cyaw) > CORRECTION_EPS) | (lift > 0.0)

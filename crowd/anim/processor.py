@@ -37,6 +37,11 @@ history: with ``history`` = H > 1 the planes hold H palettes stacked vertically 
   uses it to draw each body with the palette of the frame whose sockets the CPU has read
   (``row_offset(age)`` is where the palette of `age` runs ago starts). H = 1 (no weapons) keeps one.
 
+foot lock: a processor built with ``legs`` (crowd.anim.foot_lock) holds each planted foot where it came
+  down, between the blend and the composition, with a state per agent and leg that the next run reads;
+  ``upload`` then also takes each agent's motion (N, 4: ground step x, z since the last run, and front x,
+  z times its scale) and the frame's simulated seconds. Compute path only.
+
 Paths: "compute" (GL 4.3, one dispatch) and "fragment" (GL 3.3, one draw); "auto" takes compute where
 the context has GL 4.3. Both run the same GLSL (shaders/processor_common.glsl).
 """
@@ -127,12 +132,13 @@ def check_motion(motion, agents: int) -> np.ndarray:
     m = np.ascontiguousarray(motion, np.float32)
     if m.shape != (agents, 4):
         raise ProcessorError(f"agent motion must be ({agents}, 4) (ground step x, z, front x, z times scale), got {np.shape(motion)}")
-    if not np.all(np.isfinite(m)):
+    # Two reductions where every value is fine (min and max carry NaN and infinities); the row is found only for the message.
+    if m.size and not (np.isfinite(m.min()) and np.isfinite(m.max())):
         bad = int(np.flatnonzero(~np.all(np.isfinite(m), axis=1))[0])
         raise ProcessorError(f"agent motion of agent {bad} is not finite: {m[bad].tolist()}")
-    size = np.hypot(m[:, 2], m[:, 3])
-    if np.any(~(size > 1e-12)):
-        bad = int(np.flatnonzero(~(size > 1e-12))[0])
+    front = m[:, 2] * m[:, 2] + m[:, 3] * m[:, 3]
+    if front.size and not front.min() > 1e-24:
+        bad = int(np.flatnonzero(~(front > 1e-24))[0])
         raise ProcessorError(f"agent {bad} has front {m[bad, 2:].tolist()} times its scale; the foot lock needs one of length > 0")
     return m
 
@@ -612,6 +618,8 @@ class AnimationProcessor(GLStage):
             self._lock_decay = math.exp(-float(dt) / lock.RELEASE_S)
             self._step_advance = float(dt) / lock.STEP_S
             if self.agents:
+                # A fresh store for each frame's motion: the runs still queued read the last one.
+                self._lock_motion.orphan(m.nbytes)
                 self._lock_motion.write(m)
         if self.agents == 0:
             return
