@@ -114,9 +114,12 @@ def main(argv=None) -> int:
           f"{stats['last_frame']['triangles']:,} triangles; NaN rows {stats['nan_count']}")
     w = stats["weapons"]
     if w["enabled"]:
-        print(f"weapons: {w['drawn']} drawn, read back {w['latency_frames']} frames late (pose lag {w['pose_lag_ms']} ms); "
-              f"weapon-to-hand error {stats['weapon_error_mm']} mm; read-back wait median {stats['readback_wait_ms']['median']} ms, "
-              f"max {stats['readback_wait_ms']['max']} ms, {w['stalls']} stalls")
+        error = "no weapon drawn" if stats["weapon_error_mm"] is None else f"weapon-to-hand error {stats['weapon_error_mm']} mm"
+        # The pose lag is simulated time: the read-back's frames of latency times their frame time (headless, a
+        # fixed step; in the window, the frames as they came, capped at ai.max_dt).
+        print(f"weapons: {w['drawn']} drawn, read back {w['latency_frames']} frames late (pose lag {w['pose_lag_ms']} ms: "
+              f"{w['latency_frames']} frames x their simulated frame time); {error}; read-back wait median "
+              f"{stats['readback_wait_ms']['median']} ms, max {stats['readback_wait_ms']['max']} ms, {w['stalls']} stalls")
     if args.screenshot or args.stats:
         print("wrote " + " and ".join(str(p) for p in (args.screenshot, args.stats) if p))
     return 0

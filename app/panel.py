@@ -260,7 +260,7 @@ class Panel:
             self.apply("latency", latency)
         if p.weapons is not None:
             w = weapon_stats(p)
-            imgui.text(f"{w['drawn']} weapons, pose lag {w['pose_lag_ms']:.1f} ms, {w['stalls']} stalls")
+            imgui.text(f"{w['drawn']} weapons, pose lag {w['pose_lag_ms']:.1f} ms ({w['latency_frames']} frames x frame time), {w['stalls']} stalls")
         imgui.text("skinning: dual quaternions (linear blend skinning is not built)")
         last = p.renderer.last
         imgui.text(f"{last['instances']:,} instances, {last['triangles']:,} triangles, LODs {last['lod_counts']}")

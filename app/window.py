@@ -11,9 +11,11 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import moderngl_window as mglw
+import logging
+
 import numpy as np
 
+from crowd.gl import import_moderngl_window
 from crowd.scene import Scene
 from crowd.session import CrowdSession
 
@@ -23,6 +25,7 @@ from .panel import Panel
 
 PLAYER_SPEED = 4.0  # m/s with W/A/S/D
 MAX_FRAME_DT = 0.25
+mglw = import_moderngl_window()
 
 
 class CrowdWindow(mglw.WindowConfig):
@@ -33,6 +36,7 @@ class CrowdWindow(mglw.WindowConfig):
     resizable = True
     vsync = True
     clear_color = None
+    log_level = logging.WARNING  # moderngl-window logs its context and window at INFO: not a user's business
     # Set by open_window before the window exists (moderngl-window builds the instance itself).
     launch: dict = {}
 

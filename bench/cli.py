@@ -461,35 +461,36 @@ def bench_readback(args) -> int:
     return 0
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """crowd-bench's command line: every subcommand and option, each with its help line."""
     parser = argparse.ArgumentParser(prog="crowd-bench", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("bake", help="bake size and error against the float64 reference")
     p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
-    p.add_argument("--rates", default="15,30,60")
+    p.add_argument("--rates", default="15,30,60", help='comma-separated bake rates in frames per second')
     p.add_argument("--samples", type=int, default=1201, help="phases per clip at which the error is measured")
-    p.add_argument("--json", type=Path)
+    p.add_argument("--json", type=Path, help='write the results as JSON to this file')
     p.set_defaults(run=bench_bake)
     p = sub.add_parser("scale", help="processor and skinned draw GPU ms against agent count, with the unskinned ceiling")
     p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
-    p.add_argument("--agents", default="256,1024,4096,16384,65536,131072")
-    p.add_argument("--size", default="1920x1080")
-    p.add_argument("--frames", type=int, default=10)
-    p.add_argument("--layers", type=int, default=4)
-    p.add_argument("--json", type=Path)
+    p.add_argument("--agents", default="256,1024,4096,16384,65536,131072", help='comma-separated agent counts')
+    p.add_argument("--size", default="1920x1080", help='frame size WxH')
+    p.add_argument("--frames", type=int, default=10, help='timed frames per agent count (the median is reported)')
+    p.add_argument("--layers", type=int, default=4, help='animation layers per agent (1 to 4)')
+    p.add_argument("--json", type=Path, help='write the results as JSON to this file')
     p.set_defaults(run=bench_scale)
     p = sub.add_parser("ai", help="CPU ms per crowd-AI step against agent count")
     p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
-    p.add_argument("--agents", default="200,1000,10000,100000")
-    p.add_argument("--steps", type=int, default=600)
-    p.add_argument("--warmup", type=int, default=120)
-    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--agents", default="200,1000,10000,100000", help='comma-separated agent counts')
+    p.add_argument("--steps", type=int, default=600, help='timed AI steps per agent count (the median is reported)')
+    p.add_argument("--warmup", type=int, default=120, help='AI steps before timing')
+    p.add_argument("--seed", type=int, default=1, help='random seed of the crowd')
     p.add_argument("--think-every", default=None,
                    help="comma-separated think budgets to compare (1: every zombie thinks every substep; default: the setting's); "
                         "the budget applies from the think_from setting's crowd size on")
     p.add_argument("--workers", default=None,
                    help="comma-separated process counts to compare (1: this process only; 0: one per core; default: the setting's)")
-    p.add_argument("--json", type=Path)
+    p.add_argument("--json", type=Path, help='write the results as JSON to this file')
     p.set_defaults(run=bench_ai)
     p = sub.add_parser("frame", help="the whole headless frame: period (frames back to back, one finish) and latency (a finish per frame)")
     p.add_argument("--agents", default="1000,10000,100000,1000000", help="comma-separated agent counts (1,000,000 takes minutes on llvmpipe)")
@@ -508,27 +509,27 @@ def main(argv=None) -> int:
     p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
     p.add_argument("--lod-distances", help="D1,D2,D3 (default: the settings' default)")
     p.add_argument("--size", default="1920x1080", help="frame size WxH the camera draws")
-    p.add_argument("--json", type=Path)
+    p.add_argument("--json", type=Path, help='write the results as JSON to this file')
     p.set_defaults(run=bench_lod)
     p = sub.add_parser("vertex-cache", help="the hand-written triangle order against meshoptimizer's (needs meshoptimizer built)")
     p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
-    p.add_argument("--json", type=Path)
+    p.add_argument("--json", type=Path, help='write the results as JSON to this file')
     p.set_defaults(run=bench_vertex_cache)
     p = sub.add_parser("compaction", help="the GPU cull's lists compacted by atomics and by a prefix sum: same lists, GPU ms")
-    p.add_argument("--agents", default="10000,100000,1000000")
-    p.add_argument("--repeats", type=int, default=40)
-    p.add_argument("--json", type=Path)
+    p.add_argument("--agents", default="10000,100000,1000000", help='comma-separated agent counts')
+    p.add_argument("--repeats", type=int, default=40, help='timed runs per agent count (the median is reported)')
+    p.add_argument("--json", type=Path, help='write the results as JSON to this file')
     p.set_defaults(run=bench_compaction)
     p = sub.add_parser("readback", help="weapon socket gather, transfer and wait against armed agents; sync vs unsync error")
-    p.add_argument("--agents", type=int, default=10000)
-    p.add_argument("--armed", default="0,100,1000,10000")
-    p.add_argument("--latency", type=int, default=2)
-    p.add_argument("--size", default="1920x1080")
-    p.add_argument("--frames", type=int, default=120)
-    p.add_argument("--warmup", type=int, default=30)
-    p.add_argument("--error-frames", type=int, default=10)
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--json", type=Path)
+    p.add_argument("--agents", type=int, default=10000, help='crowd size')
+    p.add_argument("--armed", default="0,100,1000,10000", help='comma-separated counts of armed agents')
+    p.add_argument("--latency", type=int, default=2, help='frames between gathering a socket and reading it (1 to 3)')
+    p.add_argument("--size", default="1920x1080", help='frame size WxH')
+    p.add_argument("--frames", type=int, default=120, help='timed frames per armed count')
+    p.add_argument("--warmup", type=int, default=30, help='frames before timing')
+    p.add_argument("--error-frames", type=int, default=10, help="frames over which the weapon-to-hand error's maximum is taken")
+    p.add_argument("--seed", type=int, default=1, help='random seed of the crowd')
+    p.add_argument("--json", type=Path, help='write the results as JSON to this file')
     p.set_defaults(run=bench_readback)
     from .error_report import add_parsers
     from .peers import add_parsers as add_peers_parsers
@@ -539,7 +540,11 @@ def main(argv=None) -> int:
     add_skate_parsers(sub)
     add_storage_cost_parsers(sub)
     add_peers_parsers(sub)
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     from crowd.sim.ai import AIError
     from crowd.anim.bake import BakeError
     from crowd.gl import GLUnavailable

@@ -393,22 +393,25 @@ def replot(args) -> int:
 
 
 def add_parsers(sub) -> None:
+    from crowd.settings import SETTINGS
+
     p = sub.add_parser("error", help="error against run time of every bake rate, storage and interpolation; stiff and extreme cases")
     p.add_argument("--model", type=Path, action="append", help="also measure this .glb/.gltf's clips (repeatable)")
     p.add_argument("--rates", default="10,15,30,60,source", help='bake rates: numbers, or "source" (each clip\'s own key rate)')
     p.add_argument("--storage", default="f32,f16,compressed@0.5",
                    help='storages: f32, f16, or compressed at a bound in mm ("compressed@0.5"; "compressed": the setting\'s default)')
-    p.add_argument("--interpolations", default="dq_lerp,qt_lerp,qt_cubic")
+    p.add_argument("--interpolations", default=",".join(SETTINGS["interpolation"].choices),
+                   help="comma-separated interpolations to measure (default: every one the processor has)")
     p.add_argument("--per-clip", type=int, default=200, help="random phases of each clip alone")
     p.add_argument("--blends", type=int, default=2000, help="random blends of 2 to 4 layers")
     p.add_argument("--cost-agents", default="10000,100000", help="the two crowd sizes timed")
     p.add_argument("--repeats", type=int, default=30, help="timed runs per size and pass")
     p.add_argument("--hours", type=float, default=10.0, help="play time of the long-play stability case")
-    p.add_argument("--no-stability", action="store_true")
-    p.add_argument("--seed", type=int, default=7)
+    p.add_argument("--no-stability", action="store_true", help='leave out the stiff and extreme cases')
+    p.add_argument("--seed", type=int, default=7, help='random seed of the sampled phases and blends')
     p.add_argument("--quick", action="store_true",
                    help="the default configuration and the stability cases only, with fewer samples (seconds on llvmpipe: CI runs it)")
-    p.add_argument("--json", type=Path)
+    p.add_argument("--json", type=Path, help='write the results as JSON to this file')
     p.add_argument("--plot", type=Path, help="PNG of error against GPU ms (against bytes where the GPU ms were not measured), drawn with implot")
     p.set_defaults(run=run)
     p = sub.add_parser("plot-error", help="draw the plot of a crowd-bench error JSON report")

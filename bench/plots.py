@@ -16,9 +16,10 @@ def _render(size: tuple[int, int], draw) -> np.ndarray:
     """One ImGui frame of `draw(imgui, implot)` filling a window of `size`, as an RGB image."""
     import imgui_bundle
     from imgui_bundle import imgui, implot
-    from moderngl_window.integrations.imgui_bundle import ModernGLRenderer
+    from crowd.gl import Offscreen, headless_context, import_moderngl_window
 
-    from crowd.gl import Offscreen, headless_context
+    import_moderngl_window()
+    from moderngl_window.integrations.imgui_bundle import ModernGLRenderer
 
     ctx = headless_context()
     gui = imgui.create_context()

@@ -278,3 +278,17 @@ def read_image(framebuffer: moderngl.Framebuffer, size: tuple[int, int]):
 
     data = framebuffer.read(components=3, alignment=1)
     return np.frombuffer(data, np.uint8).reshape(size[1], size[0], 3)[::-1].copy()
+
+
+def import_moderngl_window():
+    """moderngl_window, imported without the PendingDeprecationWarning its scene camera raises on import
+    ("Importing PyGLM via \"import glm\""; moderngl-window 3.1.1 imports glm the old way). Only that
+    warning from that module is filtered: ours import ``from pyglm import glm``."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"Importing PyGLM via \"import glm\"", category=PendingDeprecationWarning,
+                                module=r"moderngl_window\.scene\.camera")
+        import moderngl_window
+        import moderngl_window.scene  # noqa: F401  (the module that raises it, imported here once)
+    return moderngl_window

@@ -247,3 +247,21 @@ def test_paced_frames_run_at_most_two_ahead_and_time_each_start(gl_context, monk
     assert waits == [0, 1, 2]  # before frames 2, 3 and 4: for frames 0, 1 and 2
     order = [kind for kind, _ in events]
     assert order[:4] == ["frame", "fence", "frame", "fence"] and order[4] == "wait"
+
+
+def test_runs_are_quiet(tmp_path):
+    """No deprecation warning on import of anything the demo, the window or the benchmarks load (the
+    only one was moderngl-window's "import glm", filtered at its import in crowd.gl), no third-party INFO
+    line, and a headless run without weapons drawn says so instead of "None mm"."""
+    imports = subprocess.run([sys.executable, "-W", "error::DeprecationWarning", "-W", "error::PendingDeprecationWarning", "-c",
+                              "import app.demo, app.window, bench.cli, bench.plots, crowd.pipeline"], cwd=ROOT, capture_output=True, text=True,
+                             timeout=300)
+    assert imports.returncode == 0, imports.stderr[-2000:]
+    out = subprocess.run([sys.executable, "-W", "always", "-m", "app.demo", "--headless", "--frames", "3", "--agents", "6", "--size", "96x54",
+                          "--armed-share", "1", "--screenshot", str(tmp_path / "q.png")], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and out.stderr == "", out.stderr[-2000:]
+    assert " - INFO - " not in out.stdout and "None mm" not in out.stdout
+    assert "frames x their simulated frame time" in out.stdout
+    empty = subprocess.run([sys.executable, "-m", "app.demo", "--headless", "--frames", "2", "--agents", "0", "--size", "96x54",
+                            "--screenshot", str(tmp_path / "e.png")], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert empty.returncode == 0 and "no weapon drawn" in empty.stdout and "None" not in empty.stdout, empty.stdout

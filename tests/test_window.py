@@ -44,6 +44,8 @@ def test_window_renders_zombies_and_the_panel_and_takes_clip_settings(display, t
     out = subprocess.run([sys.executable, str(ROOT / "tests" / "window_script.py"), str(tmp_path)], cwd=ROOT, env=env,
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
+    # Quiet: no third-party INFO lines (moderngl-window logs its context at INFO) and no warnings.
+    assert " - INFO - " not in out.stderr + out.stdout and "Warning" not in out.stderr, out.stderr[-2000:]
     result = json.loads(out.stdout.strip().splitlines()[-1])
     assert result["speed_ok"] and result["loop_ok"] and result["attack_loops"]
     assert result["clip_speed"] == {"shamble": 1.5}
