@@ -52,7 +52,7 @@ class Panel:
     ACTIONS = {
         "agents": "set_agent_count", "seed": "set_seed", "crossfade": "set_crossfade", "time_scale": "set_time_scale",
         "pause": "set_paused", "step": "step_once", "clip_speed": "set_clip_speed", "clip_loop": "set_clip_loop",
-        "play": "play", "weight": "set_weight", "rebake": "rebake", "measure_error": "measure_error", "lod": "set_lod_distances", "culling": "set_culling", "occlusion": "set_occlusion",
+        "play": "play", "weight": "set_weight", "rebake": "start_rebake", "measure_error": "measure_error", "lod": "set_lod_distances", "culling": "set_culling", "occlusion": "set_occlusion",
         "shadows": "set_shadows", "weapons": "set_weapons", "latency": "set_readback_latency", "cull": "set_cull_path",
         "foot_lock": "set_foot_lock",
     }
@@ -210,7 +210,13 @@ class Panel:
             _, self._bound_mm = imgui.slider_float("bound (mm)", self._bound_mm, *BOUND.slider, "%.3f", imgui.SliderFlags_.logarithmic)
         _, index = imgui.combo("interpolation", INTERPOLATIONS.index(self._interpolation), list(INTERPOLATIONS))
         self._interpolation = INTERPOLATIONS[index]
-        if imgui.button("re-bake"):
+        failed = self.session.poll_rebake()  # a re-bake's thread done: its bake is in use from this frame
+        if failed is not None:
+            self.status = failed
+        line = self.session.rebake_progress
+        if line is not None:
+            imgui.text(line)
+        elif imgui.button("re-bake"):
             self.apply("rebake", SOURCE_RATE if self._source_rate else round(self._bake_fps), self._precision, self._interpolation,
                        self._bound_mm)
         imgui.same_line()

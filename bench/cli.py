@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from crowd.progress import steps
+
 from .common import device_cpu, grid_crowd, random_layers
 
 
@@ -108,7 +110,7 @@ def bench_scale(args) -> int:
                     fn()
                 return query.elapsed / 1e6
 
-            for n in counts:
+            for n in steps(counts, desc="scale", unit="size"):
                 pos, camera = grid_crowd(n, size[0] / size[1])
                 heads = renderer.groups.get("head", [])
                 inst = Instances(pos, rng.uniform(-3, 3, n).astype(np.float32), np.ones(n, np.float32), np.full((n, 4), 200, np.uint8),
@@ -177,7 +179,8 @@ def bench_ai(args) -> int:
     rows = []
     budgets = [int(k) for k in args.think_every.split(",")] if args.think_every else [AIConfig().think_every]
     pools = [int(k) for k in args.workers.split(",")] if args.workers else [AIConfig().workers]
-    for n, think_every, workers in ((n, k, w) for n in [int(x) for x in args.agents.split(",")] for k in budgets for w in pools):
+    cases = [(n, k, w) for n in [int(x) for x in args.agents.split(",")] for k in budgets for w in pools]
+    for n, think_every, workers in steps(cases, desc="ai", unit="case"):
         ai = CrowdAI(n, args.seed, motion, AIConfig(think_every=think_every, workers=workers))
         script = PlayerScript(ai.half_extent * 0.5)
         spent = []  # seconds of separation per timed step
@@ -241,7 +244,7 @@ def bench_frame(args) -> int:
     print(f"{'agents':>8} {'period ms':>10} {'latency ms':>11} {'fps':>7}  biggest passes (median ms)")
     rows = []
     with Offscreen(ctx, size) as target:
-        for n in [int(x) for x in args.agents.split(",")]:
+        for n in steps([int(x) for x in args.agents.split(",")], desc="frame", unit="size"):
             config = scene.with_overrides(agents=n, workers=args.workers).pipeline_config()
             with CrowdPipeline(ctx, config) as pipeline:
                 pipeline.camera = scene.camera_for(size[0] / size[1]) or pipeline.default_camera(size[0] / size[1])
@@ -382,7 +385,7 @@ def bench_compaction(args) -> int:
     info = describe(ctx)
     rows = []
     print(f"{info['gl_renderer']} | the demo camera, default scene without weapons | median of {args.repeats} runs")
-    for n in [int(x) for x in args.agents.split(",")]:
+    for n in steps([int(x) for x in args.agents.split(",")], desc="compaction", unit="size"):
         with CrowdPipeline(ctx, Scene().with_overrides(agents=n, weapons=False, cull="gpu").pipeline_config()) as pipeline:
             pipeline.camera = pipeline.default_camera(16 / 9)
             row = measure(ctx, pipeline, args.repeats)
@@ -416,7 +419,7 @@ def bench_readback(args) -> int:
     rows = []
     with Offscreen(ctx, size) as target:
         fb = target.framebuffer
-        for armed in [int(x) for x in args.armed.split(",")]:
+        for armed in steps([int(x) for x in args.armed.split(",")], desc="readback", unit="count"):
             with CrowdPipeline(ctx, PipelineConfig(agents=args.agents, seed=args.seed, readback_latency=args.latency)) as pipeline:
                 pipeline.camera = pipeline.default_camera(size[0] / size[1])
                 weapons = pipeline.ai.weapon

@@ -170,6 +170,7 @@ def run(args) -> int:
     from crowd.frame import MAX_LAYERS
     from crowd.anim.processor import INTERPOLATIONS, AnimationProcessor
     from crowd.settings import DEFAULTS
+    from crowd.progress import steps
     from .stability import bake_storage, parse_storage, run_cases
 
     if args.quick:  # the default configuration and the stability cases, small enough for CI (seconds on llvmpipe)
@@ -246,14 +247,14 @@ def run(args) -> int:
     # Cost: two passes, the second in reverse order, so drift on the machine shows as spread.
     _progress(f"timing the processor for {len(configs)} configurations at {cost_agents[0]:,} and {cost_agents[1]:,} agents, two passes")
     query = ctx.query(time=True)
-    for order in (range(len(configs)), reversed(range(len(configs)))):
-        for k in order:
-            rate, storage, interp = configs[k]
-            proc = AnimationProcessor(ctx, baked_for(models[0], rate, storage), MAX_LAYERS, interpolation=interp)
-            try:
-                timings[k].append([_time_processor(query, proc, layers, args.repeats) for layers in cost_layers])
-            finally:
-                proc.release()
+    order = [*range(len(configs)), *reversed(range(len(configs)))]
+    for k in steps(order, desc="error: timing", unit="run"):
+        rate, storage, interp = configs[k]
+        proc = AnimationProcessor(ctx, baked_for(models[0], rate, storage), MAX_LAYERS, interpolation=interp)
+        try:
+            timings[k].append([_time_processor(query, proc, layers, args.repeats) for layers in cost_layers])
+        finally:
+            proc.release()
     # Timer queries that answer 0 or 1 ns for every run (llvmpipe) measured nothing: the rows say so, not
     # 0.0000 ms. A real dispatch over a thousand agents takes microseconds, a thousand times UNTIMED_MS.
     measured = any(v > UNTIMED_MS for t in timings.values() for pair in t for v in pair)

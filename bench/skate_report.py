@@ -83,6 +83,7 @@ def measure_cases(ctx, character, bake, motion, speeds: int = 10, seconds: float
     from crowd.anim.foot_skate import foot_joints
     from crowd.anim.processor import AnimationProcessor
     from crowd.gl import has_compute
+    from crowd.progress import steps
 
     skeleton = character.skeleton
     feet = foot_joints(skeleton)
@@ -109,7 +110,7 @@ def measure_cases(ctx, character, bake, motion, speeds: int = 10, seconds: float
         locked.resize(1)
     rows = []
     try:
-        for name, speed in chosen:
+        for name, speed in steps(chosen, desc="skate", unit="case"):
             row = {"case": name, "speed_m_s": round(speed, 4), "frames": frames, "dt_s": dt}
             for source, palette in (("gpu", gpu), ("reference", None)):
                 row[source] = _slide(skeleton, clips, feet, names, motion, speed, frames, dt, palette).as_dict()

@@ -27,6 +27,7 @@ def run(args) -> int:
     from crowd.frame import MAX_LAYERS
     from crowd.gl import describe, has_compute, headless_context
     from crowd.settings import SETTINGS
+    from crowd.progress import steps
     from .error_report import UNTIMED_MS, _time_processor
     from .stability import bake_storage, parse_storage
 
@@ -55,14 +56,14 @@ def run(args) -> int:
     locks = (False, True) if args.foot_lock else (False,)
     keys = [(s, i, p, lock) for s in storages for i in interpolations for p in paths for lock in locks if not (lock and p != "compute")]
     times: dict = {k: [] for k in keys}
-    for order in (keys, keys[::-1], keys):  # PASSES of them
-        for s, i, p, lock in order:
-            proc = AnimationProcessor(ctx, bakes[s], MAX_LAYERS, interpolation=i, path=p,
-                                      legs=bake_legs(zombie.skeleton, bakes[s]) if lock else None)
-            try:
-                times[(s, i, p, lock)].append([_time_processor(query, proc, l, args.repeats, m, 1.0 / 60.0) for l, m in zip(layers, motion)])
-            finally:
-                proc.release()
+    runs = [k for order in (keys, keys[::-1], keys) for k in order]  # PASSES of them, alternated
+    for s, i, p, lock in steps(runs, desc="storage-cost", unit="run"):
+        proc = AnimationProcessor(ctx, bakes[s], MAX_LAYERS, interpolation=i, path=p,
+                                  legs=bake_legs(zombie.skeleton, bakes[s]) if lock else None)
+        try:
+            times[(s, i, p, lock)].append([_time_processor(query, proc, l, args.repeats, m, 1.0 / 60.0) for l, m in zip(layers, motion)])
+        finally:
+            proc.release()
     measured = any(v > UNTIMED_MS for t in times.values() for pair in t for v in pair)
     print(f"{info['gl_renderer']} | {info['gl_version']} | {args.fps:g} fps bakes, {MAX_LAYERS}-layer blends, {PASSES} passes alternated")
     rows = []

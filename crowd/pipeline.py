@@ -24,7 +24,9 @@ import moderngl
 import numpy as np
 
 from .allocator import keep_freed_memory
+from .anim.bake import AnimationBake
 from .anim.foot_lock import bake_legs
+from .progress import bar
 from .anim.foot_skate import FootSkateMonitor
 from .anim.processor import AnimationProcessor, palette_joint_positions
 from .anim.roles import bake_roles, match_roles
@@ -92,10 +94,19 @@ class CrowdPipeline(GLStage):
         SETTINGS["agents"].check(config.agents, PipelineError)
         self.ctx = ctx
         self.config = config
+        with bar(4, "starting the crowd: the character", "step") as started:  # on a terminal only (crowd.progress)
+            self._build(ctx, config, started)
+
+    def _build(self, ctx: moderngl.Context, config: PipelineConfig, started) -> None:
+        """The character, its bake, the crowd and the GPU stages, each step shown on `started`'s bar."""
         self.character = load_character(config.model, scale=SETTINGS["model_scale"].check(config.model_scale, PipelineError))
         self.roles, self.role_notes = match_roles(self.character.clips, config.roles)
+        started.update(1)
+        started.set_description("starting the crowd: the bake")
         # Leave out what the scene does not need: only the clips the roles play are baked.
         self.bake = bake_roles(self.character, self.roles, config.bake_fps, config.precision, config.compression_bound_mm)
+        started.update(1)
+        started.set_description(f"starting the crowd: {config.agents:,} agents")
         self.legs = bake_legs(self.character.skeleton, self.bake)  # what the foot lock holds, if it runs
         self._lock_ground: np.ndarray | None = None  # each agent's ground point (2, N: x, z) at the last run, float64
         self._lock_motion_rows = np.empty((0, 4), np.float32)
@@ -105,9 +116,12 @@ class CrowdPipeline(GLStage):
         self.ai = CrowdAI(config.agents, config.seed, self.motion, config.ai, config.origin)
         self.player_script = PlayerScript(self.ai.half_extent * 0.5) if config.scripted_player else None
         self.layers = np.empty((config.agents, LAYERS, 4), np.float32)  # this frame's layers, as processed
+        started.update(1)
+        started.set_description("starting the crowd: the GPU stages")
         # Leave out what the scene does not need: no weapons, no socket, or nobody armed → no read-back
         # stage, no gather pass, no weapon meshes, and one palette instead of a ring.
         self.stages = Stages.build(ctx, self.character, self.bake, self._spec(self._armed(config)), config.agents)
+        started.update(1)
         self.sync = PaletteSync(self.processor.history, config.agents)
         # The running crowd's foot skate: FOOT_SKATE_SAMPLE agents' foot joints ride on the socket read-back.
         self.foot_skate = FootSkateMonitor(self.character.skeleton, FOOT_SKATE_SAMPLE)
@@ -234,9 +248,18 @@ class CrowdPipeline(GLStage):
         """Bake the scene's clips again at another rate, precision or compression bound, or process them
         with another interpolation, live: a new bake and processor replace the old ones (released), and
         the crowd keeps its state."""
-        interpolation = self.config.interpolation if interpolation is None else interpolation
+        self.use_bake(self.make_bake(fps, precision, bound_mm), interpolation)
+
+    def make_bake(self, fps: float | str, precision: str, bound_mm: float | None = None, report=None) -> AnimationBake:
+        """A new bake of the scene's clips (CPU only, no GL: a thread may run it while frames go on);
+        `report` is crowd.progress's callback."""
         bound_mm = self.config.compression_bound_mm if bound_mm is None else bound_mm
-        bake = bake_roles(self.character, self.roles, fps, precision, bound_mm)
+        return bake_roles(self.character, self.roles, fps, precision, bound_mm, report=report)
+
+    def use_bake(self, bake: AnimationBake, interpolation: str | None = None) -> None:
+        """Process `bake` (from make_bake) from now on, with `interpolation` (None: the current one): a new
+        processor replaces the old one (released), and the crowd keeps its state."""
+        interpolation = self.config.interpolation if interpolation is None else interpolation
         for i, clip in enumerate(bake.clips):  # loop settings made in the panel survive the re-bake
             old = next((c for c in self.bake.clips if c.name == clip.name), None)
             if old is not None:
@@ -246,7 +269,7 @@ class CrowdPipeline(GLStage):
         self.stages.replace("processor", build_processor(self.ctx, bake, spec, self.agents))
         self.bake, self.legs = bake, legs
         self._lock_ground = None
-        self.config = dataclasses.replace(self.config, bake_fps=bake.fps, precision=precision, interpolation=interpolation,
+        self.config = dataclasses.replace(self.config, bake_fps=bake.fps, precision=bake.precision, interpolation=interpolation,
                                           compression_bound_mm=bake.bound_mm)
         self.sync.reset()
         if self.readback is not None:

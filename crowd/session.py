@@ -41,6 +41,7 @@ class SessionError(ValueError):
 class CrowdSession(GLStage):
     def __init__(self, ctx: moderngl.Context, scene: Scene, aspect: float = 16 / 9, scripted_player: bool = False):
         self.pipeline = None  # a failure before it exists releases nothing; after, GLStage releases it
+        self._rebake: dict | None = None  # a re-bake under way on its thread (start_rebake)
         self.ctx = ctx
         self.scene = scene
         config = dataclasses.replace(scene.pipeline_config(), scripted_player=scripted_player)
@@ -172,20 +173,77 @@ class CrowdSession(GLStage):
 
     # -- rendering features
 
-    def rebake(self, fps: float | str, precision: str, interpolation: str | None = None, bound_mm: float | None = None) -> None:
-        """Bake again at another rate ("source": each clip at its own key rate), precision or compression
-        bound, or process with another interpolation."""
+    def _bake_settings(self, fps, precision, interpolation, bound_mm):
         fps = SETTINGS["bake_fps"].check(fps, SessionError)
         SETTINGS["precision"].check(precision, SessionError)
         if interpolation is not None:
             SETTINGS["interpolation"].check(interpolation, SessionError)
         if bound_mm is not None:
             bound_mm = SETTINGS["compression_bound_mm"].check(bound_mm, SessionError)
+        return fps, precision, interpolation, bound_mm
+
+    def rebake(self, fps: float | str, precision: str, interpolation: str | None = None, bound_mm: float | None = None) -> None:
+        """Bake again at another rate ("source": each clip at its own key rate), precision or compression
+        bound, or process with another interpolation, now (the caller waits)."""
+        fps, precision, interpolation, bound_mm = self._bake_settings(fps, precision, interpolation, bound_mm)
+        if self._rebake is not None:
+            raise SessionError("a re-bake is under way; wait for it to finish")
         try:
             self.pipeline.rebake(fps, precision, interpolation, bound_mm)
         except BakeError as exc:
             raise SessionError(str(exc)) from None
         self.bake_error = None
+
+    def start_rebake(self, fps: float | str, precision: str, interpolation: str | None = None, bound_mm: float | None = None) -> None:
+        """The same re-bake while frames go on (the panel's): the bake runs on a thread (numpy, no GL) and
+        reports its progress (``rebake_progress``); ``poll_rebake``, called each frame, hands the finished
+        bake to the pipeline, whose new processor is made on this thread (GL objects belong to it)."""
+        import threading
+
+        fps, precision, interpolation, bound_mm = self._bake_settings(fps, precision, interpolation, bound_mm)
+        if self._rebake is not None:
+            raise SessionError("a re-bake is under way; wait for it to finish")
+        job = {"progress": (0, 0, "starting the bake"), "bake": None, "error": None, "interpolation": interpolation}
+
+        def work():
+            try:
+                job["bake"] = self.pipeline.make_bake(fps, precision, bound_mm, report=lambda done, total, what: job.__setitem__("progress", (done, total, what)))
+            except BakeError as exc:
+                job["error"] = str(exc)
+            except Exception as exc:  # a thread's failure must reach the panel as a line, not vanish
+                job["error"] = f"the re-bake failed: {type(exc).__name__}: {exc}"
+
+        job["thread"] = threading.Thread(target=work, name="crowd re-bake", daemon=True)
+        self._rebake = job
+        job["thread"].start()
+
+    @property
+    def rebake_progress(self) -> str | None:
+        """A line saying how far a re-bake under way has got ("baking clips: 3 of 7"), or None."""
+        if self._rebake is None:
+            return None
+        done, total, what = self._rebake["progress"]
+        return f"re-baking: {what}, {done} of {total}" if total else f"re-baking: {what}"
+
+    def poll_rebake(self, wait: bool = False) -> str | None:
+        """Finish a re-bake whose thread is done (or, with `wait`, wait for it): its bake replaces the old
+        one. Returns its error line, or None (nothing under way, still running, or done)."""
+        job = self._rebake
+        if job is None:
+            return None
+        if wait:
+            job["thread"].join()
+        elif job["thread"].is_alive():
+            return None
+        self._rebake = None
+        if job["error"] is not None:
+            return job["error"]
+        try:
+            self.pipeline.use_bake(job["bake"], job["interpolation"])
+        except (BakeError, ProcessorError) as exc:
+            return str(exc).splitlines()[0]
+        self.bake_error = None
+        return None
 
     def measure_error(self, per_clip: int = 24, blends: int = 240) -> dict:
         """The shell error of the current bake and interpolation on this GPU against the float64
@@ -381,5 +439,8 @@ class CrowdSession(GLStage):
         return save_scene(self.to_scene(), path)
 
     def release(self) -> None:
+        if self._rebake is not None:  # its thread touches no GL; it is waited for so nothing outlives the session
+            self._rebake["thread"].join()
+            self._rebake = None
         if self.pipeline is not None:
             self.pipeline.release()

@@ -22,6 +22,7 @@ import moderngl
 
 from .gl import Fence, Offscreen, headless_context
 from .images import write_png
+from .progress import bar
 from .pipeline import CrowdPipeline, PipelineConfig
 from .stats import collect_stats, write_stats
 
@@ -59,13 +60,19 @@ def run_headless(config: PipelineConfig, frames: int, size: tuple[int, int], scr
     try:
         with Offscreen(ctx, size) as target, CrowdPipeline(ctx, config) as pipeline:
             pipeline.camera = camera if camera is not None else pipeline.default_camera(size[0] / size[1])
-            period_ms = paced_frames(ctx, lambda: pipeline.frame(target.framebuffer, FIXED_DT), frames // 2)
-            latency_ms = []
-            for _ in range(frames - frames // 2):
-                t0 = time.perf_counter()
-                pipeline.frame(target.framebuffer, FIXED_DT)
-                ctx.finish()
-                latency_ms.append((time.perf_counter() - t0) * 1e3)
+            with bar(frames, f"{config.agents:,} agents", "frame") as shown:  # on a terminal only (crowd.progress)
+
+                def frame():
+                    pipeline.frame(target.framebuffer, FIXED_DT)
+                    shown.update(1)
+
+                period_ms = paced_frames(ctx, frame, frames // 2)
+                latency_ms = []
+                for _ in range(frames - frames // 2):
+                    t0 = time.perf_counter()
+                    frame()
+                    ctx.finish()
+                    latency_ms.append((time.perf_counter() - t0) * 1e3)
             pipeline.timer.end_frame(drain=True)
             pipeline.refresh_counts()  # the GPU cull's counts trail: these are the last frame's
             image = target.image()

@@ -144,6 +144,35 @@ def test_rebake_and_features_live(session):
         s.rebake(30.0, "f32", "slerp")
 
 
+def test_a_rebake_runs_on_its_thread_while_frames_go_on(session):
+    """The panel's re-bake (issue 22, point 6): the bake runs on a thread and says how far it has got,
+    frames go on with the old bake meanwhile, a second re-bake is refused until it is done, and polling
+    hands the new bake to the pipeline on this thread."""
+    import time
+
+    s, fb = session()
+    s.frame(fb, DT)
+    old = s.pipeline.bake
+    s.start_rebake(30, "compressed", bound_mm=0.5)
+    lines = set()
+    with pytest.raises(SessionError, match="under way"):
+        s.rebake(20, "f32")
+    with pytest.raises(SessionError, match="under way"):
+        s.start_rebake(20, "f32")
+    deadline = time.monotonic() + 120
+    while s.rebake_progress is not None and time.monotonic() < deadline:
+        lines.add(s.rebake_progress)
+        s.frame(fb, DT)  # the old bake plays on
+        assert s.poll_rebake() is None
+    assert s.rebake_progress is None and s.pipeline.bake is not old and s.pipeline.bake.precision == "compressed"
+    assert any(line.startswith("re-baking: ") for line in lines)
+    s.frame(fb, DT)
+    assert s.pipeline.processor.nan_rows() == 0
+    with pytest.raises(SessionError):  # checked before a thread starts
+        s.start_rebake(0.0, "f32")
+    assert s.rebake_progress is None
+
+
 def test_rebake_interpolation_and_measured_error(session):
     """The panel's bake controls: every interpolation and the source rate re-bake live, and the error
     measured on the GPU tells them apart (dq_lerp blends the hips as a screw: centimetres)."""

@@ -45,6 +45,7 @@ from . import reference
 from .compress import MAX_BITS, CompressedKeys, compress
 from .. import transforms as tf
 from ..asset.model import Clip, ModelError, Skeleton
+from ..progress import Report, steps
 from ..settings import DEFAULTS, SETTINGS, SOURCE_RATE
 
 PRECISIONS = {"f32": np.float32, "f16": np.float16}  # texture storage; "compressed" stores crowd.anim.compress's words
@@ -218,9 +219,10 @@ def _source_intervals(clip: Clip) -> int:
 
 
 def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, precision: str = "f32", max_rows: int = MAX_ROWS,
-         bound_mm: float = DEFAULT_BOUND_MM) -> AnimationBake:
+         bound_mm: float = DEFAULT_BOUND_MM, report: Report | None = None) -> AnimationBake:
     """Bake the given clips (only those: pass the scene's clips, not every clip of the file). With
-    precision "compressed", `bound_mm` is the largest error the compression may add at a key."""
+    precision "compressed", `bound_mm` is the largest error the compression may add at a key. Progress
+    shows on a terminal, and goes to `report` (done, total, what) where given (crowd.progress)."""
     skeleton.validate()
     SETTINGS["bake_fps"].check(fps, BakeError)
     SETTINGS["precision"].check(precision, BakeError)
@@ -255,7 +257,7 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, 
     infos = []
     clip_keys = []  # per clip (rotation, translation, scale) float64: the compressor's input
     row = 1
-    for clip, n in zip(clips, intervals):
+    for clip, n in steps(list(zip(clips, intervals)), desc="baking clips", unit="clip", report=report):
         phases = np.arange(n + 1, dtype=np.float64) / n
         if clip.loop:
             phases[-1] = 0.0  # the closing frame repeats the first pose (then aligned to its predecessor)
@@ -293,7 +295,7 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, 
     if 1e-6 < deviation <= SCALE_EPS:
         warnings.append(f"joint scale deviates from 1 by at most {deviation:.2g}; treated as 1 (no scale texture)")
     if precision == COMPRESSED:
-        return _compressed(skeleton, texels, scale if needs_scale else None, clip_keys, infos, fps, bound_mm, warnings)
+        return _compressed(skeleton, texels, scale if needs_scale else None, clip_keys, infos, fps, bound_mm, warnings, report)
     stored_scale = scale.astype(dtype) if needs_scale else None
     # Warn, not refuse: f16 is a deliberate trade of accuracy for half the bytes, and its floor on a
     # human-sized character is about the 1 mm target itself (the built-in zombie's f16 keys are 1.03 mm
@@ -323,12 +325,12 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, 
 
 
 def _compressed(skeleton: Skeleton, texels: np.ndarray, scale: np.ndarray | None, clip_keys, infos: list[ClipInfo], fps, bound_mm: float,
-                warnings: list[str]) -> AnimationBake:
+                warnings: list[str], report: Report | None = None) -> AnimationBake:
     """The compressed bake: the clips' keys packed within the bound (crowd.anim.compress); `texels`
     keeps rows 0 and the rest row as they are, and the clips' rows become the packed keys' float64 decode."""
     scale_of = [np.ones(k[0].shape[:2]) if scale is None else scale[i.first_row : i.first_row + i.frame_count] for k, i in zip(clip_keys, infos)]
     try:
-        packed = compress(skeleton, [(q, t, s) for (q, t, _), s in zip(clip_keys, scale_of)], bound_mm * 1e-3)
+        packed = compress(skeleton, [(q, t, s) for (q, t, _), s in zip(clip_keys, scale_of)], bound_mm * 1e-3, report)
     except ValueError as exc:  # more keys than the track headers address
         raise BakeError(str(exc)) from None
     decoded = texels.copy()

@@ -44,6 +44,7 @@ import numpy as np
 from .. import transforms as tf
 from ..asset.model import Skeleton
 from ..asset.pose import global_matrices
+from ..progress import Report, steps
 from .shell import shell_points
 
 # Keys are kept within this share of the bound. A clip alone is measured as a whole, so its joints'
@@ -266,16 +267,17 @@ def _float_bits(v) -> np.ndarray:
     return np.asarray(v, np.float64).astype(np.float32).view(np.uint32)
 
 
-def compress(skeleton: Skeleton, clips: list[tuple[np.ndarray, np.ndarray, np.ndarray]], bound_m: float) -> CompressedKeys:
+def compress(skeleton: Skeleton, clips: list[tuple[np.ndarray, np.ndarray, np.ndarray]], bound_m: float,
+             report: Report | None = None) -> CompressedKeys:
     """Quantise every clip's tracks to the smallest widths that keep each clip's keys within KEY_SHARE
-    of `bound_m`."""
+    of `bound_m` (progress per clip, crowd.progress)."""
     jc = skeleton.joint_count
     target = KEY_SHARE * bound_m
     joint_points = np.einsum("jab,jkb->jka", skeleton.inverse_bind, shell_points(skeleton))
     rot_bits = np.zeros((len(clips), jc), np.int64)
     tr_bits = np.zeros((len(clips), jc), np.int64)
     decoded, searches, worst, worst_at = [], [], 0.0, (0, 0, 0)
-    for c, (rotation, translation, scale) in enumerate(clips):
+    for c, (rotation, translation, scale) in steps(list(enumerate(clips)), desc="compressing clips", unit="clip", report=report):
         s = _ClipSearch(skeleton, rotation, translation, scale, joint_points)
         rot_bits[c], tr_bits[c] = _uniform_widths(s, target)
         _lower_each(s, rot_bits[c], tr_bits[c], target)

@@ -104,8 +104,9 @@ def clips_used(roles: dict[str, str | None]) -> list[str]:
 
 
 def bake_roles(character, roles: dict[str, str | None], fps: float | str = DEFAULT_FPS, precision: str = "f32",
-               bound_mm: float = DEFAULT_BOUND_MM):
-    """The bake of a character's role clips and nothing else: a scene bakes only what it plays."""
+               bound_mm: float = DEFAULT_BOUND_MM, report=None):
+    """The bake of a character's role clips and nothing else: a scene bakes only what it plays
+    (`report`: crowd.progress's callback)."""
     from .bake import bake
 
-    return bake(character.skeleton, [character.clip(n) for n in clips_used(roles)], fps, precision, bound_mm=bound_mm)
+    return bake(character.skeleton, [character.clip(n) for n in clips_used(roles)], fps, precision, bound_mm=bound_mm, report=report)
