@@ -247,7 +247,7 @@ def bench_frame(args) -> int:
         for n in steps([int(x) for x in args.agents.split(",")], desc="frame", unit="size"):
             config = scene.with_overrides(agents=n, workers=args.workers).pipeline_config()
             with CrowdPipeline(ctx, config) as pipeline:
-                pipeline.camera = scene.camera_for(size[0] / size[1]) or pipeline.default_camera(size[0] / size[1])
+                pipeline.camera = scene.camera_for(size[0] / size[1]) or pipeline.overview_camera(size[0] / size[1])
                 for _ in range(args.warmup):
                     pipeline.frame(target.framebuffer, dt)
                 ctx.finish()
@@ -387,7 +387,7 @@ def bench_compaction(args) -> int:
     print(f"{info['gl_renderer']} | the demo camera, default scene without weapons | median of {args.repeats} runs")
     for n in steps([int(x) for x in args.agents.split(",")], desc="compaction", unit="size"):
         with CrowdPipeline(ctx, Scene().with_overrides(agents=n, weapons=False, cull="gpu").pipeline_config()) as pipeline:
-            pipeline.camera = pipeline.default_camera(16 / 9)
+            pipeline.camera = pipeline.overview_camera(16 / 9)
             row = measure(ctx, pipeline, args.repeats)
         rows.append(row)
         print(f"{n:>8} agents, {row['listed']:>8} listed, same lists: {row['same_lists']}, atomics {row['ms']['atomics']:.4f} ms, "
@@ -421,7 +421,7 @@ def bench_readback(args) -> int:
         fb = target.framebuffer
         for armed in steps([int(x) for x in args.armed.split(",")], desc="readback", unit="count"):
             with CrowdPipeline(ctx, PipelineConfig(agents=args.agents, seed=args.seed, readback_latency=args.latency)) as pipeline:
-                pipeline.camera = pipeline.default_camera(size[0] / size[1])
+                pipeline.camera = pipeline.overview_camera(size[0] / size[1])
                 weapons = pipeline.ai.weapon
                 weapons[:] = np.where(np.arange(weapons.size) < armed, np.arange(weapons.size) % 2, -1)
                 for _ in range(args.warmup):

@@ -16,6 +16,7 @@ Without armed agents there is no gather pass, no read-back buffer and a single p
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,7 +27,6 @@ import numpy as np
 from .allocator import keep_freed_memory
 from .anim.bake import AnimationBake
 from .anim.foot_lock import bake_legs
-from .progress import bar
 from .anim.foot_skate import FootSkateMonitor
 from .anim.processor import AnimationProcessor, palette_joint_positions
 from .anim.roles import bake_roles, match_roles
@@ -37,11 +37,18 @@ from .draw.sync import PaletteSync
 from .draw.weapons import AgentFrames, WeaponRenderer
 from .frame import Camera, LayerOverrides
 from .gl import GLStage
+from .lighting import LIGHTING
+from .progress import bar
 from .settings import DEFAULTS, SETTINGS
 from .sim.ai import LAYERS, AIConfig, CrowdAI, PlayerScript, motion_for, upper_body_mask
 from .stages import StageSpec, Stages, build_processor, build_readback, build_renderer, build_weapons
 from .timing import PassTimer
 
+# The default camera's neighbourhood of the player in a crowd too big to frame whole, and how far it sees
+# then: where the fog (crowd.lighting) has hidden 95 % of what is there, so the crowd fades out rather
+# than stopping at the far plane.
+VIEW_RADIUS_M = 20.0
+FOG_FAR_M = -math.log(0.05) / LIGHTING["u_fog_density"]
 FOOT_SKATE_SAMPLE = 32  # agents whose feet are read back for the stats' foot_skate: 128 entries beside the sockets
 
 
@@ -115,6 +122,8 @@ class CrowdPipeline(GLStage):
         self.motion = motion_for(self.character, self.bake, self.roles)
         self.ai = CrowdAI(config.agents, config.seed, self.motion, config.ai, config.origin)
         self.player_script = PlayerScript(self.ai.half_extent * 0.5) if config.scripted_player else None
+        if self.player_script is not None:
+            self.player_script.update(self.ai)  # where it starts (time 0: it moves, it strikes nothing yet)
         self.layers = np.empty((config.agents, LAYERS, 4), np.float32)  # this frame's layers, as processed
         started.update(1)
         started.set_description("starting the crowd: the GPU stages")
@@ -372,12 +381,26 @@ class CrowdPipeline(GLStage):
             self._set_palette_history(self._spec().history)
 
     def default_camera(self, aspect: float) -> Camera:
-        """A three-quarter view that frames the whole crowd (or one agent up close)."""
-        extent = max(self.ai.half_extent, 1.2)
-        dist = extent * 1.5 + 2.5
+        """What a newcomer sees first: the whole crowd where it fits in VIEW_RADIUS_M (or one agent up
+        close), else the player and the horde around it, VIEW_RADIUS_M to each side, receding into the fog
+        (the crowd's density does not depend on its size, so the picture does not either). A view of the
+        whole of a big crowd showed specks at 10,000 agents and fog or sky at a million."""
+        if self.ai.half_extent <= VIEW_RADIUS_M:
+            return self.overview_camera(aspect)
+        centre = np.array([self.ai.player[0], 0.0, self.ai.player[1]])
+        return self._three_quarter(centre, VIEW_RADIUS_M, aspect, FOG_FAR_M)
+
+    def overview_camera(self, aspect: float) -> Camera:
+        """A three-quarter view that frames the whole crowd (or one agent up close): the benchmarks' view,
+        which every agent is in."""
         centre = np.array([self.ai.origin[0], 0.0, self.ai.origin[1]])
+        return self._three_quarter(centre, max(self.ai.half_extent, 1.2), aspect, 0.0)
+
+    @staticmethod
+    def _three_quarter(centre: np.ndarray, extent: float, aspect: float, far: float) -> Camera:
+        dist = extent * 1.5 + 2.5
         eye = centre + np.array([dist * 0.45, dist * 0.5, dist * 0.85])
-        return Camera(eye=eye, target=centre + np.array([0.0, 0.8, 0.0]), aspect=aspect, far=max(200.0, dist * 4))
+        return Camera(eye=eye, target=centre + np.array([0.0, 0.8, 0.0]), aspect=aspect, far=max(200.0, dist * 4, far))
 
     def _run(self, name: str) -> None:
         if name not in self.passes_run:

@@ -265,3 +265,24 @@ def test_runs_are_quiet(tmp_path):
     empty = subprocess.run([sys.executable, "-m", "app.demo", "--headless", "--frames", "2", "--agents", "0", "--size", "96x54",
                             "--screenshot", str(tmp_path / "e.png")], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert empty.returncode == 0 and "no weapon drawn" in empty.stdout and "None" not in empty.stdout, empty.stdout
+
+
+@pytest.mark.parametrize("agents", [200, 2_000, 20_000, 100_000])
+def test_the_default_picture_shows_the_horde_at_any_size(gl_context, agents):
+    """Issue 22, point 4: the default camera frames the whole of a small crowd, and the player and the
+    horde around it in a big one, so the agents cover a share of the picture that does not fall away
+    with the crowd's size (the whole-crowd view had 1.6 % at 100,000 agents, and less beyond)."""
+    from crowd.gl import Offscreen
+    from crowd.pipeline import CrowdPipeline, PipelineConfig
+
+    size = (320, 180)
+    with Offscreen(gl_context, size) as target, CrowdPipeline(gl_context, PipelineConfig(agents=agents, cull="cpu", weapons=False)) as p:
+        p.camera = p.default_camera(size[0] / size[1])
+        for _ in range(2):
+            p.frame(target.framebuffer, 1 / 30)
+        crowd = target.image().astype(int)
+        p.set_agent_count(0)  # the same camera on the same ground, nobody on it
+        p.frame(target.framebuffer, 1 / 30)
+        empty = target.image().astype(int)
+    covered = float(np.mean(np.abs(crowd - empty).max(axis=2) > 8))
+    assert covered > 0.08, f"{agents:,} agents cover {covered:.1%} of the default picture"
