@@ -79,6 +79,10 @@ class Panel:
     def draw(self) -> None:
         from imgui_bundle import imgui
 
+        # A re-bake's thread done: its bake is in use from this frame (hidden or folded, the panel still polls).
+        failed = self.session.poll_rebake()
+        if failed is not None:
+            self.status = failed
         if not self.visible:
             return
         imgui.set_next_window_pos(imgui.ImVec2(10, 10), imgui.Cond_.first_use_ever)
@@ -100,6 +104,8 @@ class Panel:
             self.apply("save")
         imgui.same_line()
         imgui.text(str(self.scene_path))
+        if self.session.rebake_progress is not None:
+            imgui.text(self.session.rebake_progress)
         if self.status:
             imgui.text_colored(imgui.ImVec4(1.0, 0.6, 0.3, 1.0), self.status)
         imgui.end()
@@ -210,9 +216,6 @@ class Panel:
             _, self._bound_mm = imgui.slider_float("bound (mm)", self._bound_mm, *BOUND.slider, "%.3f", imgui.SliderFlags_.logarithmic)
         _, index = imgui.combo("interpolation", INTERPOLATIONS.index(self._interpolation), list(INTERPOLATIONS))
         self._interpolation = INTERPOLATIONS[index]
-        failed = self.session.poll_rebake()  # a re-bake's thread done: its bake is in use from this frame
-        if failed is not None:
-            self.status = failed
         line = self.session.rebake_progress
         if line is not None:
             imgui.text(line)
