@@ -216,10 +216,7 @@ class Panel:
             _, self._bound_mm = imgui.slider_float("bound (mm)", self._bound_mm, *BOUND.slider, "%.3f", imgui.SliderFlags_.logarithmic)
         _, index = imgui.combo("interpolation", INTERPOLATIONS.index(self._interpolation), list(INTERPOLATIONS))
         self._interpolation = INTERPOLATIONS[index]
-        line = self.session.rebake_progress
-        if line is not None:
-            imgui.text(line)
-        elif imgui.button("re-bake"):
+        if self.session.rebake_progress is None and imgui.button("re-bake"):  # while one is under way its line shows at the panel's foot
             self.apply("rebake", SOURCE_RATE if self._source_rate else round(self._bake_fps), self._precision, self._interpolation,
                        self._bound_mm)
         imgui.same_line()

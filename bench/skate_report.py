@@ -28,38 +28,40 @@ def cases(motion, speeds: int) -> list[tuple[str, float]]:
 
 
 def _slide(skeleton, clips, feet, names, motion, speed: float, frames: int, dt: float, palette=None):
-    """One straight walk at `speed`: its foot skate through `palette` (the GPU's), or the reference's."""
+    """One straight walk at `speed`: its foot skate through `palette(layers, walked, dt)` (the GPU's, or
+    a locked one: ``_locked``), or the reference's."""
     from crowd.anim import accuracy
     from crowd.anim.foot_skate import joint_positions, measure, to_world
     from crowd.sim.ai import locomotion_layers
 
     layers, walked = locomotion_layers(motion, speed, frames, dt)
-    matrices = accuracy.truth(skeleton, clips, layers) if palette is None else palette(layers)
+    matrices = accuracy.truth(skeleton, clips, layers) if palette is None else palette(layers, walked, dt)
     ground = np.stack([np.zeros(frames), walked], axis=1)  # straight ahead, along the agent's front (+z)
     return measure(to_world(joint_positions(matrices, skeleton, feet), ground, 0.0), dt, float(walked[-1]), names)
 
 
-def _locked_slide(skeleton, bake, legs, feet, names, motion, speed: float, frames: int, dt: float, processor=None):
-    """The same straight walk with the foot lock: frame after frame through `processor` (one agent, the
-    GPU's lock), or through the float64 twin of both."""
+def _locked(bake, legs, processor=None):
+    """A palette for ``_slide`` with the foot lock: frame after frame through `processor` (one agent, the
+    GPU's lock, reset first), or through the float64 twins of the processor and the lock."""
     from crowd.anim.foot_lock import FootLockTwin
-    from crowd.anim.foot_skate import joint_positions, measure, to_world
     from crowd.anim.processor import reference_palette
-    from crowd.sim.ai import locomotion_layers
 
-    layers, walked = locomotion_layers(motion, speed, frames, dt)
-    twin = FootLockTwin(legs, 1)
-    matrices = []
-    for f in range(frames):
-        step = walked[f] - walked[f - 1] if f else 0.0
-        agent = np.array([[0.0, step, 0.0, 1.0]], np.float32)  # straight ahead along +z, front +z, scale 1
-        if processor is None:
-            matrices.append(reference_palette(bake, layers[f:f + 1], foot_lock=twin, motion=agent, dt=dt if f else 0.0)[0])
-        else:
-            processor.process(layers[f:f + 1], agent, dt if f else 0.0)
-            matrices.append(processor.read_palette()[0].astype(np.float64))
-    ground = np.stack([np.zeros(frames), walked], axis=1)
-    return measure(to_world(joint_positions(np.array(matrices), skeleton, feet), ground, 0.0), dt, float(walked[-1]), names)
+    def palette(layers, walked, dt):
+        twin = FootLockTwin(legs, 1)
+        if processor is not None:
+            processor.reset_lock()
+        matrices = []
+        for f in range(len(layers)):
+            step = walked[f] - walked[f - 1] if f else 0.0
+            agent = np.array([[0.0, step, 0.0, 1.0]], np.float32)  # straight ahead along +z, front +z, scale 1
+            if processor is None:
+                matrices.append(reference_palette(bake, layers[f:f + 1], foot_lock=twin, motion=agent, dt=dt if f else 0.0)[0])
+            else:
+                processor.process(layers[f:f + 1], agent, dt if f else 0.0)
+                matrices.append(processor.read_palette()[0].astype(np.float64))
+        return np.array(matrices)
+
+    return palette
 
 
 def worst_speed(score, low: float, high: float, grid: int = 24, rounds: int = 12) -> float:
@@ -98,11 +100,11 @@ def measure_cases(ctx, character, bake, motion, speeds: int = 10, seconds: float
         slowest = motion.walk_slowest * motion.walk_speed
         chosen.append(("worst below slowest walk", worst_speed(score, 0.02 * slowest, slowest)))
         chosen.append(("worst walk to run", worst_speed(score, slowest, motion.run_speed)))
-    gpu = lambda layers: accuracy.gpu_palette(ctx, bake, layers)
+    gpu = lambda layers, walked, dt: accuracy.gpu_palette(ctx, bake, layers)
     legs = bake_legs(skeleton, bake)
     locked = None
     if search and len(legs):  # the lock moves the worst speeds: searched again, on the lock's float64 twin
-        score = lambda v: _locked_slide(skeleton, bake, legs, feet, names, motion, v, frames, dt).worst_cm_per_m
+        score = lambda v: _slide(skeleton, clips, feet, names, motion, v, frames, dt, _locked(bake, legs)).worst_cm_per_m
         chosen.append(("worst below slowest, locked", worst_speed(score, 0.02 * slowest, slowest)))
         chosen.append(("worst walk to run, locked", worst_speed(score, slowest, motion.run_speed)))
     if len(legs) and has_compute(ctx):
@@ -115,9 +117,8 @@ def measure_cases(ctx, character, bake, motion, speeds: int = 10, seconds: float
             for source, palette in (("gpu", gpu), ("reference", None)):
                 row[source] = _slide(skeleton, clips, feet, names, motion, speed, frames, dt, palette).as_dict()
             if locked is not None:  # with the foot lock: the GPU's, and the float64 twin's of the baked keys
-                locked.reset_lock()
-                row["gpu_locked"] = _locked_slide(skeleton, bake, legs, feet, names, motion, speed, frames, dt, locked).as_dict()
-                row["reference_locked"] = _locked_slide(skeleton, bake, legs, feet, names, motion, speed, frames, dt).as_dict()
+                for source, palette in (("gpu_locked", _locked(bake, legs, locked)), ("reference_locked", _locked(bake, legs))):
+                    row[source] = _slide(skeleton, clips, feet, names, motion, speed, frames, dt, palette).as_dict()
             rows.append(row)
     finally:
         if locked is not None:

@@ -54,12 +54,13 @@ def run(args) -> int:
         motion.append(np.column_stack([0.01 * np.sin(heading), 0.01 * np.cos(heading), np.sin(heading), np.cos(heading)]).astype(np.float32))
     query = ctx.query(time=True)
     locks = (False, True) if args.foot_lock else (False,)
+    legs = {s: bake_legs(zombie.skeleton, bakes[s]) for s in storages} if args.foot_lock else {}
     keys = [(s, i, p, lock) for s in storages for i in interpolations for p in paths for lock in locks if not (lock and p != "compute")]
     times: dict = {k: [] for k in keys}
     runs = [k for order in (keys, keys[::-1], keys) for k in order]  # PASSES of them, alternated
     for s, i, p, lock in steps(runs, desc="storage-cost", unit="run"):
         proc = AnimationProcessor(ctx, bakes[s], MAX_LAYERS, interpolation=i, path=p,
-                                  legs=bake_legs(zombie.skeleton, bakes[s]) if lock else None)
+                                  legs=legs[s] if lock else None)
         try:
             times[(s, i, p, lock)].append([_time_processor(query, proc, l, args.repeats, m, 1.0 / 60.0) for l, m in zip(layers, motion)])
         finally:

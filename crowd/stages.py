@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import moderngl
 
 from .anim.bake import AnimationBake
-from .anim.processor import AnimationProcessor
+from .anim.processor import AnimationProcessor, resolve_path
 from .asset.model import Character
 from .draw.readback import SocketReadback
 from .draw.render import CrowdRenderer, RenderError
@@ -53,9 +53,7 @@ class StageSpec:
 
 
 def build_processor(ctx: moderngl.Context, bake: AnimationBake, spec: StageSpec, agents: int = 0) -> AnimationProcessor:
-    path = spec.processor_path
-    if path == "auto":
-        path = "compute" if has_compute(ctx) else "fragment"
+    path = resolve_path(ctx, spec.processor_path)
     # The foot lock runs where it can: on the compute path, for a character with legs.
     legs = spec.legs if spec.foot_lock and path == "compute" else None
     processor = AnimationProcessor(ctx, bake, spec.layers, masks=spec.masks, path=path,

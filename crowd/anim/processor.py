@@ -124,6 +124,11 @@ def texel_code(x, y) -> np.ndarray:
     return np.asarray(x, np.uint32) | (np.asarray(y, np.uint32) << np.uint32(TEXEL_ROW_SHIFT))
 
 
+def resolve_path(ctx: moderngl.Context, path: str) -> str:
+    """The processor path "auto" takes on this context: compute where it has GL 4.3, else fragment."""
+    return ("compute" if has_compute(ctx) else "fragment") if path == "auto" else path
+
+
 def check_motion(motion, agents: int) -> np.ndarray:
     """The foot lock's per-agent motion (N, 4) float32: ground step x, z and front x, z times the scale,
     all finite, the front not 0."""
@@ -303,8 +308,7 @@ class AnimationProcessor(GLStage):
             raise ProcessorError(f"the processor handles 1 to {MAX_JOINTS} joints, this skeleton has {jc}")
         if np.any(bake.parents >= np.arange(jc)):
             raise ProcessorError("the hierarchy must list parents before their children")
-        if path == "auto":
-            path = "compute" if has_compute(ctx) else "fragment"
+        path = resolve_path(ctx, path)
         if path == "compute" and not has_compute(ctx):
             raise ProcessorError(f"the compute path needs GL 4.3, this context has {ctx.version_code}")
         # The foot lock (crowd.anim.foot_lock): legs given and found, on the compute path, whose shared
@@ -313,7 +317,7 @@ class AnimationProcessor(GLStage):
         if self.legs is not None and path != "compute":
             raise ProcessorError("the foot lock runs on the compute path (GL 4.3); the fragment path has no state to keep it in")
         self._lock_state = self._lock_motion = None
-        self._lock_decay, self._step_advance = 1.0, 0.0
+        self._lock_dt = 0.0  # the simulated seconds of the frame the last upload was for
         self.ctx = ctx
         self.bake = bake
         self.path = path
@@ -615,8 +619,7 @@ class AnimationProcessor(GLStage):
             m = check_motion(motion, self.agents)
             if not (isinstance(dt, (int, float, np.floating)) and math.isfinite(dt) and dt >= 0):
                 raise ProcessorError(f"the foot lock needs a frame time >= 0 seconds, got {dt!r}")
-            self._lock_decay = math.exp(-float(dt) / lock.RELEASE_S)
-            self._step_advance = float(dt) / lock.STEP_S
+            self._lock_dt = float(dt)
             if self.agents:
                 # A fresh store for each frame's motion: the runs still queued read the last one.
                 self._lock_motion.orphan(m.nbytes)
@@ -656,8 +659,8 @@ class AnimationProcessor(GLStage):
         if self.legs is not None:
             self._lock_state.bind_to_storage_buffer(0)
             self._lock_motion.bind_to_storage_buffer(1)
-            self._set("u_lock_decay", self._lock_decay)
-            self._set("u_step_advance", self._step_advance)
+            self._set("u_lock_decay", math.exp(-self._lock_dt / lock.RELEASE_S))
+            self._set("u_step_advance", self._lock_dt / lock.STEP_S)
         self._set("u_agents", self.agents)
         if self.path == "compute":
             for unit, plane in enumerate(self.planes):
