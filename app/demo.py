@@ -25,8 +25,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--scene", type=Path, default=None, help="a scene file (TOML; see scenes/); flags given as well override it")
     p.add_argument("--screenshot", type=Path, default=None, help="PNG of the last frame (headless default out/demo.png)")
     p.add_argument("--stats", type=Path, default=None, help="JSON of frame and pass timings")
-    p.add_argument("--model", type=Path, default=None, help="a skinned .glb/.gltf (default: the built-in zombie)")
-    p.add_argument("--roles", default=None, help="clip role overrides, e.g. walk=Walking,idle=Idle")
+    p.add_argument("--model", default=None, help="one character for the whole crowd: a skinned .glb/.gltf, or a built-in's name "
+                                                 "(zombie, brute); default: the scene's cast")
+    p.add_argument("--characters", default=None, metavar="MODEL=SHARE,...",
+                   help="a mixed crowd: models (built-in names or files) and their relative shares, e.g. zombie=3,brute=1,x.glb=1")
+    p.add_argument("--roles", default=None, help="clip role overrides of a crowd of one character, e.g. walk=Walking,idle=Idle")
     for name in ("frames", "size"):
         s = SETTINGS[name]
         p.add_argument(s.flag, default=None, metavar=s.name.upper(), help=f"{s.help} ({s.rule()})")
@@ -60,7 +63,7 @@ def main(argv=None) -> int:
     from crowd.sim.ai import AIError
     from crowd.anim.bake import BakeError
     from crowd.gl import GLUnavailable, has_display
-    from crowd.asset.gltf import GltfImportError
+    from crowd.asset.gltf import BUILT_IN, GltfImportError, is_built_in
     from crowd.frame import FrameError
     from crowd.pipeline import PipelineError
     from crowd.anim.processor import ProcessorError
@@ -79,8 +82,9 @@ def main(argv=None) -> int:
         _headless_defaults(args)
     try:
         args.frames = None if args.frames is None else parse("frames", str(args.frames), SceneError, "--frames")
-        if args.model is not None and not args.model.is_file():
-            raise PipelineError(f"--model {args.model}: no such file")
+        if args.model is not None and not is_built_in(args.model) and not Path(args.model).is_file():
+            raise PipelineError(f"--model {args.model}: no such file (nor a built-in: {', '.join(BUILT_IN)})")
+        characters = None if args.characters is None else _cast_flag(args.characters)
         scene = Scene()
         if args.scene is not None:
             try:
@@ -90,7 +94,7 @@ def main(argv=None) -> int:
         # Every setting flag given, its text as the setting's type; the scene checks it, naming the flag.
         given = {name: SETTINGS[name].from_text(text) for table in SCENE_GROUPS
                  for name in group(table) if (text := getattr(args, name)) is not None}
-        scene = scene.with_overrides(model=args.model, roles=parse_overrides(args.roles) or None, **given)
+        scene = scene.with_overrides(model=args.model, characters=characters, roles=parse_overrides(args.roles) or None, **given)
         size = SETTINGS["size"].default if args.size is None else parse("size", args.size, SceneError, "--size")
         stats = None
         if windowed:
@@ -123,6 +127,27 @@ def main(argv=None) -> int:
     if args.screenshot or args.stats:
         print("wrote " + " and ".join(str(p) for p in (args.screenshot, args.stats) if p))
     return 0
+
+
+def _cast_flag(text: str) -> list[tuple[str, float]]:
+    """--characters' (model, share) pairs: "zombie=3,brute=1,x.glb=0.5" (a share of 1 where none is given)."""
+    from crowd.asset.gltf import is_built_in
+    from crowd.pipeline import PipelineError
+
+    out = []
+    for item in text.split(","):
+        model, sep, share = item.strip().rpartition("=") if "=" in item else (item.strip(), "", "1")
+        model = model.strip()
+        try:
+            value = float(share)
+        except ValueError:
+            value = None
+        if not model or value is None:
+            raise PipelineError(f"--characters: each character is MODEL=SHARE (zombie=3,brute=1), got {item.strip()!r}")
+        if not is_built_in(model) and not Path(model).is_file():
+            raise PipelineError(f"--characters: {model}: no such file (nor a built-in: zombie, brute)")
+        out.append((model, value))
+    return out
 
 
 def _headless_defaults(args) -> None:

@@ -46,6 +46,8 @@ class Panel:
         self._seed = session.pipeline.config.seed
         self._held = {layer: [False, 1.0] for layer in range(4)}
         self._weights_selected_only = False
+        self._character = 0  # whose clips the clip section shows (the selected agent's, once one is picked)
+        self._selected = -1
 
     # -- actions: the only way the panel changes anything
 
@@ -163,27 +165,39 @@ class Panel:
             self.apply("crossfade", fade)
         counts = s.pipeline.ai.counts()
         imgui.text("  ".join(f"{k} {v}" for k, v in counts.items()))
+        if len(s.pipeline.cast) > 1:
+            imgui.text("cast: " + ", ".join(f"{m.name} {n:,}" for m, n in zip(s.pipeline.cast, s.pipeline.ai.cast)))
         imgui.text("drag: orbit  shift/middle drag: pan  wheel: zoom  click: select")
         imgui.text("right click: move player  space: strike  P: pause  .: step  H: panel")
 
     def _draw_clips(self, imgui) -> None:
         s = self.session
-        for i, clip in enumerate(s.pipeline.bake.clips):
-            imgui.push_id(f"clip{i}")
-            roles = [r for r, name in s.pipeline.roles.items() if name == clip.name]
+        cast = s.pipeline.cast
+        if s.selected != self._selected:  # a new selection shows its own character's clips
+            self._selected = s.selected
+            if 0 <= s.selected < s.pipeline.agents:
+                self._character = s.character_of(s.selected)
+        self._character = min(self._character, len(cast) - 1)
+        if len(cast) > 1:
+            _, self._character = imgui.combo("character", self._character, [m.name for m in cast])
+        member = cast[self._character]
+        k = self._character
+        for i, clip in enumerate(member.bake.clips):
+            imgui.push_id(f"clip{k}_{i}")
+            roles = [r for r, name in member.roles.items() if name == clip.name]
             imgui.text(f"{clip.name} ({', '.join(roles) or '-'}, {clip.duration:.2f} s)")
-            changed, speed = imgui.slider_float("speed", s.pipeline.clip_speed.get(clip.name, 1.0), *CLIP_SPEED.slider)
+            changed, speed = imgui.slider_float("speed", member.clip_speed.get(clip.name, 1.0), *CLIP_SPEED.slider)
             if changed:
-                self.apply("clip_speed", clip.name, speed)
+                self.apply("clip_speed", clip.name, speed, character=k)
             imgui.same_line()
             changed, loop = imgui.checkbox("loop", clip.loop)
             if changed:
-                self.apply("clip_loop", clip.name, loop)
+                self.apply("clip_loop", clip.name, loop, character=k)
             if imgui.button("play on selected"):
-                self.apply("play", clip.name, selected_only=True)
+                self.apply("play", clip.name, selected_only=True, character=k)
             imgui.same_line()
             if imgui.button("play on all"):
-                self.apply("play", clip.name, selected_only=False)
+                self.apply("play", clip.name, selected_only=False, character=k)
             imgui.pop_id()
         if s.forced is not None and imgui.button("back to the AI"):
             self.apply("play", None)
@@ -223,7 +237,8 @@ class Panel:
         if imgui.button("measure error"):
             self.apply("measure_error")
         rate = "source rate" if p.bake.fps == SOURCE_RATE else f"{p.bake.fps:g} fps"
-        imgui.text(f"baked: {len(p.bake.clips)} clips at {rate}, {p.bake.precision}, {p.processor.interpolation}, {p.bake.nbytes:,} bytes")
+        clips, size = sum(len(m.bake.clips) for m in p.cast), sum(m.bake.nbytes for m in p.cast)
+        imgui.text(f"baked: {clips} clips at {rate}, {p.bake.precision}, {p.processor.interpolation}, {size:,} bytes")
         if p.bake.compression is not None:
             c = p.bake.compression
             imgui.text(f"compressed {c['ratio']:.2f}:1 against f32, keys within {c['max_key_error_mm']:.3g} mm (bound {c['bound_mm']:g} mm)")
@@ -276,7 +291,7 @@ class Panel:
         if info is None:
             imgui.text("click a zombie to select it")
             return
-        imgui.text(f"agent {info['agent']}: {info['state']}, health {info['health']}, {info['speed']:.2f} m/s")
+        imgui.text(f"agent {info['agent']} ({info['character']}): {info['state']}, health {info['health']}, {info['speed']:.2f} m/s")
         imgui.text(f"phase {info['phase']:.3f}, weapon {info['weapon'] or 'none'}")
         for name, layer in zip(LAYER_NAMES, info["layers"]):
             imgui.text(f"  {name:6s} {layer['clip']:10s} phase {layer['phase']:.3f} weight {layer['weight']:.3f}"

@@ -96,10 +96,10 @@ def bench_scale(args) -> int:
     rows = []
     print(f"{info['gl_renderer']} | {info['gl_version']} | {size[0]}x{size[1]} | {args.layers} layers | median of {args.frames} frames")
     print(f"{'agents':>8} {'proc ms':>8} {'frag ms':>8} {'draw ms':>8} {'frame ms':>9} {'Mtri/s':>8} {'ceil Mtri/s':>11} {'ratio':>6}")
-    with Stages.build(ctx, character, baked, spec) as stages, Offscreen(ctx, size) as target:
+    with Stages.build(ctx, (character, baked), spec) as stages, Offscreen(ctx, size) as target:
         renderer, main_proc = stages.renderer, stages.processor
         # The fragment path beside the compute path, measured in the same run (without GL 4.3 it is the main one).
-        fragment = Stages(processor=build_processor(ctx, baked, dataclasses.replace(spec, processor_path="fragment"))) if compute else Stages()
+        fragment = Stages(processor=build_processor(ctx, (character, baked), dataclasses.replace(spec, processor_path="fragment"))) if compute else Stages()
         with fragment:
             processors = {"compute": main_proc, "fragment": fragment.processor} if compute else {"fragment": main_proc}
             fb = target.framebuffer
@@ -112,7 +112,7 @@ def bench_scale(args) -> int:
 
             for n in steps(counts, desc="scale", unit="size"):
                 pos, camera = grid_crowd(n, size[0] / size[1])
-                heads = renderer.groups.get("head", [])
+                heads = renderer.groups[0].get("head", [])
                 inst = Instances(pos, rng.uniform(-3, 3, n).astype(np.float32), np.ones(n, np.float32), np.full((n, 4), 200, np.uint8),
                                  {"head": rng.integers(0, len(heads), n)} if heads else {})
                 layers = random_layers(n, args.layers, len(baked.clips), rng)

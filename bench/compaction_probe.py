@@ -30,8 +30,9 @@ def _lists(renderer) -> list[set]:
     records = np.frombuffer(cull.lists.read(), INSTANCE_DTYPE)
     out = []
     for d, c in enumerate(counts):
-        texel = records["packed"][d * cull.capacity: d * cull.capacity + int(c), 0]
-        out.append(set(((texel >> 12) * renderer.agents_per_row + (texel & 0xFFF) // renderer.joint_count).tolist()))
+        first, _ = cull.list_of(d)
+        texel = records["packed"][first: first + int(c), 0]
+        out.append(set(renderer.palette.agents_at(texel & 0xFFF, texel >> 12).tolist()))
     return out
 
 
@@ -53,11 +54,13 @@ class PrefixCompaction:
         p["u_write_visible"] = 0
         p["u_occlusion"] = 0
         p["u_list_base"] = 0
+        p["u_record_base"] = 0
         p["u_work_groups"] = self.groups
         cull.agents_buffer.bind_to_storage_buffer(0)
         cull.lists.bind_to_storage_buffer(1)
         cull.commands.bind_to_storage_buffer(2)
         cull.draw_of.bind_to_storage_buffer(3)
+        cull.list_start.bind_to_storage_buffer(6)
         self.counts.bind_to_storage_buffer(5)
         for phase, groups in ((0, self.groups), (1, cull.draw_count), (2, self.groups)):
             p["u_phase"] = phase
@@ -75,14 +78,12 @@ def measure(ctx: moderngl.Context, pipeline, repeats: int = 40) -> dict:
     visibility buffer): the lists compared per draw, then each timed."""
     renderer = pipeline.renderer
     cull = renderer.gpu
-    renderer.prepare(pipeline.camera, pipeline.ai.instances(), 0, cull_now=False)  # every record uploaded
+    renderer.prepare(pipeline.camera, pipeline.ai.instances(), 0, cull_now=False, palette=pipeline.processor.layout)  # every record uploaded
     planes = frustum_planes(view_proj(pipeline.camera))
-    bound = np.array([*renderer.bound_center, renderer.bound_radius])
     empty = np.frombuffer(cull.commands.read(), np.uint32).copy()  # the commands as uploaded: counts 0
 
     def atomics():
-        cull._dispatch(cull.lists, cull.commands, None, planes, bound, 0.0, renderer.lod_distances, renderer.lod_count,
-                       renderer.culling, 0, None, 1)
+        cull._dispatch(cull.lists, cull.commands, None, planes, 0.0, renderer.lod_distances, renderer.culling, 0, None, 1)
 
     prefix = PrefixCompaction(ctx, renderer)
     query = ctx.query(time=True)

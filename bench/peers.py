@@ -176,10 +176,10 @@ class CrowdSide:
         self.bake = bake_roles(character, {"walk": walk, "run": run if self.blend else None})
         self.layer_count = 2 if self.blend else 1
         lod = spec["lod_distances"] if spec["mode"] == "walk_lod" else (1e9, 1e9, 1e9)
-        self.stages = Stages.build(self.ctx, character, self.bake, StageSpec(layers=self.layer_count, lod_distances=lod,
+        self.stages = Stages.build(self.ctx, (character, self.bake), StageSpec(layers=self.layer_count, lod_distances=lod,
                                                                              shadows=False, culling=True))
         self.processor, self.renderer = self.stages.processor, self.stages.renderer
-        heads = self.renderer.groups.get("head", [])
+        heads = self.renderer.groups[0].get("head", [])
         # The glTF scene wears the first head: Panda3D draws what the scene holds, so this side does too.
         self._head = 0 if heads else None
         self.target = Offscreen(self.ctx, self.size)

@@ -76,7 +76,7 @@ def main(argv=None) -> int:
     baked = bake_roles(character, roles)
     spec = StageSpec(lod_distances=(1e9, 1e9, 1e9), shadows=False, culling=False, cull="cpu")  # counts at once, its own instance buffers
     own: list = []  # the probe's own programs, buffers and arrays, released however the run ends
-    with Stages.build(ctx, character, baked, spec, args.agents) as stages, Offscreen(ctx, size) as target:
+    with Stages.build(ctx, (character, baked), spec, args.agents) as stages, Offscreen(ctx, size) as target:
         proc, renderer, fb = stages.processor, stages.renderer, target.framebuffer
         half_planes = []
         try:
@@ -104,8 +104,7 @@ def main(argv=None) -> int:
             sep_inst["yaw_scale"][:, 0] = yaw
             sep_inst["yaw_scale"][:, 1] = 1.0
             agent = np.arange(n)
-            sep_inst["palette"][:, 0] = (agent % proc.agents_per_row) * baked.joint_count
-            sep_inst["palette"][:, 1] = agent // proc.agents_per_row
+            sep_inst["palette"][:, 0], sep_inst["palette"][:, 1] = proc.layout.texel(agent, 0)
             sep_inst["tint"] = 200
             own.append(ctx.buffer(sep_inst.tobytes()))
             sep_buffer = own[-1]

@@ -10,7 +10,12 @@ checks them at its door; none of them owns GL objects or imports a stage, so eve
 - **Layer overrides** (``LayerOverrides``): what a person forces on top of the AI (a clip played from
   its start, layer weights held at a value), applied by the frame after the AI has written its layers.
 - **Instances** (``Instances``): per agent a float64 world position, heading, scale, tint and variation
-  pieces. The AI writes them, the renderer reads them.
+  pieces, and how many agents each character of the cast has. The AI writes them, the renderer reads them.
+- **The cast** (``cast_counts``, ``cast_moves``): a crowd of several characters keeps each one's agents
+  together, in the cast's order (agents 0 .. c0 - 1 are the first character's, and so on), so every
+  per-character stage works on a slice: the processor dispatches a range, the layers of a range use that
+  character's clip indices. The counts come from the shares by one rule, and a resize keeps each
+  character's first agents (``cast_moves`` says where each block goes).
 - **Camera** (``Camera``): where the frame is seen from. Its projection is the draw stage's
   (``crowd.draw.render.view_proj``), which matches GL's clip conventions.
 
@@ -34,6 +39,50 @@ MAX_WEIGHT = 1.0e6  # larger weights would overflow the float32 sum long before 
 
 class FrameError(ValueError):
     """A frame contract broken by its producer; the message is one line."""
+
+
+MAX_CAST = 16  # characters in one crowd: the GPU cull keeps an agent's character in 4 bits of its record
+
+
+# -- the cast
+
+
+def cast_counts(agents: int, shares) -> tuple[int, ...]:
+    """How many of `agents` each character gets for its share (shares > 0, any scale: they are
+    normalised): the floor of each exact count, and the agents left over to the largest remainders
+    (the first character on a tie), so the counts sum to `agents` and each is within 1 of its share."""
+    w = np.asarray(shares, np.float64).reshape(-1)
+    if not 1 <= w.size <= MAX_CAST or not np.all(np.isfinite(w)) or np.any(w <= 0):
+        raise FrameError(f"a cast needs 1 to {MAX_CAST} finite shares above 0, got {list(np.ravel(shares))}")
+    exact = agents * (w / w.sum())
+    counts = np.floor(exact).astype(np.int64)
+    left = int(agents - counts.sum())
+    if left > 0:
+        counts[np.argsort(-(exact - counts), kind="stable")[:left]] += 1
+    return tuple(int(c) for c in counts)
+
+
+def cast_firsts(counts) -> np.ndarray:
+    """(K + 1,) int64: where each character's agents start, and the crowd's size last."""
+    return np.concatenate([[0], np.cumsum(np.asarray(counts, np.int64))]).astype(np.int64)
+
+
+def cast_moves(old, new) -> list[tuple[int, int, int]]:
+    """For a crowd resized from counts `old` to `new` (the same cast): per character, (its first agent
+    before, after, how many of its agents are kept), the kept ones being its first ones, in order."""
+    if len(old) != len(new):
+        raise FrameError(f"a resize keeps the cast: {len(old)} characters before, {len(new)} after")
+    a, b = cast_firsts(old), cast_firsts(new)
+    return [(int(a[k]), int(b[k]), int(min(old[k], new[k]))) for k in range(len(old))]
+
+
+def move_agents(array: np.ndarray, moves, size: int, fill=0) -> np.ndarray:
+    """A new array of `size` agents (the first axis) holding each character's kept block from `array`
+    at its new place (``cast_moves``), `fill` elsewhere."""
+    out = np.full((size,) + array.shape[1:], fill, array.dtype)
+    for before, after, kept in moves:
+        out[after:after + kept] = array[before:before + kept]
+    return out
 
 
 # -- layers
@@ -147,9 +196,10 @@ def validate_masks(masks, joint_count: int) -> np.ndarray | None:
 class ForcedClip:
     """A clip played from its start on some agents (None: all), ignoring the AI's choice for layer 0."""
 
-    clip: int  # index into the bake's clips
+    clip: int  # index into the bake's clips (of `character`'s bake)
     start: float  # simulated seconds (the AI's clock) at which it started
-    agents: np.ndarray | None = None
+    agents: np.ndarray | None = None  # None: every agent of `character`
+    character: int = 0  # whose clip it is: the cast's index
 
 
 @dataclass(frozen=True)
@@ -189,13 +239,15 @@ class LayerOverrides:
         phase -= float(np.floor(phase))
         return 0.0 if phase >= 1.0 else phase  # -1e-20 wraps to 1.0 in float64; 1.0 and 0.0 are the same pose
 
-    def apply(self, layers: np.ndarray, time: float, duration: float, speed: float, loop: bool) -> None:
+    def apply(self, layers: np.ndarray, time: float, duration: float, speed: float, loop: bool, within: slice | None = None) -> None:
         """Write the overrides into `layers` in place. `time` is the AI's clock after this frame's step;
-        `duration`, `speed` and `loop` describe the forced clip (ignored without one)."""
+        `duration`, `speed` and `loop` describe the forced clip (ignored without one); `within`: the
+        agents of the forced clip's character (None: every agent), the only ones it is forced on."""
         n = len(layers)
         if self.forced is not None:
             agents = self.forced.agents
-            agents = slice(None) if agents is None else agents[agents < n]
+            lo, hi = (0, n) if within is None else (within.start, within.stop)
+            agents = slice(lo, hi) if agents is None else agents[(agents >= lo) & (agents < min(hi, n))]
             layers[agents] = (0.0, 0.0, 0.0, -1.0)
             layers[agents, 0, CLIP] = self.forced.clip
             layers[agents, 0, PHASE] = self.forced_phase(time, duration, speed, loop)
@@ -214,15 +266,28 @@ class Instances:
     yaw: np.ndarray  # float32 (N,) heading about +Y, radians
     scale: np.ndarray  # float32 (N,)
     tint: np.ndarray  # uint8 (N, 4)
-    variant: dict[str, np.ndarray] = field(default_factory=dict)  # group → (N,) index into the group's pieces
+    variant: dict[str, np.ndarray] = field(default_factory=dict)  # group → (N,) index into the group's pieces of the agent's character
+    cast: tuple[int, ...] | None = None  # agents of each character, in the cast's order (None: one character)
 
     def __len__(self) -> int:
         return int(self.position.shape[0])
 
-    def validate(self, groups: dict[str, list[str]]) -> "Instances":
+    def counts(self) -> tuple[int, ...]:
+        """Agents of each character (one character: all of them)."""
+        return (len(self),) if self.cast is None else tuple(self.cast)
+
+    def validate(self, groups) -> "Instances":
+        """`groups`: per character (a list, in the cast's order) or for the one character (a dict),
+        group → its pieces; a variant index must be below its agent's character's choices."""
         n = len(self)
         if self.position.shape != (n, 3) or self.yaw.shape != (n,) or self.scale.shape != (n,) or self.tint.shape != (n, 4):
             raise FrameError("instances need position (N, 3), yaw (N,), scale (N,) and tint (N, 4)")
+        counts = self.counts()
+        if any(c < 0 for c in counts) or sum(counts) != n:
+            raise FrameError(f"the cast's agent counts {list(counts)} must be whole numbers >= 0 that sum to the {n} instances")
+        per_character = [groups] * len(counts) if isinstance(groups, dict) else list(groups)
+        if len(per_character) != len(counts):
+            raise FrameError(f"instances of {len(counts)} characters drawn by a cast of {len(per_character)}")
         # Finite exactly when the minimum and maximum are (NaN propagates through both): reductions
         # without the boolean temporaries of np.isfinite, a frame's largest check after the layers'.
         extremes = [(float(np.min(a)), float(np.max(a))) if n else (0.0, 1.0) for a in (self.position, self.yaw, self.scale)]
@@ -230,12 +295,18 @@ class Instances:
             raise FrameError("instance positions, headings and scales must be finite")
         if n and (extremes[2][0] <= 0 or extremes[2][1] > 100):
             raise FrameError("instance scales must be in (0, 100]")
-        for group, pieces in groups.items():
-            v = self.variant.get(group)
-            if v is None:
-                continue
-            if v.shape != (n,) or (n and (v.min() < 0 or v.max() >= len(pieces))):
-                raise FrameError(f"variant of group {group!r} must be (N,) indices below {len(pieces)}")
+        firsts = cast_firsts(counts)
+        for group, v in self.variant.items():
+            if not any(group in g for g in per_character):
+                continue  # a group nobody draws (a piece left out)
+            if v.shape != (n,):
+                raise FrameError(f"variant of group {group!r} must be (N,) indices, got {v.shape}")
+            for k, character_groups in enumerate(per_character):
+                part = v[firsts[k]:firsts[k + 1]]
+                choices = len(character_groups.get(group, ())) or 1  # a character without the group: 0 only
+                if part.size and (part.min() < 0 or part.max() >= choices):
+                    raise FrameError(f"variant of group {group!r} must be indices below {choices}"
+                                     + (f" for character {k}" if len(per_character) > 1 else ""))
         return self
 
 

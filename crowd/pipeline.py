@@ -11,6 +11,14 @@ matrix: the pose shown lags the simulation by N frames, and nothing else does (p
 are this frame's). Agents that (re)spawned after frame F - N are drawn with this frame's palette and
 without a weapon until their own history reaches back that far; the first N frames show no weapons.
 Without armed agents there is no gather pass, no read-back buffer and a single palette.
+
+A crowd of several characters (``PipelineConfig.characters``: each a model, its share of the crowd and its
+roles): each character is loaded, its roles matched and its clips baked on its own (``CastMember``), and
+the AI keeps each one's agents in a block of its own, in the cast's order (crowd.frame). The stages take
+the whole cast: the processor runs a dispatch per character into one palette, the renderer culls every
+agent in one pass and draws each character's pieces from lists of their own, and the weapons are every
+armed character's props, numbered across the cast. ``character``, ``bake``, ``roles`` and ``motion`` are
+the first character's (the only one's in a crowd of one).
 """
 
 from __future__ import annotations
@@ -31,17 +39,18 @@ from .anim.foot_skate import FootSkateMonitor
 from .anim.processor import AnimationProcessor, palette_joint_positions
 from .anim.roles import bake_roles, match_roles
 from .asset.gltf import load_character
+from .asset.model import Character
 from .draw.readback import RING, SocketRead, SocketReadback
 from .draw.render import CrowdRenderer, FrameView, view_proj
 from .draw.sync import PaletteSync
 from .draw.weapons import AgentFrames, WeaponRenderer
-from .frame import Camera, LayerOverrides
+from .frame import Camera, FrameError, LayerOverrides, cast_counts, move_agents
 from .gl import GLStage
 from .lighting import LIGHTING
 from .progress import bar
 from .settings import DEFAULTS, SETTINGS
-from .sim.ai import LAYERS, AIConfig, CrowdAI, PlayerScript, motion_for, upper_body_mask
-from .stages import StageSpec, Stages, build_processor, build_readback, build_renderer, build_weapons
+from .sim.ai import LAYERS, AIConfig, CrowdAI, Motion, PlayerScript, motion_for, upper_body_mask
+from .stages import CastPart, StageSpec, Stages, build_processor, build_readback, build_renderer, build_weapons
 from .timing import PassTimer
 
 # The default camera's neighbourhood of the player in a crowd too big to frame whole, and how far it sees
@@ -54,6 +63,18 @@ FOOT_SKATE_SAMPLE = 32  # agents whose feet are read back for the stats' foot_sk
 
 class PipelineError(ValueError):
     """Bad pipeline configuration; the message is one line."""
+
+
+@dataclass(frozen=True)
+class CharacterSpec:
+    """One character of a crowd as a scene names it: the model (None: the built-in zombie; a built-in's
+    name, crowd.asset.gltf.BUILT_IN; or a glTF file), its share of the crowd (shares are relative), the
+    roles its clips play (those its names do not match) and its size factor."""
+
+    model: Path | str | None = None
+    share: float = 1.0
+    roles: dict = field(default_factory=dict)
+    model_scale: float | str = DEFAULTS["model_scale"]
 
 
 @dataclass
@@ -79,6 +100,34 @@ class PipelineConfig:
     readback_latency: int = DEFAULTS["readback_latency"]  # frames between gathering a socket and the CPU reading it
     cull: str = DEFAULTS["cull"]  # "auto", "gpu" or "cpu": where culling, LOD and the instance lists are made
     foot_lock: bool = DEFAULTS["foot_lock"]  # planted feet held by the processor (the compute path; crowd.anim.foot_lock)
+    characters: tuple = ()  # CharacterSpec per character of a mixed crowd; () is one character: model, roles, model_scale above
+
+    def cast(self) -> tuple[CharacterSpec, ...]:
+        """The crowd's characters, in order: ``characters``, or the one that model, roles and model_scale name."""
+        return tuple(self.characters) or (CharacterSpec(self.model, 1.0, dict(self.roles), self.model_scale),)
+
+
+@dataclass
+class CastMember:
+    """One character of the running crowd: its spec, what was loaded and baked for it, and its clips'
+    playback speeds."""
+
+    spec: CharacterSpec
+    character: Character
+    roles: dict
+    role_notes: list
+    bake: AnimationBake
+    legs: object  # crowd.anim.foot_lock.Legs (possibly empty)
+    masks: np.ndarray | None
+    motion: Motion | None = None
+    clip_speed: dict = field(default_factory=dict)  # clip name → playback speed (time scale), where not 1
+
+    def part(self) -> CastPart:
+        return CastPart(self.character, self.bake, self.masks, self.legs)
+
+    @property
+    def name(self) -> str:
+        return self.character.name
 
 
 @dataclass
@@ -105,22 +154,34 @@ class CrowdPipeline(GLStage):
             self._build(ctx, config, started)
 
     def _build(self, ctx: moderngl.Context, config: PipelineConfig, started) -> None:
-        """The character, its bake, the crowd and the GPU stages, each step shown on `started`'s bar."""
-        self.character = load_character(config.model, scale=SETTINGS["model_scale"].check(config.model_scale, PipelineError))
-        self.roles, self.role_notes = match_roles(self.character.clips, config.roles)
+        """The characters, their bakes, the crowd and the GPU stages, each step shown on `started`'s bar."""
+        specs = config.cast()
+        try:
+            cast_counts(0, [s.share for s in specs])
+        except FrameError as exc:
+            raise PipelineError(str(exc)) from None
+        self.cast: list[CastMember] = []
+        for spec in specs:
+            character = load_character(spec.model, scale=SETTINGS["model_scale"].check(spec.model_scale, PipelineError))
+            roles, notes = match_roles(character.clips, spec.roles)
+            if len(specs) > 1:
+                notes = [f"{character.name}: {note}" for note in notes]
+            masks = upper_body_mask(character.skeleton)
+            self.cast.append(CastMember(spec, character, roles, notes, None, None, masks))
         started.update(1)
         started.set_description("starting the crowd: the bake")
         # Leave out what the scene does not need: only the clips the roles play are baked.
-        self.bake = bake_roles(self.character, self.roles, config.bake_fps, config.precision, config.compression_bound_mm)
+        for member in self.cast:
+            member.bake = bake_roles(member.character, member.roles, config.bake_fps, config.precision, config.compression_bound_mm)
+            member.legs = bake_legs(member.character.skeleton, member.bake)  # what the foot lock holds, if it runs
         started.update(1)
         started.set_description(f"starting the crowd: {config.agents:,} agents")
-        self.legs = bake_legs(self.character.skeleton, self.bake)  # what the foot lock holds, if it runs
         self._lock_ground: np.ndarray | None = None  # each agent's ground point (2, N: x, z) at the last run, float64
         self._lock_motion_rows = np.empty((0, 4), np.float32)
         self.latency = SETTINGS["readback_latency"].check(config.readback_latency, PipelineError)
-        self.clip_speed: dict[str, float] = {}  # clip name → playback speed (time scale), where not 1
-        self.motion = motion_for(self.character, self.bake, self.roles)
-        self.ai = CrowdAI(config.agents, config.seed, self.motion, config.ai, config.origin)
+        for k in range(len(self.cast)):
+            self.cast[k].motion = self._motion(k)
+        self.ai = CrowdAI(config.agents, config.seed, [m.motion for m in self.cast], config.ai, config.origin, shares=[s.share for s in specs])
         self.player_script = PlayerScript(self.ai.half_extent * 0.5) if config.scripted_player else None
         if self.player_script is not None:
             self.player_script.update(self.ai)  # where it starts (time 0: it moves, it strikes nothing yet)
@@ -129,7 +190,7 @@ class CrowdPipeline(GLStage):
         started.set_description("starting the crowd: the GPU stages")
         # Leave out what the scene does not need: no weapons, no socket, or nobody armed → no read-back
         # stage, no gather pass, no weapon meshes, and one palette instead of a ring.
-        self.stages = Stages.build(ctx, self.character, self.bake, self._spec(self._armed(config)), config.agents)
+        self.stages = Stages.build(ctx, self._parts(), self._spec(self._armed(config)), self.ai.cast)
         started.update(1)
         self.sync = PaletteSync(self.processor.history, config.agents)
         # The running crowd's foot skate: FOOT_SKATE_SAMPLE agents' foot joints ride on the socket read-back.
@@ -142,6 +203,53 @@ class CrowdPipeline(GLStage):
         self.passes_run: list[str] = []
         self.last = FrameState()
         self.camera = self.default_camera(16 / 9)
+
+    # -- the cast
+
+    @property
+    def character(self) -> Character:
+        return self.cast[0].character
+
+    @property
+    def bake(self) -> AnimationBake:
+        return self.cast[0].bake
+
+    @property
+    def roles(self) -> dict:
+        return self.cast[0].roles
+
+    @property
+    def motion(self) -> Motion:
+        return self.cast[0].motion
+
+    @property
+    def legs(self):
+        return self.cast[0].legs
+
+    @property
+    def clip_speed(self) -> dict:
+        return self.cast[0].clip_speed
+
+    @property
+    def role_notes(self) -> list[str]:
+        return [note for member in self.cast for note in member.role_notes]
+
+    def _parts(self) -> list[CastPart]:
+        return [member.part() for member in self.cast]
+
+    def _motion(self, k: int, clip_speed: dict | None = None) -> Motion:
+        """Character k's Motion: its baked roles at its playback speeds, its weapons numbered after those
+        of the armed characters before it (as the weapon stage numbers them)."""
+        member = self.cast[k]
+        first = sum(len(m.character.props) for m in self.cast[:k] if m.character.props and m.character.sockets)
+        motion = motion_for(member.character, member.bake, member.roles, member.clip_speed if clip_speed is None else clip_speed)
+        return dataclasses.replace(motion, weapon_first=first)
+
+    def member(self, character: int) -> CastMember:
+        """The cast's character `character` (an index), or PipelineError."""
+        if isinstance(character, bool) or not isinstance(character, (int, np.integer)) or not 0 <= character < len(self.cast):
+            raise PipelineError(f"no character {character!r}; the cast has {len(self.cast)}")
+        return self.cast[int(character)]
 
     # -- the stages, built by crowd.stages and owned here
 
@@ -169,15 +277,14 @@ class CrowdPipeline(GLStage):
         """Whether a crowd built from `config` needs the weapon stages. Only building and switching weapons
         ask this; once built, the stages that exist say it (an armed share set to 0 at run time keeps
         them, with nobody to gather)."""
-        return config.weapons and config.ai.armed_share > 0 and bool(self.character.props) and bool(self.character.sockets)
+        return config.weapons and config.ai.armed_share > 0 and any(m.character.props and m.character.sockets for m in self.cast)
 
     def _spec(self, armed: bool | None = None) -> StageSpec:
         """The StageSpec of this pipeline now; `armed` defaults to whether the read-back stage exists."""
         c = self.config
-        return StageSpec(layers=LAYERS, masks=upper_body_mask(self.character.skeleton), processor_path=c.processor_path,
-                         interpolation=c.interpolation, lod_distances=c.lod_distances, shadows=c.shadows, culling=c.culling,
-                         occlusion=c.occlusion, armed=self.readback is not None if armed is None else armed, readback_latency=self.latency, cull=c.cull,
-                         foot_lock=c.foot_lock, legs=self.legs)
+        return StageSpec(layers=LAYERS, processor_path=c.processor_path, interpolation=c.interpolation, lod_distances=c.lod_distances,
+                         shadows=c.shadows, culling=c.culling, occlusion=c.occlusion, armed=self.readback is not None if armed is None else armed,
+                         readback_latency=self.latency, cull=c.cull, foot_lock=c.foot_lock)
 
     # -- run-time settings: the panel and the command line both come through these
 
@@ -195,17 +302,17 @@ class CrowdPipeline(GLStage):
             return
         self.config = dataclasses.replace(self.config, shadows=bool(on))
         spec = self._spec()
-        self.stages.replace("renderer", build_renderer(self.ctx, self.character, self.processor, spec))
+        self.stages.replace("renderer", build_renderer(self.ctx, self._parts(), spec))
         if self.weapons is not None:
-            self.stages.replace("weapons", build_weapons(self.ctx, self.character, spec))
+            self.stages.replace("weapons", build_weapons(self.ctx, self._parts(), spec))
 
     def set_cull_path(self, path: str) -> None:
         """Cull on the GPU or the CPU from the next frame: the renderer is built again for it."""
         path = SETTINGS["cull"].check(path, PipelineError)
         spec = dataclasses.replace(self._spec(), cull=path)
-        renderer = build_renderer(self.ctx, self.character, self.processor, spec)
+        renderer = build_renderer(self.ctx, self._parts(), spec)
         try:
-            weapons = build_weapons(self.ctx, self.character, spec)  # culled where the bodies are
+            weapons = build_weapons(self.ctx, self._parts(), spec)  # culled where the bodies are
         except BaseException:
             renderer.release()
             raise
@@ -235,7 +342,7 @@ class CrowdPipeline(GLStage):
             # Both new stages exist before either old one goes, so a failed build keeps the running pair.
             readback = build_readback(self.ctx, self.processor, spec)
             try:
-                weapons = build_weapons(self.ctx, self.character, spec)
+                weapons = build_weapons(self.ctx, self._parts(), spec)
             except BaseException:
                 if readback is not None:
                     readback.release()
@@ -259,37 +366,44 @@ class CrowdPipeline(GLStage):
         the crowd keeps its state."""
         self.use_bake(self.make_bake(fps, precision, bound_mm), interpolation)
 
-    def make_bake(self, fps: float | str, precision: str, bound_mm: float | None = None, report=None) -> AnimationBake:
-        """A new bake of the scene's clips (CPU only, no GL: a thread may run it while frames go on);
-        `report` is crowd.progress's callback."""
+    def make_bake(self, fps: float | str, precision: str, bound_mm: float | None = None, report=None) -> tuple[AnimationBake, ...]:
+        """New bakes of the scene's clips, one per character of the cast (CPU only, no GL: a thread may
+        run it while frames go on); `report` is crowd.progress's callback."""
         bound_mm = self.config.compression_bound_mm if bound_mm is None else bound_mm
-        return bake_roles(self.character, self.roles, fps, precision, bound_mm, report=report)
+        return tuple(bake_roles(m.character, m.roles, fps, precision, bound_mm, report=report) for m in self.cast)
 
-    def use_bake(self, bake: AnimationBake, interpolation: str | None = None) -> None:
-        """Process `bake` (from make_bake) from now on, with `interpolation` (None: the current one): a new
-        processor replaces the old one (released), and the crowd keeps its state."""
+    def use_bake(self, bakes, interpolation: str | None = None) -> None:
+        """Process `bakes` (from make_bake: one per character) from now on, with `interpolation` (None: the
+        current one): a new processor replaces the old one (released), and the crowd keeps its state."""
+        bakes = (bakes,) if isinstance(bakes, AnimationBake) else tuple(bakes)
+        if len(bakes) != len(self.cast):
+            raise PipelineError(f"{len(bakes)} bakes for a cast of {len(self.cast)} characters")
         interpolation = self.config.interpolation if interpolation is None else interpolation
-        for i, clip in enumerate(bake.clips):  # loop settings made in the panel survive the re-bake
-            old = next((c for c in self.bake.clips if c.name == clip.name), None)
-            if old is not None:
-                bake.clips[i] = dataclasses.replace(clip, loop=old.loop)
-        legs = bake_legs(self.character.skeleton, bake)
-        spec = dataclasses.replace(self._spec(), interpolation=interpolation, legs=legs)
-        self.stages.replace("processor", build_processor(self.ctx, bake, spec, self.agents))
-        self.bake, self.legs = bake, legs
+        for member, bake in zip(self.cast, bakes):
+            for i, clip in enumerate(bake.clips):  # loop settings made in the panel survive the re-bake
+                old = next((c for c in member.bake.clips if c.name == clip.name), None)
+                if old is not None:
+                    bake.clips[i] = dataclasses.replace(clip, loop=old.loop)
+        parts = [CastPart(m.character, bake, m.masks, bake_legs(m.character.skeleton, bake)) for m, bake in zip(self.cast, bakes)]
+        spec = dataclasses.replace(self._spec(), interpolation=interpolation)
+        self.stages.replace("processor", build_processor(self.ctx, parts, spec, self.ai.cast))
+        for member, part in zip(self.cast, parts):
+            member.bake, member.legs = part.bake, part.legs
         self._lock_ground = None
+        bake = bakes[0]
         self.config = dataclasses.replace(self.config, bake_fps=bake.fps, precision=bake.precision, interpolation=interpolation,
                                           compression_bound_mm=bake.bound_mm)
         self.sync.reset()
         if self.readback is not None:
             self.readback.reset()
-        self.ai.set_motion(motion_for(self.character, self.bake, self.roles, self.clip_speed))
-        self.motion = self.ai.motion
+        for k, member in enumerate(self.cast):
+            member.motion = self._motion(k)
+            self.ai.set_motion(member.motion, k)
 
     def set_processor_path(self, path: str) -> None:
         """Run the same bake on another processor path (compute, fragment or auto), live."""
         path = SETTINGS["processor"].check(path, PipelineError)
-        processor = build_processor(self.ctx, self.bake, dataclasses.replace(self._spec(), processor_path=path), self.agents)
+        processor = build_processor(self.ctx, self._parts(), dataclasses.replace(self._spec(), processor_path=path), self.ai.cast)
         self.stages.replace("processor", processor)
         self.config = dataclasses.replace(self.config, processor_path=path)
         self._lock_ground = None
@@ -301,7 +415,7 @@ class CrowdPipeline(GLStage):
         """The foot lock on (a processor that holds planted feet, with its state buffers) or off (a
         processor without them, the lock's code compiled out), live; the crowd keeps its state."""
         on = SETTINGS["foot_lock"].check(on, PipelineError)
-        processor = build_processor(self.ctx, self.bake, dataclasses.replace(self._spec(), foot_lock=on), self.agents)
+        processor = build_processor(self.ctx, self._parts(), dataclasses.replace(self._spec(), foot_lock=on), self.ai.cast)
         self.stages.replace("processor", processor)
         self.config = dataclasses.replace(self.config, foot_lock=on)
         self._lock_ground = None
@@ -310,12 +424,20 @@ class CrowdPipeline(GLStage):
             self.readback.reset()
 
     def foot_lock_state(self) -> dict:
-        """Whether the processor holds feet now, which, and why not where it does not."""
-        if self.processor.legs is not None:
-            return {"on": True, "legs": list(self.processor.legs.names)}
-        why = ("off in the scene" if not self.config.foot_lock else "no leg found (an ankle under a knee under a hip)" if not len(self.legs)
-               else "the fragment path has no state to keep it in (it runs on the compute path)")
-        return {"on": False, "legs": list(self.legs.names), "why": why}
+        """Whether the processor holds feet now, which, and why not where it does not (per character in a
+        cast of several: "cast")."""
+        held = self.processor.legs
+        states = []
+        for k, member in enumerate(self.cast):
+            if held is not None and held[k] is not None:
+                states.append({"on": True, "legs": list(held[k].names)})
+                continue
+            why = ("off in the scene" if not self.config.foot_lock else "no leg found (an ankle under a knee under a hip)" if not len(member.legs)
+                   else "the fragment path has no state to keep it in (it runs on the compute path)")
+            states.append({"on": False, "legs": list(member.legs.names), "why": why})
+        if len(states) == 1:
+            return states[0]
+        return {"on": any(s["on"] for s in states), "cast": {m.name: st for m, st in zip(self.cast, states)}}
 
     def _lock_motion(self) -> np.ndarray:
         """Each agent's ground step since the last run (float64, so a world far from the origin loses
@@ -341,33 +463,47 @@ class CrowdPipeline(GLStage):
         last[1] = ai.z
         return motion
 
-    def set_clip_speed(self, name: str, speed: float) -> None:
-        """A clip's playback speed (three.js's timeScale). Locomotion clips move the zombie faster too, so
-        their feet stay planted; actions end sooner."""
-        self.bake.clip_index(name)
-        speeds = {**self.clip_speed, name: float(speed)}
-        motion = motion_for(self.character, self.bake, self.roles, speeds)  # checks the range
-        self.clip_speed = {k: v for k, v in speeds.items() if v != 1.0}
-        self.ai.set_motion(motion)
-        self.motion = motion
+    def set_clip_speed(self, name: str, speed: float, character: int = 0) -> None:
+        """A clip's playback speed (three.js's timeScale), of one character of the cast. Locomotion clips
+        move the zombie faster too, so their feet stay planted; actions end sooner."""
+        member = self.member(character)
+        member.bake.clip_index(name)
+        speeds = {**member.clip_speed, name: float(speed)}
+        motion = self._motion(int(character), speeds)  # checks the range
+        member.clip_speed = {k: v for k, v in speeds.items() if v != 1.0}
+        member.motion = motion
+        self.ai.set_motion(motion, int(character))
 
-    def set_clip_loop(self, name: str, loop: bool) -> None:
-        self.processor.set_clip_loop(self.bake.clip_index(name), loop)
+    def set_clip_loop(self, name: str, loop: bool, character: int = 0) -> None:
+        member = self.member(character)
+        self.processor.set_clip_loop(member.bake.clip_index(name), loop, int(character))
 
     def set_agent_count(self, agents: int) -> None:
         agents = SETTINGS["agents"].check(agents, PipelineError)
+        before = self.ai.cast
         self.ai.resize(agents)
+        moves = self.ai.moved  # each character keeps its first agents, at its block's new place
         self.foot_skate.reset()  # (the sample is spread over the new count)
-        self.processor.resize(agents)
+        self.processor.resize(self.ai.cast)
         self.layers = np.empty((agents, LAYERS, 4), np.float32)
-        self.sync.resize(agents, self.frames)
+        self.sync.resize(agents, self.frames, moves)
+        if self._lock_ground is not None:
+            self._lock_ground = move_agents(self._lock_ground.T, moves, agents).T.copy()
+            fresh = np.ones(agents, bool)
+            for _, after, kept in moves:
+                fresh[after:after + kept] = False
+            self._lock_ground[:, fresh] = self.ai.x[fresh], self.ai.z[fresh]
+            self._lock_motion_rows = np.empty((agents, 4), np.float32)
+        if any(b != a for b, a, _ in moves[1:]) and self.readback is not None:
+            self.readback.reset()  # the sockets queued were gathered for agents that have moved
         self.config = dataclasses.replace(self.config, agents=agents)
 
     def set_seed(self, seed: int) -> None:
         """A new crowd from another seed (same count, settings and clips); every agent starts anew."""
         seed = SETTINGS["seed"].check(seed, PipelineError)
         self.config = dataclasses.replace(self.config, seed=seed)
-        old, self.ai = self.ai, CrowdAI(self.agents, seed, self.motion, self.ai.config, self.config.origin)
+        old, self.ai = self.ai, CrowdAI(self.agents, seed, [m.motion for m in self.cast], self.ai.config, self.config.origin,
+                                        shares=self.ai.shares)
         old.close()
         self.foot_skate.reset()
         self.processor.reset_lock()  # other agents now: nothing held is theirs
@@ -406,12 +542,25 @@ class CrowdPipeline(GLStage):
         if name not in self.passes_run:
             self.passes_run.append(name)
 
+    def block(self, character: int) -> slice:
+        """The agents of one character of the cast (each character's are one block, in the cast's order)."""
+        self.member(character)
+        first = int(sum(self.ai.cast[:character]))
+        return slice(first, first + int(self.ai.cast[character]))
+
+    def _block(self, overrides: LayerOverrides) -> slice | None:
+        """The agents a forced clip may play on: its character's (None: a crowd of one character)."""
+        if overrides.forced is None or len(self.cast) == 1:
+            return None
+        return self.block(overrides.forced.character)
+
     def _forced_clip(self, overrides: LayerOverrides) -> tuple[float, float, bool]:
         """(duration, playback speed, loop) of the clip `overrides` forces, for LayerOverrides.apply."""
         if overrides.forced is None:
             return 1.0, 1.0, True
-        info = self.bake.clips[overrides.forced.clip]
-        return info.duration, self.clip_speed.get(info.name, 1.0), info.loop
+        member = self.member(overrides.forced.character)
+        info = member.bake.clips[overrides.forced.clip]
+        return info.duration, member.clip_speed.get(info.name, 1.0), info.loop
 
     def frame(self, framebuffer: moderngl.Framebuffer, dt: float, overrides: LayerOverrides | None = None) -> FrameState:
         """Run one frame into `framebuffer`, the simulation advancing `dt` seconds; `overrides` (the
@@ -419,7 +568,8 @@ class CrowdPipeline(GLStage):
         t = self.timer
         f = self.frames
         if overrides:
-            overrides.validate(len(self.bake.clips), LAYERS)
+            forced = overrides.forced
+            overrides.validate(len(self.member(forced.character if forced is not None else 0).bake.clips), LAYERS)
         sim_time = self.ai.time
         with t.cpu("ai"):
             if self.player_script is not None:
@@ -430,7 +580,7 @@ class CrowdPipeline(GLStage):
             instances = self.ai.instances()
             self.layers = layers = self.ai.write_layers()  # the AI's own array: no copy (its workers write it)
             if overrides:
-                overrides.apply(layers, self.ai.time, *self._forced_clip(overrides))
+                overrides.apply(layers, self.ai.time, *self._forced_clip(overrides), within=self._block(overrides))
         self._run("ai")
         self.sync.spawned(self.ai.spawned_step >= steps_before, f)  # respawned (or added) in this frame's step
         self._pose_lag.append(float(min(dt, self.ai.config.max_dt)))
@@ -457,9 +607,10 @@ class CrowdPipeline(GLStage):
             self.sync.processed(f, fresh=self.processor.runs == 1)  # a new palette: the frames kept before it are gone
         if self.readback is not None and self.agents:
             armed = np.flatnonzero(self.ai.armed())
-            feet, foot_joints = self.foot_skate.entries(self.agents, self.ai.steady)
+            # The sample of the foot-skate measure is the first character's agents (its feet, its block).
+            feet, foot_joints = self.foot_skate.entries(self.ai.cast[0], self.ai.steady)
             agents = np.concatenate([armed, feet])
-            joints = np.concatenate([np.full(armed.size, self.weapons.socket_joint), foot_joints])
+            joints = np.concatenate([self.weapons.socket_joints[self.ai.weapon[armed]], foot_joints])
             if self.readback.gather(f, self.processor, agents, joints, t):
                 self._run("gather")
                 self._run("transfer")
@@ -476,7 +627,7 @@ class CrowdPipeline(GLStage):
             # The shadow cascades cover the AI's world square (crowd.draw.shadows), known without a pass over the agents.
             half, centre = self.ai.half_extent, self.ai.origin
             self.renderer.crowd_box = (np.array([centre[0] - half, 0.0, centre[1] - half]), np.array([centre[0] + half, 0.0, centre[1] + half]))
-            view = self.renderer.prepare(self.camera, instances, row_offset, cull_now=False)
+            view = self.renderer.prepare(self.camera, instances, row_offset, cull_now=False, palette=self.processor.layout)
             if self.renderer.gpu is not None and self.agents:
                 with t.gpu("cull"):
                     self.renderer.cull()
@@ -553,8 +704,8 @@ class CrowdPipeline(GLStage):
             offsets = np.broadcast_to(np.asarray(self.last.row_offset, np.int64), (self.agents,))[agents]
         else:
             offsets = np.full(len(agents), self.processor.row_offset(0), np.int64)
-        rows = self.processor.read_rows(agents, self.weapons.socket_joint, offsets).astype(np.float64)
-        socket_model = np.einsum("kij,j->ki", rows, self.weapons.socket_bind[:, 3])
+        rows = self.processor.read_rows(agents, self.weapons.socket_joints[weapon], offsets).astype(np.float64)
+        socket_model = np.einsum("kij,kj->ki", rows, self.weapons.socket_bind[weapon][:, :, 3])
         hand = self.last.agent_frames.points(agents, socket_model)
         return float(np.max(np.linalg.norm(hand - self.weapons.grip_points(self.last.agent_frames), axis=1)) * 1e3)
 
@@ -565,15 +716,18 @@ class CrowdPipeline(GLStage):
         ndc = clip[:, :3] / clip[:, 3:4]
         return np.stack([(ndc[:, 0] * 0.5 + 0.5) * size[0], (0.5 - ndc[:, 1] * 0.5) * size[1]], axis=1)
 
-    def joint_world_positions(self, joint: int) -> np.ndarray:
-        """World position of one joint of every agent, from the GPU palette (synchronous; tests, stats)."""
-        pal = self.processor.read_palette()
-        model = palette_joint_positions(pal[:, joint : joint + 1], self.character.skeleton.inverse_bind[joint : joint + 1])[:, 0]
-        yaw = self.ai.yaw
+    def joint_world_positions(self, joint: int, character: int = 0) -> np.ndarray:
+        """World position of one joint of every agent of one character (the first: every agent of a
+        crowd of one), from the GPU palette (synchronous; tests, stats)."""
+        block = self.block(character)
+        pal = self.processor.read_palette()[block]
+        skeleton = self.member(character).character.skeleton
+        model = palette_joint_positions(pal[:, joint : joint + 1], skeleton.inverse_bind[joint : joint + 1])[:, 0]
+        yaw = self.ai.yaw[block]
         c, s = np.cos(yaw), np.sin(yaw)
         rotated = np.stack([c * model[:, 0] + s * model[:, 2], model[:, 1], -s * model[:, 0] + c * model[:, 2]], axis=1)
-        ground = np.stack([self.ai.x, np.zeros(self.ai.n), self.ai.z], axis=1)
-        return ground + self.ai.scale[:, None].astype(np.float64) * rotated
+        ground = np.stack([self.ai.x[block], np.zeros(len(yaw)), self.ai.z[block]], axis=1)
+        return ground + self.ai.scale[block, None].astype(np.float64) * rotated
 
     def gpu_bytes(self) -> dict[str, int]:
         out = dict(self.processor.gpu_bytes())

@@ -1,13 +1,17 @@
 """Scenes: what a run uses, in a TOML file the demo loads (``--scene PATH``) and the panel saves back.
 
-A scene names the model, the agent count and seed, the clips it plays (role → clip; only those are
-baked), the AI's settings, the features it switches on (weapons, shadows, LOD, culling) and the camera:
+A scene names its characters (a model each, its share of the crowd and the clips it plays: role → clip;
+only those are baked), the agent count and seed, the AI's settings, the features it switches on
+(weapons, shadows, LOD, culling) and the camera:
 
-    [scene]        name, model ("" = the built-in zombie; relative paths are from the scene's folder),
-                   and the ``scene`` settings (agents, seed)
+    [scene]        name, model ("" = the built-in zombie, "brute" the built-in brute, else a glTF file;
+                   relative paths are from the scene's folder), and the ``scene`` settings (agents, seed)
     [clips]        the ``clips`` settings (bake_fps, precision, compression_bound_mm, interpolation), and
                    roles = { walk = "shamble", ... }, speed = { shamble = 1.2, ... } (playback speed),
                    loop = { attack = true, ... }
+    [[characters]] a crowd of several characters, one table each: model, share (relative: 3 and 1 make
+                   a quarter of the crowd the second's), and its own roles, speed, loop and model_scale;
+                   with these, [scene] names no model and [clips] no roles, speeds or loops
     [features]     the ``features`` settings (weapons, readback_latency, shadows, culling, occlusion,
                    lod_distances = [d1, d2, d3], processor, cull)
     [ai]           the ``ai`` settings (crowd.sim.ai.AIConfig), e.g. runner_share = 0.3
@@ -16,7 +20,8 @@ baked), the AI's settings, the features it switches on (weapons, shadows, LOD, c
 The settings, their bounds and defaults are crowd.settings' (declared once, for the command line and
 the panel too); this module adds the tables that are not single values (roles, speeds, loops, camera).
 
-Every key is optional; a key this module does not know is an error, not something silently ignored.
+Every key is optional (a file naming neither a model nor characters plays the default cast: zombies and
+brutes, three to one); a key this module does not know is an error, not something silently ignored.
 ``load_scene`` raises SceneError with the file, and the line for TOML syntax errors; callers keep the
 defaults when it does. ``save_scene`` writes atomically and keeps the previous file as ``<name>.bak``.
 """
@@ -33,8 +38,9 @@ import tomli_w
 
 from .anim.roles import ROLES
 from .files import atomic_write_bytes
-from .frame import Camera
-from .pipeline import PipelineConfig
+from .frame import MAX_CAST, Camera
+from .asset.gltf import is_built_in
+from .pipeline import CharacterSpec, PipelineConfig
 from .settings import DEFAULTS, SCENE_GROUPS, SETTINGS, group
 from .sim.ai import AIConfig, AIError
 
@@ -50,20 +56,35 @@ class CameraSetting:
     fov_y: float = 45.0
 
 
+@dataclass(frozen=True)
+class CharacterEntry:
+    """One character of a scene's cast: its model (a built-in's name: "zombie", "brute"; or a glTF file), its share of the crowd, its roles, its clips' playback speeds and loops, its size factor."""
+
+    model: Path | str = "zombie"
+    share: float = 1.0
+    roles: dict = field(default_factory=dict)
+    clip_speed: dict = field(default_factory=dict)  # clip name → playback speed
+    clip_loop: dict = field(default_factory=dict)  # clip name → loop (true) or play once (false), where set
+    model_scale: float | str = DEFAULTS["model_scale"]
+
+    def spec(self) -> CharacterSpec:
+        return CharacterSpec(self.model, self.share, dict(self.roles), self.model_scale)
+
+
+# What a fresh clone shows: a mixed horde of the two built-in zombie types, three zombies to a brute.
+DEFAULT_CAST = (CharacterEntry("zombie", 3.0), CharacterEntry("brute", 1.0))
+
+
 @dataclass
 class Scene:
     name: str = "horde"
-    model: Path | None = None
+    characters: tuple = DEFAULT_CAST  # CharacterEntry per character, in the cast's order
     agents: int = DEFAULTS["agents"]
-    model_scale: float | str = DEFAULTS["model_scale"]
     seed: int = DEFAULTS["seed"]
     bake_fps: float | str = DEFAULTS["bake_fps"]  # or "source"
     precision: str = DEFAULTS["precision"]
     compression_bound_mm: float = DEFAULTS["compression_bound_mm"]
     interpolation: str = DEFAULTS["interpolation"]
-    roles: dict = field(default_factory=dict)
-    clip_speed: dict = field(default_factory=dict)  # clip name → playback speed
-    clip_loop: dict = field(default_factory=dict)  # clip name → loop (true) or play once (false), where set
     ai: AIConfig = field(default_factory=AIConfig)
     weapons: bool = DEFAULTS["weapons"]
     readback_latency: int = DEFAULTS["readback_latency"]
@@ -76,24 +97,61 @@ class Scene:
     foot_lock: bool = DEFAULTS["foot_lock"]
     camera: CameraSetting | None = None
 
+    # The first character's (the only one's in a scene of one character).
+    @property
+    def model(self):
+        return self.characters[0].model
+
+    @property
+    def roles(self) -> dict:
+        return self.characters[0].roles
+
+    @property
+    def clip_speed(self) -> dict:
+        return self.characters[0].clip_speed
+
+    @property
+    def clip_loop(self) -> dict:
+        return self.characters[0].clip_loop
+
+    @property
+    def model_scale(self):
+        return self.characters[0].model_scale
+
     def with_overrides(self, source: str = "command line", **values) -> "Scene":
         """A copy with the given settings replaced (None leaves one as it is), each checked as a file's
         would be, an error naming its command-line flag ("--agents: ..."): names are the TOML keys (agents, seed, model,
         roles, bake_fps, precision, processor, shadows, culling, occlusion, weapons, readback_latency, lod_distances,
-        and the AI's). Roles are merged into the scene's."""
+        and the AI's), and characters (a list of (model, share) pairs: the cast). A model makes the cast that one
+        character; roles and model_scale are the one character's, merged into its own."""
         data = scene_to_dict(self)
+        if values.get("characters") is not None:
+            data.pop("characters", None)
+            data["scene"].pop("model", None)
+            data["characters"] = [_cast_entry(model, share, source) for model, share in values["characters"]]
+        if values.get("model") is not None:
+            data.pop("characters", None)
+            for key in ("roles", "speed", "loop"):
+                data["clips"].pop(key, None)
         for key, value in values.items():
-            if value is None:
+            if value is None or key == "characters":
                 continue
             table = _TABLE_OF.get(key)
             if table is None:
                 raise SceneError(f"{source}: unknown scene setting {key!r}")
-            if key == "model":
-                value = str(Path(value).resolve())
-            elif key == "roles":
-                value = {**data["clips"]["roles"], **value}
-            elif key in SETTINGS:
+            if key in SETTINGS:
                 value = _toml_value(SETTINGS[key].check(value, SceneError, SETTINGS[key].flag))
+            if key in ("roles", "model_scale") and "characters" in data:
+                if len(data["characters"]) > 1:
+                    raise SceneError(f"{source}: {key} belongs to one character, and this scene has {len(data['characters'])}: "
+                                     f"set it per character in the scene's [[characters]]")
+                entry = data["characters"][0]
+                entry[key] = {**entry.get(key, {}), **value} if key == "roles" else value
+                continue
+            if key == "model":
+                value = value if is_built_in(str(value)) else str(Path(value).resolve())
+            elif key == "roles":
+                value = {**data["clips"].get("roles", {}), **value}
             data.setdefault(table, {})[key] = value
         return scene_from_dict(data, None, source)
 
@@ -105,7 +163,7 @@ class Scene:
                       fov_y=self.camera.fov_y, aspect=aspect)
 
     def pipeline_config(self) -> PipelineConfig:
-        return PipelineConfig(agents=self.agents, seed=self.seed, model=self.model, model_scale=self.model_scale, roles=dict(self.roles), bake_fps=self.bake_fps,
+        return PipelineConfig(agents=self.agents, seed=self.seed, characters=tuple(c.spec() for c in self.characters), bake_fps=self.bake_fps,
                               precision=self.precision, compression_bound_mm=self.compression_bound_mm, interpolation=self.interpolation, processor_path=self.processor, shadows=self.shadows, culling=self.culling,
                               occlusion=self.occlusion, lod_distances=tuple(self.lod_distances), ai=self.ai, weapons=self.weapons,
                               readback_latency=self.readback_latency, cull=self.cull, foot_lock=self.foot_lock)
@@ -116,6 +174,32 @@ _EXTRA_KEYS = {"scene": ("name", "model"), "clips": ("roles", "speed", "loop"), 
 _KEYS = {table: (*_EXTRA_KEYS[table], *group(table)) for table in SCENE_GROUPS}
 _KEYS["camera"] = ("eye", "target", "fov_y")
 _TABLE_OF = {key: table for table, keys in _KEYS.items() if table != "camera" for key in keys}
+_CHARACTER_KEYS = ("model", "share", "roles", "speed", "loop", "model_scale")  # one [[characters]] table
+MAX_SHARE = 1e6  # shares are relative; this bounds a typo's reach
+
+
+def _cast_entry(model, share, source: str) -> dict:
+    """A [[characters]] table from a command line's (model, share): a built-in's name, or a file (resolved)."""
+    model = str(model)
+    return {"model": model if is_built_in(model) or not model else str(Path(model).resolve()), "share": share}
+
+
+def _share(where: str, value) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or not 0 < value <= MAX_SHARE:
+        raise SceneError(f"{where} must be a number above 0, at most {MAX_SHARE:g} (shares are relative), got {value!r}")
+    return float(value)
+
+
+def _model(where: str, value, base: Path | None):
+    """A model as a scene names it: "" or "zombie" (the built-in zombie), a built-in's name, or a file,
+    relative to `base` (the scene's folder)."""
+    name = _string(where, value)
+    if not name or name == "zombie":
+        return "zombie"
+    if is_built_in(name):
+        return name
+    model = Path(name)
+    return model if model.is_absolute() or base is None else (base / model)
 
 
 def _toml_value(value):
@@ -157,8 +241,10 @@ def scene_from_dict(data: dict, base: Path | None = None, source: str = "scene")
     """A validated Scene from parsed TOML. Relative model paths are resolved against `base`."""
     scene = Scene()
     for table, values in data.items():
+        if table == "characters":
+            continue
         if table not in _KEYS:
-            raise SceneError(f"{source}: unknown table [{table}] (tables are {', '.join(_KEYS)})")
+            raise SceneError(f"{source}: unknown table [{table}] (tables are {', '.join(_KEYS)}, and [[characters]])")
         if not isinstance(values, dict):
             raise SceneError(f"{source}: {table} must be a table")
         for key in values:
@@ -166,26 +252,34 @@ def scene_from_dict(data: dict, base: Path | None = None, source: str = "scene")
                 raise SceneError(f"{source}: unknown key {key!r} in [{table}] (known: {', '.join(_KEYS[table])})")
     where = lambda table, key: f"{source}: {table}.{key}"
     ai = {}
+    scale = None
     for table in SCENE_GROUPS:
         for key, setting in group(table).items():
             if key in data.get(table, {}):
                 value = setting.check(data[table][key], SceneError, where(table, key))
                 if table == "ai":
                     ai[key] = value
+                elif key == "model_scale":
+                    scale = value
                 else:
                     setattr(scene, key, value)
     s, c = data.get("scene", {}), data.get("clips", {})
     if "name" in s:
         scene.name = _string(where("scene", "name"), s["name"])
-    if s.get("model"):
-        model = Path(_string(where("scene", "model"), s["model"]))
-        scene.model = model if model.is_absolute() or base is None else (base / model)
-    if "roles" in c:
-        scene.roles = _roles(where("clips", "roles"), c["roles"])
-    if "speed" in c:
-        scene.clip_speed = _clip_table(where("clips", "speed"), c["speed"], SETTINGS["clip_speed"])
-    if "loop" in c:
-        scene.clip_loop = _clip_table(where("clips", "loop"), c["loop"], SETTINGS["clip_loop"])
+    if "characters" in data:
+        own = [key for key in ("model", "model_scale") if key in s] + [key for key in ("roles", "speed", "loop") if c.get(key)]
+        if own:
+            raise SceneError(f"{source}: with [[characters]], each character has its own model, roles, speed, loop and model_scale; "
+                             f"[scene]/[clips] give {', '.join(own)}")
+        scene.characters = _characters(data["characters"], base, source)
+    elif "model" in s or scale is not None or any(key in c for key in ("roles", "speed", "loop")):
+        # One character: the model (the zombie when none is named), its roles, speeds, loops and size.
+        scene.characters = (CharacterEntry(
+            _model(where("scene", "model"), s.get("model", ""), base), 1.0,
+            _roles(where("clips", "roles"), c["roles"]) if "roles" in c else {},
+            _clip_table(where("clips", "speed"), c["speed"], SETTINGS["clip_speed"]) if "speed" in c else {},
+            _clip_table(where("clips", "loop"), c["loop"], SETTINGS["clip_loop"]) if "loop" in c else {},
+            DEFAULTS["model_scale"] if scale is None else scale),)
     if ai:
         try:
             scene.ai = AIConfig(**ai).validate()  # the relations between AI settings (min <= max, ...)
@@ -204,6 +298,27 @@ def scene_from_dict(data: dict, base: Path | None = None, source: str = "scene")
     return scene
 
 
+def _characters(value, base: Path | None, source: str) -> tuple[CharacterEntry, ...]:
+    """The [[characters]] array of tables, each checked, naming its index in errors."""
+    if not isinstance(value, list) or not value or not all(isinstance(v, dict) for v in value):
+        raise SceneError(f"{source}: characters must be an array of tables ([[characters]]), one per character")
+    if len(value) > MAX_CAST:
+        raise SceneError(f"{source}: {len(value)} characters; a crowd has at most {MAX_CAST}")
+    out = []
+    for k, entry in enumerate(value):
+        at = f"{source}: characters[{k}]"
+        for key in entry:
+            if key not in _CHARACTER_KEYS:
+                raise SceneError(f"{at}: unknown key {key!r} (known: {', '.join(_CHARACTER_KEYS)})")
+        out.append(CharacterEntry(
+            _model(f"{at}.model", entry.get("model", ""), base), _share(f"{at}.share", entry.get("share", 1.0)),
+            _roles(f"{at}.roles", entry["roles"]) if "roles" in entry else {},
+            _clip_table(f"{at}.speed", entry["speed"], SETTINGS["clip_speed"]) if "speed" in entry else {},
+            _clip_table(f"{at}.loop", entry["loop"], SETTINGS["clip_loop"]) if "loop" in entry else {},
+            SETTINGS["model_scale"].check(entry["model_scale"], SceneError, f"{at}.model_scale") if "model_scale" in entry else DEFAULTS["model_scale"]))
+    return tuple(out)
+
+
 def load_scene(path) -> Scene:
     """Read and validate a scene file; SceneError (one line, naming the file) when it cannot be used."""
     path = Path(path)
@@ -218,19 +333,33 @@ def load_scene(path) -> Scene:
     return scene_from_dict(data, path.resolve().parent, str(path))
 
 
+def _model_text(model, base: Path | None) -> str:
+    """A model as a scene file writes it: a built-in's name, or a path (relative to `base` where it can be)."""
+    if model is None or model == "zombie":
+        return ""
+    if is_built_in(model):
+        return model
+    if base is not None:
+        try:
+            return str(Path(model).resolve().relative_to(base.resolve()))
+        except ValueError:
+            pass
+    return str(Path(model).resolve())
+
+
 def scene_to_dict(scene: Scene, base: Path | None = None) -> dict:
-    """The TOML tables of a scene; AI settings are written only where they differ from the defaults."""
-    model = ""
-    if scene.model is not None:
-        model = str(scene.model)
-        if base is not None:
-            try:
-                model = str(Path(scene.model).resolve().relative_to(base.resolve()))
-            except ValueError:
-                model = str(Path(scene.model).resolve())
-    out = {table: {key: _toml_value(getattr(scene, key)) for key in group(table)} for table in ("scene", "clips", "features")}
-    out["scene"] = {"name": scene.name, "model": model, **out["scene"]}
-    out["clips"].update(roles=dict(scene.roles), speed=dict(scene.clip_speed), loop=dict(scene.clip_loop))
+    """The TOML tables of a scene; AI settings are written only where they differ from the defaults. A
+    scene of one character names it in [scene] and [clips]; a cast, in [[characters]]."""
+    out = {table: {key: _toml_value(getattr(scene, key)) for key in group(table) if key != "model_scale"} for table in ("scene", "clips", "features")}
+    out["scene"] = {"name": scene.name, **out["scene"]}
+    if len(scene.characters) == 1:
+        one = scene.characters[0]
+        out["scene"].update(model=_model_text(one.model, base), model_scale=_toml_value(one.model_scale))
+        out["clips"].update(roles=dict(one.roles), speed=dict(one.clip_speed), loop=dict(one.clip_loop))
+    else:
+        out["characters"] = [{"model": _model_text(c.model, base) or "zombie", "share": c.share, "roles": dict(c.roles),
+                              "speed": dict(c.clip_speed), "loop": dict(c.clip_loop), "model_scale": _toml_value(c.model_scale)}
+                             for c in scene.characters]
     out["ai"] = {key: getattr(scene.ai, key) for key, setting in group("ai").items() if getattr(scene.ai, key) != setting.default}
     if scene.camera is not None:
         out["camera"] = {"eye": list(scene.camera.eye), "target": list(scene.camera.target), "fov_y": scene.camera.fov_y}

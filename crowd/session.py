@@ -23,7 +23,7 @@ from .draw.render import RenderError, view_proj
 from .draw.weapons import WeaponError
 from .frame import CLIP, MASK, PHASE, WEIGHT, ForcedClip, LayerOverrides
 from .gl import GLStage
-from .pipeline import CrowdPipeline
+from .pipeline import CrowdPipeline, PipelineError
 from .scene import CameraSetting, Scene, SceneError, save_scene
 from .settings import SETTINGS, group
 from .sim.ai import LAYERS, STATE_NAMES, AIError
@@ -47,10 +47,11 @@ class CrowdSession(GLStage):
         config = dataclasses.replace(scene.pipeline_config(), scripted_player=scripted_player)
         self.pipeline = CrowdPipeline(ctx, config)
         try:
-            for name, speed in scene.clip_speed.items():
-                self.pipeline.set_clip_speed(name, speed)
-            for name, loop in scene.clip_loop.items():
-                self.pipeline.set_clip_loop(name, loop)
+            for k, entry in enumerate(scene.characters):
+                for name, speed in entry.clip_speed.items():
+                    self.pipeline.set_clip_speed(name, speed, k)
+                for name, loop in entry.clip_loop.items():
+                    self.pipeline.set_clip_loop(name, loop, k)
         except (BakeError, AIError) as exc:
             raise SceneError(f"scene {scene.name!r}: {exc}") from None
         self.pipeline.camera = scene.camera_for(aspect) or self.pipeline.default_camera(aspect)
@@ -115,40 +116,59 @@ class CrowdSession(GLStage):
     def set_crossfade(self, seconds: float) -> None:
         self.set_ai(crossfade=float(seconds))
 
-    # -- clips
+    # -- clips (each character of the cast has its own; `character` is its index, 0 the first)
 
-    def clip_names(self) -> list[str]:
-        return [c.name for c in self.pipeline.bake.clips]
+    def character_names(self) -> list[str]:
+        return [m.name for m in self.pipeline.cast]
 
-    def _clip(self, name: str) -> int:
+    def _member(self, character: int):
         try:
-            return self.pipeline.bake.clip_index(name)
+            return self.pipeline.member(character)
+        except PipelineError as exc:
+            raise SessionError(str(exc)) from None
+
+    def clip_names(self, character: int = 0) -> list[str]:
+        return [c.name for c in self._member(character).bake.clips]
+
+    def _clip(self, name: str, character: int = 0) -> int:
+        try:
+            return self._member(character).bake.clip_index(name)
         except BakeError as exc:
             raise SessionError(str(exc)) from None
 
-    def set_clip_speed(self, name: str, speed: float) -> None:
+    def character_of(self, agent: int) -> int:
+        """The cast's index of an agent's character."""
+        return int(self.pipeline.ai.kind[agent])
+
+    def set_clip_speed(self, name: str, speed: float, character: int = 0) -> None:
         speed = SETTINGS["clip_speed"].check(speed, SessionError)
+        self._member(character)
         try:
-            self.pipeline.set_clip_speed(name, speed)
+            self.pipeline.set_clip_speed(name, speed, character)
         except (AIError, BakeError) as exc:
             raise SessionError(str(exc)) from None
 
-    def set_clip_loop(self, name: str, loop: bool) -> None:
+    def set_clip_loop(self, name: str, loop: bool, character: int = 0) -> None:
         loop = SETTINGS["clip_loop"].check(loop, SessionError)
+        self._member(character)
         try:
-            self.pipeline.set_clip_loop(name, loop)
+            self.pipeline.set_clip_loop(name, loop, character)
         except BakeError as exc:
             raise SessionError(str(exc)) from None
 
-    def play(self, name: str | None, selected_only: bool = True) -> None:
-        """Force a clip, from its start, on the selected agent (or on every agent); None gives control
-        back to the AI."""
+    def play(self, name: str | None, selected_only: bool = True, character: int = 0) -> None:
+        """Force a clip of one character, from its start, on the selected agent (which must be that
+        character's) or on every agent of that character; None gives control back to the AI."""
         if name is None:
             self.overrides = dataclasses.replace(self.overrides, forced=None)
             return
         if selected_only and self.selected < 0:
             raise SessionError("no agent selected: click one, or play the clip on all agents")
-        forced = ForcedClip(self._clip(name), self.pipeline.ai.time, np.array([self.selected]) if selected_only else None)
+        clip = self._clip(name, character)
+        if selected_only and self.character_of(self.selected) != character:
+            raise SessionError(f"the selected agent is a {self.pipeline.cast[self.character_of(self.selected)].name}; "
+                               f"{name!r} is a clip of the {self.pipeline.cast[character].name}")
+        forced = ForcedClip(clip, self.pipeline.ai.time, np.array([self.selected]) if selected_only else None, int(character))
         self.overrides = dataclasses.replace(self.overrides, forced=forced)
 
     @property
@@ -252,12 +272,15 @@ class CrowdSession(GLStage):
         from .anim import accuracy
 
         p = self.pipeline
-        # The reference plays each clip as the bake does (loop settings changed in the panel included).
-        clips = [dataclasses.replace(p.character.clip(c.name), loop=c.loop) for c in p.bake.clips]
-        samples = accuracy.draw_samples(clips, np.random.default_rng(0), per_clip, blends)
-        truth = accuracy.truth(p.character.skeleton, clips, samples.layers)
-        errors = accuracy.measure_gpu(self.ctx, p.character.skeleton, p.bake, samples.layers, truth, p.processor.interpolation)
-        self.bake_error = {**accuracy.summarise(errors), "poses": int(len(samples.layers))}
+        errors, poses = [], 0
+        for member in p.cast:  # every character's bake; the summary is over all of them
+            # The reference plays each clip as the bake does (loop settings changed in the panel included).
+            clips = [dataclasses.replace(member.character.clip(c.name), loop=c.loop) for c in member.bake.clips]
+            samples = accuracy.draw_samples(clips, np.random.default_rng(0), per_clip, blends)
+            truth = accuracy.truth(member.character.skeleton, clips, samples.layers)
+            errors.append(accuracy.measure_gpu(self.ctx, member.character.skeleton, member.bake, samples.layers, truth, p.processor.interpolation))
+            poses += len(samples.layers)
+        self.bake_error = {**accuracy.summarise(np.concatenate([e.ravel() for e in errors])), "poses": int(poses)}
         return self.bake_error
 
     def set_lod_distances(self, *distances: float) -> None:
@@ -405,10 +428,15 @@ class CrowdSession(GLStage):
         if not 0 <= a < ai.n:
             return None
         layers = self.pipeline.layers[a]
-        names = self.clip_names()
+        character = self.character_of(a)
+        names = self.clip_names(character)
         weapon = int(ai.weapon[a])
+        weapons = self.pipeline.weapons.names if self.pipeline.weapons is not None else [
+            f"{m.name}/{w}" if len(self.pipeline.cast) > 1 else w for m in self.pipeline.cast if m.character.props and m.character.sockets
+            for w in m.character.props]
         return {
             "agent": a,
+            "character": self.pipeline.cast[character].name,
             "state": STATE_NAMES[int(ai.state[a])],
             "position": (float(ai.x[a]), float(ai.z[a])),
             "speed": float(math.hypot(ai.vx[a], ai.vz[a])),
@@ -416,20 +444,22 @@ class CrowdSession(GLStage):
             "phase": float(ai.phase[a]),
             "layers": [{"clip": names[int(l[CLIP])], "phase": float(l[PHASE]), "weight": float(l[WEIGHT]), "mask": int(l[MASK])}
                        for l in layers],
-            "weapon": list(self.pipeline.character.props)[weapon] if weapon >= 0 else None,
+            "weapon": weapons[weapon] if 0 <= weapon < len(weapons) else None,
         }
 
     def to_scene(self) -> Scene:
         """The scene as it stands now, with every tweak made in the panel."""
         p = self.pipeline
         cam = p.camera
-        bake_loops = {c.name: c.loop for c in p.bake.clips}
-        authored = {c.name: c.loop for c in p.character.clips if c.name in bake_loops}
+        characters = []
+        for entry, member in zip(self.scene.characters, p.cast):
+            bake_loops = {c.name: c.loop for c in member.bake.clips}
+            authored = {c.name: c.loop for c in member.character.clips if c.name in bake_loops}
+            characters.append(dataclasses.replace(entry, clip_speed=dict(member.clip_speed),
+                                                  clip_loop={k: v for k, v in bake_loops.items() if authored.get(k) != v}))
         return dataclasses.replace(
-            self.scene, agents=p.agents, seed=p.config.seed, bake_fps=p.bake.fps, precision=p.bake.precision,
-            compression_bound_mm=p.bake.bound_mm, interpolation=p.processor.interpolation,
-            roles=dict(p.config.roles), clip_speed=dict(p.clip_speed),
-            clip_loop={k: v for k, v in bake_loops.items() if authored.get(k) != v}, ai=p.ai.config,
+            self.scene, characters=tuple(characters), agents=p.agents, seed=p.config.seed, bake_fps=p.bake.fps, precision=p.bake.precision,
+            compression_bound_mm=p.bake.bound_mm, interpolation=p.processor.interpolation, ai=p.ai.config,
             weapons=p.config.weapons, readback_latency=p.latency, shadows=p.renderer.shadows, culling=p.renderer.culling, occlusion=p.config.occlusion,
             lod_distances=tuple(p.renderer.lod_distances), processor=p.config.processor_path, cull=p.config.cull, foot_lock=p.config.foot_lock,
             camera=CameraSetting(tuple(float(v) for v in cam.eye), tuple(float(v) for v in cam.target), float(cam.fov_y)))

@@ -1,8 +1,8 @@
 """The one place that builds the GL stages of a crowd frame: processor, renderer, read-back, weapons.
 
-``Stages.build(ctx, character, bake, spec)`` makes the stages a ``StageSpec`` asks for and nothing
-else: without armed agents there is no read-back stage, no weapon meshes, and one palette instead of a
-ring. The pipeline, the benchmarks and the peers' crowd side all build through here, so the numbers
+``Stages.build(ctx, cast, spec)`` makes the stages a ``StageSpec`` asks for, for the characters of a
+cast (``CastPart``: a character, its bake, its joint masks and legs), and nothing else: without armed
+agents there is no read-back stage, no weapon meshes, and one palette instead of a ring. The pipeline, the benchmarks and the peers' crowd side all build through here, so the numbers
 that tie one stage to another (the palette layout the renderer and read-back address, the history the
 read-back latency needs) are derived once.
 
@@ -29,11 +29,28 @@ from .settings import DEFAULTS
 
 
 @dataclass(frozen=True)
+class CastPart:
+    """One character of a crowd, as the stages need it: what is drawn, what is played, the joint masks
+    its upper-body actions use, and the legs the foot lock would hold."""
+
+    character: Character
+    bake: AnimationBake
+    masks: object = None  # joint masks (masks, joints) or None
+    legs: object = None  # crowd.anim.foot_lock.Legs, or None
+
+
+def as_cast(cast) -> list[CastPart]:
+    """A cast: a list of CastPart, or one (character, bake) pair for a crowd of one character."""
+    if isinstance(cast, tuple) and len(cast) == 2 and isinstance(cast[0], Character):
+        return [CastPart(*cast)]
+    return list(cast)
+
+
+@dataclass(frozen=True)
 class StageSpec:
     """What the stages are built for; every field has the settings schema's default."""
 
     layers: int = MAX_LAYERS
-    masks: object = None  # joint masks (masks, joints) or None
     processor_path: str = DEFAULTS["processor"]
     interpolation: str = DEFAULTS["interpolation"]
     lod_distances: tuple = DEFAULTS["lod_distances"]
@@ -43,7 +60,6 @@ class StageSpec:
     cull: str = DEFAULTS["cull"]
     armed: bool = False  # somebody carries a weapon: the read-back stage and weapon meshes exist
     foot_lock: bool = DEFAULTS["foot_lock"]
-    legs: object = None  # the character's legs (crowd.anim.foot_lock.Legs) the lock would hold, or None
     readback_latency: int = DEFAULTS["readback_latency"]
 
     @property
@@ -52,11 +68,13 @@ class StageSpec:
         return self.readback_latency + 1 if self.armed else 1
 
 
-def build_processor(ctx: moderngl.Context, bake: AnimationBake, spec: StageSpec, agents: int = 0) -> AnimationProcessor:
+def build_processor(ctx: moderngl.Context, cast, spec: StageSpec, agents=0) -> AnimationProcessor:
+    """`agents`: a count for a one-character cast, else one per character."""
+    cast = as_cast(cast)
     path = resolve_path(ctx, spec.processor_path)
-    # The foot lock runs where it can: on the compute path, for a character with legs.
-    legs = spec.legs if spec.foot_lock and path == "compute" else None
-    processor = AnimationProcessor(ctx, bake, spec.layers, masks=spec.masks, path=path,
+    # The foot lock runs where it can: on the compute path, for characters with legs.
+    legs = [part.legs if spec.foot_lock and path == "compute" else None for part in cast]
+    processor = AnimationProcessor(ctx, [part.bake for part in cast], spec.layers, masks=[part.masks for part in cast], path=path,
                                    history=spec.history, interpolation=spec.interpolation, legs=legs)
     try:
         processor.resize(agents)
@@ -66,10 +84,9 @@ def build_processor(ctx: moderngl.Context, bake: AnimationBake, spec: StageSpec,
     return processor
 
 
-def build_renderer(ctx: moderngl.Context, character: Character, processor: AnimationProcessor, spec: StageSpec) -> CrowdRenderer:
-    return CrowdRenderer(ctx, character, processor.joint_count, processor.agents_per_row,
-                         lod_distances=spec.lod_distances, shadows=spec.shadows, culling=spec.culling,
-                         cull_path=cull_path(ctx, spec.cull), weapons_visibility=spec.armed, occlusion=spec.occlusion)
+def build_renderer(ctx: moderngl.Context, cast, spec: StageSpec) -> CrowdRenderer:
+    return CrowdRenderer(ctx, [part.character for part in as_cast(cast)], lod_distances=spec.lod_distances, shadows=spec.shadows,
+                         culling=spec.culling, cull_path=cull_path(ctx, spec.cull), weapons_visibility=spec.armed, occlusion=spec.occlusion)
 
 
 def cull_path(ctx: moderngl.Context, asked: str) -> str:
@@ -81,11 +98,11 @@ def cull_path(ctx: moderngl.Context, asked: str) -> str:
 
 
 def build_readback(ctx: moderngl.Context, processor: AnimationProcessor, spec: StageSpec) -> SocketReadback | None:
-    return SocketReadback(ctx, processor.joint_count, processor.agents_per_row) if spec.armed else None
+    return SocketReadback(ctx) if spec.armed else None
 
 
-def build_weapons(ctx: moderngl.Context, character: Character, spec: StageSpec) -> WeaponRenderer | None:
-    return WeaponRenderer(ctx, character, spec.shadows, gpu_cull=cull_path(ctx, spec.cull) == "gpu") if spec.armed else None
+def build_weapons(ctx: moderngl.Context, cast, spec: StageSpec) -> WeaponRenderer | None:
+    return WeaponRenderer(ctx, [part.character for part in as_cast(cast)], spec.shadows, gpu_cull=cull_path(ctx, spec.cull) == "gpu") if spec.armed else None
 
 
 @dataclass
@@ -98,13 +115,15 @@ class Stages:
     ORDER = ("processor", "renderer", "readback", "weapons")  # built in this order, released in reverse
 
     @classmethod
-    def build(cls, ctx: moderngl.Context, character: Character, bake: AnimationBake, spec: StageSpec, agents: int = 0) -> "Stages":
+    def build(cls, ctx: moderngl.Context, cast, spec: StageSpec, agents=0) -> "Stages":
+        """`cast`: a list of CastPart, or (character, bake) for one character; `agents`: a count for one
+        character, else one per character."""
         stages = cls()
         try:
-            stages.processor = build_processor(ctx, bake, spec, agents)
-            stages.renderer = build_renderer(ctx, character, stages.processor, spec)
+            stages.processor = build_processor(ctx, cast, spec, agents)
+            stages.renderer = build_renderer(ctx, cast, spec)
             stages.readback = build_readback(ctx, stages.processor, spec)
-            stages.weapons = build_weapons(ctx, character, spec)
+            stages.weapons = build_weapons(ctx, cast, spec)
         except BaseException:
             stages.release()
             raise

@@ -57,8 +57,13 @@ def pipeline_stats(pipeline) -> dict:
                  "clips": [c.name for c in p.bake.clips],
                  "rows": p.bake.rows, "bytes": p.bake.nbytes, "compression": p.bake.compression},
         "roles": p.roles,
+        # Every character of the crowd: its agents, what its bake holds, and how many of its agents the last frame drew.
+        "cast": [{"name": m.name, "model": str(m.spec.model or "zombie"), "share": m.spec.share, "agents": int(count),
+                  "visible": int(visible), "roles": m.roles, "clips": [c.name for c in m.bake.clips], "bytes": m.bake.nbytes,
+                  "joints": m.bake.joint_count}
+                 for m, count, visible in zip(p.cast, p.ai.cast, p.renderer.last.get("cast_visible", [0] * len(p.cast)))],
         "ai": {"states": p.ai.counts(), "player_hits_taken": p.ai.player_hits_taken, "faults": p.ai.check(),
-               "notes": list(p.motion.notes),
+               "notes": [note for m in p.cast for note in m.motion.notes],
                # The think budget: whether this crowd uses it, and how many zombies think every substep.
                "think_budget": {"on": p.ai.budgeted(), "exact": p.ai.exact_count()}},
         "passes_ms": p.timer.medians(),
@@ -87,13 +92,13 @@ def collect_stats(ctx: moderngl.Context, pipeline, timings: dict[str, list], siz
         "frames": frames,
         "size": list(size),
         "seed": pipeline.config.seed,
-        "model": str(config.model) if config.model else "built-in zombie",
+        "model": ", ".join(str(spec.model or "zombie") for spec in config.cast()),
         **{key: ({**percentiles(timings[key]), "frames": len(timings[key])} if timings.get(key) else None)
            for key in ("frame_period_ms", "frame_latency_ms")},
         "nan_count": pipeline.processor.nan_rows(),
         "python": platform.python_version(),
         "moderngl": moderngl.__version__,
-        "warnings": pipeline.character.warnings + pipeline.bake.warnings + pipeline.role_notes + _occlusion_note(pipeline),
+        "warnings": [w for m in pipeline.cast for w in m.character.warnings + m.bake.warnings] + pipeline.role_notes + _occlusion_note(pipeline),
     })
     stats.update(pipeline_stats(pipeline))
     return stats

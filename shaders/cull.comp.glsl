@@ -28,6 +28,6 @@ void main() {
     barrier();
     for (int e = 0; e < emits; ++e) {
         int d = draws[e];
-        if (d >= 0) lists[uint(u_list_base + d) * u_capacity + s_base[d] + slots[e]] = r;
+        if (d >= 0) lists[u_record_base + list_start[d] + s_base[d] + slots[e]] = r;
     }
 }

@@ -4,33 +4,39 @@
 struct Record {
     vec4 position_scale;  // camera-relative origin, uniform scale
     uvec4 fields;         // x: palette texel of joint 0 | y: tint | z: heading | w: variation choices, 4 bits a group
+                          // (groups 0-6), and the agent's character in bits 28-31
 };
 
 layout(std430, binding = 0) readonly buffer Agents { Record agents[]; };
-layout(std430, binding = 1) writeonly buffer Lists { Record lists[]; };  // draw d's list starts at (u_list_base + d) * u_capacity
+layout(std430, binding = 1) writeonly buffer Lists { Record lists[]; };  // draw d's list starts at u_record_base + list_start[d]
 layout(std430, binding = 2) buffer Commands { uint commands[]; };        // DrawElementsIndirectCommand x draws
 layout(std430, binding = 3) readonly buffer DrawOf { int draw_of[]; };    // [lod * u_slots + slot] -> draw, or -1
 // Per agent, for the weapons: bits 0-15 1 + its colour LOD (0: culled); bit 16 + k set where it is in
 // shadow cascade k's volume, with its shadow LOD in bits 20-23.
 layout(std430, binding = 4) buffer Visible { uint visible[]; };
+// Where each draw's list starts: the draws before it hold as many records as their characters have agents.
+layout(std430, binding = 6) readonly buffer ListStart { uint list_start[]; };
 
+const int MAX_CAST = 16;    // characters (crowd.frame.MAX_CAST): 4 bits of fields.w
+const int MAX_GROUPS = 7;   // variation groups: 4 bits each below the character's
 uniform vec4 u_planes[6];   // inside: dot(n, p) + d >= 0 (camera-relative)
-uniform vec4 u_bound;       // xyz: the bind pose's sphere centre, w: its radius (both times the agent's scale)
+uniform vec4 u_bound[MAX_CAST];  // per character: xyz the bind pose's sphere centre, w its radius (both times the agent's scale)
 uniform float u_margin;     // metres added to each radius (agents just outside may shadow into view)
 uniform float u_reach;      // a shadow cascade's: agents whose sphere starts farther from the eye cast nothing into it
 uniform float u_lod_start[4];
 uniform int u_lod_steps;    // LOD distances in use
-uniform int u_lod_count;
+uniform int u_lod_count[MAX_CAST];  // per character
 uniform int u_culling;
 uniform uint u_agents;
-uniform uint u_capacity;
 uniform int u_slots;        // slots per LOD in draw_of
-uniform int u_common;       // slots 0 .. u_common - 1: the pieces every agent wears
+uniform int u_common_first[MAX_CAST];  // character c's pieces every one of its agents wears: slots u_common_first[c] ..
+uniform int u_common[MAX_CAST];        // .. + u_common[c] - 1
 uniform int u_groups;
-uniform int u_group_slot[8];  // group g's choice c is slot u_group_slot[g] + c
+uniform int u_group_slot[MAX_CAST * MAX_GROUPS];  // character c's choice k of group g is slot u_group_slot[c * MAX_GROUPS + g] + k (-1: none)
 uniform int u_write_visible;  // 1: the colour run writes 1 + LOD; 2: a shadow run marks its cascade's volume
 uniform int u_cascade;       // the shadow run's cascade
-uniform int u_list_base;     // draws before this run's in the lists and commands (a cascade's: cascade * draws)
+uniform int u_list_base;     // draws before this run's in the commands (a cascade's: cascade * draws)
+uniform uint u_record_base;  // records before this run's lists (a cascade's: cascade * every draw's capacity)
 uniform int u_draws;       // draws in the commands buffer
 uniform int u_lod_bias;    // 1 for the shadow lists: one LOD coarser than the colour pass picks
 // Occlusion (crowd/draw/occlusion.py): the previous frame's depth pyramid and the camera it was drawn from.
@@ -78,8 +84,10 @@ bool occluded(vec3 center, float radius) {
 int agent_draws(uint i, out Record r, out int draws[MAX_EMITS]) {
     int emits = 0;
     r = agents[i];
-    vec3 center = r.position_scale.xyz + u_bound.xyz * r.position_scale.w;
-    float radius = u_bound.w * r.position_scale.w + u_margin;
+    int character = int(r.fields.w >> 28);
+    vec4 bound = u_bound[character];
+    vec3 center = r.position_scale.xyz + bound.xyz * r.position_scale.w;
+    float radius = bound.w * r.position_scale.w + u_margin;
     bool inside = true;
     if (u_culling != 0) {
         for (int p = 0; p < 6; ++p) inside = inside && dot(u_planes[p].xyz, center) + u_planes[p].w >= -radius;
@@ -90,10 +98,13 @@ int agent_draws(uint i, out Record r, out int draws[MAX_EMITS]) {
     if (inside) {
         float dist = length(center);
         for (int k = 0; k < u_lod_steps; ++k) lod += int(dist >= u_lod_start[k]);
-        lod = min(lod + u_lod_bias, u_lod_count - 1);
+        lod = min(lod + u_lod_bias, u_lod_count[character] - 1);
         int base = lod * u_slots;
-        for (int s = 0; s < u_common; ++s) draws[emits++] = draw_of[base + s];
-        for (int g = 0; g < u_groups; ++g) draws[emits++] = draw_of[base + u_group_slot[g] + int((r.fields.w >> uint(4 * g)) & 15u)];
+        for (int s = 0; s < u_common[character]; ++s) draws[emits++] = draw_of[base + u_common_first[character] + s];
+        for (int g = 0; g < u_groups; ++g) {
+            int first = u_group_slot[character * MAX_GROUPS + g];
+            if (first >= 0) draws[emits++] = draw_of[base + first + int((r.fields.w >> uint(4 * g)) & 15u)];
+        }
     }
     if (u_write_visible == 1) visible[i] = inside ? uint(lod + 1) : 0u;
     else if (u_write_visible == 2 && inside) atomicOr(visible[i], (0x10000u << uint(u_cascade)) | (uint(lod) << 20));

@@ -1,6 +1,6 @@
 #version 430
 // Animation processor, compute path (GL 4.3): one invocation per (agent, joint); a work group holds
-// 256 / J whole agents. Each invocation blends its joint's local transform once into shared memory,
+// 256 / J whole agents of one character (a dispatch per character of the cast, over its agents). Each invocation blends its joint's local transform once into shared memory,
 // then walks its chain to the root through shared memory and writes its skinning matrix.
 #include "processor_common.glsl"
 
@@ -9,7 +9,7 @@ layout(rgba32f, binding = 0) uniform writeonly image2DArray u_palette0;
 layout(rgba32f, binding = 1) uniform writeonly image2DArray u_palette1;
 layout(rgba32f, binding = 2) uniform writeonly image2DArray u_palette2;
 uniform int u_agents_per_group;
-uniform int u_row_offset;    // first palette row (counted across layers) of the ring slot this run writes
+uniform int u_row_offset;    // first palette row (counted across layers) of this character's block in the ring slot this run writes
 uniform int u_palette_rows;  // texture rows per layer
 
 shared vec4 s_local0[256];
@@ -24,8 +24,9 @@ void main() {
     int slot = t / u_joints;
     int joint = t - slot * u_joints;
     int group = int(gl_WorkGroupID.y * gl_NumWorkGroups.x + gl_WorkGroupID.x);
-    int agent = group * u_agents_per_group + slot;
-    bool working = slot < u_agents_per_group && agent < u_agents;
+    int local = group * u_agents_per_group + slot;  // among this character's agents
+    int agent = u_first_agent + local;
+    bool working = slot < u_agents_per_group && local < u_agents;
     if (working) {
         Affine m = blended_local(agent, joint);
         s_local0[t] = m.r0;
@@ -38,7 +39,7 @@ void main() {
     // The first leg's ankle invocation locks the agent's feet, leg after leg: it rewrites their locals,
     // which every invocation of the agent reads after the barrier (reached by all, working or not).
     if (working && joint == u_leg_joints[0].w) {
-        for (int leg = 0; leg < LEG_COUNT; ++leg) lock_leg(agent, base, leg);
+        for (int leg = 0; leg < LEG_COUNT; ++leg) lock_leg(local, base, leg);
     }
     barrier();
 #endif
@@ -50,9 +51,9 @@ void main() {
         p = parent_of(p);
     }
     m = compose(m, stored_affine(joint, 0, 0));  // row 0 holds the inverse bind pose
-    int y = agent / u_agents_per_row + u_row_offset;
+    int y = local / u_agents_per_row + u_row_offset;
     int layer = y / u_palette_rows;
-    ivec3 texel = ivec3((agent % u_agents_per_row) * u_joints + joint, y - layer * u_palette_rows, layer);
+    ivec3 texel = ivec3((local % u_agents_per_row) * u_joints + joint, y - layer * u_palette_rows, layer);
     imageStore(u_palette0, texel, m.r0);
     imageStore(u_palette1, texel, m.r1);
     imageStore(u_palette2, texel, m.r2);

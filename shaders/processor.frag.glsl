@@ -1,6 +1,7 @@
 #version 330 core
 // Animation processor, GL 3.3 path: one fragment per (agent, joint) with x = agents' slot * J + joint
-// and y = palette row within the ring slot (the layer's rows, after the slot's earlier layers). A fragment cannot share its neighbours' work, so it blends every ancestor of
+// and y = palette row within the ring slot (the layer's rows, after the slot's earlier layers); a draw
+// per character of the cast covers its block of rows, from u_first_row. A fragment cannot share its neighbours' work, so it blends every ancestor of
 // its joint itself, in the same order as the compute path, and writes the three rows of the skinning
 // matrix at once through three render targets.
 #include "processor_common.glsl"
@@ -10,13 +11,14 @@ layout(location = 1) out vec4 o_row1;
 layout(location = 2) out vec4 o_row2;
 flat in int g_layer;         // the layer within this run's ring slot
 uniform int u_palette_rows;  // texture rows per layer
+uniform int u_first_row;     // this character's first row in the ring slot
 
 void main() {
     int x = int(gl_FragCoord.x);
     int y = int(gl_FragCoord.y) + g_layer * u_palette_rows;  // the agents' row within the slot
     int slot = x / u_joints;
     int joint = x - slot * u_joints;
-    int agent = y * u_agents_per_row + slot;
+    int agent = u_first_agent + (y - u_first_row) * u_agents_per_row + slot;
     Affine m = blended_local(agent, joint);
     int p = parent_of(joint);
     for (int k = 0; k < MAX_JOINTS && p >= 0; ++k) {

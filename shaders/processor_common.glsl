@@ -22,10 +22,12 @@ uniform sampler2D u_clips;       // clip table (C, 1): first row, frame count, f
 #ifdef HAS_MASKS
 uniform sampler2D u_masks;       // (J, M): per-joint weight factor of mask m
 #endif
-uniform sampler2D u_layers;      // (LAYERS * agents_per_row, rows): clip, phase, weight, mask per layer
-uniform int u_joints;
-uniform int u_agents;
-uniform int u_agents_per_row;
+uniform sampler2D u_layers;      // (LAYERS * u_layer_agents_per_row, rows): clip, phase, weight, mask per layer
+uniform int u_layer_agents_per_row;  // agents side by side in a row of u_layers
+uniform int u_joints;            // this character's joints
+uniform int u_agents;            // this character's agents, u_first_agent on (a dispatch or draw per character)
+uniform int u_first_agent;
+uniform int u_agents_per_row;    // this character's agents side by side in a palette row
 uniform int u_rest_row;        // the rest pose's row of u_anim
 uniform int u_rest_scale_row;  // and of u_anim_scale (a compressed bake's u_anim has two rows only)
 
@@ -325,8 +327,8 @@ Affine blended_local(int agent, int joint) {
     float scale[LAYERS];
     float weight[LAYERS];
     vec4 layer[LAYERS];
-    int base_x = (agent % u_agents_per_row) * LAYERS;
-    int y = agent / u_agents_per_row;
+    int base_x = (agent % u_layer_agents_per_row) * LAYERS;
+    int y = agent / u_layer_agents_per_row;
     float layer_sum = 0.0;
     for (int l = 0; l < LAYERS; ++l) {
         layer[l] = texelFetch(u_layers, ivec2(base_x + l, y), 0);

@@ -150,3 +150,27 @@ def test_zero_workers_means_one_per_core(motion):
         assert ai.ranges() == min(len(os.sched_getaffinity(0)), 6)
     finally:
         ai.close()
+
+
+@pytest.fixture(scope="module")
+def mixed(zombie):
+    """The zombie's and the brute's motions: a crowd of two characters, half each."""
+    from crowd.asset.gltf import load_character
+
+    out = []
+    for character in (zombie, load_character("brute")):
+        roles, _ = match_roles(character.clips)
+        out.append(motion_for(character, bake_roles(character, roles), roles))
+    return out
+
+
+@pytest.mark.parametrize("think_every", [1, 8])
+def test_a_mixed_cast_is_the_same_crowd_for_any_worker_count(mixed, think_every, created_blocks):
+    """Each process steps its agents with their own character's motion (per-agent copies in the shared
+    block), so a cast of two gives the same crowd, bit for bit, on one process and on three."""
+    alone = _run(mixed, 1, think_every)
+    other = _run(mixed, 3, think_every)
+    differ = [name for name in alone if not np.array_equal(alone[name], other[name])]
+    assert not differ, f"3 workers: {differ} differ from one process"
+    assert set(np.unique(alone["kind"])) == {0, 1}
+    assert created_blocks and not _left_behind(created_blocks), "shared memory left behind"

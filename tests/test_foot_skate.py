@@ -124,7 +124,7 @@ def test_the_running_crowd_s_feet_come_back_on_the_read_back_as_the_reference_pu
             frame, _, ground, world = track[-1]
             layers, positions, yaw, scale, palette = kept[frame]
             if palette is None:
-                matrices = accuracy.truth(p.character.skeleton, clips, layers[agent][None], p.processor.masks)
+                matrices = accuracy.truth(p.character.skeleton, clips, layers[agent][None], p.processor.masks[0])
             else:
                 matrices = palette[agent][None]
             model = joint_positions(matrices, p.character.skeleton, monitor.feet)

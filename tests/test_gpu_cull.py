@@ -25,7 +25,7 @@ BOUNDARY_M = 1e-3
 def stages(gl_context, zombie):
     baked = bake(zombie.skeleton, zombie.clips)
     proc = AnimationProcessor(gl_context, baked, 4)
-    made = {path: CrowdRenderer(gl_context, zombie, baked.joint_count, proc.agents_per_row, lod_distances=LOD_DISTANCES,
+    made = {path: CrowdRenderer(gl_context, zombie, lod_distances=LOD_DISTANCES,
                                 shadows=True, culling=True, cull_path=path, weapons_visibility=True) for path in ("cpu", "gpu")}
     yield made
     for r in made.values():
@@ -43,14 +43,14 @@ def crowd(rng, n, renderer, camera):
     margin = 0.0  # shadows have lists of their own: the colour cull needs no margin
     for k in range(0, n, 4):  # slide agent k along the plane's normal until its sphere touches the plane
         plane = planes[k % 6]
-        center = positions[k] - eye + renderer.bound_center * scale[k]
-        gap = center @ plane[:3] + plane[3] + renderer.bound_radius * scale[k] + margin
+        center = positions[k] - eye + renderer.bounds[0, :3] * scale[k]
+        gap = center @ plane[:3] + plane[3] + renderer.bounds[0, 3] * scale[k] + margin
         positions[k] -= gap * plane[:3] / max(np.linalg.norm(plane[:3]), 1e-12)
     for k in range(2, n, 16):  # and some at a LOD boundary
-        center = positions[k] - eye + renderer.bound_center * scale[k]
+        center = positions[k] - eye + renderer.bounds[0, :3] * scale[k]
         direction = center / np.linalg.norm(center)
         positions[k] += direction * (LOD_DISTANCES[k % 2] - np.linalg.norm(center))
-    heads = rng.integers(0, len(renderer.groups["head"]), n)
+    heads = rng.integers(0, len(renderer.groups[0]["head"]), n)
     return Instances(positions, rng.uniform(-np.pi, np.pi, n).astype(np.float32), scale, np.full((n, 4), 255, np.uint8), {"head": heads})
 
 
@@ -58,8 +58,8 @@ def reference(renderer, camera, instances):
     """float64: (visible, lod, signed distance to the nearest plane minus the radius, distance)."""
     eye = np.asarray(camera.eye, np.float64)
     scale = instances.scale.astype(np.float64)
-    centers = instances.position - eye + renderer.bound_center * scale[:, None]
-    radii = renderer.bound_radius * scale
+    centers = instances.position - eye + renderer.bounds[0, :3] * scale[:, None]
+    radii = renderer.bounds[0, 3] * scale
     planes = frustum_planes(view_proj(camera))
     visible = sphere_visible(planes, centers, radii)
     slack = np.min(centers @ planes[:, :3].T + planes[:, 3] + radii[:, None], axis=1)
@@ -94,13 +94,14 @@ def _doubtful(slack, dist) -> set:
     return set(np.flatnonzero((np.abs(slack) < BOUNDARY_M) | near_lod).tolist())
 
 
-def _gpu_lists(renderer, buffer, counts, first: int = 0) -> list[set]:
-    """The agents in each draw's list of one of the GPU cull's list buffers (a shadow cascade's lists
-    start `first` lists in)."""
+def _gpu_lists(renderer, buffer, counts, cascade: int | None = None) -> list[set]:
+    """The agents in each draw's list of one of the GPU cull's list buffers (the colour lists, or a
+    shadow cascade's)."""
     from crowd.draw.render import INSTANCE_DTYPE
 
-    records, cap = np.frombuffer(buffer.read(), INSTANCE_DTYPE), renderer.gpu.capacity
-    return [_listed_agents(renderer, k, records[(first + k) * cap: (first + k) * cap + int(c)]) for k, c in enumerate(counts)]
+    records = np.frombuffer(buffer.read(), INSTANCE_DTYPE)
+    starts = [renderer.gpu.list_of(k, cascade)[0] for k in range(len(counts))]
+    return [_listed_agents(renderer, k, records[s: s + int(c)]) for k, (s, c) in enumerate(zip(starts, counts))]
 
 
 def _prepared_on_both_paths(stages, camera, seed: int, agents: int):
@@ -121,7 +122,7 @@ def _cpu_list(renderer, k, buffer, count) -> set:
 def _listed_agents(renderer, k, records):
     """The agents in draw k's records (from each record's palette texel)."""
     texel = records["packed"][:, 0]
-    return set(((texel >> 12) * renderer.agents_per_row + (texel & 0xFFF) // renderer.joint_count).tolist())
+    return set(renderer.palette.agents_at(texel & 0xFFF, texel >> 12).tolist())
 
 
 def test_each_draws_list_holds_the_agents_the_cpu_path_draws(stages):
@@ -247,7 +248,7 @@ def test_resizing_the_gpu_cull_from_0_to_200000_and_back_leaks_nothing(gl_contex
                 pipeline.frame(target.framebuffer, 1 / 30)
                 gl_context.finish()
                 cull = pipeline.renderer.gpu
-                assert cull.capacity == n and pipeline.renderer.gpu_bytes()["cull"] < 4096 + n * 32 * (1 + len(cull.index_counts)) + n * 4 + 64
+                assert cull.cast == (n,) and pipeline.renderer.gpu_bytes()["cull"] < 4096 + n * 32 * (1 + len(cull.index_counts)) + n * 4 + 64
                 assert int(cull.counts(wait=True).sum()) == 0
             assert pipeline.renderer.gpu_bytes()["cull"] < 4096
     assert gl_census() == before
@@ -296,7 +297,7 @@ def _shadow_scene(gl_context, zombie, path, agents_x):
         layers = empty_layers(n, 4)
         layers[:, 0, 2] = 1.0  # clip 0 at phase 0, weight 1
         proc.process(layers)
-        renderer = CrowdRenderer(gl_context, zombie, baked.joint_count, proc.agents_per_row, lod_distances=LOD_DISTANCES,
+        renderer = CrowdRenderer(gl_context, zombie, lod_distances=LOD_DISTANCES,
                                  shadows=True, culling=True, cull_path=path)
         try:
             renderer.sun_dir = np.array([1.0, 0.27, 0.0]) / np.linalg.norm([1.0, 0.27, 0.0])
@@ -349,14 +350,14 @@ def test_shadow_lists_are_each_cascades_agents_one_lod_coarser(stages):
     counts = gpu.gpu.shadow_counts(wait=True)
     eye = np.asarray(camera.eye, np.float64)
     scale = instances.scale.astype(np.float64)
-    centers = instances.position - eye + gpu.bound_center * scale[:, None]
-    radii = gpu.bound_radius * scale
+    centers = instances.position - eye + gpu.bounds[0, :3] * scale[:, None]
+    radii = gpu.bounds[0, 3] * scale
     dist = np.linalg.norm(centers, axis=1)
     colour_lod = np.minimum(np.searchsorted(np.asarray(LOD_DISTANCES), dist, side="right"), gpu.lod_count - 1)
     per_cascade = []
     shadow = gpu.light_cascades(camera, instances)
     for cascade, (matrix, reach) in enumerate(zip(shadow.view_proj, shadow.reach_m)):
-        shadow_lists = _gpu_lists(gpu, gpu.gpu.shadow_lists, counts[cascade], first=cascade * len(gpu.draws))
+        shadow_lists = _gpu_lists(gpu, gpu.gpu.shadow_lists, counts[cascade], cascade=cascade)
         light = frustum_planes(matrix)
         # Inside the cascade's box, and near enough to the eye to shadow what it covers.
         slack = np.minimum(np.min(centers @ light[:, :3].T + light[:, 3] + radii[:, None], axis=1), float(reach) - (dist - radii))

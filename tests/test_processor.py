@@ -276,7 +276,7 @@ def test_resizing_releases_what_it_no_longer_needs(gl_context, zombie_bake):
         assert proc.read_palette().shape == (200, zombie_bake.joint_count, 3, 4)
         proc.resize(0)
         assert not proc.run() and proc.planes == ()  # 0 agents: no palette, no pass
-        kept = list(proc.planes) + [proc.anim_texture, proc.program]
+        kept = list(proc.planes) + [proc.anim_texture, proc.parts[0].program]
         proc.release()
         assert all(released(o) for o in kept)
 

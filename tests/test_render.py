@@ -76,11 +76,11 @@ def test_gpu_skinned_vertices_match_float64_skinning(gl_context, zombie):
     proc.resize(AGENTS)
     proc.process(layers)
     palette = reference_palette(baked, layers)  # (N, J, 3, 4) float64
-    renderer = CrowdRenderer(ctx, zombie, baked.joint_count, proc.agents_per_row, lod_distances=(1e6, 2e6, 3e6), shadows=False, culling=False)
+    renderer = CrowdRenderer(ctx, zombie, lod_distances=(1e6, 2e6, 3e6), shadows=False, culling=False)
     positions = np.column_stack([rng.uniform(-30, 30, AGENTS), np.zeros(AGENTS), rng.uniform(-30, 30, AGENTS)]) + [1e5, 0.0, -2e5]
     yaw = rng.uniform(-np.pi, np.pi, AGENTS).astype(np.float32)
     scale = rng.uniform(0.8, 1.25, AGENTS).astype(np.float32)
-    heads = rng.integers(0, len(renderer.groups["head"]), AGENTS)
+    heads = rng.integers(0, len(renderer.groups[0]["head"]), AGENTS)
     instances = Instances(positions, yaw, scale, np.full((AGENTS, 4), 255, np.uint8), {"head": heads})
     camera = Camera(eye=positions.mean(axis=0) + [0.0, 20.0, 40.0], target=positions.mean(axis=0))
     renderer.prepare(camera, instances)
@@ -95,7 +95,7 @@ def test_gpu_skinned_vertices_match_float64_skinning(gl_context, zombie):
             mesh = meshes[(draw.piece, draw.lod)]
             world, normal = _capture(ctx, draw, proc)
             texel = np.frombuffer(draw.instances.read(), np.uint32).reshape(draw.count, 8)[:, 4]
-            agents = (texel >> 12) * proc.agents_per_row + (texel & 0xFFF) // baked.joint_count
+            agents = proc.layout.agents_at(texel & 0xFFF, texel >> 12)
             w = mesh.weights.astype(np.float64) / mesh.weights.sum(axis=1, keepdims=True)
             p = np.concatenate([mesh.positions.astype(np.float64), np.ones((len(mesh.positions), 1))], axis=1)
             for k, a in enumerate(agents):

@@ -12,7 +12,7 @@ import pytest
 
 from crowd.pipeline import PipelineConfig
 from crowd.resources import SCENE_DIR
-from crowd.scene import Scene, SceneError, load_scene, save_scene
+from crowd.scene import CharacterEntry, Scene, SceneError, load_scene, save_scene
 from crowd.smoke import run_headless
 from conftest import ROOT
 
@@ -23,7 +23,8 @@ def test_shipped_scenes_load_and_the_horde_is_the_default():
     names = sorted(p.name for p in SCENE_DIR.glob("*.toml"))
     assert names == ["dense_horde.toml", "horde.toml", "stress_10k.toml", "unarmed_small.toml"]
     horde = load_scene(SCENE_DIR / "horde.toml")
-    assert horde.pipeline_config() == PipelineConfig()  # the CLI without --scene runs the same crowd
+    assert horde.pipeline_config() == Scene().pipeline_config()  # the CLI without --scene runs the same crowd
+    assert [c.model for c in horde.characters] == ["zombie", "brute"]  # a mixed horde
     stress = load_scene(SCENE_DIR / "stress_10k.toml")
     assert stress.agents == 10_000 and stress.weapons
     small = load_scene(SCENE_DIR / "unarmed_small.toml")
@@ -99,7 +100,7 @@ def test_bad_scene_files_get_one_line_errors(tmp_path, text, words):
 
 
 def test_a_scene_bakes_only_the_clips_it_plays(tmp_path, gl_context):
-    scene = Scene(agents=3, roles={"run": "crawl"}, weapons=False, shadows=False)
+    scene = Scene(agents=3, characters=(CharacterEntry(roles={"run": "crawl"}),), weapons=False, shadows=False)
     stats = run_headless(scene.pipeline_config(), 2, SIZE, ctx=gl_context)
     assert stats["bake"]["clips"] == ["idle", "shamble", "crawl", "attack", "hit", "death"]  # no "run"
 
@@ -113,7 +114,7 @@ def test_unarmed_scene_has_no_readback_at_all(gl_context):
 
 
 def test_overrides_name_the_flag_and_merge_roles():
-    scene = Scene(roles={"walk": "shamble"})
+    scene = Scene(characters=(CharacterEntry(roles={"walk": "shamble"}),))
     merged = scene.with_overrides(roles={"run": "crawl"}, agents=7, shadows=False)
     assert merged.roles == {"walk": "shamble", "run": "crawl"} and merged.agents == 7 and not merged.shadows
     with pytest.raises(SceneError, match="^--agents: agent count must be a whole number from 0 to"):

@@ -8,7 +8,7 @@ import pytest
 
 from crowd.sim.ai import HIT, AIConfig
 from crowd.frame import CLIP, PHASE, WEIGHT
-from crowd.scene import Scene, load_scene
+from crowd.scene import CharacterEntry, Scene, load_scene
 from crowd.session import CrowdSession, SessionError
 from crowd.gl import Offscreen
 
@@ -21,7 +21,8 @@ def session(gl_context):
     made = []
 
     def make(**scene):
-        s = CrowdSession(gl_context, Scene(**{"agents": 30, "shadows": False, "ai": AIConfig(half_extent=8.0), **scene}), SIZE[0] / SIZE[1])
+        one = {"characters": (CharacterEntry(),)}  # the built-in zombie alone (tests/test_cast.py has the mixed crowd's)
+        s = CrowdSession(gl_context, Scene(**{"agents": 30, "shadows": False, "ai": AIConfig(half_extent=8.0), **one, **scene}), SIZE[0] / SIZE[1])
         target = Offscreen(gl_context, SIZE)
         fb = target.framebuffer
         made.append((s, target))
@@ -113,7 +114,7 @@ def test_clip_speed_moves_the_walk_faster_and_loop_reaches_the_gpu(session):
     with pytest.raises(SessionError, match="playback speed"):
         s.set_clip_speed(walk, 0.0)
     s.set_clip_loop("attack", True)
-    table = np.frombuffer(s.pipeline.processor.clips_texture.read(), np.float32).reshape(-1, 4)
+    table = np.frombuffer(s.pipeline.processor.parts[0].textures["u_clips"].read(), np.float32).reshape(-1, 4)
     assert table[s.clip_names().index("attack"), 3] == 1.0
     s.frame(fb, DT)
 

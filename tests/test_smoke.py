@@ -152,7 +152,7 @@ def test_frustum_culling_and_render_input_checks(gl_context, zombie):
     planes = frustum_planes(view_proj(cam))
     centers = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 20.0], [100.0, 1.0, 0.0], [0.0, 1.0, -300.0]]) - cam.eye
     assert sphere_visible(planes, centers, np.ones(4)).tolist() == [True, False, False, True]
-    renderer = CrowdRenderer(gl_context, zombie, zombie.skeleton.joint_count, 100, shadows=False)
+    renderer = CrowdRenderer(gl_context, zombie, shadows=False)
     try:
         n = 2
         good = Instances(np.zeros((n, 3)), np.zeros(n, np.float32), np.ones(n, np.float32), np.full((n, 4), 255, np.uint8), {"head": np.array([0, 1])})

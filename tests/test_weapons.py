@@ -137,7 +137,7 @@ def test_a_palette_spanning_layers_draws_the_same_frame(harness, monkeypatch, cu
 def test_each_latency_reads_and_draws_frame_f_minus_n(harness, latency):
     h = harness(readback_latency=latency)
     p = h.pipeline
-    socket = p.weapons.socket_joint
+    socket = int(p.weapons.socket_joints[0])
     for f in range(latency + 6):
         h.frame()
         if f < latency:
@@ -257,7 +257,7 @@ def test_gather_is_a_bit_exact_copy_over_several_rows(gl_context, zombie):
     rng = np.random.default_rng(4)
     n = 3000
     proc = AnimationProcessor(gl_context, baked, 4, history=2)
-    rb = SocketReadback(gl_context, baked.joint_count, proc.agents_per_row)
+    rb = SocketReadback(gl_context)
     try:
         proc.resize(n)
         for frame in range(2):
@@ -302,7 +302,7 @@ def test_weapon_vertices_are_baked_into_socket_space_as_float64_places_them(gl_c
         assert len(meshes) == len(w._meshes) and len(w.mesh_vertices(len(meshes) - 1)) == len(meshes[-1][1].positions)
         for d, (i, mesh) in enumerate(meshes):
             v = w.mesh_vertices(d)
-            m = w.socket_bind @ w.inverse_grip[i]
+            m = w.socket_bind[i] @ w.inverse_grip[i]
             want = np.asarray(mesh.positions, np.float64) @ m[:3, :3].T + m[:3, 3]
             assert np.max(np.abs(v["position"] - want)) < 1e-6
             n = ((v["packed"][:, 0:1] << np.array([22, 12, 2], np.uint32)).astype(np.int32) >> 22) / 511.0
@@ -321,7 +321,7 @@ def test_a_read_back_socket_that_is_not_finite_is_one_line_and_a_huge_finite_one
     try:
         agents = np.arange(4)
         rows = np.tile(np.eye(3, 4, dtype=np.float32), (4, 1, 1))
-        read = SocketRead(frame=0, agents=agents, joints=np.full(4, w.socket_joint), rows=rows, wait_ms=0.0, copy_ms=0.0, stalled=False)
+        read = SocketRead(frame=0, agents=agents, joints=np.full(4, w.socket_joints[0]), rows=rows, wait_ms=0.0, copy_ms=0.0, stalled=False)
         rows[2, 1, 3] = 3e38  # finite: float32's sum of these would overflow, float64's does not
         assert len(w.placements(read, np.zeros(4, np.int16))[0]) == 4
         rows[1, 0, 2] = bad
@@ -340,7 +340,7 @@ def test_the_cpu_paths_weapon_instances_carry_their_agents_records_bit_for_bit(h
     agents = np.flatnonzero(p.ai.armed())
     assert len(agents)
     inst = p.last.agent_frames.instances(agents, np.zeros((len(agents), 3, 4), np.float32))
-    records = p.renderer._all_records(p.ai.instances(), np.asarray(p.camera.eye, np.float64), 0)[agents]
+    records = p.renderer._all_records(p.ai.instances(), np.asarray(p.camera.eye, np.float64), 0, p.processor.layout)[agents]
     assert np.array_equal(inst["position_scale"].view(np.uint32), records["position_scale"].view(np.uint32))
     assert np.array_equal(inst["fields"][:, 2], records["packed"][:, 2])
 

@@ -175,14 +175,18 @@ def _validator():
     return node, script
 
 
-def test_khronos_validator_finds_no_errors_or_warnings():
+@pytest.mark.parametrize("asset", ["zombie", "brute"])
+def test_khronos_validator_finds_no_errors_or_warnings(asset):
+    import importlib
+
+    path = importlib.import_module(f"crowd.asset.{asset}").ASSET_PATH
     node, script = _validator()
     js = (
         "const v=require(process.argv[1]);const fs=require('fs');"
         "v.validateBytes(new Uint8Array(fs.readFileSync(process.argv[2]))).then(r=>{"
         "console.log(JSON.stringify(r.issues));}).catch(e=>{console.error(String(e));process.exit(2);});"
     )
-    out = subprocess.run([node, "-e", js, str(script), str(ASSET_PATH)], capture_output=True, text=True, timeout=120)
+    out = subprocess.run([node, "-e", js, str(script), str(path)], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     issues = json.loads(out.stdout)
     bad = [m for m in issues["messages"] if m["severity"] <= 1]

@@ -50,12 +50,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from dataclasses import dataclass
 
 import moderngl
 import numpy as np
 
 from .. import transforms as tf
-from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, validate_layers, validate_masks
+from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, FrameError, validate_layers, validate_masks
 from .bake import AnimationBake
 from .compress import PER_KEY
 from . import foot_lock as lock
@@ -293,112 +294,245 @@ def palette_joint_positions(palette_rows: np.ndarray, inverse_bind: np.ndarray) 
     return np.einsum("njrc,jc->njr", rows, bind[:, :, 3])
 
 
-class AnimationProcessor(GLStage):
-    """Owns the bake's GPU textures, the layers texture and the palette planes, and releases them."""
+@dataclass(frozen=True)
+class PalettePart:
+    """One character's block of a palette ring slot: its agents (first_agent .. first_agent + count - 1),
+    agents_per_row of them side by side in a texture row, each `joints` texels wide, from row first_row."""
 
-    def __init__(self, ctx: moderngl.Context, bake: AnimationBake, layer_count: int = MAX_LAYERS, masks=None, path: str = "auto",
-                 history: int = 1, interpolation: str = DEFAULT_INTERPOLATION, legs: lock.Legs | None = None):
-        self._own: dict[str, list] = {"animation": [], "palette": [], "layers": [], "processor_quad": [], "foot_lock": []}
+    first_agent: int
+    count: int
+    joints: int
+    agents_per_row: int
+    first_row: int
+
+    @property
+    def rows(self) -> int:
+        return math.ceil(self.count / self.agents_per_row)
+
+
+@dataclass(frozen=True)
+class PaletteLayout:
+    """Where each agent's skinning matrices live in a palette ring slot: every character of the cast has
+    a block of rows of its own, laid out for its own joint count (no texel spent on a larger skeleton's
+    joints), one after the other in the cast's order. The one statement of the layout: the processor
+    writes by it, the instance records and the read-back address by it (``texel``)."""
+
+    parts: tuple[PalettePart, ...]
+
+    @staticmethod
+    def make(joint_counts, counts) -> "PaletteLayout":
+        parts, agent, row = [], 0, 0
+        for joints, count in zip(joint_counts, counts):
+            part = PalettePart(agent, int(count), int(joints), max(1, MAX_TEXTURE_WIDTH // int(joints)), row)
+            parts.append(part)
+            agent += part.count
+            row += part.rows
+        return PaletteLayout(tuple(parts))
+
+    @property
+    def agents(self) -> int:
+        return sum(p.count for p in self.parts)
+
+    @property
+    def rows(self) -> int:
+        """Palette rows one ring slot holds."""
+        return sum(p.rows for p in self.parts)
+
+    @property
+    def width(self) -> int:
+        """Texels a palette row has: the widest character's (constant for a cast, whatever its counts)."""
+        return max(p.agents_per_row * p.joints for p in self.parts)
+
+    @property
+    def counts(self) -> tuple[int, ...]:
+        return tuple(p.count for p in self.parts)
+
+    def part_of(self, agents) -> np.ndarray:
+        """Index of the part (character) of each of `agents`."""
+        firsts = np.array([p.first_agent + p.count for p in self.parts[:-1]], np.int64)
+        return np.searchsorted(firsts, np.asarray(agents, np.int64), side="right")
+
+    def texel(self, agents, joints, row_offset=0) -> tuple[np.ndarray, np.ndarray]:
+        """(x, y) int64 palette texel of joint(s) `joints` of `agents` (global numbers) in the ring slot
+        that starts at row `row_offset` (an int, or one per agent); y counts rows across layers."""
+        agents = np.asarray(agents, np.int64)
+        if len(self.parts) == 1:
+            p = self.parts[0]
+            x, y = palette_texel(agents, joints, row_offset, p.agents_per_row, p.joints)
+            return x, y + p.first_row
+        k = self.part_of(agents)
+        table = np.array([(p.first_agent, p.agents_per_row, p.joints, p.first_row) for p in self.parts], np.int64)
+        first, per_row, width, first_row = (table[k, c] for c in range(4))
+        local = agents - first
+        return (local % per_row) * width + np.asarray(joints, np.int64), first_row + local // per_row + np.asarray(row_offset, np.int64)
+
+    def agents_at(self, x, y) -> np.ndarray:
+        """The agents whose joints' texels (x, y) are, y counted from their ring slot's first row: the
+        inverse of ``texel`` (tests and benchmarks read the lists back by it)."""
+        x, y = np.asarray(x, np.int64), np.asarray(y, np.int64)
+        table = np.array([(p.first_agent, p.agents_per_row, p.joints, p.first_row) for p in self.parts], np.int64)
+        k = np.searchsorted(table[:, 3], y, side="right") - 1
+        return table[k, 0] + (y - table[k, 3]) * table[k, 1] + x // table[k, 2]
+
+
+class _Part:
+    """One character's share of the processor: its bake's textures, program and foot-lock state."""
+
+    def __init__(self, bake: AnimationBake, masks, legs):
+        self.bake = bake
+        self.masks = masks
+        self.legs = legs
         self.program = None
+        self.textures: dict = {}
+        self.lock_state = self.lock_motion = None
+        self.quad = self.quad_vao = None
+        self.quad_vertices = 0
+
+
+class AnimationProcessor(GLStage):
+    """Owns every character's bake textures, the layers texture and the palette planes, and releases them.
+
+    A crowd of several characters (``bakes`` a sequence) is processed one character at a time, each over
+    its own range of agents (the cast's contiguous blocks, crowd.frame): a dispatch (or draw) per
+    character, with that character's textures and program, into that character's block of the one
+    palette (``layout``)."""
+
+    def __init__(self, ctx: moderngl.Context, bakes, layer_count: int = MAX_LAYERS, masks=None, path: str = "auto",
+                 history: int = 1, interpolation: str = DEFAULT_INTERPOLATION, legs=None):
+        """`bakes`: one AnimationBake, or one per character of the cast; `masks` and `legs` likewise (one
+        value for one bake, a sequence of them for several)."""
+        self._own: dict[str, list] = {"animation": [], "palette": [], "layers": [], "processor_quad": [], "foot_lock": []}
+        self.parts: list[_Part] = []
+        self._programs: dict[str, moderngl.Program] = {}
+        single = isinstance(bakes, AnimationBake)
+        bakes = [bakes] if single else list(bakes)
+        masks = [masks] if single else list(masks if masks is not None else [None] * len(bakes))
+        legs = [legs] if single else list(legs if legs is not None else [None] * len(bakes))
+        if not bakes or len(masks) != len(bakes) or len(legs) != len(bakes):
+            raise ProcessorError(f"the processor needs a bake per character, and as many masks and legs ({len(bakes)} bakes, "
+                                 f"{len(masks)} masks, {len(legs)} legs)")
         SETTINGS["processor"].check(path, ProcessorError)
         if not 1 <= layer_count <= MAX_LAYERS:
             raise ProcessorError(f"layer count must be 1 to {MAX_LAYERS}, got {layer_count}")
-        jc = bake.joint_count
-        if not 1 <= jc <= MAX_JOINTS:
-            raise ProcessorError(f"the processor handles 1 to {MAX_JOINTS} joints, this skeleton has {jc}")
-        if np.any(bake.parents >= np.arange(jc)):
-            raise ProcessorError("the hierarchy must list parents before their children")
+        for bake in bakes:
+            jc = bake.joint_count
+            if not 1 <= jc <= MAX_JOINTS:
+                raise ProcessorError(f"the processor handles 1 to {MAX_JOINTS} joints, this skeleton has {jc}")
+            if np.any(bake.parents >= np.arange(jc)):
+                raise ProcessorError("the hierarchy must list parents before their children")
         path = resolve_path(ctx, path)
         if path == "compute" and not has_compute(ctx):
             raise ProcessorError(f"the compute path needs GL 4.3, this context has {ctx.version_code}")
         # The foot lock (crowd.anim.foot_lock): legs given and found, on the compute path, whose shared
         # memory holds an agent's locals between the blend and the composition.
-        self.legs = legs if legs is not None and len(legs) else None
-        if self.legs is not None and path != "compute":
+        legs = [l if l is not None and len(l) else None for l in legs]
+        if any(l is not None for l in legs) and path != "compute":
             raise ProcessorError("the foot lock runs on the compute path (GL 4.3); the fragment path has no state to keep it in")
-        self._lock_state = self._lock_motion = None
         self._lock_dt = 0.0  # the simulated seconds of the frame the last upload was for
         self.ctx = ctx
-        self.bake = bake
         self.path = path
         self.layer_count = layer_count
-        self.joint_count = jc
-        self.masks = validate_masks(masks, jc)
         self.interpolation = check_interpolation(interpolation)
-        self.agents_per_row = max(1, MAX_TEXTURE_WIDTH // max(jc, layer_count))
-        self.agents_per_group = GROUP_SIZE // jc
-        self.agents = 0
         self.history = _check_history(history)
+        # The layers texture's own layout: agents side by side, LAYERS texels each, whatever their skeleton.
+        self.layer_agents_per_row = MAX_TEXTURE_WIDTH // layer_count
         self.runs = 0  # runs since the palette was last (re)allocated: slots older than this hold nothing
         self.layer_rows = 1  # texture rows per layer of the planes
         self.slot_layers = 1  # layers one ring slot spans
+        self.layers_texture = None
+        self.planes: tuple = ()
+        self._framebuffer = None
+        for bake, m, l in zip(bakes, masks, legs):
+            part = _Part(bake, validate_masks(m, bake.joint_count), l)
+            self.parts.append(part)
+            self._make_part(part)
+        self.layout = PaletteLayout.make([p.bake.joint_count for p in self.parts], [0] * len(self.parts))
+        self.agents = 0
 
+    # -- what the stages and tests read
+
+    @property
+    def bakes(self) -> list[AnimationBake]:
+        return [p.bake for p in self.parts]
+
+    @property
+    def legs(self):
+        """Each character's legs the foot lock holds (None for a character without), or None where the
+        lock runs for nobody."""
+        legs = tuple(p.legs for p in self.parts)
+        return None if all(l is None for l in legs) else legs
+
+    @property
+    def masks(self) -> tuple:
+        return tuple(p.masks for p in self.parts)
+
+    @property
+    def anim_texture(self) -> moderngl.Texture:
+        """The first character's AnimationTexture (tests)."""
+        return self.parts[0].textures["u_anim"]
+
+    # -- resources
+
+    def _make_part(self, part: _Part) -> None:
+        """A character's textures and program (programs with the same source are shared)."""
+        bake, jc = part.bake, part.bake.joint_count
         compressed = bake.packed is not None
         dtype = "f2" if bake.precision == "f16" else "f4"
         anim_rows = bake.gpu_texels
-        self.anim_texture = self._texture("animation", (2 * jc, anim_rows.shape[0]), 4, anim_rows, dtype)
-        self.scale_texture = None if bake.scale is None else self._texture("animation", (jc, bake.rows), 1, bake.scale, dtype)
-        self.keys_texture = self.tracks_texture = None
+        t = part.textures
+        t["u_anim"] = self._texture("animation", (2 * jc, anim_rows.shape[0]), 4, anim_rows, dtype)
+        if bake.scale is not None:
+            t["u_anim_scale"] = self._texture("animation", (jc, bake.rows), 1, bake.scale, dtype)
         if compressed:
             words = bake.packed.word_texture
-            self.keys_texture = self._texture("animation", (words.shape[1], words.shape[0]), 1, words, "u4")
+            t["u_keys"] = self._texture("animation", (words.shape[1], words.shape[0]), 1, words, "u4")
             headers = bake.packed.header_texture
-            self.tracks_texture = self._texture("animation", (4 * jc, headers.shape[0]), 4, headers, "u4")
-        self.parents_texture = self._texture("animation", (jc, 1), 1, bake.parents.astype(np.int32), "i4")
-        self.clips_texture = self._texture("animation", (len(bake.clips), 1), 4, bake.clip_table, "f4")
-        self.masks_texture = None if self.masks is None else self._texture("animation", (jc, self.masks.shape[0]), 1, self.masks, "f4")
-        defines = {"LAYERS": layer_count, "REST_THRESHOLD": f"{REST_THRESHOLD:.1e}", "CANCELLED_NORM": f"{CANCELLED_NORM:.1e}",
+            t["u_tracks"] = self._texture("animation", (4 * jc, headers.shape[0]), 4, headers, "u4")
+        t["u_parents"] = self._texture("animation", (jc, 1), 1, bake.parents.astype(np.int32), "i4")
+        t["u_clips"] = self._texture("animation", (len(bake.clips), 1), 4, bake.clip_table, "f4")
+        if part.masks is not None:
+            t["u_masks"] = self._texture("animation", (jc, part.masks.shape[0]), 1, part.masks, "f4")
+        defines = {"LAYERS": self.layer_count, "REST_THRESHOLD": f"{REST_THRESHOLD:.1e}", "CANCELLED_NORM": f"{CANCELLED_NORM:.1e}",
                    "MAX_JOINTS": MAX_JOINTS}
-        if self.scale_texture is not None:
+        if bake.scale is not None:
             defines["HAS_SCALE"] = 1
         if compressed:
             defines["COMPRESSED"] = 1
             defines["PER_KEY"] = f"{PER_KEY}u"
-        if self.masks_texture is not None:
+        if part.masks is not None:
             defines["HAS_MASKS"] = 1
-        if self.legs is not None:
-            defines.update(FOOT_LOCK=1, LEG_COUNT=len(self.legs), CORRECTION_EPS=f"{lock.CORRECTION_EPS:.1e}",
+        if part.legs is not None:
+            defines.update(FOOT_LOCK=1, LEG_COUNT=len(part.legs), CORRECTION_EPS=f"{lock.CORRECTION_EPS:.1e}",
                            **{name: repr(float(getattr(lock, name))) for name in ("CONTACT_M", "STEP_SHIFT_M", "STEP_TWIST_RAD", "HOLD_SHIFT_M",
                                                                                   "HOLD_TWIST_RAD", "STEP_LIFT_M", "RESET_M", "RESET_RAD",
                                                                                   "MIN_FORWARD_HORIZONTAL")})
-        if interpolation != "dq_lerp":
+        if self.interpolation != "dq_lerp":
             defines["INTERPOLATION_QT"] = 1
-        if interpolation == "qt_cubic":
+        if self.interpolation == "qt_cubic":
             defines["INTERPOLATION_CUBIC"] = 1
-        if interpolation == "qt_corrected":
+        if self.interpolation == "qt_corrected":
             defines["INTERPOLATION_CORRECTED"] = 1
             defines["SLERP_FIT_A"] = "vec3({:.12f}, {:.12f}, {:.12f})".format(*SLERP_FIT[:3])
             defines["SLERP_FIT_B"] = "vec3({:.12f}, {:.12f}, {:.12f})".format(*SLERP_FIT[3:])
-        if path == "compute":
-            self.program = ctx.compute_shader(load_shader("processor.comp.glsl", defines))
+        if self.path == "compute":
+            source = load_shader("processor.comp.glsl", defines)
+            if source not in self._programs:
+                self._programs[source] = self.ctx.compute_shader(source)
         else:
-            self.program = ctx.program(vertex_shader=load_shader("processor.vert.glsl"), geometry_shader=load_shader("processor.geom.glsl"),
-                                       fragment_shader=load_shader("processor.frag.glsl", defines))
-        samplers = {"u_anim": 0, "u_parents": 1, "u_clips": 2, "u_layers": 3, "u_anim_scale": 4, "u_masks": 5, "u_keys": 6, "u_tracks": 7}
-        for name, unit in samplers.items():
-            if name in self.program:
-                self.program[name] = unit
-        self._set("u_joints", jc)
-        self._set("u_agents_per_row", self.agents_per_row)
-        self._set("u_agents_per_group", self.agents_per_group)
-        self._set("u_rest_row", anim_rows.shape[0] - 1)
-        self._set("u_rest_scale_row", bake.rest_row)
+            source = load_shader("processor.frag.glsl", defines)
+            if source not in self._programs:
+                self._programs[source] = self.ctx.program(vertex_shader=load_shader("processor.vert.glsl"),
+                                                          geometry_shader=load_shader("processor.geom.glsl"), fragment_shader=source)
+        part.program = self._programs[source]
+        part.uniforms = {"u_joints": jc, "u_agents_per_group": GROUP_SIZE // jc, "u_rest_row": anim_rows.shape[0] - 1,
+                         "u_rest_scale_row": bake.rest_row, "u_layer_agents_per_row": self.layer_agents_per_row}
         if compressed:
-            self._set("u_key_width", words.shape[1])
-        if self.legs is not None:
-            self.program["u_leg_joints"].write(np.ascontiguousarray(self.legs.joints, np.int32).tobytes())
-            self.program["u_leg_toe"].write(np.ascontiguousarray(self.legs.toe, np.int32).tobytes())
-            self.program["u_leg_forward"].write(np.ascontiguousarray(self.legs.forward, np.float32).tobytes())
-            self.program["u_leg_lowest"].write(np.ascontiguousarray(self.legs.lowest, np.float32).tobytes())
-        self._set("u_row_offset", 0)
-        self.layers_texture = None
-        self.planes: tuple = ()
-        self._framebuffer = None
-        self._quad = None
-        self._quad_vao = None
-        self._quad_vertices = 0
-
-    # -- resources
+            part.uniforms["u_key_width"] = words.shape[1]
+        if part.legs is not None:
+            part.leg_bytes = {"u_leg_joints": np.ascontiguousarray(part.legs.joints, np.int32).tobytes(),
+                              "u_leg_toe": np.ascontiguousarray(part.legs.toe, np.int32).tobytes(),
+                              "u_leg_forward": np.ascontiguousarray(part.legs.forward, np.float32).tobytes(),
+                              "u_leg_lowest": np.ascontiguousarray(part.legs.lowest, np.float32).tobytes()}
 
     def _texture(self, group, size, components, data, dtype):
         tex = self.ctx.texture(size, components, None if data is None else np.ascontiguousarray(data).tobytes(), dtype=dtype)
@@ -406,19 +540,21 @@ class AnimationProcessor(GLStage):
         self._own[group].append(tex)
         return tex
 
-    def _set(self, name, value):
-        if name in self.program:
-            self.program[name] = value
+    @staticmethod
+    def _set(program, name, value):
+        if name in program:
+            program[name] = value
 
     def _release_group(self, group):
         for obj in self._own[group]:
             obj.release()
         self._own[group] = []
 
-    def palette_rows(self, agents: int | None = None) -> int:
-        """Palette rows the agents fill (one ring slot's)."""
-        n = self.agents if agents is None else agents
-        return math.ceil(n / self.agents_per_row)
+    def palette_rows(self, agents=None) -> int:
+        """Palette rows the agents fill (one ring slot's); `agents`: counts per character (default the current)."""
+        if agents is None:
+            return self.layout.rows
+        return PaletteLayout.make([p.bake.joint_count for p in self.parts], self._counts(agents)).rows
 
     def slot_rows(self) -> int:
         """Palette rows from one ring slot's start to the next's: its layers' rows."""
@@ -435,79 +571,94 @@ class AnimationProcessor(GLStage):
         history = _check_history(history)
         if history != self.history:
             self.history = history
-            self._allocate(self.agents)
+            self._allocate(self.layout.counts)
 
-    def resize(self, agents: int) -> None:
-        """Make room for exactly `agents` agents; everything for agents no longer there is released. The
-        agents kept keep their palette history: the same texture rows are kept as they are, and new
-        planes get the kept palettes copied across on the GPU (so weapons stay in hand through it)."""
-        if not isinstance(agents, (int, np.integer)) or agents < 0:
-            raise ProcessorError(f"agent count must be a whole number >= 0, got {agents!r}")
-        agents = int(agents)
+    def _counts(self, agents) -> tuple[int, ...]:
+        """Agent counts per character from a count (one character) or a sequence of them, checked."""
+        counts = (agents,) if isinstance(agents, (int, np.integer)) and not isinstance(agents, bool) else tuple(agents) \
+            if isinstance(agents, (tuple, list)) else None
+        if counts is None or len(counts) != len(self.parts) or any(
+                isinstance(c, bool) or not isinstance(c, (int, np.integer)) or c < 0 for c in counts):
+            raise ProcessorError(f"agent count must be a whole number >= 0 per character ({len(self.parts)} of them), got {agents!r}")
+        return tuple(int(c) for c in counts)
+
+    def resize(self, agents) -> None:
+        """Make room for exactly `agents` agents (a count, or one per character); everything for agents no
+        longer there is released. The agents kept (each character's first ones, crowd.frame.cast_moves)
+        keep their palette history: new planes get the kept rows copied across on the GPU (so weapons
+        stay in hand through it), and their foot-lock state."""
+        counts = self._counts(agents)
+        old = self.layout
         try:
-            if self.palette_rows(agents) == self.palette_rows() and self.planes and agents:
-                self.agents = agents  # the same texture rows: the agents kept keep their palette history
-                self._update_quad()
+            new = PaletteLayout.make([p.bake.joint_count for p in self.parts], counts)
+            if new.rows == old.rows and self.planes and new.agents and all(a.first_row == b.first_row for a, b in zip(old.parts, new.parts)):
+                self.layout, self.agents = new, new.agents  # the same texture rows: the agents kept keep their palette history
+                self._update_quads()
                 return
-            self._allocate(agents, keep=True)
+            self._allocate(counts, keep=True)
         finally:
-            self._resize_lock(self.agents)
+            self._resize_lock(old.counts, self.layout.counts)
 
-    def _resize_lock(self, agents: int) -> None:
-        """The foot lock's state (a vec4 per agent and leg) and motion (a vec4 per agent) buffers, for
-        `agents`: the agents kept keep their state, new ones start free with nothing carried."""
-        if self.legs is None:
-            return
-        size = agents * len(self.legs) * 16
-        if self._lock_state is not None and self._lock_state.size == size and agents:
-            return
-        old, old_objects = self._lock_state, self._own["foot_lock"]
-        self._own["foot_lock"] = []
-        self._lock_state = self._lock_motion = None
-        try:
-            if agents:
-                state = self.ctx.buffer(reserve=size)
-                self._own["foot_lock"].append(state)
-                state.clear()
-                if old is not None:
-                    self.ctx.copy_buffer(state, old, size=min(size, old.size))
-                self._lock_motion = self.ctx.buffer(reserve=agents * 16)
-                self._own["foot_lock"].append(self._lock_motion)
-                self._lock_state = state
-        finally:
-            for obj in old_objects:
-                obj.release()
+    def _resize_lock(self, old: tuple[int, ...], new: tuple[int, ...]) -> None:
+        """Each character's foot-lock state (a vec4 per agent and leg) and motion (a vec4 per agent)
+        buffers: its agents kept keep their state, new ones start free with nothing carried."""
+        for part, agents in zip(self.parts, new):
+            if part.legs is None:
+                continue
+            size = agents * len(part.legs) * 16
+            if part.lock_state is not None and part.lock_state.size == size and agents:
+                continue
+            was, objects = part.lock_state, [o for o in (part.lock_state, part.lock_motion) if o is not None]
+            for obj in objects:
+                self._own["foot_lock"].remove(obj)
+            part.lock_state = part.lock_motion = None
+            try:
+                if agents:
+                    state = self.ctx.buffer(reserve=size)
+                    self._own["foot_lock"].append(state)
+                    state.clear()
+                    if was is not None:
+                        self.ctx.copy_buffer(state, was, size=min(size, was.size))
+                    part.lock_motion = self.ctx.buffer(reserve=agents * 16)
+                    self._own["foot_lock"].append(part.lock_motion)
+                    part.lock_state = state
+            finally:
+                for obj in objects:
+                    obj.release()
 
-    def _allocate(self, agents: int, keep: bool = False) -> None:
-        rows = self.palette_rows(agents)
+    def _allocate(self, counts: tuple[int, ...], keep: bool = False) -> None:
+        layout = PaletteLayout.make([p.bake.joint_count for p in self.parts], counts)
+        rows = layout.rows
         limit, max_layers = palette_limits(self.ctx)
         layer_rows = max(1, min(rows, limit))
         slot_layers = max(1, math.ceil(rows / layer_rows))
         layers = slot_layers * self.history
-        width = self.agents_per_row * self.joint_count
+        width = layout.width
+        agents = layout.agents
         if layers > max_layers or layers * layer_rows > MAX_PALETTE_ROWS:
             raise ProcessorError(f"{agents:,} agents with a palette history of {self.history} need {layers} palette layers of "
                                  f"{layer_rows:,} rows, more than this GPU's {max_layers} layers or the {MAX_PALETTE_ROWS:,} rows a texel code addresses")
         # The palettes kept across (`keep`, with something written and agents on both sides): the old
         # planes stay alive until they are copied; the ring's position (runs) carries over.
-        old, old_objects = None, []  # (planes, their layer rows and layers a slot, rows kept), and what releases them
+        old, old_objects = None, []  # (planes, their layout, layer rows and layers a slot), and what releases them
         if keep and self.planes and self.runs and agents:
-            old = (self.planes, self.layer_rows, self.slot_layers, min(self.palette_rows(), self.palette_rows(agents)))
+            old = (self.planes, self.layout, self.layer_rows, self.slot_layers)
             old_objects, self._own["palette"] = self._own["palette"], []
             self.planes = ()
         self._drop_palette()
-        self.agents = agents
+        self.layout, self.agents = layout, agents
         runs, self.runs = self.runs, 0
         self.layer_rows, self.slot_layers = layer_rows, slot_layers
         if agents == 0:
             return  # no agents: no palette, no layer texture, no pass
-        need = 3 * width * layer_rows * layers * 16 + width // self.joint_count * self.layer_count * rows * 16
+        layer_rows_needed = math.ceil(agents / self.layer_agents_per_row)
+        need = 3 * width * layer_rows * layers * 16 + self.layer_agents_per_row * self.layer_count * layer_rows_needed * 16
         self.ctx.error  # clear an earlier error, so the check below sees these allocations'
         failure = None
         try:
             self.planes = tuple(self._array("palette", (width, layer_rows, layers)) for _ in range(3))
-            zeros = np.zeros((rows, self.agents_per_row * self.layer_count, 4), np.float32)  # weight 0 (the rest pose) until an upload
-            self.layers_texture = self._texture("layers", (self.agents_per_row * self.layer_count, rows), 4, zeros, "f4")
+            zeros = np.zeros((layer_rows_needed, self.layer_agents_per_row * self.layer_count, 4), np.float32)  # weight 0 (the rest pose) until an upload
+            self.layers_texture = self._texture("layers", (self.layer_agents_per_row * self.layer_count, layer_rows_needed), 4, zeros, "f4")
             # A layered framebuffer over the planes: it clears every layer at once (texels no run wrote
             # read as 0, not as whatever the memory held), and the fragment path renders through it.
             fb = self.ctx.framebuffer(color_attachments=list(self.planes))
@@ -518,14 +669,14 @@ class AnimationProcessor(GLStage):
             failure = f"the GPU ran out of memory for the palette of {agents:,} agents: {need:,} bytes were needed"
         if failure is not None:
             self._drop_palette()
-            self.agents = 0
+            self.layout, self.agents = PaletteLayout.make([p.bake.joint_count for p in self.parts], [0] * len(self.parts)), 0
             for obj in old_objects:
                 obj.release()
             raise ProcessorError(failure)
         fb.clear(0.0, 0.0, 0.0, 0.0)
         if self.path == "fragment":
             self._framebuffer = fb
-        self._update_quad()
+        self._update_quads()
         if old is not None:
             try:
                 self._copy_palettes(*old)
@@ -534,34 +685,45 @@ class AnimationProcessor(GLStage):
                 for obj in old_objects:
                     obj.release()
 
-    def _copy_palettes(self, planes, layer_rows: int, slot_layers: int, rows: int) -> None:
-        """Copy the first `rows` rows of every ring slot of the old `planes` (laid out in layers of
-        `layer_rows` rows, `slot_layers` a slot) into the same rows of the same slots of the new
-        planes, on the GPU: each old plane into a pixel-pack buffer, then runs of rows that stay in one
-        layer on both sides through a staging buffer into the new plane. An agent's texel within its
-        slot (palette_texel) does not depend on the crowd's size, so the rows move as they are."""
+    def _copy_palettes(self, planes, layout: PaletteLayout, layer_rows: int, slot_layers: int) -> None:
+        """Copy each character's kept rows of every ring slot of the old `planes` (laid out by `layout`, in
+        layers of `layer_rows` rows, `slot_layers` a slot) into the same character's rows of the same
+        slots of the new planes, on the GPU: each old plane into a pixel-pack buffer, then runs of rows
+        that stay in one layer on both sides through a staging buffer into the new plane. An agent's
+        texel within its character's block depends only on its place in that block, and a resize keeps
+        each character's first agents, so a block's first rows move as they are."""
         width = planes[0].size[0]
         row_bytes = width * 16
-        staging = self.ctx.buffer(reserve=max(min(rows, layer_rows, self.layer_rows) * row_bytes, 16))
+        new_width = self.planes[0].size[0]
+        blocks = []  # (old first row, new first row, rows) per character, in slot-relative rows
+        for a, b in zip(layout.parts, self.layout.parts):
+            rows = min(a.rows, b.rows)
+            if rows:
+                blocks.append((a.first_row, b.first_row, rows))
+        if not blocks:
+            return
+        staging = self.ctx.buffer(reserve=max(min(max(r for *_, r in blocks), layer_rows, self.layer_rows) * row_bytes, 16))
         whole = self.ctx.buffer(reserve=planes[0].size[0] * planes[0].size[1] * planes[0].layers * 16)
         try:
             for old_plane, new_plane in zip(planes, self.planes):
                 old_plane.read_into(whole)
                 for slot in range(self.history):
-                    y = 0
-                    while y < rows:
-                        old_layer, old_row = slot * slot_layers + y // layer_rows, y % layer_rows
-                        new_layer, new_row = slot * self.slot_layers + y // self.layer_rows, y % self.layer_rows
-                        count = min(rows - y, layer_rows - old_row, self.layer_rows - new_row)
-                        self.ctx.copy_buffer(staging, whole, size=count * row_bytes, read_offset=(old_layer * layer_rows + old_row) * row_bytes)
-                        new_plane.write(staging, viewport=(0, new_row, new_layer, width, count, 1))
-                        y += count
+                    for old_first, new_first, rows in blocks:
+                        y = 0
+                        while y < rows:
+                            oy, ny = old_first + y, new_first + y
+                            old_layer, old_row = slot * slot_layers + oy // layer_rows, oy % layer_rows
+                            new_layer, new_row = slot * self.slot_layers + ny // self.layer_rows, ny % self.layer_rows
+                            count = min(rows - y, layer_rows - old_row, self.layer_rows - new_row)
+                            self.ctx.copy_buffer(staging, whole, size=count * row_bytes, read_offset=(old_layer * layer_rows + old_row) * row_bytes)
+                            new_plane.write(staging, viewport=(0, new_row, new_layer, min(width, new_width), count, 1))
+                            y += count
         finally:
             staging.release()
             whole.release()
 
     def _drop_palette(self) -> None:
-        """Release the palette planes, their framebuffer and the layer texture (the bake's textures stay)."""
+        """Release the palette planes, their framebuffer and the layer texture (the bakes' textures stay)."""
         self._release_group("palette")
         self._release_group("layers")
         self.planes, self.layers_texture, self._framebuffer = (), None, None
@@ -572,47 +734,61 @@ class AnimationProcessor(GLStage):
         self._own[group].append(tex)
         return tex
 
-    def _update_quad(self):
-        """Fragment path: per layer of a ring slot, the quad over its full palette rows, plus the
-        partial last row of the last layer, in one buffer (x, y in the layer's NDC, z the layer)."""
+    def _update_quads(self):
+        """Fragment path: per character, the quads over its block's full palette rows and its partial last
+        row, each cut at the layers of a ring slot, in one buffer (x, y in the layer's NDC, z the layer)."""
         if self.path != "fragment":
             return
-        width, height = self.agents_per_row * self.joint_count, self.layer_rows
-        full, partial = divmod(self.agents, self.agents_per_row)
-        rects = []  # (layer, x0, y0, x1, y1) in texels of that layer
-        for layer in range(self.slot_layers):
-            first = layer * height
-            rows = min(full - first, height)
-            if rows > 0:
-                rects.append((layer, 0, 0, width, rows))
-        if partial:
-            layer, row = divmod(full, height)
-            rects.append((layer, 0, row, partial * self.joint_count, row + 1))
-        verts = []
-        for layer, x0, y0, x1, y1 in rects:
-            a, b = 2.0 * x0 / width - 1.0, 2.0 * x1 / width - 1.0
-            c, d = 2.0 * y0 / height - 1.0, 2.0 * y1 / height - 1.0
-            verts += [(a, c, layer), (b, c, layer), (b, d, layer), (a, c, layer), (b, d, layer), (a, d, layer)]
-        self._quad_vertices = len(verts)
-        data = np.asarray(verts, dtype=np.float32).tobytes()
-        if self._quad is None or self._quad.size < max(len(data), 1):
-            if self._quad is not None:
-                self._own["processor_quad"] = []
-                self._quad_vao.release()
-                self._quad.release()
-            self._quad = self.ctx.buffer(reserve=max(len(data), 18 * 4))
-            self._quad_vao = self.ctx.vertex_array(self.program, [(self._quad, "3f", "in_position")])
-            self._own["processor_quad"] += [self._quad_vao, self._quad]
-        if verts:
-            self._quad.write(data)
+        width, height = self.layout.width, self.layer_rows
+        for part, block in zip(self.parts, self.layout.parts):
+            full, partial = divmod(block.count, block.agents_per_row)
+            spans = [(block.first_row, block.first_row + full, block.agents_per_row * block.joints)]  # slot rows [y0, y1), width
+            if partial:
+                spans.append((block.first_row + full, block.first_row + full + 1, partial * block.joints))
+            verts = []
+            for y0, y1, x1 in spans:
+                y = y0
+                while y < y1:
+                    layer, row = divmod(y, height)
+                    rows = min(y1 - y, height - row)
+                    a, b = -1.0, 2.0 * x1 / width - 1.0
+                    c, d = 2.0 * row / height - 1.0, 2.0 * (row + rows) / height - 1.0
+                    verts += [(a, c, layer), (b, c, layer), (b, d, layer), (a, c, layer), (b, d, layer), (a, d, layer)]
+                    y += rows
+            part.quad_vertices = len(verts)
+            data = np.asarray(verts, dtype=np.float32).tobytes()
+            if part.quad is None or part.quad.size < max(len(data), 1):
+                if part.quad is not None:
+                    for obj in (part.quad_vao, part.quad):
+                        self._own["processor_quad"].remove(obj)
+                        obj.release()
+                part.quad = self.ctx.buffer(reserve=max(len(data), 18 * 4))
+                part.quad_vao = self.ctx.vertex_array(part.program, [(part.quad, "3f", "in_position")])
+                self._own["processor_quad"] += [part.quad_vao, part.quad]
+            if verts:
+                part.quad.write(data)
 
     # -- the pass
 
     def upload(self, layers, motion=None, dt: float = 0.0) -> None:
-        """Validate and upload this frame's layers (N, L, 4); N must equal the agent count. With the foot
-        lock, also each agent's `motion` (N, 4): its ground step since the last run (x, z, metres, from
-        float64 positions) and its front (x, z) times its scale, and the frame's simulated seconds `dt`."""
-        a = validate_layers(layers, len(self.bake.clips), 0 if self.masks is None else self.masks.shape[0], self.layer_count)
+        """Validate and upload this frame's layers (N, L, 4); N must equal the agent count, and each
+        character's agents' clips and masks are its own bake's. With the foot lock, also each agent's
+        `motion` (N, 4): its ground step since the last run (x, z, metres, from float64 positions) and its
+        front (x, z) times its scale, and the frame's simulated seconds `dt`."""
+        if len(self.parts) == 1:
+            p = self.parts[0]
+            a = validate_layers(layers, len(p.bake.clips), 0 if p.masks is None else p.masks.shape[0], self.layer_count)
+        else:
+            a = np.asarray(layers)
+            if a.ndim != 3 or a.shape[0] != self.agents:
+                raise ProcessorError(f"layers are for {a.shape[0] if a.ndim else 0} agents, the processor holds {self.agents}")
+            a = np.ascontiguousarray(a, dtype=np.float32) if a.dtype != np.float32 or not a.flags.c_contiguous else a
+            for k, (p, block) in enumerate(zip(self.parts, self.layout.parts)):
+                try:
+                    validate_layers(a[block.first_agent:block.first_agent + block.count], len(p.bake.clips),
+                                    0 if p.masks is None else p.masks.shape[0], self.layer_count)
+                except FrameError as exc:
+                    raise FrameError(f"character {k}: {exc}") from None
         if a.shape[0] != self.agents:
             raise ProcessorError(f"layers are for {a.shape[0]} agents, the processor holds {self.agents}")
         if self.legs is not None:
@@ -620,14 +796,16 @@ class AnimationProcessor(GLStage):
             if not (isinstance(dt, (int, float, np.floating)) and math.isfinite(dt) and dt >= 0):
                 raise ProcessorError(f"the foot lock needs a frame time >= 0 seconds, got {dt!r}")
             self._lock_dt = float(dt)
-            if self.agents:
-                # A fresh store for each frame's motion: the runs still queued read the last one.
-                self._lock_motion.orphan(m.nbytes)
-                self._lock_motion.write(m)
+            for p, block in zip(self.parts, self.layout.parts):
+                if p.lock_motion is not None and block.count:
+                    # A fresh store for each frame's motion: the runs still queued read the last one.
+                    part_motion = m[block.first_agent:block.first_agent + block.count]
+                    p.lock_motion.orphan(part_motion.nbytes)
+                    p.lock_motion.write(part_motion)
         if self.agents == 0:
             return
         # Whole texture rows straight from the array (no padded copy), then the last, partial row.
-        per_row, width = self.agents_per_row, self.agents_per_row * self.layer_count
+        per_row, width = self.layer_agents_per_row, self.layer_agents_per_row * self.layer_count
         full = self.agents // per_row
         if full:
             self.layers_texture.write(a[: full * per_row], viewport=(0, 0, width, full))
@@ -638,45 +816,58 @@ class AnimationProcessor(GLStage):
             self.layers_texture.write(last, viewport=(0, full, width, 1))
 
     def run(self) -> bool:
-        """Write every agent's palette row in one dispatch or one draw. Returns False when nothing ran."""
+        """Write every agent's palette row: one dispatch or one draw per character with agents. Returns
+        False when nothing ran."""
         if self.agents == 0:
             return False
-        self.anim_texture.use(0)
-        self.parents_texture.use(1)
-        self.clips_texture.use(2)
         self.layers_texture.use(3)
         slot = self.runs % self.history  # the ring slot this run writes
-        self._set("u_row_offset", slot * self.slot_rows())
-        self._set("u_first_layer", slot * self.slot_layers)
-        self._set("u_palette_rows", self.layer_rows)
-        if self.scale_texture is not None:
-            self.scale_texture.use(4)
-        if self.masks_texture is not None:
-            self.masks_texture.use(5)
-        if self.keys_texture is not None:
-            self.keys_texture.use(6)
-            self.tracks_texture.use(7)
-        if self.legs is not None:
-            self._lock_state.bind_to_storage_buffer(0)
-            self._lock_motion.bind_to_storage_buffer(1)
-            self._set("u_lock_decay", math.exp(-self._lock_dt / lock.RELEASE_S))
-            self._set("u_step_advance", self._lock_dt / lock.STEP_S)
-        self._set("u_agents", self.agents)
         if self.path == "compute":
             for unit, plane in enumerate(self.planes):
                 plane.bind_to_image(unit, read=False, write=True)
-            groups = math.ceil(self.agents / self.agents_per_group)
-            gx = min(groups, 32768)
-            self.program.run(gx, math.ceil(groups / gx), 1)
+        else:
+            self._framebuffer.viewport = (0, 0, self.layout.width, self.layer_rows)
+            self._framebuffer.use()
+            self.ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND | moderngl.CULL_FACE)
+        for part, block in zip(self.parts, self.layout.parts):
+            if not block.count:
+                continue
+            prog = part.program
+            for unit, name in enumerate(("u_anim", "u_parents", "u_clips")):
+                part.textures[name].use(unit)
+            for unit, name in ((4, "u_anim_scale"), (5, "u_masks"), (6, "u_keys"), (7, "u_tracks")):
+                if name in part.textures:
+                    part.textures[name].use(unit)
+            for name, unit in (("u_anim", 0), ("u_parents", 1), ("u_clips", 2), ("u_layers", 3), ("u_anim_scale", 4), ("u_masks", 5),
+                               ("u_keys", 6), ("u_tracks", 7)):
+                self._set(prog, name, unit)
+            for name, value in part.uniforms.items():
+                self._set(prog, name, value)
+            self._set(prog, "u_row_offset", slot * self.slot_rows() + block.first_row)
+            self._set(prog, "u_first_layer", slot * self.slot_layers)
+            self._set(prog, "u_palette_rows", self.layer_rows)
+            self._set(prog, "u_agents", block.count)
+            self._set(prog, "u_first_agent", block.first_agent)
+            self._set(prog, "u_first_row", block.first_row)
+            self._set(prog, "u_agents_per_row", block.agents_per_row)
+            if part.legs is not None:
+                for name, data in part.leg_bytes.items():
+                    prog[name].write(data)
+                part.lock_state.bind_to_storage_buffer(0)
+                part.lock_motion.bind_to_storage_buffer(1)
+                self._set(prog, "u_lock_decay", math.exp(-self._lock_dt / lock.RELEASE_S))
+                self._set(prog, "u_step_advance", self._lock_dt / lock.STEP_S)
+            if self.path == "compute":
+                groups = math.ceil(block.count / (GROUP_SIZE // part.bake.joint_count))
+                gx = min(groups, 32768)
+                prog.run(gx, math.ceil(groups / gx), 1)
+            else:
+                part.quad_vao.render(moderngl.TRIANGLES, vertices=part.quad_vertices)
+        if self.path == "compute":
             # Later passes read the palette through texelFetch (and the readback through pack buffers).
             # The foot lock's next run reads the state this one wrote.
             self.ctx.memory_barrier(moderngl.TEXTURE_FETCH_BARRIER_BIT | moderngl.PIXEL_BUFFER_BARRIER_BIT | moderngl.TEXTURE_UPDATE_BARRIER_BIT
                                     | moderngl.SHADER_STORAGE_BARRIER_BIT)
-        else:
-            self._framebuffer.viewport = (0, 0, self.agents_per_row * self.joint_count, self.layer_rows)
-            self._framebuffer.use()
-            self.ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND | moderngl.CULL_FACE)
-            self._quad_vao.render(moderngl.TRIANGLES, vertices=self._quad_vertices)
         self.runs += 1
         return True
 
@@ -686,22 +877,26 @@ class AnimationProcessor(GLStage):
 
     def reset_lock(self) -> None:
         """Every leg free with nothing carried (a new crowd in the same slots)."""
-        if self._lock_state is not None:
-            self._lock_state.clear()
+        for part in self.parts:
+            if part.lock_state is not None:
+                part.lock_state.clear()
 
-    def read_lock_state(self) -> np.ndarray:
-        """(N, legs, 4) float32 foot-lock state (synchronous: tests only): engaged legs (hold x, z, yaw, 1),
-        free ones (the correction carried x, z, yaw, 0)."""
-        if self._lock_state is None:
-            return np.zeros((0, 0 if self.legs is None else len(self.legs), 4), np.float32)
-        return np.frombuffer(self._lock_state.read(), np.float32).reshape(self.agents, len(self.legs), 4)
+    def read_lock_state(self, character: int = 0) -> np.ndarray:
+        """(N, legs, 4) float32 foot-lock state of one character's agents (synchronous: tests only): engaged
+        legs (hold x, z, yaw, 1), free ones (the correction carried x, z, yaw, 0)."""
+        part, block = self.parts[character], self.layout.parts[character]
+        if part.lock_state is None:
+            return np.zeros((0, 0 if part.legs is None else len(part.legs), 4), np.float32)
+        return np.frombuffer(part.lock_state.read(), np.float32).reshape(block.count, len(part.legs), 4)
 
-    def set_clip_loop(self, clip: int, loop: bool) -> None:
-        """Loop a clip (its phase wraps) or play it once (its phase clamps): the clip table is rewritten."""
-        if not 0 <= clip < len(self.bake.clips):
-            raise ProcessorError(f"no clip {clip}; the bake has {len(self.bake.clips)}")
-        self.bake.clips[clip] = dataclasses.replace(self.bake.clips[clip], loop=bool(loop))
-        self.clips_texture.write(np.ascontiguousarray(self.bake.clip_table).tobytes())
+    def set_clip_loop(self, clip: int, loop: bool, character: int = 0) -> None:
+        """Loop a clip of a character's bake (its phase wraps) or play it once (its phase clamps): that
+        clip table is rewritten."""
+        part = self.parts[character]
+        if not 0 <= clip < len(part.bake.clips):
+            raise ProcessorError(f"no clip {clip}; the bake has {len(part.bake.clips)}")
+        part.bake.clips[clip] = dataclasses.replace(part.bake.clips[clip], loop=bool(loop))
+        part.textures["u_clips"].write(np.ascontiguousarray(part.bake.clip_table).tobytes())
 
     def bind_palette(self, first_unit: int, *programs) -> None:
         """Bind the three planes (every palette of the history; texel codes say which rows) and tell
@@ -714,29 +909,45 @@ class AnimationProcessor(GLStage):
 
     def read_palette(self, age: int = 0) -> np.ndarray:
         """(N, J, 3, 4) float32 skinning matrix rows of the palette written `age` runs ago, read back
-        synchronously (tests and stats only)."""
-        n, jc, k = self.agents, self.joint_count, self.agents_per_row
+        synchronously (tests and stats only); J is the largest skeleton's, and a smaller character's
+        agents have zeros past their own joints."""
+        n = self.agents
+        jmax = max(p.bake.joint_count for p in self.parts)
         if n == 0:
-            return np.zeros((0, jc, 3, 4), np.float32)
-        rows = self.palette_rows()
+            return np.zeros((0, jmax, 3, 4), np.float32)
         first = self.row_offset(age) if self.runs else 0
-        planes = [plane[first : first + rows].reshape(rows * k, jc, 4)[:n] for plane in self._read_planes()]
-        return np.stack(planes, axis=2)
+        planes = self._read_planes()
+        out = np.zeros((n, jmax, 3, 4), np.float32)
+        for block in self.layout.parts:
+            if not block.count:
+                continue
+            rows, k, jc = block.rows, block.agents_per_row, block.joints
+            y0 = first + block.first_row
+            for r, plane in enumerate(planes):
+                out[block.first_agent:block.first_agent + block.count, :jc, r] = \
+                    plane[y0:y0 + rows, :k * jc].reshape(rows * k, jc, 4)[:block.count]
+        return out
 
     def _read_planes(self) -> list[np.ndarray]:
         """The three planes, every palette of the history, as (palette rows, width, 4) float32 (synchronous)."""
         return [np.frombuffer(p.read(), np.float32).reshape(p.layers * p.height, p.width, 4) for p in self.planes]
 
-    def read_rows(self, agents: np.ndarray, joint: int, row_offsets: np.ndarray) -> np.ndarray:
-        """(K, 3, 4) float32 skinning matrix rows of one joint of some agents, each from the palette
-        starting at its row offset (synchronous: tests and stats only)."""
-        x, y = palette_texel(agents, joint, row_offsets, self.agents_per_row, self.joint_count)
+    def read_rows(self, agents: np.ndarray, joint, row_offsets: np.ndarray) -> np.ndarray:
+        """(K, 3, 4) float32 skinning matrix rows of one joint (or one per agent) of some agents, each from
+        the palette starting at its row offset (synchronous: tests and stats only)."""
+        x, y = self.layout.texel(agents, joint, row_offsets)
         return np.stack([plane[y, x] for plane in self._read_planes()], axis=1)
 
     def nan_rows(self) -> int:
-        """Agents whose palette row holds NaN or Inf."""
+        """Agents whose palette row holds NaN or Inf (each character's own joints)."""
         pal = self.read_palette()
-        return int(np.count_nonzero(~np.all(np.isfinite(pal), axis=(1, 2, 3)))) if len(pal) else 0
+        if not len(pal):
+            return 0
+        bad = 0
+        for block in self.layout.parts:
+            rows = pal[block.first_agent:block.first_agent + block.count, :block.joints]
+            bad += int(np.count_nonzero(~np.all(np.isfinite(rows), axis=(1, 2, 3))))
+        return bad
 
     def gpu_bytes(self) -> dict[str, int]:
         return {group: gpu_bytes(objs) for group, objs in self._own.items()}
@@ -745,7 +956,8 @@ class AnimationProcessor(GLStage):
         for group in list(self._own):
             self._release_group(group)
         self.planes, self.layers_texture, self._framebuffer = (), None, None
-        self._lock_state = self._lock_motion = None
-        if self.program is not None:
-            self.program.release()
-            self.program = None
+        for part in self.parts:
+            part.lock_state = part.lock_motion = part.quad = part.quad_vao = None
+        for program in self._programs.values():
+            program.release()
+        self._programs = {}

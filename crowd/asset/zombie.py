@@ -71,14 +71,34 @@ SOCKET_JOINT = "hand_r_socket"
 SOCKET_ROTATION = tf.quat_from_axis_angle([1.0, 0.0, 0.0], math.pi / 2)
 
 
-def _joint_positions() -> np.ndarray:
-    return np.array([j[2] for j in _JOINTS], dtype=np.float64)
+@dataclasses.dataclass(frozen=True)
+class Body:
+    """A build of the generator's skeleton (its joints, names and hierarchy always the zombie's): where
+    the joints stand at rest, and what the planted-feet clips and the grounding need of its feet. The
+    zombie is ``ZOMBIE_BODY``; crowd.asset.brute makes a heavier one."""
+
+    joints: tuple  # (name, parent, rest position in model space), in _JOINTS' order
+    stance_ankle_y: float = 0.085  # the ankle joint's height with the foot flat: its lowest sole point (see heel, tip) at y = 0
+    toe_from_ankle: tuple = (0.0, -0.065, 0.135)  # the toe joint from the foot joint at rest
+    heel: tuple = (0.0, -0.055, -0.06)  # a sole point under the heel, in the foot joint's frame
+    tip: tuple = (0.0, -0.02, 0.06)  # a sole point under the toes' tip, in the toe joint's frame
+    stance_width: float = 0.11  # the ankles' distance from the midline when standing
+
+    def positions(self) -> np.ndarray:
+        return np.array([j[2] for j in self.joints], dtype=np.float64)
 
 
-def build_skeleton() -> Skeleton:
+ZOMBIE_BODY = Body(tuple(_JOINTS))
+
+
+def _joint_positions(body: Body = ZOMBIE_BODY) -> np.ndarray:
+    return body.positions()
+
+
+def build_skeleton(body: Body = ZOMBIE_BODY) -> Skeleton:
     names = JOINT_NAMES
-    parents = np.array([-1 if p is None else names.index(p) for _, p, _ in _JOINTS], dtype=np.int32)
-    pos = _joint_positions()
+    parents = np.array([-1 if p is None else names.index(p) for _, p, _ in body.joints], dtype=np.int32)
+    pos = _joint_positions(body)
     local_t = np.array([pos[i] - (pos[p] if p >= 0 else 0.0) for i, p in enumerate(parents)])
     rot = tf.quat_identity((len(names),))
     rot[names.index(SOCKET_JOINT)] = SOCKET_ROTATION
@@ -272,44 +292,61 @@ def _noise(seed: int, *coords) -> np.ndarray:
     return np.mod(np.sin(acc) * 43758.5453, 1.0)
 
 
-SKIN = np.array([0.46, 0.55, 0.40])  # sickly grey-green
-PANTS = np.array([0.22, 0.20, 0.24])
-SHOES = np.array([0.12, 0.10, 0.09])
-SHIRT = np.array([0.55, 0.50, 0.40])
-BLOOD = np.array([0.35, 0.05, 0.04])
+@dataclasses.dataclass(frozen=True)
+class Palette:
+    """The vertex colours of a build: skin, trousers, shoes, shirt and blood (linear RGB)."""
+
+    skin: tuple = (0.46, 0.55, 0.40)  # sickly grey-green
+    pants: tuple = (0.22, 0.20, 0.24)
+    shoes: tuple = (0.12, 0.10, 0.09)
+    shirt: tuple = (0.55, 0.50, 0.40)
+    blood: tuple = (0.35, 0.05, 0.04)
 
 
-def _skin_color(pos, u, seed=0):
+ZOMBIE_PALETTE = Palette()
+BLOOD = np.array(ZOMBIE_PALETTE.blood)
+
+
+def _skin_color(pos, u, seed=0, palette: Palette = ZOMBIE_PALETTE):
     blotch = _smoothstep((np.sin(pos[:, 0] * 41.0 + 1.3) * np.sin(pos[:, 1] * 37.0) * np.sin(pos[:, 2] * 53.0 + 0.7) - 0.55) * 4.0)
-    c = SKIN[None] * (0.92 + 0.08 * np.sin(pos[:, 1] * 23.0))[:, None]
-    c = c * (1.0 - 0.45 * blotch[:, None]) + BLOOD[None] * 0.45 * blotch[:, None]
+    c = np.array(palette.skin)[None] * (0.92 + 0.08 * np.sin(pos[:, 1] * 23.0))[:, None]
+    c = c * (1.0 - 0.45 * blotch[:, None]) + np.array(palette.blood)[None] * 0.45 * blotch[:, None]
     return np.concatenate([c, np.ones((pos.shape[0], 1))], axis=1)
 
 
-def _leg_color(pos, u):
-    c = np.where((pos[:, 1] > 0.22)[:, None], PANTS[None], _skin_color(pos, u)[:, :3])
+def _leg_color(pos, u, palette: Palette = ZOMBIE_PALETTE):
+    skin = _skin_color(pos, u, palette=palette)[:, :3]
+    c = np.where((pos[:, 1] > 0.22)[:, None], np.array(palette.pants)[None], skin)
     torn = (pos[:, 1] > 0.22) & (pos[:, 1] < 0.36)  # ragged trouser hems above bare shins
     ragged = np.sin(np.arctan2(pos[:, 2], pos[:, 0] - np.sign(pos[:, 0]) * 0.1) * 7.0) * 0.05 + 0.29
-    c = np.where((torn & (pos[:, 1] < ragged))[:, None], _skin_color(pos, u)[:, :3], c)
+    c = np.where((torn & (pos[:, 1] < ragged))[:, None], skin, c)
     return np.concatenate([c, np.ones((pos.shape[0], 1))], axis=1)
 
 
-def _foot_color(pos, u):
-    return np.concatenate([np.repeat(SHOES[None], pos.shape[0], 0), np.ones((pos.shape[0], 1))], axis=1)
+def _foot_color(pos, u, palette: Palette = ZOMBIE_PALETTE):
+    return np.concatenate([np.repeat(np.array(palette.shoes)[None], pos.shape[0], 0), np.ones((pos.shape[0], 1))], axis=1)
 
 
-def _torso_color(pos, u):
-    c = np.where((pos[:, 1] < 1.0)[:, None], PANTS[None], _skin_color(pos, u)[:, :3])
+def _torso_color(pos, u, palette: Palette = ZOMBIE_PALETTE):
+    c = np.where((pos[:, 1] < 1.0)[:, None], np.array(palette.pants)[None], _skin_color(pos, u, palette=palette)[:, :3])
     return np.concatenate([c, np.ones((pos.shape[0], 1))], axis=1)
 
 
-def _shirt_color(pos, u):
+def _shirt_color(pos, u, palette: Palette = ZOMBIE_PALETTE):
     stain = _smoothstep((np.sin(pos[:, 0] * 17.0) * np.sin(pos[:, 1] * 13.0 + 1.0) - 0.3) * 3.0)
-    c = SHIRT[None] * (1.0 - 0.5 * stain[:, None]) + BLOOD[None] * 0.5 * stain[:, None]
+    c = np.array(palette.shirt)[None] * (1.0 - 0.5 * stain[:, None]) + np.array(palette.blood)[None] * 0.5 * stain[:, None]
     return np.concatenate([c, np.ones((pos.shape[0], 1))], axis=1)
 
 
-def _build_body(div: int) -> SkinnedMesh:
+def _colors(palette: Palette):
+    """The colour functions (skin, leg, foot, torso, shirt) of a palette, as the tubes call them."""
+    return (functools.partial(_skin_color, palette=palette), functools.partial(_leg_color, palette=palette),
+            functools.partial(_foot_color, palette=palette), functools.partial(_torso_color, palette=palette),
+            functools.partial(_shirt_color, palette=palette))
+
+
+def _build_body(div: int, palette: Palette = ZOMBIE_PALETTE) -> SkinnedMesh:
+    _skin_color, _leg_color, _foot_color, _torso_color, _ = _colors(palette)
     jc = len(JOINT_NAMES)
     J = JOINT_NAMES.index
     m = _MeshBuilder()
@@ -361,7 +398,9 @@ def _build_body(div: int) -> SkinnedMesh:
     return m.build("zombie_body", "body", 0, (1.0, 1.0, 1.0, 1.0))
 
 
-def _build_head(div: int, variant: str) -> SkinnedMesh:
+def _build_head(div: int, variant: str, palette: Palette = ZOMBIE_PALETTE) -> SkinnedMesh:
+    _skin_color = _colors(palette)[0]
+    BLOOD = np.array(palette.blood)
     jc = len(JOINT_NAMES)
     J = JOINT_NAMES.index
     m = _MeshBuilder()
@@ -426,8 +465,9 @@ def _build_head(div: int, variant: str) -> SkinnedMesh:
     return m.build(f"zombie_{variant}", variant, 0, (1.0, 1.0, 1.0, 1.0), group="head")
 
 
-def _build_shirt(div: int) -> SkinnedMesh:
+def _build_shirt(div: int, palette: Palette = ZOMBIE_PALETTE) -> SkinnedMesh:
     """A torn shirt: a loose tube over the torso with a ragged hem and holes, plus ripped short sleeves."""
+    _shirt_color = _colors(palette)[4]
     jc = len(JOINT_NAMES)
     J = JOINT_NAMES.index
     m = _MeshBuilder()
@@ -451,7 +491,7 @@ def _build_shirt(div: int) -> SkinnedMesh:
     return m.build("zombie_shirt_torn", "shirt_torn", 0, (1.0, 1.0, 1.0, 1.0))
 
 
-def _build_shadow_proxy() -> SkinnedMesh:
+def _build_shadow_proxy(palette: Palette = ZOMBIE_PALETTE) -> SkinnedMesh:
     """LOD4, for shadows only: a four-sided column from the ankles to the crown, skinned to the hips,
     chest and head, 16 triangles. The far shadow cascade has texels of about half a metre (crowd.draw.shadows),
     where this casts the shadow the whole figure would; the colour pass never reaches LOD4 (three LOD
@@ -462,7 +502,7 @@ def _build_shadow_proxy() -> SkinnedMesh:
     pts = np.array([[0.0, 0.05, 0.0], [0.0, 0.95, 0.0], [0.0, 1.45, -0.02], [0.0, 1.78, 0.0]])
     width = lambda u: float(np.interp(u, [0.0, 0.5, 0.8, 1.0], [0.16, 0.17, 0.22, 0.09]))
     depth = lambda u: float(np.interp(u, [0.0, 0.5, 0.8, 1.0], [0.10, 0.11, 0.11, 0.10]))
-    _tube(m, pts, width, depth, 2, 4, [J("hips"), J("chest"), J("head")], [0.0, 0.5, 0.85, 1.0], [0.0, 0.08, 0.05], _skin_color, jc,
+    _tube(m, pts, width, depth, 2, 4, [J("hips"), J("chest"), J("head")], [0.0, 0.5, 0.85, 1.0], [0.0, 0.08, 0.05], _colors(palette)[0], jc,
           cap_start=False, cap_end=False)
     return m.build("zombie_body", "body", 0, (1.0, 1.0, 1.0, 1.0))
 
@@ -476,10 +516,11 @@ def _merged(parts: list[SkinnedMesh], like: SkinnedMesh) -> SkinnedMesh:
         colors=np.concatenate([p.colors for p in parts]), indices=np.concatenate([p.indices + k for p, k in zip(parts, starts)]).astype(np.uint32))
 
 
-def build_meshes() -> list[SkinnedMesh]:
+def build_meshes(palette: Palette = ZOMBIE_PALETTE) -> list[SkinnedMesh]:
     meshes = []
     for lod, div in enumerate(LOD_DIVISORS):
-        built = [build(div) for build in (_build_body, lambda d: _build_head(d, "head_a"), lambda d: _build_head(d, "head_b"), _build_shirt)]
+        built = [build(div) for build in (lambda d: _build_body(d, palette), lambda d: _build_head(d, "head_a", palette),
+                                          lambda d: _build_head(d, "head_b", palette), lambda d: _build_shirt(d, palette))]
         if div == LOD_DIVISORS[-1]:
             # LOD3 (the far crowd): each head choice's whole figure as one mesh under the head's piece
             # name, so a far agent is one instance of one draw, not three. The H200 draws many small
@@ -490,7 +531,7 @@ def build_meshes() -> list[SkinnedMesh]:
             mesh.lod = lod
             mesh.name = f"{mesh.name}_lod{lod}"
             meshes.append(mesh)
-    proxy = _build_shadow_proxy()
+    proxy = _build_shadow_proxy(palette)
     proxy.lod = len(LOD_DIVISORS)
     proxy.name = f"{proxy.name}_lod{proxy.lod}"
     return meshes + [proxy]
@@ -584,7 +625,7 @@ def _mirror(q: np.ndarray) -> np.ndarray:
     return q
 
 
-def _pose_to_joints(p: dict[str, np.ndarray], n: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
+def _pose_to_joints(p: dict[str, np.ndarray], n: int, body: Body = ZOMBIE_BODY) -> tuple[dict[str, np.ndarray], np.ndarray]:
     p = {k: np.broadcast_to(np.asarray(v, dtype=np.float64), (n,)).copy() for k, v in p.items()}
     out = {
         "hips": _q(p["hips_pitch"], p["hips_yaw"], p["hips_roll"], "xzy"),
@@ -608,7 +649,7 @@ def _pose_to_joints(p: dict[str, np.ndarray], n: int) -> tuple[dict[str, np.ndar
         for name, q in (("shoulder", shoulder), ("upper_arm", arm), ("forearm", forearm), ("hand", hand),
                         ("thigh", thigh), ("shin", shin), ("foot", foot), ("toe", toe)):
             out[f"{name}_{s}"] = q if s == "l" else _mirror(q)
-    hips_t = np.stack([p["hips_x"], p["hips_y"], p["hips_z"]], axis=1) + _joint_positions()[0]
+    hips_t = np.stack([p["hips_x"], p["hips_y"], p["hips_z"]], axis=1) + _joint_positions(body)[0]
     return out, hips_t
 
 
@@ -674,8 +715,6 @@ class _Gait:
     reach: float = 0.0  # model-space z of the ankle at mid-stance
 
 
-STANCE_ANKLE_Y = 0.085  # the rest-pose foot on the ground: its lowest sole point (see _ground) at y = 0
-_TOE_FROM_ANKLE = np.array([0.0, -0.065, 0.135])  # toe joint from the foot joint at rest
 
 
 def _smootherstep(x):
@@ -683,7 +722,7 @@ def _smootherstep(x):
     return x * x * x * (x * (6.0 * x - 15.0) + 10.0)
 
 
-def _foot_path(g: _Gait, side: int, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _foot_path(g: _Gait, side: int, p: np.ndarray, body: Body = ZOMBIE_BODY) -> tuple[np.ndarray, np.ndarray]:
     """Model-space targets (n, 3) of one foot's ankle and toe joints at phases `p` (side 0 left, 1 right)."""
     mid = g.mid_stance + 0.5 * side
     delta = np.mod(p - mid + 0.5, 1.0) - 0.5  # phase since mid-stance, in [-0.5, 0.5)
@@ -696,16 +735,16 @@ def _foot_path(g: _Gait, side: int, p: np.ndarray) -> tuple[np.ndarray, np.ndarr
     # blend that gives this clip a small weight, then forward in a low arc.
     rise = np.minimum(_smootherstep(u / g.lift), _smootherstep((1.0 - u) / g.lift))
     rise = np.where(stance, 0.0, rise)
-    y = STANCE_ANKLE_Y + g.height[side] * rise * (1.0 + 0.25 * np.sin(math.pi * travel))
+    y = body.stance_ankle_y + g.height[side] * rise * (1.0 + 0.25 * np.sin(math.pi * travel))
     sign = 1.0 if side == 0 else -1.0
     ankle = np.stack([np.full_like(p, sign * g.width), y, z], axis=1)
     pitch = np.where(stance, 0.0, g.toe_down[side] * np.sin(math.pi * travel) ** 2)
-    return ankle, _toe_of(ankle, pitch, np.full_like(p, sign * g.toe_out[side]))
+    return ankle, _toe_of(ankle, pitch, np.full_like(p, sign * g.toe_out[side]), body)
 
 
-def _toe_of(ankle: np.ndarray, pitch, yaw) -> np.ndarray:
+def _toe_of(ankle: np.ndarray, pitch, yaw, body: Body = ZOMBIE_BODY) -> np.ndarray:
     """Where the toe joint is for a foot at `ankle` (n, 3), pitched toes down by `pitch` and turned by `yaw`."""
-    return ankle + tf.quat_rotate(_q(pitch, yaw, 0.0), _TOE_FROM_ANKLE)
+    return ankle + tf.quat_rotate(_q(pitch, yaw, 0.0), np.array(body.toe_from_ankle))
 
 
 def _leg(skeleton: Skeleton, s: str) -> tuple[int, float, float]:
@@ -714,9 +753,9 @@ def _leg(skeleton: Skeleton, s: str) -> tuple[int, float, float]:
     return skeleton.index(f"thigh_{s}"), length("shin"), length("foot")
 
 
-def _hip_joints(skeleton: Skeleton, a: dict[str, np.ndarray], n: int) -> list[np.ndarray]:
+def _hip_joints(skeleton: Skeleton, a: dict[str, np.ndarray], n: int, body: Body = ZOMBIE_BODY) -> list[np.ndarray]:
     """Model-space positions (n, 3) of the left and right thigh joints under the pose `a`."""
-    rot, hips_t = _pose_to_joints(a, n)
+    rot, hips_t = _pose_to_joints(a, n, body)
     g = _globals(skeleton, rot, hips_t)
     return [g[:, _leg(skeleton, s)[0], :3, 3] for s in "lr"]
 
@@ -724,10 +763,11 @@ def _hip_joints(skeleton: Skeleton, a: dict[str, np.ndarray], n: int) -> list[np
 _LEG_PARAMS = ("thigh_flex", "thigh_twist", "thigh_abd", "knee", "ankle")
 
 
-def _guess_legs(skeleton: Skeleton, a: dict[str, np.ndarray], targets, n: int) -> None:
+def _guess_legs(skeleton: Skeleton, a: dict[str, np.ndarray], targets, n: int, body: Body = ZOMBIE_BODY) -> None:
     """A starting point for _plant, in place: each leg bent in its own plane, knee forward, as the law
     of cosines gives it for the hip-to-ankle distance (hips rotation ignored; the solver corrects it)."""
-    hips = _hip_joints(skeleton, a, n)  # the leg's own angles do not move its hip joint
+    hips = _hip_joints(skeleton, a, n, body)  # the leg's own angles do not move its hip joint
+    toe_from_ankle = body.toe_from_ankle
     for side, s in enumerate("lr"):
         _, upper, lower = _leg(skeleton, s)
         d = targets[side][0] - hips[side]
@@ -739,28 +779,28 @@ def _guess_legs(skeleton: Skeleton, a: dict[str, np.ndarray], targets, n: int) -
         a[f"thigh_abd_{s}"] = np.zeros(n)
         a[f"thigh_twist_{s}"] = np.zeros(n)
         toe = targets[side][1] - targets[side][0]
-        pitch = np.arctan2(-toe[:, 1], toe[:, 2]) - math.atan2(-_TOE_FROM_ANKLE[1], _TOE_FROM_ANKLE[2])
+        pitch = np.arctan2(-toe[:, 1], toe[:, 2]) - math.atan2(-toe_from_ankle[1], toe_from_ankle[2])
         a[f"ankle_{s}"] = pitch - (a["hips_pitch"] - a[f"thigh_flex_{s}"] + bend)
 
 
-def _plant(p: np.ndarray, a: dict[str, np.ndarray], targets, iterations: int = 200) -> dict[str, np.ndarray]:
+def _plant(p: np.ndarray, a: dict[str, np.ndarray], targets, iterations: int = 200, body: Body = ZOMBIE_BODY) -> dict[str, np.ndarray]:
     """Solve both legs' angles (`_LEG_PARAMS`) so that the ankle and toe joints reach `targets`
     ((ankle, toe) per side, each (n, 3)), with the rest of the pose `a` as it is, starting from
     _guess_legs (which picks the knee-forward solution). Damped Gauss-Newton on a numerical Jacobian:
     the generator runs once, and the two legs are independent, so one pose evaluation perturbs the same
     angle of both."""
-    skeleton = _skeleton()
+    skeleton = _skeleton(body)
     n = p.shape[0]
     joints = [[skeleton.index(f"foot_{s}"), skeleton.index(f"toe_{s}")] for s in "lr"]
     goal = np.stack([np.concatenate(t, axis=1) for t in targets])  # (2, n, 6)
 
     def residual(params):
-        rot, hips_t = _pose_to_joints(params, n)
+        rot, hips_t = _pose_to_joints(params, n, body)
         g = _globals(skeleton, rot, hips_t)
         return np.stack([np.concatenate([g[:, j, :3, 3] for j in js], axis=1) for js in joints]) - goal
 
     a = {k: np.array(v, dtype=np.float64, copy=True) for k, v in a.items()}
-    _guess_legs(skeleton, a, targets, n)
+    _guess_legs(skeleton, a, targets, n, body)
     eps, eye = 1e-6, np.eye(len(_LEG_PARAMS))
     damping = np.full((2, n), 1e-3)  # Levenberg-Marquardt: per side and key, lowered on success
     r = residual(a)
@@ -797,19 +837,19 @@ def _plant(p: np.ndarray, a: dict[str, np.ndarray], targets, iterations: int = 2
     return a
 
 
-def _planted(p: np.ndarray, a: dict[str, np.ndarray], gait: _Gait) -> dict[str, np.ndarray]:
-    targets = [_foot_path(gait, side, p) for side in (0, 1)]
+def _planted(p: np.ndarray, a: dict[str, np.ndarray], gait: _Gait, body: Body = ZOMBIE_BODY) -> dict[str, np.ndarray]:
+    targets = [_foot_path(gait, side, p, body) for side in (0, 1)]
     a = dict(a)
-    a["hips_y"] = np.asarray(a["hips_y"], np.float64) - _reach_drop(a, targets, p.shape[0])
-    return _plant(p, a, targets)
+    a["hips_y"] = np.asarray(a["hips_y"], np.float64) - _reach_drop(a, targets, p.shape[0], body=body)
+    return _plant(p, a, targets, body=body)
 
 
-def _reach_drop(a: dict[str, np.ndarray], targets, n: int, slack: float = 0.985) -> np.ndarray:
+def _reach_drop(a: dict[str, np.ndarray], targets, n: int, slack: float = 0.985, body: Body = ZOMBIE_BODY) -> np.ndarray:
     """How far to lower the hips at each key of a loop so that both ankles are within `slack` of the
     leg's full length (a straight knee is a singular, snapping pose): the largest need nearby, smoothed,
     so the hips do not jerk."""
-    skeleton = _skeleton()
-    hips = _hip_joints(skeleton, a, n)
+    skeleton = _skeleton(body)
+    hips = _hip_joints(skeleton, a, n, body)
     need = np.zeros(n)
     for side, s in enumerate("lr"):
         _, upper, lower = _leg(skeleton, s)
@@ -827,14 +867,14 @@ RUN_GAIT = _Gait(stride=2.3, duty=0.3, lift=0.08, mid_stance=0.3, height=(0.22, 
                  toe_out=(0.08, 0.08))
 
 
-def _standing(p: np.ndarray, a: dict[str, np.ndarray], toe_out=(0.12, 0.2), reach=(0.02, -0.03)) -> dict[str, np.ndarray]:
+def _standing(p: np.ndarray, a: dict[str, np.ndarray], toe_out=(0.12, 0.2), reach=(0.02, -0.03), body: Body = ZOMBIE_BODY) -> dict[str, np.ndarray]:
     """Both feet flat and still where they stand (idle sways its hips over them)."""
     targets = []
     for side in (0, 1):
         sign = 1.0 if side == 0 else -1.0
-        ankle = np.tile([sign * 0.11, STANCE_ANKLE_Y, reach[side]], (p.shape[0], 1))
-        targets.append((ankle, _toe_of(ankle, 0.0, np.full(p.shape, sign * toe_out[side]))))
-    return _plant(p, a, targets)
+        ankle = np.tile([sign * body.stance_width, body.stance_ankle_y, reach[side]], (p.shape[0], 1))
+        targets.append((ankle, _toe_of(ankle, 0.0, np.full(p.shape, sign * toe_out[side]), body)))
+    return _plant(p, a, targets, body=body)
 
 
 def _shamble(p):
@@ -1028,20 +1068,20 @@ def _globals(skeleton: Skeleton, joints: dict[str, np.ndarray], hips_t: np.ndarr
 
 
 @functools.cache
-def _skeleton() -> Skeleton:
+def _skeleton(body: Body = ZOMBIE_BODY) -> Skeleton:
     """The skeleton the clips are authored on (read only)."""
-    return build_skeleton()
+    return build_skeleton(body)
 
 
-def _ground(skeleton: Skeleton, joints: dict[str, np.ndarray], hips_t: np.ndarray) -> np.ndarray:
+def _ground(skeleton: Skeleton, joints: dict[str, np.ndarray], hips_t: np.ndarray, body: Body = ZOMBIE_BODY) -> np.ndarray:
     """Lift or drop the hips so the lowest foot point rests on the ground at every key (no floating, no sinking)."""
 
     g = _globals(skeleton, joints, hips_t)
     # Sole points under the heel and the toe of each foot, in the foot/toe joints' frames.
     lows = []
     for side in "lr":
-        heel = g[:, skeleton.index(f"foot_{side}")] @ np.array([0.0, -0.055, -0.06, 1.0])
-        tip = g[:, skeleton.index(f"toe_{side}")] @ np.array([0.0, -0.02, 0.06, 1.0])
+        heel = g[:, skeleton.index(f"foot_{side}")] @ np.array([*body.heel, 1.0])
+        tip = g[:, skeleton.index(f"toe_{side}")] @ np.array([*body.tip, 1.0])
         lows += [heel[:, 1], tip[:, 1]]
     low = np.min(np.stack(lows), axis=0)
     out = hips_t.copy()
@@ -1049,15 +1089,16 @@ def _ground(skeleton: Skeleton, joints: dict[str, np.ndarray], hips_t: np.ndarra
     return out
 
 
-def build_clips(skeleton: Skeleton) -> list[Clip]:
+def build_clips(skeleton: Skeleton, specs=None, body: Body = ZOMBIE_BODY) -> list[Clip]:
+    """The clips of `specs` (CLIP_SPECS' shape; default the zombie's) on `skeleton`, built for `body`."""
     clips = []
     socket = skeleton.index(SOCKET_JOINT)
-    for name, fn, duration, loop, markers, stride, grounded in CLIP_SPECS:
+    for name, fn, duration, loop, markers, stride, grounded in CLIP_SPECS if specs is None else specs:
         count = int(round(duration * SOURCE_FPS)) + 1
         times = np.arange(count) / SOURCE_FPS
-        joints, hips_t = _pose_to_joints(fn(times / duration), count)
+        joints, hips_t = _pose_to_joints(fn(times / duration), count, body)
         if grounded:
-            hips_t = _ground(skeleton, joints, hips_t)
+            hips_t = _ground(skeleton, joints, hips_t, body)
         if loop:  # close the loop exactly: the last key repeats the first
             hips_t[-1] = hips_t[0]
             for q in joints.values():

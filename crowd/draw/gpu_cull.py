@@ -15,15 +15,20 @@ Shadows: with shadows on, one more dispatch per shadow cascade (crowd.draw.shado
 records against that cascade's orthographic box into lists and commands of its own, one LOD coarser
 than the colour pass would pick (``run_shadow``); with shadows off they do not exist.
 
-Lists: draw d's list is records [d * capacity, (d + 1) * capacity) of one buffer, capacity being the
-agent count, so one atomic add per (agent, piece) places a record with no second pass; the commands'
-baseInstance points each draw at its list. The price is memory: draws x agents x 32 bytes (12 draws of
-the zombie at 1,000,000 agents: 384 MB), which ``gpu_bytes`` reports.
+Lists: draw d's list is records [start_d, start_d + capacity_d) of one buffer, its capacity being the
+agent count of its character (the cast's characters each have their draws: crowd.frame), so one atomic
+add per (agent, piece) places a record with no second pass; the commands' baseInstance points each
+draw at its list. The price is memory: each character's draws x its agents x 32 bytes (12 draws of the
+zombie at 1,000,000 agents: 384 MB), which ``gpu_bytes`` reports.
+
+Several characters: each agent's record carries its character (bits 28-31 of its variation field), and
+the cull looks up that character's bound, LOD count, pieces and variation groups.
 """
 
 from __future__ import annotations
 
 from collections import deque
+from typing import NamedTuple
 
 import moderngl
 import numpy as np
@@ -33,7 +38,9 @@ from ..gl import Fence, GLObjects, GLStage, load_shader
 GROUP_SIZE = 256
 RECORD_DTYPE = np.dtype([("position_scale", "<f4", 4), ("packed", "<u4", 4)])
 COMMAND_DTYPE = np.dtype([("count", "<u4"), ("instances", "<u4"), ("first_index", "<u4"), ("base_vertex", "<i4"), ("base_instance", "<u4")])
-MAX_GROUPS = 8  # variation groups: 4 bits each in packed.w
+MAX_GROUPS = 7  # variation groups: 4 bits each in packed.w, below the character's 4 bits
+MAX_CAST = 16  # characters: crowd.frame.MAX_CAST
+CHARACTER_SHIFT = 28  # where packed.w keeps the agent's character
 MAX_CHOICES = 16
 MAX_LOD_STEPS = 4
 MAX_DRAWS = 256  # (piece, LOD) draws: the cull's shared counters (cull.comp.glsl)
@@ -48,6 +55,18 @@ VERTEX_ATTRIB_ARRAY, COMMAND, BUFFER_UPDATE, SHADER_STORAGE = 0x1, 0x40, 0x200, 
 
 class GpuCullError(ValueError):
     """A crowd the GPU cull cannot take; the message is one line."""
+
+
+class CullCharacter(NamedTuple):
+    """What the cull knows of one character of the cast: the slots of the pieces all its agents wear
+    (common_first .. common_first + common - 1), the first slot of each variation group's choices (-1
+    where it has no such group), its LOD count, and its bind pose's sphere (x, y, z, radius)."""
+
+    common_first: int
+    common: int
+    group_slots: tuple
+    lod_count: int
+    bound: tuple
 
 
 class CountRing:
@@ -98,40 +117,48 @@ class GpuCull(GLStage):
     """Owns the agent records, the per-draw lists, the indirect commands, the per-agent visibility
     (only when `with_visible`: the weapons need it) and the ring the counts come back through."""
 
-    def __init__(self, ctx: moderngl.Context, draws: list[tuple[int, int, int]], common: int, group_choices: list[int],
+    def __init__(self, ctx: moderngl.Context, draws: list[tuple], characters: list[CullCharacter], group_choices: list[int],
                  with_visible: bool, shadow_cascades: int = 0):
-        """`draws`: per draw (LOD, slot, index count[, first index, base vertex] in the buffers it is drawn
-        from). Slots 0 .. common - 1 are the pieces every agent wears; then each variation group's
-        choices in turn (group g has group_choices[g])."""
+        """`draws`: per draw (LOD, slot, index count, first index, base vertex in the buffers it is drawn
+        from, character). `characters`: the cast's, in its order (CullCharacter: which slots are whose).
+        `group_choices`: the largest choice count of each variation group, over the cast."""
         self._objects = GLObjects()
         self.ctx = ctx
+        if len(characters) > MAX_CAST:
+            raise GpuCullError(f"the GPU cull takes up to {MAX_CAST} characters, this cast has {len(characters)}")
         if len(group_choices) > MAX_GROUPS or any(c > MAX_CHOICES for c in group_choices):
             raise GpuCullError(f"the GPU cull takes up to {MAX_GROUPS} variation groups of up to {MAX_CHOICES} pieces, "
-                               f"this character has {len(group_choices)} groups of {', '.join(map(str, group_choices))}")
-        if common + len(group_choices) > MAX_EMITS:
-            raise GpuCullError(f"an agent wears {common + len(group_choices)} pieces, more than the {MAX_EMITS} the GPU cull lists")
+                               f"this cast has {len(group_choices)} groups of {', '.join(map(str, group_choices))}")
+        worn = max(c.common + sum(1 for g in c.group_slots if g >= 0) for c in characters)
+        if worn > MAX_EMITS:
+            raise GpuCullError(f"an agent wears {worn} pieces, more than the {MAX_EMITS} the GPU cull lists")
         if len(draws) > MAX_DRAWS:
             raise GpuCullError(f"{len(draws)} (piece, LOD) draws, more than the {MAX_DRAWS} the GPU cull counts")
         self.draw_count = len(draws)
         self.index_counts = np.array([d[2] for d in draws], np.uint32)
-        self.first_index = np.array([d[3] if len(d) > 3 else 0 for d in draws], np.uint32)
-        self.base_vertex = np.array([d[4] if len(d) > 4 else 0 for d in draws], np.int32)
-        self.common = common
-        self.group_slots = [common + int(sum(group_choices[:g])) for g in range(len(group_choices))]
-        self.slots = common + int(sum(group_choices))
+        self.first_index = np.array([d[3] for d in draws], np.uint32)
+        self.base_vertex = np.array([d[4] for d in draws], np.int32)
+        self.draw_character = np.array([d[5] for d in draws], np.int64)
+        self.characters = list(characters)
+        self.groups = len(group_choices)
+        self.slots = max(max(d[1] for d in draws) + 1, 1)
         lods = max(d[0] for d in draws) + 1
         table = np.full(lods * self.slots, -1, np.int32)
         for k, (lod, slot, *_) in enumerate(draws):
             table[lod * self.slots + slot] = k
         self.program = self._objects.add(ctx.compute_shader(load_shader("cull.comp.glsl")))
         self.draw_of = self._objects.add(ctx.buffer(table.tobytes()))
+        self.list_start = self._objects.add(ctx.buffer(reserve=self.draw_count * 4))
         self.commands = self._objects.add(ctx.buffer(reserve=self.draw_count * COMMAND_DTYPE.itemsize))
         self.ring = CountRing(ctx, self._objects, self.draw_count)
         self.max_block = int(ctx.info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE", 1 << 27))
         self.max_groups = int(ctx.info.get("GL_MAX_COMPUTE_WORK_GROUP_COUNT", (65535,))[0])
         # Made once and re-sized in place (orphan keeps the GL name), so the vertex arrays built on
         # the lists stay valid when the crowd grows or shrinks.
-        self.capacity = self.agents = 0
+        self.agents = 0
+        self.cast: tuple[int, ...] | None = None  # agents per character the lists are sized for
+        self.starts = np.zeros(self.draw_count, np.int64)  # each draw's first record in the lists
+        self.records = 0  # the colour lists' records: every draw's capacity
         self.agents_buffer = self._objects.add(ctx.buffer(reserve=RECORD_DTYPE.itemsize))
         self.lists = self._objects.add(ctx.buffer(reserve=RECORD_DTYPE.itemsize))
         self.cascades = shadow_cascades  # cascade k's lists and commands follow cascade k - 1's
@@ -146,7 +173,7 @@ class GpuCull(GLStage):
     def set_visibility(self, on: bool) -> None:
         """Keep (or drop) the per-agent visibility the weapons' cull reads: it exists only with weapons."""
         if on and self.visible is None:
-            self.visible = self._objects.add(self.ctx.buffer(reserve=max(self.capacity, 1) * 4))
+            self.visible = self._objects.add(self.ctx.buffer(reserve=max(self.agents, 1) * 4))
         elif not on and self.visible is not None:
             self._objects.remove(self.visible)
             self.visible.release()
@@ -154,48 +181,63 @@ class GpuCull(GLStage):
 
     # -- storage
 
-    def resize(self, agents: int) -> None:
-        """Storage for `agents` (a record's worth for 0, which frees the rest); the same count keeps it.
-        A crowd whose lists pass what this GPU lets one shader address, or its memory, is refused in
-        one line saying how many bytes it needed."""
-        if agents == self.capacity:
+    def resize(self, cast) -> None:
+        """Storage for a crowd of `cast` agents per character (or one count for a one-character cast; a
+        record's worth for 0, which frees the rest); the same counts keep it. A crowd whose lists pass
+        what this GPU lets one shader address, or its memory, is refused in one line saying how many
+        bytes it needed."""
+        cast = (int(cast),) if isinstance(cast, (int, np.integer)) else tuple(int(c) for c in cast)
+        if cast == self.cast:
             return
-        need = self.draw_count * agents * RECORD_DTYPE.itemsize * max(self.cascades, 1)  # the largest list buffer
+        if len(cast) != len(self.characters):
+            raise GpuCullError(f"agent counts for {len(cast)} characters, the cull draws {len(self.characters)}")
+        agents = sum(cast)
+        capacity = np.asarray(cast, np.int64)[self.draw_character]  # each draw's list holds its character's agents
+        records = int(capacity.sum())
+        need = records * RECORD_DTYPE.itemsize * max(self.cascades, 1)  # the largest list buffer
         if need > self.max_block:
             raise GpuCullError(f"the GPU cull's lists for {agents:,} agents need {need:,} bytes, more than the {self.max_block:,} "
                                "one shader storage block may hold on this GPU")
         if (agents + GROUP_SIZE - 1) // GROUP_SIZE > self.max_groups:
             raise GpuCullError(f"{agents:,} agents need more than the {self.max_groups:,} work groups one dispatch may have")
         self.ctx.error  # clear any earlier error, so the check below sees this allocation's
-        self.capacity = agents
+        self.cast, self.records = cast, records
+        self.starts = np.concatenate([[0], np.cumsum(capacity)[:-1]]).astype(np.int64)
+        self.list_start.write(self.starts.astype(np.uint32).tobytes())
         self.agents_buffer.orphan(max(agents, 1) * RECORD_DTYPE.itemsize)
-        self.lists.orphan(max(self.draw_count * agents, 1) * RECORD_DTYPE.itemsize)
+        self.lists.orphan(max(records, 1) * RECORD_DTYPE.itemsize)
         if self.shadow_lists is not None:
-            self.shadow_lists.orphan(max(self.cascades * self.draw_count * agents, 1) * RECORD_DTYPE.itemsize)
+            self.shadow_lists.orphan(max(self.cascades * records, 1) * RECORD_DTYPE.itemsize)
         if self.visible is not None:
             self.visible.orphan(max(agents, 1) * 4)
         if self.ctx.error == "GL_OUT_OF_MEMORY":
-            self.capacity = -1  # the next resize tries again
-            lists = self.draw_count * agents * RECORD_DTYPE.itemsize * (1 + self.cascades)
+            self.cast = None  # the next resize tries again
+            lists = records * RECORD_DTYPE.itemsize * (1 + self.cascades)
             raise GpuCullError(f"the GPU ran out of memory for the GPU cull's {lists + agents * RECORD_DTYPE.itemsize:,} bytes of lists "
                                f"and records for {agents:,} agents")
 
+    def list_of(self, d: int, cascade: int | None = None) -> tuple[int, int]:
+        """(first record, capacity) of draw d's colour list, or of its list in a shadow cascade."""
+        capacity = self.cast[self.draw_character[d]] if self.cast is not None else 0
+        return int(self.starts[d]) + (0 if cascade is None else cascade * self.records), int(capacity)
+
     # -- per frame
 
-    def upload(self, records: np.ndarray) -> None:
-        """This frame's agent records (RECORD_DTYPE), in one write; the commands start from zero."""
+    def upload(self, records: np.ndarray, cast=None) -> None:
+        """This frame's agent records (RECORD_DTYPE), in one write, `cast` the agents of each character
+        (None: all of the one character); the commands start from zero."""
         n = len(records)
-        self.resize(n)
+        self.resize((n,) if cast is None else cast)
         self.agents = n
         commands = np.zeros(self.draw_count, COMMAND_DTYPE)
         commands["count"] = self.index_counts
         commands["first_index"] = self.first_index
         commands["base_vertex"] = self.base_vertex
-        commands["base_instance"] = np.arange(self.draw_count, dtype=np.uint32) * np.uint32(self.capacity)
+        commands["base_instance"] = self.starts
         self.commands.write(commands.tobytes())
         if self.shadow_commands is not None:
             shadow = np.tile(commands, self.cascades)
-            shadow["base_instance"] = np.arange(self.cascades * self.draw_count, dtype=np.uint32) * np.uint32(self.capacity)
+            shadow["base_instance"] = np.tile(self.starts, self.cascades) + np.repeat(np.arange(self.cascades, dtype=np.int64) * self.records, self.draw_count)
             self.shadow_commands.write(shadow.tobytes())
         if n:
             self.agents_buffer.write(records)  # the array itself (contiguous): no copy of 32 bytes an agent
@@ -204,25 +246,24 @@ class GpuCull(GLStage):
             if self.shadow_ring is not None:
                 self.shadow_ring.zero()
 
-    def run(self, planes: np.ndarray, bound: np.ndarray, margin: float, lod_start, lod_count: int, culling: bool,
-            occlusion=None) -> None:
-        """Cull the uploaded agents into the colour pass's lists and commands (one dispatch);
-        `occlusion`: (the previous frame's DepthPyramid, this frame's eye) to test them against too."""
-        self._dispatch(self.lists, self.commands, self.ring, planes, bound, margin, lod_start, lod_count, culling, 0, self.visible, 1,
-                       occlusion=occlusion)
+    def run(self, planes: np.ndarray, margin: float, lod_start, culling: bool, occlusion=None) -> None:
+        """Cull the uploaded agents into the colour pass's lists and commands (one dispatch), each against
+        its character's bound, at most its character's LODs; `occlusion`: (the previous frame's
+        DepthPyramid, this frame's eye) to test them against too."""
+        self._dispatch(self.lists, self.commands, self.ring, planes, margin, lod_start, culling, 0, self.visible, 1, occlusion=occlusion)
 
-    def run_shadow(self, planes: np.ndarray, bound: np.ndarray, lod_start, lod_count: int, culling: bool, reach=None) -> None:
+    def run_shadow(self, planes: np.ndarray, lod_start, culling: bool, reach=None) -> None:
         """Cull the uploaded agents against each cascade's box (`planes` (cascades, 6, 4)) into that
         cascade's shadow lists, one LOD coarser; each agent in cascade k's box gets bit 16 + k of its
         visibility (after ``run``, which clears it): the weapons' shadow pass keeps their weapons.
         `reach` (cascades,): metres from the eye past which an agent casts nothing into that cascade."""
         for k, cascade_planes in enumerate(planes):
-            self._dispatch(self.shadow_lists, self.shadow_commands, None, cascade_planes, bound, 0.0, lod_start, lod_count, culling, 1,
+            self._dispatch(self.shadow_lists, self.shadow_commands, None, cascade_planes, 0.0, lod_start, culling, 1,
                            self.visible, 2, cascade=k, reach=np.inf if reach is None else float(reach[k]))
         if self.agents:
             self.shadow_ring.queue(self.shadow_commands)
 
-    def _dispatch(self, lists, commands, ring, planes, bound, margin, lod_start, lod_count, culling, lod_bias, visible, mode,
+    def _dispatch(self, lists, commands, ring, planes, margin, lod_start, culling, lod_bias, visible, mode,
                   cascade: int = 0, occlusion=None, reach: float = np.inf) -> None:
         n = self.agents
         if n == 0:
@@ -233,33 +274,39 @@ class GpuCull(GLStage):
         else:
             p["u_occlusion"] = 0
         p["u_planes"].write(np.ascontiguousarray(planes, np.float32).tobytes())
-        p["u_bound"] = tuple(float(x) for x in bound)
+        bounds = np.zeros((MAX_CAST, 4), np.float32)
+        bounds[: len(self.characters)] = [c.bound for c in self.characters]
+        p["u_bound"].write(bounds.tobytes())
         p["u_margin"] = float(margin)
         p["u_reach"] = float(min(reach, 3.0e38))  # float32's largest: "no limit"
         starts = np.zeros(MAX_LOD_STEPS, np.float32)
         starts[: len(lod_start)] = lod_start
         p["u_lod_start"].write(starts.tobytes())
         p["u_lod_steps"] = len(lod_start)
-        p["u_lod_count"] = int(lod_count)
+        per_character = np.zeros((3, MAX_CAST), np.int32)  # LOD count, first common slot, common count
+        per_character[:, : len(self.characters)] = np.array([(c.lod_count, c.common_first, c.common) for c in self.characters]).T
+        for row, name in enumerate(("u_lod_count", "u_common_first", "u_common")):
+            p[name].write(per_character[row].tobytes())
         p["u_culling"] = int(bool(culling))
         p["u_agents"] = n
-        p["u_capacity"] = self.capacity
         p["u_slots"] = self.slots
-        p["u_common"] = self.common
-        p["u_groups"] = len(self.group_slots)
-        if self.group_slots:
-            slots = np.zeros(MAX_GROUPS, np.int32)
-            slots[: len(self.group_slots)] = self.group_slots
+        p["u_groups"] = self.groups
+        if self.groups:
+            slots = np.full((MAX_CAST, MAX_GROUPS), -1, np.int32)
+            for k, c in enumerate(self.characters):
+                slots[k, : len(c.group_slots)] = c.group_slots
             p["u_group_slot"].write(slots.tobytes())
         p["u_write_visible"] = mode if visible is not None else 0
         p["u_lod_bias"] = int(lod_bias)
         p["u_draws"] = self.draw_count
         p["u_cascade"] = cascade
         p["u_list_base"] = cascade * self.draw_count
+        p["u_record_base"] = cascade * self.records
         self.agents_buffer.bind_to_storage_buffer(0)
         lists.bind_to_storage_buffer(1)
         commands.bind_to_storage_buffer(2)
         self.draw_of.bind_to_storage_buffer(3)
+        self.list_start.bind_to_storage_buffer(6)
         if visible is not None:
             visible.bind_to_storage_buffer(4)
         p.run(group_x=(n + GROUP_SIZE - 1) // GROUP_SIZE)

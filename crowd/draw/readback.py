@@ -30,7 +30,7 @@ import numpy as np
 
 from ..gl import Fence, GLStage, gpu_bytes, load_shader
 from ..settings import SETTINGS
-from ..anim.processor import palette_texel, texel_code
+from ..anim.processor import texel_code
 
 RING = SETTINGS["readback_latency"].high  # one slot per frame of the longest read-back latency
 ENTRIES_PER_ROW = 1024  # gather texture: 3 x 1024 texels wide, one row per 1,024 entries
@@ -65,7 +65,7 @@ class _Slot:
 class SocketReadback(GLStage):
     """Owns the gather program, the entry and gather textures and the ring of pixel-pack buffers."""
 
-    def __init__(self, ctx: moderngl.Context, joint_count: int, agents_per_row: int):
+    def __init__(self, ctx: moderngl.Context):
         # What release() walks, first: a constructor that fails later still releases cleanly.
         self.program = self._vao = None
         self._entries = None  # R32UI texture of palette texels
@@ -76,8 +76,6 @@ class SocketReadback(GLStage):
         self.capacity = 0
         self.last_count = 0
         self.ctx = ctx
-        self.joint_count = int(joint_count)
-        self.agents_per_row = int(agents_per_row)
         self.program = ctx.program(vertex_shader=load_shader("gather.vert.glsl"), fragment_shader=load_shader("gather.frag.glsl"))
         for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2), ("u_entries", 3)):
             self.program[name] = unit
@@ -133,8 +131,13 @@ class SocketReadback(GLStage):
             raise ReadbackError(f"gather needs one joint per agent, got {agents.size} agents and {joints.size} joints")
         if agents.size and (agents.min() < 0 or agents.max() >= processor.agents):
             raise ReadbackError(f"gather agents must be in [0, {processor.agents})")
-        if joints.size and (joints.min() < 0 or joints.max() >= self.joint_count):
-            raise ReadbackError(f"gather joints must be in [0, {self.joint_count})")
+        layout = processor.layout  # where each agent's character keeps its joints
+        if joints.size:
+            limit = np.array([p.joints for p in layout.parts], np.int64)[layout.part_of(agents)]
+            if joints.min() < 0 or np.any(joints >= limit):
+                raise ReadbackError(f"gather joints must be in [0, the agent's joint count); got joint {int(joints.max())} "
+                                    f"for a character of {int(limit[np.argmax(joints >= limit)])} joints" if np.any(joints >= limit)
+                                    else "gather joints must be >= 0")
         count = int(agents.size)
         self.last_count = count
         self._ensure(count)
@@ -145,7 +148,7 @@ class SocketReadback(GLStage):
             return False
         rows = math.ceil(count / ENTRIES_PER_ROW)
         width = min(count, ENTRIES_PER_ROW)
-        texel_x, texel_y = palette_texel(agents, joints, processor.row_offset(0), self.agents_per_row, self.joint_count)
+        texel_x, texel_y = layout.texel(agents, joints, processor.row_offset(0))
         packed = np.zeros(rows * width, np.uint32)
         packed[:count] = texel_code(texel_x, texel_y)
         self._entries.write(packed.tobytes(), viewport=(0, 0, width, rows))

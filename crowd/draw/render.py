@@ -33,9 +33,9 @@ from ..gl import GLStage, gpu_bytes, load_shader
 from ..settings import DEFAULTS, SETTINGS
 from ..lighting import FOG_COLOR, LIGHTING, SUN_DIR
 from ..asset.model import PACKED_UV_SPAN, Character, SkinnedMesh
-from ..anim.processor import palette_texel, texel_code
+from ..anim.processor import PaletteLayout, texel_code
 from ..asset.vertex_cache import best_triangle_order
-from .gpu_cull import RECORD_DTYPE, GpuCull, GpuCullError
+from .gpu_cull import CHARACTER_SHIFT, MAX_CAST, MAX_GROUPS, RECORD_DTYPE, CullCharacter, GpuCull, GpuCullError
 from .materials import TEXTURE_UNIT, MaterialTextures
 from .occlusion import DepthPyramid
 from .shadows import CASCADES, Cascades, cascades
@@ -241,16 +241,17 @@ class _Draw:
     shadow_counts: list = field(default_factory=list)  # instances in each cascade's shadow list
     first_index: int = 0  # where its indices and vertices start in the GPU path's shared buffers (vbo None)
     base_vertex: int = 0
+    character: int = 0  # whose piece it is: the cast's index
 
 
 class CrowdRenderer(GLStage):
     """Owns the meshes, instance buffers, programs, shadow map and ground of the crowd view."""
 
-    def __init__(self, ctx: moderngl.Context, character: Character, joint_count: int, agents_per_row: int,
-                 pieces: tuple[str, ...] | None = None, lod_distances=DEFAULT_LOD_DISTANCES, shadows: bool = True,
-                 shadow_size: int = 2048, culling: bool = True, cull_path: str = "cpu", weapons_visibility: bool = False,
-                 occlusion: bool = False):
-        """`cull_path`: "cpu" or "gpu" (a GL 4.3 context; see the module docstring); with
+    def __init__(self, ctx: moderngl.Context, characters, pieces: tuple[str, ...] | None = None, lod_distances=DEFAULT_LOD_DISTANCES,
+                 shadows: bool = True, shadow_size: int = 2048, culling: bool = True, cull_path: str = "cpu",
+                 weapons_visibility: bool = False, occlusion: bool = False):
+        """`characters`: one Character, or the cast's, in its order (its agents come in that order,
+        crowd.frame). `cull_path`: "cpu" or "gpu" (a GL 4.3 context; see the module docstring); with
         `weapons_visibility` the GPU cull also writes each agent's visibility, for the weapons; with
         `occlusion` (the gpu path) it also drops agents hidden in the previous frame's depth."""
         self._objects: dict[str, list] = {"meshes": [], "instances": [], "programs": [], "shadow_map": [], "ground": [], "textures": [], "cull": [],
@@ -264,33 +265,49 @@ class CrowdRenderer(GLStage):
             raise RenderError(f"cull path must be one of {', '.join(CULL_PATHS)}, got {cull_path!r}")
         self.cull_path = cull_path
         self.ctx = ctx
-        self.joint_count = joint_count
-        self.agents_per_row = agents_per_row
         self.culling = culling
         self.lod_distances = SETTINGS["lod_distances"].check(tuple(lod_distances), RenderError)
-        meshes = [m for m in character.meshes if pieces is None or m.piece in pieces]
-        if not meshes:
-            raise RenderError("the character has no skinned mesh to draw")
-        self.lod_count = max(m.lod for m in meshes) + 1
-        self.groups: dict[str, list[str]] = {}
-        for m in meshes:
-            if m.group and m.piece not in self.groups.setdefault(m.group, []):
-                self.groups[m.group].append(m.piece)
-        self._piece_group = {m.piece: m.group for m in meshes}
+        cast = [characters] if isinstance(characters, Character) else list(characters)
+        if not 1 <= len(cast) <= MAX_CAST:
+            raise RenderError(f"a crowd draws 1 to {MAX_CAST} characters, got {len(cast)}")
+        self.cast = cast
+        per_character = [[m for m in c.meshes if pieces is None or m.piece in pieces] for c in cast]
+        for c, meshes in zip(cast, per_character):
+            if not meshes:
+                raise RenderError(f"character {c.name!r} has no skinned mesh to draw")
+        self.lod_counts = [max(m.lod for m in meshes) + 1 for meshes in per_character]
+        self.lod_count = max(self.lod_counts)
+        # Variation groups, per character (group -> its pieces, in order), and every group any has, in
+        # the order met: an agent's choice in group g is 4 bits at 4 g of its record.
+        self.groups: list[dict[str, list[str]]] = []
+        for meshes in per_character:
+            groups: dict[str, list[str]] = {}
+            for m in meshes:
+                if m.group and m.piece not in groups.setdefault(m.group, []):
+                    groups[m.group].append(m.piece)
+            self.groups.append(groups)
+        self.group_names = list(dict.fromkeys(g for groups in self.groups for g in groups))
+        if len(self.group_names) > MAX_GROUPS:
+            raise RenderError(f"the cast has {len(self.group_names)} variation groups; at most {MAX_GROUPS} are drawn")
+        self._piece_group = [{m.piece: m.group for m in meshes} for meshes in per_character]
+        # Each character's textures follow the ones before it in one list, so a draw's index is unique.
+        texture_first = np.concatenate([[0], np.cumsum([len(c.textures) for c in cast])]).astype(int).tolist()
         # Untextured pieces first: on the GPU path they are one multi-draw per pass (below).
         shared = []  # (vertices, indices) of the GPU path's untextured pieces, drawn from shared buffers
-        for m in sorted(meshes, key=lambda m: (m.texture >= 0, m.lod, m.piece)):
+        ordered = sorted(((k, m) for k, meshes in enumerate(per_character) for m in meshes), key=lambda km: (km[1].texture >= 0, km[0], km[1].lod, km[1].piece))
+        for k, m in ordered:
             vertices, indices = pack_vertices(m), best_triangle_order(m.indices, len(m.positions))
             box = tuple(float(x) for x in np.concatenate(uv_box(m.uvs))) if m.texture >= 0 else (0.0, 0.0, 1.0, 1.0)
+            texture = texture_first[k] + m.texture if m.texture >= 0 else -1
             if cull_path == "gpu" and m.texture < 0:
                 shared.append((vertices, indices))
-                self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, None, None, None, m.texture, "", box))
+                self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, None, None, None, texture, "", box, character=k))
                 continue
             vbo = self._own("meshes", ctx.buffer(vertices.tobytes()))
             ibo = self._own("meshes", ctx.buffer(indices.tobytes()))
             # The CPU path's instance records, per draw; the GPU path draws from the cull's lists.
             inst = self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize)) if cull_path == "cpu" else None
-            self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, vbo, ibo, inst, m.texture, uv_layout(m), box))
+            self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, vbo, ibo, inst, texture, uv_layout(m), box, character=k))
         # The GPU path's untextured draws (draws 0 .. merged - 1): one vertex and one index buffer, so a pass
         # draws them all with one glMultiDrawElementsIndirect instead of a call each (69 calls a frame for
         # the built-in zombie with shadows; each costs the CPU a call through moderngl and the driver).
@@ -307,35 +324,46 @@ class CrowdRenderer(GLStage):
             if cull_path == "cpu":
                 draw.shadow_instances = [self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize)) for _ in range(CASCADES)]
         # Only the textures a drawn piece uses reach the GPU, and none when no piece has one.
-        used = {m.texture for m in meshes if m.texture >= 0}
-        self.materials = self._own("textures", MaterialTextures(ctx, character.textures, used)) if used else None
+        used = {d.texture for d in self.draws if d.texture >= 0}
+        self.materials = self._own("textures", MaterialTextures(ctx, [t for c in cast for t in c.textures], used)) if used else None
+        # A sphere around each character's bind pose, widened for poses that reach out or lie down (death).
+        self.bounds = np.zeros((len(cast), 4))
+        for k, meshes in enumerate(per_character):
+            allpos = np.concatenate([m.positions for m in meshes]).astype(np.float64)
+            lo, hi = allpos.min(axis=0), allpos.max(axis=0)
+            self.bounds[k, :3] = (lo + hi) / 2.0
+            self.bounds[k, 3] = float(np.linalg.norm(hi - lo) * 0.5 * 1.3)
         if cull_path == "gpu":
-            common = [p for p in dict.fromkeys(d.piece for d in self.draws) if not self._piece_group[p]]
-            slot = {p: k for k, p in enumerate(common)}
-            for group, pieces in self.groups.items():
-                for choice, piece in enumerate(pieces):
-                    slot[piece] = len(slot)
+            slot, characters = {}, []
+            for k, groups in enumerate(self.groups):
+                common = [p for p in dict.fromkeys(d.piece for d in self.draws if d.character == k) if not self._piece_group[k][p]]
+                first = len(slot)
+                for p in common:
+                    slot[k, p] = len(slot)
+                group_slots = []
+                for group in self.group_names:
+                    group_slots.append(len(slot) if group in groups else -1)
+                    for piece in groups.get(group, ()):
+                        slot[k, piece] = len(slot)
+                characters.append(CullCharacter(first, len(common), tuple(group_slots), self.lod_counts[k], tuple(float(x) for x in self.bounds[k])))
+            choices = [max(len(g.get(name, ())) for g in self.groups) for name in self.group_names]
             try:
-                self.gpu = self._own("cull", GpuCull(ctx, [(d.lod, slot[d.piece], d.triangles * 3, d.first_index, d.base_vertex) for d in self.draws], len(common),
-                                                     [len(p) for p in self.groups.values()], weapons_visibility, CASCADES if shadows else 0))
+                self.gpu = self._own("cull", GpuCull(ctx, [(d.lod, slot[d.character, d.piece], d.triangles * 3, d.first_index, d.base_vertex, d.character)
+                                                           for d in self.draws], characters, choices, weapons_visibility, CASCADES if shadows else 0))
             except GpuCullError as exc:
                 raise RenderError(f"{exc} (the cpu cull path has no such limit)") from None
             for draw in self.draws:  # every draw reads its list out of the one list buffer (baseInstance)
                 draw.instances = self.gpu.lists
-            # The draws that count each visible agent once, per LOD: its first common piece where that
-            # LOD has it, else the choices of its first variation group (a LOD may merge the pieces
-            # into one mesh per choice, as the built-in zombie's LOD3 does).
+            # The draws that count each visible agent once, per LOD: its character's first common piece
+            # where that LOD has it, else the choices of its first variation group (a LOD may merge the
+            # pieces into one mesh per choice, as the built-in zombie's LOD3 does).
             self._counting_draws = []
-            for lod in range(self.lod_count):
-                at = [(k, d) for k, d in enumerate(self.draws) if d.lod == lod]
-                first = [k for k, d in at if slot[d.piece] == 0 and not self._piece_group[d.piece]]
-                group = next(iter(self.groups), None)
-                self._counting_draws += first or [k for k, d in at if group is not None and self._piece_group[d.piece] == group]
-        # A sphere around the bind pose, widened for poses that reach out or lie down (death).
-        allpos = np.concatenate([m.positions for m in meshes]).astype(np.float64)
-        lo, hi = allpos.min(axis=0), allpos.max(axis=0)
-        self.bound_center = (lo + hi) / 2.0
-        self.bound_radius = float(np.linalg.norm(hi - lo) * 0.5 * 1.3)
+            for k, groups in enumerate(self.groups):
+                for lod in range(self.lod_counts[k]):
+                    at = [(i, d) for i, d in enumerate(self.draws) if d.lod == lod and d.character == k]
+                    first = [i for i, d in at if slot[k, d.piece] == characters[k].common_first and not self._piece_group[k][d.piece]]
+                    group = next(iter(groups), None)
+                    self._counting_draws += first or [i for i, d in at if group is not None and self._piece_group[k][d.piece] == group]
         self.shadows = shadows
         self.shadow_size = int(shadow_size)
         self.shadow_map = None
@@ -354,7 +382,8 @@ class CrowdRenderer(GLStage):
         self.sun_dir = np.array(SUN_DIR)
         self.crowd_box: tuple[np.ndarray, np.ndarray] | None = None  # world (lo, hi) the agents stand in; None: measured each frame
         self.set_occlusion(occlusion)
-        self.last = {"triangles": 0, "instances": 0, "visible": 0, "draws": 0, "lod_counts": [0] * self.lod_count, "shadow_instances": 0}
+        self.last = {"triangles": 0, "instances": 0, "visible": 0, "draws": 0, "lod_counts": [0] * self.lod_count, "shadow_instances": 0,
+                     "cast_visible": [0] * len(self.cast)}
 
     # -- resources
 
@@ -476,24 +505,30 @@ class CrowdRenderer(GLStage):
     def clear_color() -> tuple[float, float, float]:
         return tuple(c ** (1 / 2.2) for c in FOG_COLOR)
 
-    def prepare(self, camera: Camera, instances: Instances, row_offset=0, cull_now: bool = True) -> "FrameView":
+    def prepare(self, camera: Camera, instances: Instances, row_offset=0, cull_now: bool = True, palette: PaletteLayout | None = None) -> "FrameView":
         """Cull, pick LODs, sort agents into draws and upload their records (the CPU path), or upload
         every agent's record and dispatch the GPU cull that does the rest (the GPU path). Returns what
         every later pass of this frame receives (the view and light matrices, and the visible set where
         the CPU knows it: None on the GPU path).
         `row_offset` (an int, or one per agent) is the first palette row of the ring slot each agent's
-        palette is read from (see AnimationProcessor.row_offset). With `cull_now` False the GPU path
+        palette is read from (see AnimationProcessor.row_offset); `palette` the processor's layout (None:
+        the one the processor makes for these characters and counts). With `cull_now` False the GPU path
         uploads the records and leaves the dispatch to ``cull()``, so a caller can time the GPU's part alone."""
         camera.validate()
         instances.validate(self.groups)
+        counts = instances.counts()
+        if len(counts) != len(self.cast):
+            raise RenderError(f"instances of {len(counts)} characters, the renderer draws {len(self.cast)}")
         matrix = view_proj(camera)
         shadow = self.light_cascades(camera, instances) if self.shadows else None
         eye = np.asarray(camera.eye, np.float64)
+        palette = palette or PaletteLayout.make([c.skeleton.joint_count for c in self.cast], counts)
+        self.palette = palette  # the layout this frame's records address (tests and benchmarks read lists back by it)
         # Shadows come from lists of their own, culled against the sun's volume (an agent outside the
         # view still shadows into it) one LOD coarser: the colour lists need no margin.
         if self.gpu is not None:
             try:
-                self.gpu.upload(self._all_records(instances, eye, row_offset))
+                self.gpu.upload(self._all_records(instances, eye, row_offset, palette), counts)
             except GpuCullError as exc:
                 raise RenderError(f"{exc} (the cpu cull path needs no lists: --cull cpu)") from None
             self.refresh_counts()  # the newest frame the GPU has finished (none queued for 0 agents: 0)
@@ -502,55 +537,71 @@ class CrowdRenderer(GLStage):
                 self.cull()
             return FrameView(camera, matrix, shadow, None)
         n = len(instances)
+        kind = self._kinds(counts)
         rel = instances.position - eye[None]
         scale = instances.scale.astype(np.float64)
-        centers = rel + self.bound_center[None] * scale[:, None]
-        radii = self.bound_radius * scale
+        bound = self.bounds[0] if kind is None else self.bounds[kind]  # (4,), or (N, 4) for a cast
+        centers = rel + bound[..., :3] * scale[:, None]
+        radii = bound[..., 3] * scale
         visible = sphere_visible(frustum_planes(matrix), centers, radii) if self.culling and n else np.ones(n, bool)
         dist = np.linalg.norm(centers, axis=1)
-        lod = np.minimum(np.searchsorted(np.asarray(self.lod_distances), dist, side="right"), self.lod_count - 1)
+        top = self.lod_counts[0] - 1 if kind is None else np.asarray(self.lod_counts)[kind] - 1
+        lod = np.minimum(np.searchsorted(np.asarray(self.lod_distances), dist, side="right"), top)
         shown = np.flatnonzero(visible).astype(np.uint32)
-        records = self._all_records(instances, eye, row_offset)  # once, for the colour and the shadow lists
-        counts = self._upload_lists(instances, records, shown, lod[shown], "instances")
-        self.last = {"triangles": int(sum(c * d.triangles for c, d in zip(counts, self.draws))), "instances": int(sum(counts)),
-                     "visible": len(shown), "draws": sum(1 for c in counts if c),
-                     "lod_counts": np.bincount(lod[shown], minlength=self.lod_count).tolist(), "shadow_instances": 0}
-        for draw, c in zip(self.draws, counts):
+        records = self._all_records(instances, eye, row_offset, palette)  # once, for the colour and the shadow lists
+        drawn = self._upload_lists(instances, records, shown, lod[shown], kind, "instances")
+        self.last = {"triangles": int(sum(c * d.triangles for c, d in zip(drawn, self.draws))), "instances": int(sum(drawn)),
+                     "visible": len(shown), "draws": sum(1 for c in drawn if c),
+                     "lod_counts": np.bincount(lod[shown], minlength=self.lod_count).tolist(), "shadow_instances": 0,
+                     "cast_visible": [len(shown)] if kind is None else np.bincount(kind[shown], minlength=len(self.cast)).tolist()}
+        for draw, c in zip(self.draws, drawn):
             draw.count = c
         lit = None
         if self.shadows:
             lit = np.stack([sphere_visible(frustum_planes(m), centers, radii) & (dist - radii <= reach) if self.culling and n else np.ones(n, bool)
                             for m, reach in zip(shadow.view_proj, shadow.reach_m)])
-            shadow_lod = np.minimum(lod + 1, self.lod_count - 1)
+            shadow_lod = np.minimum(lod + 1, top)
             for k, in_cascade in enumerate(lit):
                 casting = np.flatnonzero(in_cascade).astype(np.uint32)
-                counts = self._upload_lists(instances, records, casting, shadow_lod[casting], "shadow_instances", k)
-                for draw, c in zip(self.draws, counts):
+                drawn = self._upload_lists(instances, records, casting, shadow_lod[casting], kind, "shadow_instances", k)
+                for draw, c in zip(self.draws, drawn):
                     draw.shadow_counts[k] = c
-                self.last["shadow_instances"] += int(sum(counts))
+                self.last["shadow_instances"] += int(sum(drawn))
         return FrameView(camera, matrix, shadow, visible, lit, lod)
 
-    def _upload_lists(self, instances: Instances, all_records: np.ndarray, shown: np.ndarray, lod: np.ndarray, buffer: str,
-                      cascade: int = 0) -> list[int]:
-        """The CPU path's lists: the records of agents `shown` at LODs `lod`, sorted once per variation
-        group so that each draw's instances are one contiguous slice (a boolean mask per draw cost 12
-        passes over the crowd), written into each draw's `buffer` ("instances", or "shadow_instances" of that `cascade`).
-        `all_records`: every agent's record (``_all_records``).
-        Returns each draw's count."""
+    def _kinds(self, counts: tuple[int, ...]) -> np.ndarray | None:
+        """Each agent's character (uint8 (N,)) for a cast of these counts, kept while they stay; None for one character."""
+        if len(self.cast) == 1:
+            return None
+        if getattr(self, "_kind_counts", None) != counts:
+            self._kind_counts = counts
+            self._kind = np.repeat(np.arange(len(counts), dtype=np.uint8), counts)
+        return self._kind
+
+    def _upload_lists(self, instances: Instances, all_records: np.ndarray, shown: np.ndarray, lod: np.ndarray, kind: np.ndarray | None,
+                      buffer: str, cascade: int = 0) -> list[int]:
+        """The CPU path's lists: the records of agents `shown` at LODs `lod` (of characters `kind`, None:
+        the one), sorted once per variation group so that each draw's instances are one contiguous slice
+        (a boolean mask per draw cost 12 passes over the crowd), written into each draw's `buffer`
+        ("instances", or "shadow_instances" of that `cascade`). `all_records`: every agent's record
+        (``_all_records``). Returns each draw's count."""
         records = all_records[shown]
+        lods = self.lod_count
+        character = 0 if kind is None else kind[shown].astype(np.int64)
         slices = {}  # group ("" for pieces every agent wears) → (records sorted by draw key, start offsets per key)
-        for group in ["", *self.groups]:
-            choices = len(self.groups[group]) if group else 1
+        for group in ["", *self.group_names]:
+            choices = max(len(g.get(group, ())) for g in self.groups) if group else 1
             variant = instances.variant.get(group) if group else None
-            key = (lod * choices + (variant[shown] if variant is not None else 0)).astype(np.uint16)
+            key = ((character * lods + lod) * choices + (variant[shown] if variant is not None else 0)).astype(np.uint16)
             order = np.argsort(key, kind="stable")  # a radix sort for 16-bit keys
-            starts = np.concatenate([[0], np.cumsum(np.bincount(key, minlength=self.lod_count * choices))])
+            starts = np.concatenate([[0], np.cumsum(np.bincount(key, minlength=len(self.cast) * lods * choices))])
             slices[group] = (records[order], starts, choices)
         counts = []
         for draw in self.draws:
-            group = self._piece_group[draw.piece]
+            groups = self.groups[draw.character]
+            group = self._piece_group[draw.character][draw.piece]
             sorted_records, starts, choices = slices[group]
-            k = draw.lod * choices + (self.groups[group].index(draw.piece) if group else 0)
+            k = (draw.character * lods + draw.lod) * choices + (groups[group].index(draw.piece) if group else 0)
             chosen = sorted_records[starts[k]:starts[k + 1]]
             target = draw.instances if buffer == "instances" else draw.shadow_instances[cascade]
             size = max(chosen.nbytes, INSTANCE_DTYPE.itemsize)  # exact: a smaller crowd frees what it no longer needs
@@ -561,17 +612,21 @@ class CrowdRenderer(GLStage):
             counts.append(len(chosen))
         return counts
 
-    def _all_records(self, instances: Instances, eye: np.ndarray, row_offset) -> np.ndarray:
+    def _all_records(self, instances: Instances, eye: np.ndarray, row_offset, palette: PaletteLayout) -> np.ndarray:
         """Every agent's instance record, as the shaders (and the GPU cull) read them, written into
         arrays kept from frame to frame: the palette texel code of agent i is a fixed base plus its ring
         slot's first row, so only that addition runs per frame (the processor keeps x under 4096 and
-        its rows under 2^20: texel_code)."""
+        its rows under 2^20: texel_code); the character bits are fixed while the cast's counts are."""
         n = len(instances)
-        if getattr(self, "_scratch_n", -1) != n:
-            self._scratch_n = n
+        if getattr(self, "_scratch_layout", None) != palette:
+            self._scratch_layout = palette
             self._scratch = np.empty(n, INSTANCE_DTYPE)
-            x, y = palette_texel(np.arange(n), 0, 0, self.agents_per_row, self.joint_count)
+            x, y = palette.texel(np.arange(n), 0, 0)
             self._texel_base = texel_code(x, y)
+            kind = self._kinds(palette.counts)
+            self._character_bits = None if kind is None else kind.astype(np.uint32) << np.uint32(CHARACTER_SHIFT)
+        if len(self._scratch) != n:
+            raise RenderError(f"{n} instances, but the palette holds {palette.agents} agents")
         records, fields = self._scratch, self._scratch["packed"]
         # The subtraction in float64 (agents far from the origin), rounded once into the record; a column
         # at a time, which is 3 times as fast as numpy's (N, 3) into strided (N, 3) broadcast.
@@ -583,8 +638,11 @@ class CrowdRenderer(GLStage):
         tint = instances.tint
         fields[:, 1] = tint.view("<u4")[:, 0] if tint.dtype == np.uint8 and tint.flags.c_contiguous else _rgba8(tint)
         write_heading(instances.yaw, fields[:, 2])
-        fields[:, 3] = 0
-        for g, group in enumerate(self.groups):
+        if self._character_bits is None:
+            fields[:, 3] = 0
+        else:
+            fields[:, 3] = self._character_bits
+        for g, group in enumerate(self.group_names):
             v = instances.variant.get(group)
             if v is not None:
                 fields[:, 3] |= v.astype(np.uint32) << np.uint32(4 * g)
@@ -597,11 +655,9 @@ class CrowdRenderer(GLStage):
         if self.gpu is None or pending is None:
             return False
         planes, light_planes, eye = pending  # the view's planes, (each cascade's planes, reach), the eye
-        bound = np.array([*self.bound_center, self.bound_radius])
-        self.gpu.run(planes, bound, 0.0, self.lod_distances, self.lod_count, self.culling,
-                     occlusion=None if self.pyramid is None else (self.pyramid, eye))
+        self.gpu.run(planes, 0.0, self.lod_distances, self.culling, occlusion=None if self.pyramid is None else (self.pyramid, eye))
         if light_planes is not None:
-            self.gpu.run_shadow(light_planes[0], bound, self.lod_distances, self.lod_count, self.culling, light_planes[1])
+            self.gpu.run_shadow(light_planes[0], self.lod_distances, self.culling, light_planes[1])
         return True
 
     def refresh_counts(self, wait: bool = False) -> None:
@@ -611,8 +667,10 @@ class CrowdRenderer(GLStage):
             return
         counts = self.gpu.counts(wait).astype(np.int64)
         lod_counts = [0] * self.lod_count
+        cast_visible = [0] * len(self.cast)
         for k in self._counting_draws:
             lod_counts[self.draws[k].lod] += int(counts[k])
+            cast_visible[self.draws[k].character] += int(counts[k])
         for draw, c in zip(self.draws, counts):
             draw.count = int(c)
         shadow = self.gpu.shadow_counts(wait).astype(np.int64)  # (cascades, draws)
@@ -620,7 +678,7 @@ class CrowdRenderer(GLStage):
             draw.shadow_counts = [int(c) for c in shadow[:, d]]
         self.last = {"triangles": int(sum(c * d.triangles for c, d in zip(counts, self.draws))), "instances": int(counts.sum()),
                      "visible": int(sum(lod_counts)), "draws": int(np.count_nonzero(counts)), "lod_counts": lod_counts,
-                     "shadow_instances": int(shadow.sum())}
+                     "shadow_instances": int(shadow.sum()), "cast_visible": cast_visible}
 
     def draws_anything(self, agents: int) -> bool:
         """Whether this frame's passes have instances to draw (the GPU path cannot know: any agent may be)."""
@@ -646,7 +704,7 @@ class CrowdRenderer(GLStage):
         if box is None:
             pos = instances.position if some else np.zeros((1, 3))
             box = (pos.min(axis=0), pos.max(axis=0))
-        top = float(self.bound_center[1] + self.bound_radius) * (float(np.max(instances.scale)) if some else 1.0)
+        top = float(np.max(self.bounds[:, 1] + self.bounds[:, 3])) * (float(np.max(instances.scale)) if some else 1.0)
         lo, hi = np.asarray(box[0], np.float64).copy(), np.asarray(box[1], np.float64).copy()
         hi[1] = max(hi[1], lo[1] + top)  # as tall as an agent's bound
         return cascades(camera, self.sun_dir, (lo, hi), self.shadow_size, LIGHTING["u_fog_density"])

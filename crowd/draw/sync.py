@@ -21,6 +21,8 @@ from typing import Callable
 
 import numpy as np
 
+from ..frame import move_agents
+
 
 class PaletteSync:
     def __init__(self, history: int, agents: int = 0):
@@ -35,12 +37,11 @@ class PaletteSync:
         """A new palette ring (another history, or a new bake): the palettes kept so far are gone."""
         self.frames = deque(maxlen=self.history if history is None else history)
 
-    def resize(self, agents: int, frame: int) -> None:
-        """Agents kept keep their birth frame; new ones are born in `frame`."""
-        born = np.full(agents, frame, np.int64)
-        keep = min(agents, len(self.born))
-        born[:keep] = self.born[:keep]
-        self.born = born
+    def resize(self, agents: int, frame: int, moves=None) -> None:
+        """Agents kept keep their birth frame; new ones are born in `frame`. `moves`: where each character's
+        kept agents went (crowd.frame.cast_moves; None: agents 0 .. min(old, new) - 1 stay where they are)."""
+        moves = [(0, 0, min(agents, len(self.born)))] if moves is None else moves
+        self.born = move_agents(self.born, moves, agents, fill=frame)
 
     def spawned(self, agents, frame: int) -> None:
         """Agents (indices or a mask) that (re)spawned in `frame`."""

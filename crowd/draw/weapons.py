@@ -106,25 +106,41 @@ def pack_rigid(mesh: RigidMesh, to_socket: np.ndarray) -> np.ndarray:
 class WeaponRenderer(GLStage):
     """Owns the weapon meshes, their instance buffers and programs."""
 
-    def __init__(self, ctx: moderngl.Context, character: Character, shadows: bool, gpu_cull: bool = False):
+    def __init__(self, ctx: moderngl.Context, characters, shadows: bool, gpu_cull: bool = False):
+        """`characters`: one Character, or the cast's; every prop of every character that has a socket is
+        a weapon, numbered across the cast in its order (``first_weapon`` says where each one's start)."""
         self._objects = GLObjects()
         self._meshes = []
-        if not character.props or not character.sockets:
-            raise WeaponError(f"character {character.name!r} has no weapons to hold (props and a socket joint are both needed)")
+        cast = [characters] if isinstance(characters, Character) else list(characters)
+        armed = [c for c in cast if c.props and c.sockets]
+        if not armed:
+            names = ", ".join(repr(c.name) for c in cast)
+            raise WeaponError(f"character {names} has no weapons to hold (props and a socket joint are both needed)")
         self.ctx = ctx
-        self.names = list(character.props)
-        self.socket_joint = int(next(iter(character.sockets.values())))
-        bind = np.linalg.inv(np.asarray(character.skeleton.inverse_bind, np.float64))
-        self.socket_bind = bind[self.socket_joint]  # the socket joint's model matrix at bind
-        self.inverse_grip = np.stack([np.linalg.inv(np.asarray(p.grip, np.float64)) for p in character.props.values()])
+        props, self.names, joints, binds = [], [], [], []
+        self.first_weapon = []  # per character of the cast: its first weapon's number (its props come in order)
+        for c in cast:
+            self.first_weapon.append(len(self.names))
+            if not (c.props and c.sockets):
+                continue
+            joint = int(next(iter(c.sockets.values())))
+            bind = np.linalg.inv(np.asarray(c.skeleton.inverse_bind, np.float64))[joint]  # the socket joint's model matrix at bind
+            for name, prop in c.props.items():
+                props.append(prop)
+                self.names.append(name if len(armed) == 1 else f"{c.name}/{name}")
+                joints.append(joint)
+                binds.append(bind)
+        self.socket_joints = np.array(joints, np.int64)  # per weapon: the socket joint of its character
+        self.socket_bind = np.stack(binds)  # per weapon (W, 4, 4): that socket's model matrix at bind
+        self.inverse_grip = np.stack([np.linalg.inv(np.asarray(p.grip, np.float64)) for p in props])
         # Per weapon mesh: the socket's skinning matrix times this gives the weapon in model space. It is
         # baked into the mesh's vertices (pack_rigid), so an instance is the read-back socket rows as they are.
-        self._socket_to_weapon = np.stack([self.socket_bind @ g for g in self.inverse_grip])
-        grip_origin = np.stack([np.asarray(p.grip, np.float64)[:, 3] for p in character.props.values()])  # (W, 4)
+        self._socket_to_weapon = np.einsum("wij,wjk->wik", self.socket_bind, self.inverse_grip)
+        grip_origin = np.stack([np.asarray(p.grip, np.float64)[:, 3] for p in props])  # (W, 4)
         self._grip_point = grip_origin[:, :3]  # (W, 3): the grip point in each weapon's space
         self._grip_in_socket = np.einsum("wij,wj->wi", self._socket_to_weapon, grip_origin)  # the grip point, as baked
         self.gpu_cull = gpu_cull
-        self.lod_count = max(len(p.lods) for p in character.props.values())
+        self.lod_count = max(len(p.lods) for p in props)
         draws = len(self.names) * self.lod_count  # draw w * lod_count + lod: weapon w at that LOD
         if gpu_cull:
             if len(self.names) > 16:
@@ -141,7 +157,7 @@ class WeaponRenderer(GLStage):
                 self._shadow_commands = self._objects.add(ctx.buffer(reserve=CASCADES * draws * COMMAND_DTYPE.itemsize))
         self.shadows = shadows
         shared = []  # the GPU path's (vertices, indices) of every mesh, for one vertex and one index buffer
-        for w, prop in enumerate(character.props.values()):
+        for w, prop in enumerate(props):
             lods = prop.lods + (prop.lods[-1],) * (self.lod_count - len(prop.lods))
             for lod, mesh in enumerate(lods):
                 vertices, indices = pack_rigid(mesh, self._socket_to_weapon[w]), best_triangle_order(mesh.indices, len(mesh.positions))
@@ -180,7 +196,7 @@ class WeaponRenderer(GLStage):
         # agent gets up again; and what was in hand last frame, where the next drop comes from.
         self.dropped = self._held_before = self.drawn
         # How far below its grip point each weapon reaches along its +Z, the axis a dropped weapon lies on.
-        self._low_z = np.array([float(np.min(np.asarray(prop.lods[0].positions, np.float64)[:, 2])) for prop in character.props.values()]) - self._grip_point[:, 2]
+        self._low_z = np.array([float(np.min(np.asarray(prop.lods[0].positions, np.float64)[:, 2])) for prop in props]) - self._grip_point[:, 2]
         self.last = {"weapons": 0, "dropped": 0, "drawn": 0, "draws": 0, "triangles": 0}
 
     def _vao(self, mesh: dict, kind: str, cascade: int = 0) -> moderngl.VertexArray:
@@ -202,13 +218,14 @@ class WeaponRenderer(GLStage):
         since its socket was gathered) copies them. Composing socket x grip x agent in float64 numpy
         took 11 ms for 50,000 weapons on the dev container."""
         agents, rows = read.agents, read.rows
-        present = (agents < len(weapon_of_agent)) & (read.joints == self.socket_joint)
+        present = agents < len(weapon_of_agent)
         if present.all():
             weapon = weapon_of_agent[agents].astype(np.int64)
         else:
             weapon = np.full(len(agents), -1, np.int64)
             weapon[present] = weapon_of_agent[agents[present]]
         keep = (weapon >= 0) & (weapon < len(self.names))
+        keep[keep] = read.joints[keep] == self.socket_joints[weapon[keep]]  # the socket of the weapon held now
         if not keep.all():
             entry = np.flatnonzero(keep)
             agents, weapon, rows = agents[entry], weapon[entry], rows[entry]

@@ -3,6 +3,9 @@ per-agent Python loop.
 
 Contract: ``CrowdAI(agents, seed, motion, config)``; per frame ``step(dt)``, then ``instances()``
 (render input) and ``write_layers(out)`` (the processor's (N, 4, 4) input, written in place).
+A crowd of several characters: ``CrowdAI(agents, seed, motions, config, shares=...)``, one Motion per
+character; each character's agents are one block, in the cast's order (crowd.frame.cast_counts), and
+each agent moves and animates with its own character's clips, strides and speeds.
 ``hit(agents)`` is how the player strikes; ``player`` is a float64 point on the ground (x, z) that
 the window moves, or that ``PlayerScript`` walks in headless mode.
 
@@ -48,7 +51,7 @@ import numpy as np
 
 from ..asset.model import CONTACT_M, foot_joints
 from ..asset.pose import global_matrices, sample_clip
-from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, Instances, empty_layers
+from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, FrameError, Instances, cast_counts, cast_firsts, cast_moves, empty_layers
 from ..search import golden_section_max
 from ..settings import SETTINGS, group
 from .agent_pool import PARAMS, AgentPool, PoolError, SharedArrays, available_cores
@@ -164,6 +167,7 @@ class Motion:
     # (FOOT_SAMPLES + 1 evenly spaced, the last at phase 1), the model-space (x, z) of the middle of the
     # foot joints on the ground and 1 where one is (3, FOOT_SAMPLES + 1, 3); None: about their origin.
     pivots: np.ndarray | None = dataclasses.field(default=None, compare=False)
+    weapon_first: int = 0  # its first weapon's number among the cast's (a crowd of several characters)
 
     @staticmethod
     def from_bake(bake, roles: dict, strides: dict, upper_body_mask: int = -1, head_count: int = 0, weapon_count: int = 0,
@@ -322,6 +326,21 @@ def turn_about_planted_foot(m: Motion, phase, weights, hx0, hz0, hx1, hz1, scale
     return np.where(planted, dx, 0.0), np.where(planted, dz, 0.0)
 
 
+@dataclass
+class _AgentMotion:
+    """The Motion fields the locomotion functions read, per agent (arrays), for a crowd of several
+    characters: locomotion_weights, blended_stride and phase_rate take it where they take a Motion."""
+
+    walk_stride: np.ndarray
+    run_stride: np.ndarray
+    run_speed: np.ndarray
+    walk_slowest: np.ndarray
+    duration: dict  # {"idle": per agent}
+
+
+_KIND_FIELDS = ("_m_walk_stride", "_m_run_stride", "_m_run_speed", "_m_walk_slowest", "_m_idle")  # per agent, a cast of several only
+
+
 class PlayerScript:
     """The headless player: walks a circle through the crowd and strikes the nearest zombie in reach at
     a steady rhythm. Deterministic: it depends on time only."""
@@ -368,9 +387,21 @@ class _Agents:
 
 
 class CrowdAI:
-    def __init__(self, agents: int, seed: int, motion: Motion, config: AIConfig | None = None, origin=(0.0, 0.0)):
+    def __init__(self, agents: int, seed: int, motion, config: AIConfig | None = None, origin=(0.0, 0.0), shares=None):
+        """`motion`: a Motion, or one per character of a cast, whose `shares` (as many, each above 0;
+        default equal) say how much of the crowd each character is."""
         self.config = (config or AIConfig()).validate()
-        self.motion = motion
+        motions = (motion,) if isinstance(motion, Motion) else tuple(motion)
+        shares = (1.0,) * len(motions) if shares is None else tuple(shares)
+        if not motions or len(shares) != len(motions):
+            raise AIError(f"a cast needs a share per character: {len(motions)} characters, {len(shares)} shares")
+        try:
+            cast_counts(0, shares)
+        except FrameError as exc:
+            raise AIError(str(exc)) from None
+        self.motions, self.shares = motions, tuple(float(x) for x in shares)
+        self.cast = (0,) * len(motions)  # agents of each character, in the cast's order
+        self._kind_fields = _KIND_FIELDS if len(motions) > 1 else ()
         self.seed = int(seed)
         self.rng = np.random.default_rng(self.seed)
         origin = np.asarray(origin, np.float64)
@@ -385,8 +416,8 @@ class CrowdAI:
         self.separation_seconds = 0.0  # CPU time spent in separation so far: what bounds a big crowd's step
         self.substeps = 0  # substeps so far: the think budget's block of the next one is substeps % think_every
         self.focus: tuple = ()  # ground points (x, z) besides the player near which agents think every substep: the camera
-        self._layer_template: tuple = (None, None)  # (clip indices, write_layers' constant columns for a run of agents)
-        self._motion_tables(motion)
+        self._layer_template: dict = {}  # per character: (clip indices, write_layers' constant columns for a run of agents)
+        self._motion_tables()
         self._pool: AgentPool | None = None  # worker processes, started when a crowd is big enough to split
         self._block: SharedArrays | None = None  # the agents' arrays while the pool steps them
         self._grid_block: SharedArrays | None = None  # where each grid cell's agents start, for the list's builds
@@ -396,19 +427,63 @@ class CrowdAI:
         self._allocate(0)
         self.resize(agents)
 
-    def _motion_tables(self, motion: Motion) -> None:
-        # Action lengths by action code, for one gather per step; NO_ACTION never ends by time.
-        self._action_length = np.array([np.inf] + [motion.duration[r] if motion.clip[r] >= 0 else np.inf for r in ACTION_ROLES[1:]])
-        self._action_clip = np.array([0] + [max(motion.clip[r], 0) for r in ACTION_ROLES[1:]], np.float32)
+    @property
+    def motion(self) -> Motion:
+        """The first character's Motion (the only one in a crowd of one character)."""
+        return self.motions[0]
 
-    def set_motion(self, motion: Motion) -> None:
-        """New clips, durations or speeds (a re-bake, a clip's playback speed): every agent keeps its state
-        and its speed factor; top speeds follow the new locomotion speeds."""
-        self.motion = motion
-        self._motion_tables(motion)
+    def _motion_tables(self) -> None:
+        """Per character (rows) and action code: lengths and clips, for one gather per step (NO_ACTION
+        never ends by time); which roles each has; the values the locomotion reads per agent."""
+        ms = self.motions
+        self._action_length = np.array([[np.inf] + [m.duration[r] if m.clip[r] >= 0 else np.inf for r in ACTION_ROLES[1:]] for m in ms])
+        self._action_clip = np.array([[0] + [max(m.clip[r], 0) for r in ACTION_ROLES[1:]] for m in ms], np.float32)
+        self._role_clip = {role: np.array([m.clip[role] for m in ms]) for role in ("attack", "hit", "death")}
+        self._upper_mask = np.array([m.upper_body_mask for m in ms], np.float32)
+        self._per_kind = {"_m_walk_stride": np.array([m.walk_stride for m in ms]), "_m_run_stride": np.array([m.run_stride for m in ms]),
+                          "_m_run_speed": np.array([m.run_speed for m in ms]), "_m_walk_slowest": np.array([m.walk_slowest for m in ms]),
+                          "_m_idle": np.array([m.duration["idle"] for m in ms], np.float64)}
+        self._walk_speed = np.array([m.walk_speed for m in ms])
+        self._run_speed = np.array([m.run_speed for m in ms])
+
+    def _fill_kind_fields(self) -> None:
+        """Each agent's copy of its character's locomotion values (a cast of several characters)."""
+        for name in self._kind_fields:
+            getattr(self, name)[:] = self._per_kind[name][self.kind]
+
+    def _m(self, a=None, agents=None):
+        """The motion the locomotion functions take for the agents of `a` (the crowd, or a think's
+        agents; `agents`: indices into it): the Motion itself for one character (scalars), else the
+        agents' own values."""
+        if not self._kind_fields:
+            return self.motions[0]
+        a = self if a is None else a
+        pick = (lambda name: getattr(a, name)) if agents is None else (lambda name: getattr(a, name)[agents])
+        return _AgentMotion(pick("_m_walk_stride"), pick("_m_run_stride"), pick("_m_run_speed"), pick("_m_walk_slowest"), {"idle": pick("_m_idle")})
+
+    def _kind_of(self, a, agents=None):
+        """The character (row of the per-character tables) of agents of `a`: 0 for a crowd of one."""
+        if not self._kind_fields:
+            return 0
+        return a.kind if agents is None else a.kind[agents]
+
+    def action_length(self, action: np.ndarray, kind=0) -> np.ndarray:
+        """Seconds an action lasts (inf for none), per agent, for agents of characters `kind`."""
+        return self._action_length[0][action] if np.ndim(kind) == 0 and kind == 0 and len(self.motions) == 1 else self._action_length[kind, action]
+
+    def set_motion(self, motion: Motion, kind: int = 0) -> None:
+        """New clips, durations or speeds for one character (a re-bake, a clip's playback speed): every
+        agent keeps its state and its speed factor; top speeds follow the new locomotion speeds."""
+        motions = list(self.motions)
+        motions[kind] = motion
+        self.motions = tuple(motions)
+        self._motion_tables()
+        self._fill_kind_fields()
         self._stale = True
-        self.walk_top[:] = motion.walk_speed * self.speed_factor
-        self.chase_top[:] = np.where(self.runner, motion.run_speed, motion.walk_speed) * self.speed_factor
+        first = cast_firsts(self.cast)
+        part = slice(int(first[kind]), int(first[kind + 1]))
+        self.walk_top[part] = motion.walk_speed * self.speed_factor[part]
+        self.chase_top[part] = np.where(self.runner[part], motion.run_speed, motion.walk_speed) * self.speed_factor[part]
 
     def set_config(self, config: AIConfig) -> None:
         """New AI settings at run time (the panel): the world size follows the new settings."""
@@ -430,7 +505,7 @@ class CrowdAI:
               "phase_rate", "_pending",  # the think budget's: the phase's rate between thinks, the time since the last,
               "_goal_x", "_goal_z")  # and the heading a far agent turns toward between thinks
     _OTHER = {"state": np.int8, "action": np.int8, "health": np.int16, "runner": bool, "scale": np.float32, "head": np.int32,
-              "weapon": np.int16,
+              "weapon": np.int16, "kind": np.int8,  # kind: the agent's character, the cast's index
               "spawned_step": np.int64,
               "_exact": bool,  # thinks every substep (the think budget)
               "_coast_turn": bool}  # turns toward its goal heading between thinks
@@ -438,7 +513,7 @@ class CrowdAI:
     def _layout(self, n: int) -> dict:
         """Every per-agent array, name -> (dtype, shape): the agents' state (``_names``), the neighbour
         list's per-agent part and the layers write_layers fills."""
-        layout = {name: (np.float64, (n,)) for name in self._FLOAT}
+        layout = {name: (np.float64, (n,)) for name in (*self._FLOAT, *self._kind_fields)}
         layout.update({name: (dtype, (n,)) for name, dtype in self._OTHER.items()})
         layout["tint"] = (np.uint8, (n, 4))
         layout.update(_cell=(np.int64, (n,)), _cell_order=(np.intp, (n,)),  # the grid of the neighbour lists' last build
@@ -469,7 +544,7 @@ class CrowdAI:
         return was
 
     def _names(self):
-        return (*self._FLOAT, *self._OTHER, "tint")
+        return (*self._FLOAT, *self._kind_fields, *self._OTHER, "tint")
 
     @staticmethod
     def ids(local: np.ndarray) -> np.ndarray:
@@ -505,21 +580,32 @@ class CrowdAI:
         return np.arctan2(self.hx, self.hz)
 
     def resize(self, agents: int) -> None:
-        """Change the agent count at run time: agents 0..min(old, new) keep their state, new ones spawn."""
+        """Change the agent count at run time: each character keeps its first agents, with their state
+        (at their character's new place in a cast of several: crowd.frame.cast_moves), new ones spawn."""
         if isinstance(agents, bool) or not isinstance(agents, (int, np.integer)) or agents < 0:
             raise AIError(f"agent count must be a whole number >= 0, got {agents!r}")
-        n, old = int(agents), self.n
+        n = int(agents)
+        cast = cast_counts(n, self.shares)
+        moves = cast_moves(self.cast, cast)
         self.half_extent = self.config.half_extent_for(n)
-        kept = {name: getattr(self, name)[: min(n, old)] for name in self._names()}
+        kept = {name: [getattr(self, name)[before:before + count] for before, _, count in moves] for name in self._names()}
         was = self._allocate(n)
-        for name, arr in kept.items():
-            getattr(self, name)[: len(arr)] = arr
+        for name, blocks in kept.items():
+            array = getattr(self, name)
+            for (_, after, count), block in zip(moves, blocks):
+                array[after:after + count] = block
         del kept
         if was is not None:
             was.close()
-        self.n = n
-        self._spawn(self, np.arange(old, n), anywhere=True)
-        self._exact[old:] = self._must_be_exact(self)[old:]
+        self.n, self.cast = n, cast
+        first = cast_firsts(cast)
+        for k in range(len(cast)):
+            self.kind[first[k]:first[k + 1]] = k
+        self._fill_kind_fields()
+        fresh = np.concatenate([np.arange(after + count, first[k + 1]) for k, (_, after, count) in enumerate(moves)]).astype(np.int64)
+        self._spawn(self, fresh, anywhere=True)
+        self._exact[fresh] = self._must_be_exact(self)[fresh]
+        self.moved = moves  # where each character's kept agents went (the pipeline moves its per-agent state alike)
         # Agents outside a shrunken world are brought inside by the next step's bounds.
 
     def _spawn(self, a, idx: np.ndarray, anywhere: bool) -> None:
@@ -542,12 +628,15 @@ class CrowdAI:
             a.scale[idx] = rng.uniform(0.92, 1.08, k)
             a.tint[idx, :3] = TINTS[rng.integers(0, len(TINTS), k)]
             a.tint[idx, 3] = 255
-            a.head[idx] = rng.integers(0, max(self.motion.head_count, 1), k)
-            armed = (rng.uniform(0, 1, k) < cfg.armed_share) & (self.motion.weapon_count > 0)
-            a.weapon[idx] = np.where(armed, rng.integers(0, max(self.motion.weapon_count, 1), k), -1)
-            m = self.motion
-            a.walk_top[idx] = m.walk_speed * a.speed_factor[idx]
-            a.chase_top[idx] = np.where(a.runner[idx], m.run_speed, m.walk_speed) * a.speed_factor[idx]
+            # Each agent's traits from its own character: its head choices, weapons and speeds.
+            kind = a.kind[idx] if len(self.motions) > 1 else 0
+            heads = np.array([max(m.head_count, 1) for m in self.motions])[kind]
+            weapons = np.array([m.weapon_count for m in self.motions])[kind]
+            a.head[idx] = rng.integers(0, heads, k)
+            armed = (rng.uniform(0, 1, k) < cfg.armed_share) & (weapons > 0)
+            a.weapon[idx] = np.where(armed, np.array([m.weapon_first for m in self.motions])[kind] + rng.integers(0, np.maximum(weapons, 1), k), -1)
+            a.walk_top[idx] = self._walk_speed[kind] * a.speed_factor[idx]
+            a.chase_top[idx] = np.where(a.runner[idx], self._run_speed[kind], self._walk_speed[kind]) * a.speed_factor[idx]
         else:  # while stepping: draws keyed by agent and substep, so any split of the crowd gives the same ones
             draw = self._draws(a.ids(idx), _RESPAWN, 3)
             side = np.minimum((draw[0] * 4.0).astype(np.int64), 3)
@@ -602,14 +691,12 @@ class CrowdAI:
         idx = idx[self.alive()[idx]]
         if not idx.size:
             return
-        m = self.motion
-        if m.clip["death"] >= 0:
-            self.health[idx] -= 1
+        kind = self.kind[idx]
+        self.health[idx] -= (self._role_clip["death"][kind] >= 0).astype(np.int16)  # without a death clip, a zombie does not die
         dying = idx[self.health[idx] <= 0]
         hurt = idx[self.health[idx] > 0]
         self._start(dying, DYING, ACT_DEATH)
-        if m.clip["hit"] >= 0:
-            self._start(hurt, HIT, ACT_HIT)
+        self._start(hurt[self._role_clip["hit"][self.kind[hurt]] >= 0], HIT, ACT_HIT)
         self.aware[hurt] = np.maximum(self.aware[hurt], self.reaction[hurt])  # a hit agent knows where the player is
         self._exact[idx] = True  # a hit is exact from the next substep on, whatever the budget
         self._pending[idx] = 0.0
@@ -708,8 +795,8 @@ class CrowdAI:
         if self._stale:
             grid = self._grid_block
             message = dict(block=(self._block.name, self._block.layout), grid=(grid.name, grid.layout) if grid else None,
-                           config=self.config, motion=self.motion, seed=self.seed, origin=self.origin,
-                           half_extent=self.half_extent, n=self.n)
+                           config=self.config, motions=self.motions, shares=self.shares, cast=self.cast, seed=self.seed,
+                           origin=self.origin, half_extent=self.half_extent, n=self.n)
             self._on_pool(self._pool.sync, [message] * self._pool.workers)
             self._stale = False
 
@@ -776,10 +863,11 @@ class CrowdAI:
         self._block = self._grid_block = None
         if message is None:
             return
-        self.config, self.motion, self.seed = message["config"], message["motion"], message["seed"]
-        self.origin, self.half_extent, self.n = message["origin"], message["half_extent"], message["n"]
-        self._motion_tables(self.motion)
-        self._layer_template = (None, None)
+        self.config, self.motions, self.shares, self.seed = message["config"], message["motions"], message["shares"], message["seed"]
+        self.origin, self.half_extent, self.n, self.cast = message["origin"], message["half_extent"], message["n"], message["cast"]
+        self._kind_fields = _KIND_FIELDS if len(self.motions) > 1 else ()
+        self._motion_tables()
+        self._layer_template = {}
         self._block = SharedArrays(*reversed(message["block"]))
         for name, array in self._block.arrays.items():
             setattr(self, name, array)
@@ -857,7 +945,7 @@ class CrowdAI:
         phase moves with it (backward for a push from the front): the planted foot stays where it stands.
         In a blend at walk-or-run weight w (1 - idle's), the stance foot moves w x the blended stride per
         cycle; below w = 1/2 the push is left a slide rather than spin the legs."""
-        m = self.motion
+        m = self._m(agents=agents)
         speed = np.sqrt(self.vx[agents] ** 2 + self.vz[agents] ** 2)
         w_idle, _, _, run_t = locomotion_weights(m, speed, self.walk_top[agents], self.speed_factor[agents])
         stepping = (w_idle <= 0.5) & (self.state[agents] < DYING)
@@ -979,7 +1067,7 @@ class CrowdAI:
         a.cooldown -= h
 
         # Transitions; events are rare, so they work on index lists.
-        done = np.flatnonzero(a.action_time >= self._action_length[a.action])
+        done = np.flatnonzero(a.action_time >= self.action_length(a.action, self._kind_of(a)))
         if done.size:
             s = state[done]
             back = done[(s == ATTACK) | (s == HIT)]
@@ -999,8 +1087,10 @@ class CrowdAI:
         state[notice] = CHASE
         lost = np.flatnonzero((dist > cfg.forget_radius) & (state == CHASE))
         state[lost] = WANDER
-        if self.motion.clip["attack"] >= 0:
+        if np.any(self._role_clip["attack"] >= 0):
             ready = (dist < cfg.attack_reach) & (a.cooldown <= 0.0) & (state == CHASE)
+            if len(self.motions) > 1:
+                ready &= self._role_clip["attack"][a.kind] >= 0  # characters without an attack clip do not strike
             strike = np.flatnonzero(ready & (h > 0.0) if np.ndim(h) else ready)  # agents given no time strike nobody
             self._start(strike, ATTACK, ACT_ATTACK, a)
             self.player_hits_taken += int(strike.size)
@@ -1048,7 +1138,7 @@ class CrowdAI:
         if budgeted:
             turning &= h > 0.0  # agents that do not think here (exact ones inside a block) keep their heading
         hx0, hz0 = a.hx, a.hz
-        m = self.motion
+        m = self._m(a)
         weights = locomotion_weights(m, speed, a.walk_top, a.speed_factor)  # (idle, walk, run, run share)
         ux, uz = self._turn(a, turning, gx, gz, glen, cfg.turn_rate * substep)
         self._pivot(a, np.flatnonzero(turning & (a.action == NO_ACTION) & ((a.hx != hx0) | (a.hz != hz0))), hx0, hz0,
@@ -1101,11 +1191,18 @@ class CrowdAI:
     def _pivot(self, a, turned: np.ndarray, hx0: np.ndarray, hz0: np.ndarray, weights) -> None:
         """Shift the agents `turned` (indices into the group `a`) so that they turned about the foot they
         stand on (turn_about_planted_foot); `weights`: the group's idle, walk and run weights."""
-        if not turned.size or self.motion.pivots is None or not self.config.plant_feet:
+        if not turned.size or not self.config.plant_feet:
             return
-        dx, dz = turn_about_planted_foot(self.motion, a.phase[turned], [w[turned] for w in weights], hx0[turned], hz0[turned],
-                                         a.hx[turned], a.hz[turned], a.scale[turned])
-        a.x[turned], a.z[turned] = self._inside(a.x[turned] + dx, a.z[turned] + dz)
+        kind = a.kind[turned] if len(self.motions) > 1 else np.zeros(len(turned), np.int8)
+        for k, m in enumerate(self.motions):  # each character pivots on its own feet
+            if m.pivots is None:
+                continue
+            mine = turned if len(self.motions) == 1 else turned[kind == k]
+            if not mine.size:
+                continue
+            dx, dz = turn_about_planted_foot(m, a.phase[mine], [w[mine] for w in weights], hx0[mine], hz0[mine],
+                                             a.hx[mine], a.hz[mine], a.scale[mine])
+            a.x[mine], a.z[mine] = self._inside(a.x[mine] + dx, a.z[mine] + dz)
 
     def _inside(self, x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ground positions clamped into the world square (a pivot at its edge must not step out)."""
@@ -1252,7 +1349,8 @@ class CrowdAI:
         elapsed = self.action_time if agents is None else self.action_time[agents]
         fade_len = max(self.config.crossfade, 1e-6)
         fade_in = np.minimum(elapsed * (1.0 / fade_len), 1.0)
-        fade_out = np.minimum(np.maximum((self._action_length[action] - elapsed) * (1.0 / fade_len), 0.0), 1.0)
+        kind = self._kind_of(self, agents) if agents is not None else self._kind_of(self)
+        fade_out = np.minimum(np.maximum((self.action_length(action, kind) - elapsed) * (1.0 / fade_len), 0.0), 1.0)
         fade = np.minimum(fade_in, np.where(action == ACT_DEATH, 1.0, fade_out))
         return np.where(action == NO_ACTION, 0.0, fade)
 
@@ -1274,20 +1372,41 @@ class CrowdAI:
 
     def _write_layer_range(self, out: np.ndarray, lo: int, hi: int) -> None:
         """Layers of agents lo..hi. Most agents play no action, so the action layer is written for the
-        acting ones only."""
-        m = self.motion
+        acting ones only. In a cast of several characters each character's block takes its own clips."""
+        first = cast_firsts(self.cast)
+        for k, m in enumerate(self.motions):
+            a, b = max(lo, int(first[k])), min(hi, int(first[k + 1]))
+            if a < b:
+                self._write_locomotion(out, a, b, k, m)
+        acting = lo + np.flatnonzero(self.action[lo:hi])
+        if acting.size:
+            action = self.action[acting]
+            kind = self._kind_of(self, acting)
+            fade = self.action_fade(acting)
+            mask = self._upper_mask[kind]
+            upper = (action == ACT_ATTACK) & (mask >= 0)
+            # Whole-body actions replace locomotion as they fade in; an upper-body action leaves the legs.
+            out[acting, :3, WEIGHT] *= np.where(upper, 1.0, 1.0 - fade)[:, None]
+            out[acting, 3, CLIP] = self._action_clip[kind, action]
+            out[acting, 3, PHASE] = np.minimum(self.action_time[acting] / self.action_length(action, kind), 1.0)
+            # Upper body: weight W against the locomotion's 1 gives the share W / (W + 1) = fade.
+            out[acting, 3, WEIGHT] = np.where(upper, np.minimum(fade / np.maximum(1.0 - fade, 1e-12), MAX_ACTION_WEIGHT), fade)
+            out[acting, 3, MASK] = np.where(upper, mask, -1)
+
+    def _write_locomotion(self, out: np.ndarray, lo: int, hi: int, kind: int, m: Motion) -> None:
+        """The locomotion layers of agents lo..hi, all of character `kind` (Motion `m`)."""
         # The constant columns copied from a run's worth of template (4x a broadcast's speed), then the
         # phase (rounded to float32 once) and the weights (each written by the operation that makes it)
         # into their strided columns, a run of agents at a time: each column is a strided pass over its
         # run, and a run of 16,384 agents' layers (1 MB) stays in the cache for all of them, where a
         # million agents' (64 MB) went through memory once per column.
         clips = tuple(m.clip[role] for role in ("idle", "walk", "run"))
-        if self._layer_template[0] != clips:  # the first frame, or a new bake
+        if self._layer_template.get(kind, (None,))[0] != clips:  # the first frame, or a new bake
             template = np.zeros((LAYER_RUN, LAYERS, 4), np.float32)
             template[:, :3, CLIP] = clips
             template[:, :, MASK] = -1.0
-            self._layer_template = (clips, template)
-        template = self._layer_template[1]
+            self._layer_template[kind] = (clips, template)
+        template = self._layer_template[kind][1]
         for start in range(lo, hi, LAYER_RUN):
             run = slice(start, min(start + LAYER_RUN, hi))
             o = out[run]
@@ -1298,18 +1417,6 @@ class CrowdAI:
             vx, vz = self.vx[run], self.vz[run]
             locomotion_weights(m, np.sqrt(vx * vx + vz * vz), self.walk_top[run], self.speed_factor[run],
                                out=[o[:, layer, WEIGHT] for layer in range(3)])
-        acting = lo + np.flatnonzero(self.action[lo:hi])
-        if acting.size:
-            action = self.action[acting]
-            fade = self.action_fade(acting)
-            upper = (action == ACT_ATTACK) & (m.upper_body_mask >= 0)
-            # Whole-body actions replace locomotion as they fade in; an upper-body action leaves the legs.
-            out[acting, :3, WEIGHT] *= np.where(upper, 1.0, 1.0 - fade)[:, None]
-            out[acting, 3, CLIP] = self._action_clip[action]
-            out[acting, 3, PHASE] = np.minimum(self.action_time[acting] / self._action_length[action], 1.0)
-            # Upper body: weight W against the locomotion's 1 gives the share W / (W + 1) = fade.
-            out[acting, 3, WEIGHT] = np.where(upper, np.minimum(fade / np.maximum(1.0 - fade, 1e-12), MAX_ACTION_WEIGHT), fade)
-            out[acting, 3, MASK] = np.where(upper, m.upper_body_mask, -1)
 
     def layers(self) -> np.ndarray:
         return self.write_layers(np.empty((self.n, LAYERS, 4), np.float32))
@@ -1320,14 +1427,14 @@ class CrowdAI:
         pos = np.zeros((self.n, 3))
         pos[:, 0] = self.x
         pos[:, 2] = self.z
-        variant = {"head": self.head} if self.motion.head_count else {}
+        variant = {"head": self.head} if any(m.head_count for m in self.motions) else {}
         ranges = self._ready_ranges() if self.n else 1
         if ranges == 1:
             yaw = self.yaw.astype(np.float32)
         else:
             self._phase(HEADINGS, ranges)
             yaw = self._yaw_out.copy()
-        return Instances(pos, yaw, self.scale, self.tint, variant)
+        return Instances(pos, yaw, self.scale, self.tint, variant, None if len(self.cast) == 1 else self.cast)
 
     def check(self) -> list[str]:
         """Invariants every step must keep; empty when all hold (tests, and the stats' `ai_faults`)."""
@@ -1377,7 +1484,7 @@ def phase_rate(m: Motion, speed, walk, run_t, scale=1.0):
     with the ground (idle's feet stand still). Standing agents play idle at its own rate. `scale`: the
     agents' sizes, which their strides grow with (the skinning shader scales the whole model)."""
     moving = np.maximum(speed, m.walk_slowest * walk) / blended_stride(m, run_t, scale)
-    return np.where(speed > 0.0, moving, 1.0 / max(m.duration["idle"], 1e-3))
+    return np.where(speed > 0.0, moving, 1.0 / np.maximum(m.duration["idle"], 1e-3))
 
 
 def locomotion_layers(m: Motion, speed: float, frames: int, dt: float, speed_factor: float = 1.0):

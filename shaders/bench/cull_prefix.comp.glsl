@@ -55,6 +55,6 @@ void main() {
     }
     for (int e = 0; e < emits; ++e) {
         int d = draws[e];
-        if (d >= 0) lists[uint(u_list_base + d) * u_capacity + group_counts[group * uint(u_draws) + uint(d)] + slots[e]] = r;
+        if (d >= 0) lists[u_record_base + list_start[d] + group_counts[group * uint(u_draws) + uint(d)] + slots[e]] = r;
     }
 }
