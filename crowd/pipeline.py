@@ -39,7 +39,7 @@ from .anim.foot_skate import FootSkateMonitor
 from .anim.processor import AnimationProcessor, palette_joint_positions
 from .anim.roles import bake_roles, match_roles
 from .asset.gltf import load_character
-from .asset.model import Character
+from .asset.model import Character, cast_weapons
 from .draw.readback import RING, SocketRead, SocketReadback
 from .draw.render import CrowdRenderer, FrameView, view_proj
 from .draw.sync import PaletteSync
@@ -241,7 +241,7 @@ class CrowdPipeline(GLStage):
         """Character k's Motion: its baked roles at its playback speeds, its weapons numbered after those
         of the armed characters before it (as the weapon stage numbers them)."""
         member = self.cast[k]
-        first = sum(len(m.character.props) for m in self.cast[:k] if m.character.props and m.character.sockets)
+        first = cast_weapons([m.character for m in self.cast])[0][k]
         motion = motion_for(member.character, member.bake, member.roles, member.clip_speed if clip_speed is None else clip_speed)
         return dataclasses.replace(motion, weapon_first=first)
 
@@ -277,7 +277,7 @@ class CrowdPipeline(GLStage):
         """Whether a crowd built from `config` needs the weapon stages. Only building and switching weapons
         ask this; once built, the stages that exist say it (an armed share set to 0 at run time keeps
         them, with nobody to gather)."""
-        return config.weapons and config.ai.armed_share > 0 and any(m.character.props and m.character.sockets for m in self.cast)
+        return config.weapons and config.ai.armed_share > 0 and any(m.character.armed for m in self.cast)
 
     def _spec(self, armed: bool | None = None) -> StageSpec:
         """The StageSpec of this pipeline now; `armed` defaults to whether the read-back stage exists."""

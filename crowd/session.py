@@ -19,6 +19,7 @@ import numpy as np
 
 from .anim.bake import BakeError
 from .anim.processor import ProcessorError
+from .asset.model import cast_weapons
 from .draw.render import RenderError, view_proj
 from .draw.weapons import WeaponError
 from .frame import CLIP, MASK, PHASE, WEIGHT, ForcedClip, LayerOverrides
@@ -431,9 +432,7 @@ class CrowdSession(GLStage):
         character = self.character_of(a)
         names = self.clip_names(character)
         weapon = int(ai.weapon[a])
-        weapons = self.pipeline.weapons.names if self.pipeline.weapons is not None else [
-            f"{m.name}/{w}" if len(self.pipeline.cast) > 1 else w for m in self.pipeline.cast if m.character.props and m.character.sockets
-            for w in m.character.props]
+        weapons = cast_weapons([m.character for m in self.pipeline.cast])[1]
         return {
             "agent": a,
             "character": self.pipeline.cast[character].name,

@@ -323,6 +323,11 @@ class Character:
     warnings: list[str] = field(default_factory=list)  # what the import left out or approximated
     textures: list[Texture] = field(default_factory=list)  # base-colour textures the meshes index
 
+    @property
+    def armed(self) -> bool:
+        """Whether it can hold its props: it has some, and a socket joint to hold them in."""
+        return bool(self.props) and bool(self.sockets)
+
     def clip(self, name: str) -> Clip:
         for c in self.clips:
             if c.name == name:
@@ -341,3 +346,16 @@ class Character:
         for c in self.clips:
             c.validate(self.skeleton)
         return self
+
+
+def cast_weapons(characters) -> tuple[list[int], list[str]]:
+    """The weapons of a crowd of `characters` (in the cast's order): every prop of every character that
+    can hold them, numbered in that order. Returns each character's first weapon's number and every
+    weapon's name (the prop's, after its character's where several characters are armed)."""
+    armed = [c for c in characters if c.armed]
+    first, names = [], []
+    for c in characters:
+        first.append(len(names))
+        if c.armed:
+            names += [name if len(armed) == 1 else f"{c.name}/{name}" for name in c.props]
+    return first, names

@@ -37,7 +37,7 @@ import numpy as np
 
 from ..gl import GLObjects, GLStage, load_shader
 from .gpu_cull import BUFFER_UPDATE, COMMAND, COMMAND_DTYPE, GROUP_SIZE, VERTEX_ATTRIB_ARRAY, CountRing
-from ..asset.model import Character, RigidMesh
+from ..asset.model import Character, RigidMesh, cast_weapons
 from ..asset.vertex_cache import best_triangle_order
 from .render import gl_bytes, heading_snorm16, pack_colors, pack_normals, shared_buffers, write_heading
 from .shadows import CASCADES
@@ -112,22 +112,20 @@ class WeaponRenderer(GLStage):
         self._objects = GLObjects()
         self._meshes = []
         cast = [characters] if isinstance(characters, Character) else list(characters)
-        armed = [c for c in cast if c.props and c.sockets]
-        if not armed:
+        if not any(c.armed for c in cast):
             names = ", ".join(repr(c.name) for c in cast)
             raise WeaponError(f"character {names} has no weapons to hold (props and a socket joint are both needed)")
         self.ctx = ctx
-        props, self.names, joints, binds = [], [], [], []
-        self.first_weapon = []  # per character of the cast: its first weapon's number (its props come in order)
+        # Per character of the cast: its first weapon's number (its props come in order); every weapon's name.
+        self.first_weapon, self.names = cast_weapons(cast)
+        props, joints, binds = [], [], []
         for c in cast:
-            self.first_weapon.append(len(self.names))
-            if not (c.props and c.sockets):
+            if not c.armed:
                 continue
             joint = int(next(iter(c.sockets.values())))
             bind = np.linalg.inv(np.asarray(c.skeleton.inverse_bind, np.float64))[joint]  # the socket joint's model matrix at bind
-            for name, prop in c.props.items():
+            for prop in c.props.values():
                 props.append(prop)
-                self.names.append(name if len(armed) == 1 else f"{c.name}/{name}")
                 joints.append(joint)
                 binds.append(bind)
         self.socket_joints = np.array(joints, np.int64)  # per weapon: the socket joint of its character

@@ -229,7 +229,7 @@ def motion_for(character, bake, roles: dict, clip_speed: dict | None = None) -> 
                 measured.append(name)
     mask_row = 0 if upper_body_mask(character.skeleton) is not None else -1
     heads = len({m.piece for m in character.meshes if m.group == "head"})
-    weapons = len(character.props) if character.sockets else 0
+    weapons = len(character.props) if character.armed else 0
     motion = Motion.from_bake(bake, roles, strides, mask_row, heads, weapons, clip_speed)
     notes = motion.notes + tuple(f"clip {name!r} has no stride; measured from its planted feet: {strides[name]:.3f} m a cycle"
                                  for name in measured)
