@@ -42,3 +42,33 @@ class OrbitControl:
         camera.target = self.target.copy()
         camera.eye = self.target + offset
         camera.far = max(400.0, self.distance * 4.0)
+
+
+class FollowControl:
+    """A third-person camera behind the survivor: drag turns it around the survivor and tilts it, the
+    wheel moves it in and out. Its ground forward is where the survivor faces and W runs."""
+
+    HEIGHT = 1.5  # metres above the survivor's feet it looks at
+
+    def __init__(self, yaw: float = math.pi, distance: float = 5.5, pitch: float = math.radians(22.0)):
+        self.yaw = yaw  # the camera sits at (sin yaw, cos yaw) from the survivor, looking back at it
+        self.distance = distance
+        self.pitch = pitch
+
+    def orbit(self, dx: float, dy: float) -> None:
+        self.yaw -= math.radians(0.3 * dx)
+        self.pitch = min(math.radians(75.0), max(math.radians(5.0), self.pitch + math.radians(0.3 * dy)))
+
+    def zoom(self, steps: float) -> None:
+        self.distance = min(40.0, max(2.0, self.distance * (0.88 ** steps)))
+
+    def forward(self) -> np.ndarray:
+        """The camera's forward on the ground (x, z): away from the camera, past the survivor."""
+        return np.array([-math.sin(self.yaw), -math.cos(self.yaw)])
+
+    def apply(self, camera: Camera, survivor_position) -> None:
+        target = np.array([survivor_position[0], self.HEIGHT, survivor_position[1]], np.float64)
+        cp = math.cos(self.pitch)
+        camera.target = target
+        camera.eye = target + self.distance * np.array([cp * math.sin(self.yaw), math.sin(self.pitch), cp * math.cos(self.yaw)])
+        camera.far = 800.0

@@ -167,8 +167,8 @@ class Panel:
         imgui.text("  ".join(f"{k} {v}" for k, v in counts.items()))
         if len(s.pipeline.cast) > 1:
             imgui.text("cast: " + ", ".join(f"{m.name} {n:,}" for m, n in zip(s.pipeline.cast, s.pipeline.ai.cast)))
-        imgui.text("drag: orbit  shift/middle drag: pan  wheel: zoom  click: select")
-        imgui.text("right click: move player  space: strike  P: pause  .: step  H: panel")
+        imgui.text("W/A/S/D: run  right click: run there  space: swing  C: camera")
+        imgui.text("drag: turn the camera  wheel: zoom  click: select  P: pause  .: step  H: panel")
 
     def _draw_clips(self, imgui) -> None:
         s = self.session

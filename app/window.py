@@ -1,9 +1,14 @@
 """The demo window: moderngl-window (pyglet) with the crowd, the ground, the player marker and the ImGui
 panel. Thin: input is turned into CrowdSession calls, the panel into Panel actions.
 
-Mouse: left drag orbits, middle drag or shift + left drag pans, the wheel zooms, a left click (without
-dragging) selects the zombie under the cursor, a right click moves the player there.
-Keys: space strikes, W/A/S/D walk the player, P pauses, "." steps one frame, H hides the panel.
+Two cameras, toggled with C: a third-person camera that follows the survivor (the default where there
+is one; drag turns it around the survivor, the wheel moves it in and out), and the orbit camera (left drag
+orbits, middle drag or shift + left drag pans, the wheel zooms).
+Mouse: a left click (without dragging) selects the zombie under the cursor, a right click sends the
+player there. Keys: W/A/S/D move the player (relative to the camera; behind the survivor it faces where
+the camera looks, so A and D strafe), space swings, C switches cameras, P pauses, "." steps one frame,
+H hides the panel. The HUD (app/hud.py) shows the survivor's health, kills, the zombies near it and the
+round's time against the best.
 """
 
 from __future__ import annotations
@@ -19,7 +24,8 @@ from crowd.gl import import_moderngl_window
 from crowd.scene import Scene
 from crowd.session import CrowdSession
 
-from .camera import OrbitControl
+from .camera import FollowControl, OrbitControl
+from .hud import draw_hud
 from .markers import MarkerRings
 from .panel import Panel
 
@@ -58,6 +64,10 @@ class CrowdWindow(mglw.WindowConfig):
             raise
         self.panel = Panel(self.session, self.launch.get("scene_path"))
         self.orbit = OrbitControl(self.session.pipeline.camera)
+        self.follow = FollowControl()
+        self.camera_mode = "follow" if self.session.pipeline.survivor is not None else "orbit"
+        self.hud_shown: dict | None = None  # what the HUD showed last (the window test reads it)
+        self._steering = False  # whether the keys steered the survivor last frame
         self.keys_down: set = set()
         self._press = None  # where a left press started, to tell a click from a drag
         self._dragged = 0.0
@@ -73,7 +83,11 @@ class CrowdWindow(mglw.WindowConfig):
         self._last_start = started
         dt = min(max(frame_time, 0.0), MAX_FRAME_DT)
         self._walk_player(dt)
-        self.orbit.apply(self.session.pipeline.camera)
+        survivor = self.session.pipeline.survivor
+        if self.camera_mode == "follow" and survivor is not None:
+            self.follow.apply(self.session.pipeline.camera, survivor.position)
+        else:
+            self.orbit.apply(self.session.pipeline.camera)
         width, height = self.wnd.buffer_size
         self.session.pipeline.camera.aspect = width / max(height, 1)
         fbo = self.wnd.fbo
@@ -81,6 +95,7 @@ class CrowdWindow(mglw.WindowConfig):
         self.markers.draw(fbo, self.session.last.view, *self.session.markers())
         self.panel.record_frame(frame_time if frame_time > 0 else dt)
         self.imgui.new_frame()
+        self.hud_shown = draw_hud(self.imgui, self.session.hud(), width)
         self.panel.draw()
         self.imgui.render()
         self.gui.render(self.imgui.get_draw_data())
@@ -91,14 +106,20 @@ class CrowdWindow(mglw.WindowConfig):
         for key, direction in ((keys.W, (0, -1)), (keys.S, (0, 1)), (keys.A, (-1, 0)), (keys.D, (1, 0))):
             if key in self.keys_down:
                 step += direction
-        if not step.any():
-            return
         # Screen-relative: W walks away from the camera.
-        yaw = self.orbit.yaw
+        following = self.camera_mode == "follow" and self.session.pipeline.survivor is not None
+        yaw = self.follow.yaw if following else self.orbit.yaw
         right = np.array([np.cos(yaw), -np.sin(yaw)])
         back = np.array([np.sin(yaw), np.cos(yaw)])
-        move = (step[0] * right + step[1] * back) / np.linalg.norm(step) * PLAYER_SPEED * dt
-        self.session.move_player(self.session.pipeline.ai.player + move)
+        direction = (step[0] * right + step[1] * back) / max(np.linalg.norm(step), 1e-12)
+        if self.session.pipeline.survivor is not None:
+            # The survivor runs where the keys point (behind it, facing where the camera looks: A and D strafe);
+            # with no key down it stops, once, so a right click's run to a point goes on.
+            if step.any() or self._steering:
+                self.session.steer(direction if step.any() else (0.0, 0.0), self.follow.forward() if following and step.any() else None)
+            self._steering = bool(step.any())
+        elif step.any():
+            self.session.move_player(self.session.pipeline.ai.player + direction * PLAYER_SPEED * dt)
 
     # -- input: ImGui first; the scene gets what the panel does not want
 
@@ -116,6 +137,8 @@ class CrowdWindow(mglw.WindowConfig):
         self.keys_down.add(key)
         if key == keys.SPACE:
             self.session.strike()
+        elif key == keys.C and self.session.pipeline.survivor is not None:
+            self._switch_camera()
         elif key == keys.P:
             self.panel.apply("pause", not self.session.paused)
         elif key == keys.PERIOD:
@@ -135,7 +158,10 @@ class CrowdWindow(mglw.WindowConfig):
             return
         self._dragged += abs(dx) + abs(dy)
         states = self.wnd.mouse_states
-        if states.middle or (states.left and self.wnd.modifiers.shift):
+        if self.camera_mode == "follow" and self.session.pipeline.survivor is not None:
+            if states.left or states.middle:
+                self.follow.orbit(dx, dy)
+        elif states.middle or (states.left and self.wnd.modifiers.shift):
             self.orbit.pan(dx, dy)
         elif states.left:
             self.orbit.orbit(dx, dy)
@@ -143,7 +169,7 @@ class CrowdWindow(mglw.WindowConfig):
     def on_mouse_scroll_event(self, x_offset, y_offset) -> None:
         self.gui.mouse_scroll_event(x_offset, y_offset)
         if not self.imgui.get_io().want_capture_mouse:
-            self.orbit.zoom(y_offset)
+            (self.follow if self.camera_mode == "follow" else self.orbit).zoom(y_offset)
 
     def on_mouse_press_event(self, x, y, button) -> None:
         self.gui.mouse_press_event(x, y, button)
@@ -153,13 +179,22 @@ class CrowdWindow(mglw.WindowConfig):
         if button == self.wnd.mouse.right:
             point = self.session.ground_point(*self._pixel(x, y), self.wnd.buffer_size)
             if point is not None:
-                self.session.move_player(point)
+                self.session.go_to(point)
 
     def on_mouse_release_event(self, x, y, button) -> None:
         self.gui.mouse_release_event(x, y, button)
         if self._press is not None and button == self.wnd.mouse.left and self._dragged < 4:
             self.session.pick(*self._pixel(x, y), self.wnd.buffer_size)
         self._press = None
+
+    def _switch_camera(self) -> None:
+        """Behind the survivor, or the orbit camera around where it stands (and back)."""
+        if self.camera_mode == "follow":
+            camera = self.session.pipeline.camera
+            self.orbit = OrbitControl(camera)
+            self.camera_mode = "orbit"
+        else:
+            self.camera_mode = "follow"
 
     def _pixel(self, x, y) -> tuple[float, float]:
         """Window coordinates to framebuffer pixels (they differ on high-DPI screens)."""

@@ -78,7 +78,7 @@ def measure(ctx: moderngl.Context, pipeline, repeats: int = 40) -> dict:
     visibility buffer): the lists compared per draw, then each timed."""
     renderer = pipeline.renderer
     cull = renderer.gpu
-    renderer.prepare(pipeline.camera, pipeline.ai.instances(), 0, cull_now=False, palette=pipeline.processor.layout)  # every record uploaded
+    renderer.prepare(pipeline.camera, pipeline.instances(), 0, cull_now=False, palette=pipeline.processor.layout)  # every record uploaded
     planes = frustum_planes(view_proj(pipeline.camera))
     empty = np.frombuffer(cull.commands.read(), np.uint32).copy()  # the commands as uploaded: counts 0
 

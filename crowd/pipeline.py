@@ -33,7 +33,7 @@ import moderngl
 import numpy as np
 
 from .allocator import keep_freed_memory
-from .anim.bake import AnimationBake
+from .anim.bake import AnimationBake, bake
 from .anim.foot_lock import bake_legs
 from .anim.foot_skate import FootSkateMonitor
 from .anim.processor import AnimationProcessor, palette_joint_positions
@@ -44,12 +44,14 @@ from .draw.readback import RING, SocketRead, SocketReadback
 from .draw.render import CrowdRenderer, FrameView, view_proj
 from .draw.sync import PaletteSync
 from .draw.weapons import AgentFrames, WeaponRenderer
-from .frame import Camera, FrameError, LayerOverrides, cast_counts, move_agents
+from .frame import Camera, FrameError, Instances, LayerOverrides, cast_counts
 from .gl import GLStage
 from .lighting import LIGHTING
 from .progress import bar
 from .settings import DEFAULTS, SETTINGS
 from .sim.ai import LAYERS, AIConfig, CrowdAI, Motion, PlayerScript, motion_for, upper_body_mask
+from .sim.player import ROLES as SURVIVOR_ROLES
+from .sim.player import STRIKE_REACH, Survivor, SurvivorMotion, survivor_motion
 from .stages import CastPart, StageSpec, Stages, build_processor, build_readback, build_renderer, build_weapons
 from .timing import PassTimer
 
@@ -101,6 +103,9 @@ class PipelineConfig:
     cull: str = DEFAULTS["cull"]  # "auto", "gpu" or "cpu": where culling, LOD and the instance lists are made
     foot_lock: bool = DEFAULTS["foot_lock"]  # planted feet held by the processor (the compute path; crowd.anim.foot_lock)
     characters: tuple = ()  # CharacterSpec per character of a mixed crowd; () is one character: model, roles, model_scale above
+    # The player drawn as the built-in survivor (crowd.sim.player), after the crowd. Off here, on in scenes (the
+    # settings' default): a PipelineConfig is the crowd the library draws, a scene is the game the demo plays.
+    survivor: bool = False
 
     def cast(self) -> tuple[CharacterSpec, ...]:
         """The crowd's characters, in order: ``characters``, or the one that model, roles and model_scale name."""
@@ -121,6 +126,7 @@ class CastMember:
     masks: np.ndarray | None
     motion: Motion | None = None
     clip_speed: dict = field(default_factory=dict)  # clip name → playback speed (time scale), where not 1
+    player: bool = False  # the survivor the player plays, not one of the crowd
 
     def part(self) -> CastPart:
         return CastPart(self.character, self.bake, self.masks, self.legs)
@@ -168,31 +174,43 @@ class CrowdPipeline(GLStage):
                 notes = [f"{character.name}: {note}" for note in notes]
             masks = upper_body_mask(character.skeleton)
             self.cast.append(CastMember(spec, character, roles, notes, None, None, masks))
+        if config.survivor:  # the player's character: the cast's last, one agent after the crowd's
+            character = load_character("survivor")
+            self.cast.append(CastMember(CharacterSpec("survivor", 0.0), character, {r: r for r in SURVIVOR_ROLES}, [], None, None,
+                                        upper_body_mask(character.skeleton), player=True))
         started.update(1)
         started.set_description("starting the crowd: the bake")
         # Leave out what the scene does not need: only the clips the roles play are baked.
         for member in self.cast:
-            member.bake = bake_roles(member.character, member.roles, config.bake_fps, config.precision, config.compression_bound_mm)
+            member.bake = self._bake(member, config.bake_fps, config.precision, config.compression_bound_mm)
             member.legs = bake_legs(member.character.skeleton, member.bake)  # what the foot lock holds, if it runs
         started.update(1)
         started.set_description(f"starting the crowd: {config.agents:,} agents")
         self._lock_ground: np.ndarray | None = None  # each agent's ground point (2, N: x, z) at the last run, float64
         self._lock_motion_rows = np.empty((0, 4), np.float32)
         self.latency = SETTINGS["readback_latency"].check(config.readback_latency, PipelineError)
-        for k in range(len(self.cast)):
+        self.crowd_cast = len(specs)  # the cast's first characters are the crowd's; a survivor comes after them
+        for k in range(self.crowd_cast):
             self.cast[k].motion = self._motion(k)
-        self.ai = CrowdAI(config.agents, config.seed, [m.motion for m in self.cast], config.ai, config.origin, shares=[s.share for s in specs])
+        self.ai = CrowdAI(config.agents, config.seed, [m.motion for m in self.cast[:self.crowd_cast]], config.ai, config.origin,
+                          shares=[s.share for s in specs])
+        self.survivor: Survivor | None = None
+        self._survivor_layers = np.zeros((1, LAYERS, 4), np.float32)
+        self._blows_seen = 0  # the AI's strikes on the player already dealt to the survivor
+        if config.survivor:
+            self.survivor = Survivor(self._survivor_motion(), self.ai.origin)
+            self.ai.player = self.survivor.position.copy()
         self.player_script = PlayerScript(self.ai.half_extent * 0.5) if config.scripted_player else None
         if self.player_script is not None:
-            self.player_script.update(self.ai)  # where it starts (time 0: it moves, it strikes nothing yet)
+            self.player_script.update(self.ai, self.survivor)  # where it starts (time 0: it moves, it strikes nothing yet)
         self.layers = np.empty((config.agents, LAYERS, 4), np.float32)  # this frame's layers, as processed
         started.update(1)
         started.set_description("starting the crowd: the GPU stages")
         # Leave out what the scene does not need: no weapons, no socket, or nobody armed → no read-back
         # stage, no gather pass, no weapon meshes, and one palette instead of a ring.
-        self.stages = Stages.build(ctx, self._parts(), self._spec(self._armed(config)), self.ai.cast)
+        self.stages = Stages.build(ctx, self._parts(), self._spec(self._armed(config)), self.counts)
         started.update(1)
-        self.sync = PaletteSync(self.processor.history, config.agents)
+        self.sync = PaletteSync(self.processor.history, self.rows)
         # The running crowd's foot skate: FOOT_SKATE_SAMPLE agents' foot joints ride on the socket read-back.
         self.foot_skate = FootSkateMonitor(self.character.skeleton, FOOT_SKATE_SAMPLE)
         self._socket_entries: dict[int, int] = {}  # frame -> how many of its gathered entries are weapon sockets
@@ -236,6 +254,27 @@ class CrowdPipeline(GLStage):
 
     def _parts(self) -> list[CastPart]:
         return [member.part() for member in self.cast]
+
+    @property
+    def counts(self) -> tuple[int, ...]:
+        """Agents of each character the stages draw: the crowd's, then 1 for the survivor."""
+        return self.ai.cast + ((1,) if self.survivor is not None else ())
+
+    @property
+    def rows(self) -> int:
+        """Agents the stages draw (the palette's rows of agents): the crowd's and the survivor."""
+        return self.ai.n + (1 if self.survivor is not None else 0)
+
+    def _bake(self, member: CastMember, fps, precision: str, bound_mm: float, report=None) -> AnimationBake:
+        """A member's bake: the clips its roles play (only those), or the survivor's (crowd.sim.player.ROLES)."""
+        if member.player:
+            return bake(member.character.skeleton, [member.character.clip(r) for r in SURVIVOR_ROLES], fps, precision,
+                        bound_mm=bound_mm, report=report)
+        return bake_roles(member.character, member.roles, fps, precision, bound_mm, report=report)
+
+    def _survivor_motion(self) -> SurvivorMotion:
+        member = self.cast[-1]
+        return survivor_motion(member.character, member.bake, 0 if member.masks is not None else -1, member.clip_speed)
 
     def _motion(self, k: int, clip_speed: dict | None = None) -> Motion:
         """Character k's Motion: its baked roles at its playback speeds, its weapons numbered after those
@@ -370,7 +409,7 @@ class CrowdPipeline(GLStage):
         """New bakes of the scene's clips, one per character of the cast (CPU only, no GL: a thread may
         run it while frames go on); `report` is crowd.progress's callback."""
         bound_mm = self.config.compression_bound_mm if bound_mm is None else bound_mm
-        return tuple(bake_roles(m.character, m.roles, fps, precision, bound_mm, report=report) for m in self.cast)
+        return tuple(self._bake(m, fps, precision, bound_mm, report) for m in self.cast)
 
     def use_bake(self, bakes, interpolation: str | None = None) -> None:
         """Process `bakes` (from make_bake: one per character) from now on, with `interpolation` (None: the
@@ -386,7 +425,7 @@ class CrowdPipeline(GLStage):
                     bake.clips[i] = dataclasses.replace(clip, loop=old.loop)
         parts = [CastPart(m.character, bake, m.masks, bake_legs(m.character.skeleton, bake)) for m, bake in zip(self.cast, bakes)]
         spec = dataclasses.replace(self._spec(), interpolation=interpolation)
-        self.stages.replace("processor", build_processor(self.ctx, parts, spec, self.ai.cast))
+        self.stages.replace("processor", build_processor(self.ctx, parts, spec, self.counts))
         for member, part in zip(self.cast, parts):
             member.bake, member.legs = part.bake, part.legs
         self._lock_ground = None
@@ -396,14 +435,16 @@ class CrowdPipeline(GLStage):
         self.sync.reset()
         if self.readback is not None:
             self.readback.reset()
-        for k, member in enumerate(self.cast):
+        for k, member in enumerate(self.cast[:self.crowd_cast]):
             member.motion = self._motion(k)
             self.ai.set_motion(member.motion, k)
+        if self.survivor is not None:
+            self.survivor.motion = self._survivor_motion()
 
     def set_processor_path(self, path: str) -> None:
         """Run the same bake on another processor path (compute, fragment or auto), live."""
         path = SETTINGS["processor"].check(path, PipelineError)
-        processor = build_processor(self.ctx, self._parts(), dataclasses.replace(self._spec(), processor_path=path), self.ai.cast)
+        processor = build_processor(self.ctx, self._parts(), dataclasses.replace(self._spec(), processor_path=path), self.counts)
         self.stages.replace("processor", processor)
         self.config = dataclasses.replace(self.config, processor_path=path)
         self._lock_ground = None
@@ -415,7 +456,7 @@ class CrowdPipeline(GLStage):
         """The foot lock on (a processor that holds planted feet, with its state buffers) or off (a
         processor without them, the lock's code compiled out), live; the crowd keeps its state."""
         on = SETTINGS["foot_lock"].check(on, PipelineError)
-        processor = build_processor(self.ctx, self._parts(), dataclasses.replace(self._spec(), foot_lock=on), self.ai.cast)
+        processor = build_processor(self.ctx, self._parts(), dataclasses.replace(self._spec(), foot_lock=on), self.counts)
         self.stages.replace("processor", processor)
         self.config = dataclasses.replace(self.config, foot_lock=on)
         self._lock_ground = None
@@ -444,23 +485,30 @@ class CrowdPipeline(GLStage):
         nothing to float32) and its front times its scale: the foot lock's input, written into arrays
         kept between frames (0.26 ms for 100,000 agents). A new agent, or the first run after the
         processor was made, steps 0; a respawn steps as far as it was moved, which the lock reads as a
-        teleport."""
-        ai, n = self.ai, self.ai.n
+        teleport. The survivor's row follows the crowd's."""
+        ai, n, rows = self.ai, self.ai.n, self.rows
         last = self._lock_ground
-        if last is None or last.shape[1] != n:
-            fresh = np.stack([ai.x, ai.z])
+        if last is None or last.shape[1] != rows:
+            fresh = np.zeros((2, rows))
+            fresh[0, :n], fresh[1, :n] = ai.x, ai.z
+            if self.survivor is not None:
+                fresh[:, n] = self.survivor.position
             if last is not None:
                 keep = min(n, last.shape[1])
                 fresh[:, :keep] = last[:, :keep]
             last = self._lock_ground = fresh
-            self._lock_motion_rows = np.empty((n, 4), np.float32)
+            self._lock_motion_rows = np.empty((rows, 4), np.float32)
         motion = self._lock_motion_rows
-        np.subtract(ai.x, last[0], out=motion[:, 0], casting="same_kind")
-        np.subtract(ai.z, last[1], out=motion[:, 1], casting="same_kind")
-        np.multiply(ai.hx, ai.scale, out=motion[:, 2], casting="same_kind")
-        np.multiply(ai.hz, ai.scale, out=motion[:, 3], casting="same_kind")
-        last[0] = ai.x
-        last[1] = ai.z
+        np.subtract(ai.x, last[0, :n], out=motion[:n, 0], casting="same_kind")
+        np.subtract(ai.z, last[1, :n], out=motion[:n, 1], casting="same_kind")
+        np.multiply(ai.hx, ai.scale, out=motion[:n, 2], casting="same_kind")
+        np.multiply(ai.hz, ai.scale, out=motion[:n, 3], casting="same_kind")
+        last[0, :n] = ai.x
+        last[1, :n] = ai.z
+        if self.survivor is not None:
+            s = self.survivor
+            motion[n] = (*(s.position - last[:, n]), *s.heading)
+            last[:, n] = s.position
         return motion
 
     def set_clip_speed(self, name: str, speed: float, character: int = 0) -> None:
@@ -469,6 +517,11 @@ class CrowdPipeline(GLStage):
         member = self.member(character)
         member.bake.clip_index(name)
         speeds = {**member.clip_speed, name: float(speed)}
+        if int(character) >= self.crowd_cast:  # the survivor's clips: its controller's durations
+            SETTINGS["clip_speed"].check(float(speed), PipelineError, f"clip {name!r}")
+            member.clip_speed = {k: v for k, v in speeds.items() if v != 1.0}
+            self.survivor.motion = self._survivor_motion()
+            return
         motion = self._motion(int(character), speeds)  # checks the range
         member.clip_speed = {k: v for k, v in speeds.items() if v != 1.0}
         member.motion = motion
@@ -480,20 +533,17 @@ class CrowdPipeline(GLStage):
 
     def set_agent_count(self, agents: int) -> None:
         agents = SETTINGS["agents"].check(agents, PipelineError)
-        before = self.ai.cast
+        before = self.ai.n
         self.ai.resize(agents)
-        moves = self.ai.moved  # each character keeps its first agents, at its block's new place
+        moves = list(self.ai.moved)  # each character keeps its first agents, at its block's new place
+        if self.survivor is not None:
+            moves.append((before, agents, 1))  # the survivor's row follows the crowd's
         self.foot_skate.reset()  # (the sample is spread over the new count)
-        self.processor.resize(self.ai.cast)
+        self.processor.resize(self.counts)
         self.layers = np.empty((agents, LAYERS, 4), np.float32)
-        self.sync.resize(agents, self.frames, moves)
+        self.sync.resize(self.rows, self.frames, moves)
         if self._lock_ground is not None:
-            self._lock_ground = move_agents(self._lock_ground.T, moves, agents).T.copy()
-            fresh = np.ones(agents, bool)
-            for _, after, kept in moves:
-                fresh[after:after + kept] = False
-            self._lock_ground[:, fresh] = self.ai.x[fresh], self.ai.z[fresh]
-            self._lock_motion_rows = np.empty((agents, 4), np.float32)
+            self._lock_ground = None  # made anew from where everyone stands; a kept agent steps 0 once
         if any(b != a for b, a, _ in moves[1:]) and self.readback is not None:
             self.readback.reset()  # the sockets queued were gathered for agents that have moved
         self.config = dataclasses.replace(self.config, agents=agents)
@@ -502,8 +552,15 @@ class CrowdPipeline(GLStage):
         """A new crowd from another seed (same count, settings and clips); every agent starts anew."""
         seed = SETTINGS["seed"].check(seed, PipelineError)
         self.config = dataclasses.replace(self.config, seed=seed)
-        old, self.ai = self.ai, CrowdAI(self.agents, seed, [m.motion for m in self.cast], self.ai.config, self.config.origin,
-                                        shares=self.ai.shares)
+        self._new_crowd(seed)
+
+    def _new_crowd(self, seed: int) -> None:
+        """Every agent anew from `seed` (same count, settings and clips)."""
+        old, self.ai = self.ai, CrowdAI(self.agents, seed, [m.motion for m in self.cast[:self.crowd_cast]], self.ai.config,
+                                        self.config.origin, shares=self.ai.shares)
+        if self.survivor is not None:
+            self.ai.player = self.survivor.position.copy()
+        self._blows_seen = 0
         old.close()
         self.foot_skate.reset()
         self.processor.reset_lock()  # other agents now: nothing held is theirs
@@ -543,10 +600,11 @@ class CrowdPipeline(GLStage):
             self.passes_run.append(name)
 
     def block(self, character: int) -> slice:
-        """The agents of one character of the cast (each character's are one block, in the cast's order)."""
+        """The agents of one character of the cast (each character's are one block, in the cast's order;
+        the survivor's, its one row after the crowd's)."""
         self.member(character)
-        first = int(sum(self.ai.cast[:character]))
-        return slice(first, first + int(self.ai.cast[character]))
+        first = int(sum(self.counts[:character]))
+        return slice(first, first + int(self.counts[character]))
 
     def _block(self, overrides: LayerOverrides) -> slice | None:
         """The agents a forced clip may play on: its character's (None: a crowd of one character)."""
@@ -570,19 +628,30 @@ class CrowdPipeline(GLStage):
         if overrides:
             forced = overrides.forced
             overrides.validate(len(self.member(forced.character if forced is not None else 0).bake.clips), LAYERS)
-        sim_time = self.ai.time
+        sim_time, ai_before = self.ai.time, self.ai
+        survivor = self.survivor
         with t.cpu("ai"):
             if self.player_script is not None:
-                self.player_script.update(self.ai)
+                self.player_script.update(self.ai, survivor)
+            landed = False
+            if survivor is not None:  # the player's character moves first: the zombies chase where it is now
+                half = self.ai.half_extent
+                landed = survivor.step(dt, (self.ai.origin - half, self.ai.origin + half))
+                self.ai.player = survivor.position.copy()
             self.ai.focus = (np.asarray(self.camera.eye, np.float64)[[0, 2]],)  # zombies near the camera think every substep
             steps_before = self.ai.steps
             self.ai.step(dt)
-            instances = self.ai.instances()
+            if survivor is not None:
+                steps_before = self._survivor_events(landed, steps_before)
+            instances = self.instances()
             self.layers = layers = self.ai.write_layers()  # the AI's own array: no copy (its workers write it)
             if overrides:
                 overrides.apply(layers, self.ai.time, *self._forced_clip(overrides), within=self._block(overrides))
+            blocks = layers
+            if survivor is not None:  # its row after the crowd's: its own block of layers (its instance: instances())
+                blocks = [layers, survivor.write_layers(self._survivor_layers)]
         self._run("ai")
-        self.sync.spawned(self.ai.spawned_step >= steps_before, f)  # respawned (or added) in this frame's step
+        self.sync.spawned(np.flatnonzero(self.ai.spawned_step >= steps_before), f)  # respawned (or added) in this frame's step
         self._pose_lag.append(float(min(dt, self.ai.config.max_dt)))
         read = None
         if self.readback is not None:
@@ -597,20 +666,25 @@ class CrowdPipeline(GLStage):
                 self.readback_stalls += int(read.stalled)
         with t.cpu("upload"):
             if self.processor.legs is not None:
-                self.processor.upload(layers, self._lock_motion(), self.ai.time - sim_time)
+                # The simulated seconds the frame stepped (a new round's new crowd started its clock anew).
+                stepped = self.ai.time - sim_time if self.ai is ai_before else min(float(dt), self.ai.config.max_dt)
+                self.processor.upload(blocks, self._lock_motion(), stepped)
             else:
-                self.processor.upload(layers)
-        if self.agents:
+                self.processor.upload(blocks)
+        rows = self.rows
+        if rows:
             with t.gpu("process"):
                 self.processor.run()
             self._run("process")
             self.sync.processed(f, fresh=self.processor.runs == 1)  # a new palette: the frames kept before it are gone
-        if self.readback is not None and self.agents:
-            armed = np.flatnonzero(self.ai.armed())
+        weapon_of_agent = self._weapon_of_agent()
+        if self.readback is not None and rows:
+            armed = np.flatnonzero(weapon_of_agent >= 0)
+            armed = armed[(armed >= self.ai.n) | self.ai.armed()[np.minimum(armed, max(self.ai.n - 1, 0))]] if self.ai.n else armed
             # The sample of the foot-skate measure is the first character's agents (its feet, its block).
             feet, foot_joints = self.foot_skate.entries(self.ai.cast[0], self.ai.steady)
             agents = np.concatenate([armed, feet])
-            joints = np.concatenate([self.weapons.socket_joints[self.ai.weapon[armed]], foot_joints])
+            joints = np.concatenate([self.weapons.socket_joints[weapon_of_agent[armed]], foot_joints])
             if self.readback.gather(f, self.processor, agents, joints, t):
                 self._run("gather")
                 self._run("transfer")
@@ -619,7 +693,7 @@ class CrowdPipeline(GLStage):
                 self.foot_skate.sent(f, sampled, instances.position[sampled][:, [0, 2]], instances.yaw[sampled],
                                      instances.scale[sampled], self.ai.time)
         # Each body's palette: frame F - N where the weapon read-back is from that frame, else this one.
-        row_offset = self.sync.row_offsets(None if read is None else read.frame, self.processor.row_offset) if self.agents else 0
+        row_offset = self.sync.row_offsets(None if read is None else read.frame, self.processor.row_offset) if rows else 0
         with t.cpu("cull_lod"):
             # The CPU path culls and packs here; the GPU path packs and uploads every agent's record and
             # then dispatches the cull ("cull": its GPU time; a query around the upload would also count
@@ -628,20 +702,20 @@ class CrowdPipeline(GLStage):
             half, centre = self.ai.half_extent, self.ai.origin
             self.renderer.crowd_box = (np.array([centre[0] - half, 0.0, centre[1] - half]), np.array([centre[0] + half, 0.0, centre[1] + half]))
             view = self.renderer.prepare(self.camera, instances, row_offset, cull_now=False, palette=self.processor.layout)
-            if self.renderer.gpu is not None and self.agents:
+            if self.renderer.gpu is not None and rows:
                 with t.gpu("cull"):
                     self.renderer.cull()
         self._run("cull_lod")
-        if self.renderer.gpu is not None and self.agents:
+        if self.renderer.gpu is not None and rows:
             self._run("cull")
         agent_frames = None
         if self.weapons is not None:
             with t.cpu("attach"):
                 agent_frames = AgentFrames(instances.position, instances.yaw, instances.scale, self.camera.eye)
                 gpu = self.renderer.gpu
-                self.weapons.attach(self.sync.synced(read, self.agents), agent_frames, self.ai.weapon, view.visible,
-                                    None if gpu is None else (gpu.visible, gpu.agents_buffer), view.casting, view.lod,
-                                    fallen=~self.ai.alive())
+                fallen = ~self.ai.alive() if survivor is None else np.append(~self.ai.alive(), False)
+                self.weapons.attach(self.sync.synced(read, rows), agent_frames, weapon_of_agent, view.visible,
+                                    None if gpu is None else (gpu.visible, gpu.agents_buffer), view.casting, view.lod, fallen=fallen)
             self._run("attach")
         self.last = FrameState(f, view, read, row_offset, agent_frames)
         framebuffer.use()
@@ -652,7 +726,7 @@ class CrowdPipeline(GLStage):
                 if self.weapons is not None and self.weapons.casts_shadows():
                     self.weapons.depth_pass(view, self.renderer)
             self._run("shadow")
-        if self.renderer.draws_anything(self.agents):
+        if self.renderer.draws_anything(rows):
             with t.gpu("draw"):
                 self.renderer.color_pass(framebuffer, view, self.processor)
             self._run("draw")
@@ -663,13 +737,55 @@ class CrowdPipeline(GLStage):
         with t.gpu("ground"):
             self.renderer.ground_pass(framebuffer, view)
         self._run("ground")
-        if self.renderer.pyramid is not None and self.agents:
+        if self.renderer.pyramid is not None and rows:
             with t.gpu("hiz"):  # the next frame's occlusion test reads this frame's depth
                 self.renderer.capture_depth(framebuffer, view)
             self._run("hiz")
         t.end_frame()
         self.frames += 1
         return self.last
+
+    # -- the survivor
+
+    def _weapon_of_agent(self) -> np.ndarray:
+        """Each drawn agent's weapon (-1: none): the crowd's, then the survivor's (its character's first)."""
+        if self.survivor is None:
+            return self.ai.weapon
+        first, _ = cast_weapons([m.character for m in self.cast])
+        return np.append(self.ai.weapon, first[-1] if self.cast[-1].character.armed else -1).astype(self.ai.weapon.dtype)
+
+    def instances(self) -> Instances:
+        """What the renderer draws this frame: the crowd's instances, and the survivor's after them."""
+        instances = self.ai.instances()
+        if self.survivor is None:
+            return instances
+        s = self.survivor
+        n = len(instances)
+        position = np.empty((n + 1, 3))
+        position[:n] = instances.position
+        position[n] = (s.position[0], 0.0, s.position[1])
+        variant = {group: np.append(v, 0) for group, v in instances.variant.items()}
+        if "head" in self.renderer.group_names and "head" not in variant:
+            variant["head"] = np.zeros(n + 1, np.int32)
+        return Instances(position, np.append(instances.yaw, np.float32(s.yaw)), np.append(instances.scale, np.float32(1.0)),
+                         np.concatenate([instances.tint, np.full((1, 4), 255, np.uint8)]), variant, self.counts)
+
+    def _survivor_events(self, landed: bool, steps_before: int) -> int:
+        """After the crowd's step: the blows the zombies landed on the survivor, its own blow where its
+        swing landed (on the nearest zombie within its reach), and a new round where its health ran out.
+        Returns the step from which agents count as new (a new round makes them all new)."""
+        s, ai = self.survivor, self.ai
+        s.hurt(ai.player_hits_taken - self._blows_seen)
+        self._blows_seen = ai.player_hits_taken
+        if landed:
+            target = ai.nearest_alive(s.position, STRIKE_REACH)
+            if target >= 0:
+                s.kills += ai.hit([target])
+        if not s.down:
+            return steps_before
+        s.new_round(ai.origin)  # the next round: a new crowd, the survivor back in the middle
+        self._new_crowd(self.config.seed + s.rounds - 1)
+        return 0
 
     def _split_feet(self, read: SocketRead) -> SocketRead:
         """The weapons' part of a read-back; the foot joints gathered after the sockets go to the foot-skate monitor."""
@@ -701,7 +817,7 @@ class CrowdPipeline(GLStage):
             return None
         agents, weapon, _ = self.weapons.drawn
         if body == "drawn":
-            offsets = np.broadcast_to(np.asarray(self.last.row_offset, np.int64), (self.agents,))[agents]
+            offsets = np.broadcast_to(np.asarray(self.last.row_offset, np.int64), (self.rows,))[agents]
         else:
             offsets = np.full(len(agents), self.processor.row_offset(0), np.int64)
         rows = self.processor.read_rows(agents, self.weapons.socket_joints[weapon], offsets).astype(np.float64)

@@ -95,6 +95,7 @@ class Scene:
     processor: str = DEFAULTS["processor"]
     cull: str = DEFAULTS["cull"]
     foot_lock: bool = DEFAULTS["foot_lock"]
+    survivor: bool = DEFAULTS["survivor"]
     camera: CameraSetting | None = None
 
     # The first character's (the only one's in a scene of one character).
@@ -166,7 +167,8 @@ class Scene:
         return PipelineConfig(agents=self.agents, seed=self.seed, characters=tuple(c.spec() for c in self.characters), bake_fps=self.bake_fps,
                               precision=self.precision, compression_bound_mm=self.compression_bound_mm, interpolation=self.interpolation, processor_path=self.processor, shadows=self.shadows, culling=self.culling,
                               occlusion=self.occlusion, lod_distances=tuple(self.lod_distances), ai=self.ai, weapons=self.weapons,
-                              readback_latency=self.readback_latency, cull=self.cull, foot_lock=self.foot_lock)
+                              readback_latency=self.readback_latency, cull=self.cull, foot_lock=self.foot_lock,
+                              survivor=self.survivor)
 
 
 # The keys of each table: the settings of its group, and the few structured keys only scenes have.

@@ -28,6 +28,7 @@ from .pipeline import CrowdPipeline, PipelineError
 from .scene import CameraSetting, Scene, SceneError, save_scene
 from .settings import SETTINGS, group
 from .sim.ai import LAYERS, STATE_NAMES, AIError
+from .sim.player import HEALTH, PlayerError
 
 AI_SETTINGS = group("ai")
 STRIKE_REACH = 2.0  # metres from the player
@@ -336,9 +337,9 @@ class CrowdSession(GLStage):
             "lod_distances": lambda v: self.set_lod_distances(*SETTINGS["lod_distances"].check(v, SessionError)),
             "readback_latency": self.set_readback_latency, "cull": self.set_cull_path, "foot_lock": self.set_foot_lock,
         }
-        if name == "model_scale":
+        if name in ("model_scale", "survivor"):  # what the cast is made of: set when the crowd is built
             SETTINGS[name].check(value, SessionError)
-            raise SessionError("model scale is applied when the crowd is built: save the scene and run it again")
+            raise SessionError(f"{SETTINGS[name].words} is applied when the crowd is built: save the scene and run it again")
         if name in AI_SETTINGS:
             self.set_ai(**{name: value})
         elif name in controls:
@@ -391,28 +392,70 @@ class CrowdSession(GLStage):
         t = -origin[1] / d[1]
         return np.array([origin[0] + t * d[0], origin[2] + t * d[2]])
 
-    def move_player(self, point) -> None:
-        """Put the player at a ground point (x, z), kept inside the world."""
+    def _point(self, point) -> np.ndarray:
+        """A ground point (x, z) kept inside the world, or SessionError."""
         p = np.asarray(point, np.float64).reshape(-1)
         if p.shape != (2,) or not np.all(np.isfinite(p)):
             raise SessionError("the player needs a finite ground point (x, z)")
         ai = self.pipeline.ai
-        ai.player = np.clip(p, ai.origin - ai.half_extent, ai.origin + ai.half_extent)
+        return np.clip(p, ai.origin - ai.half_extent, ai.origin + ai.half_extent)
+
+    def move_player(self, point) -> None:
+        """Put the player (the survivor, where there is one) at a ground point (x, z), kept inside the world."""
+        p = self._point(point)
+        self.pipeline.ai.player = p
+        if self.pipeline.survivor is not None:
+            self.pipeline.survivor.position = p.copy()
+
+    def go_to(self, point) -> None:
+        """The survivor runs to a ground point (x, z) and stops there; without one, the player is put there."""
+        p = self._point(point)
+        if self.pipeline.survivor is None:
+            self.pipeline.ai.player = p
+            return
+        self.pipeline.survivor.walk_to(p)
+
+    def steer(self, move, face=None) -> None:
+        """The survivor moves in a world direction (x, z; its length, at most 1, is the share of full
+        speed) facing `face` (x, z), or where it moves when None (a no-op without a survivor)."""
+        if self.pipeline.survivor is None:
+            return
+        try:
+            self.pipeline.survivor.command(move, face)
+        except PlayerError as exc:
+            raise SessionError(str(exc)) from None
 
     def strike(self) -> int:
-        """The player strikes the nearest living zombie within reach; returns it, or -1."""
+        """The player strikes: the survivor swings its bat (its blow lands on the nearest zombie within
+        reach when the swing does; returns -1), or, without one, the nearest living zombie within reach is
+        hit at once (returns it, or -1)."""
+        if self.pipeline.survivor is not None:
+            self.pipeline.survivor.strike()
+            return -1
         ai = self.pipeline.ai
         target = ai.nearest_alive(ai.player, STRIKE_REACH)
         if target >= 0:
             ai.hit([target])
         return target
 
+    def hud(self) -> dict | None:
+        """What the game's heads-up display shows of the survivor (None without one): health, kills, the
+        living zombies within notice radius, the round and its time, the best time survived."""
+        s = self.pipeline.survivor
+        if s is None:
+            return None
+        ai = self.pipeline.ai
+        r = ai.config.notice_radius
+        near = int(np.count_nonzero(((ai.x - s.position[0]) ** 2 + (ai.z - s.position[1]) ** 2 < r * r) & ai.alive())) if ai.n else 0
+        return {"health": s.health, "health_max": HEALTH, "kills": s.kills, "near": near, "round": s.rounds,
+                "time_s": s.round_time, "best_s": max(s.best_time, s.round_time)}
+
     def markers(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The rings the window draws on the ground: the player (red) and the selected agent (yellow).
         Returns world points (M, 3) float64, radii (M,) and linear RGBA colours (M, 4)."""
         ai = self.pipeline.ai
         points = [(ai.player[0], 0.0, ai.player[1])]
-        radii = [0.6]
+        radii = [0.6 if self.pipeline.survivor is None else 0.75]  # (around the survivor's feet)
         colors = [(0.9, 0.15, 0.1, 1.0)]
         if 0 <= self.selected < ai.n:
             points.append((ai.x[self.selected], 0.0, ai.z[self.selected]))
@@ -461,6 +504,7 @@ class CrowdSession(GLStage):
             compression_bound_mm=p.bake.bound_mm, interpolation=p.processor.interpolation, ai=p.ai.config,
             weapons=p.config.weapons, readback_latency=p.latency, shadows=p.renderer.shadows, culling=p.renderer.culling, occlusion=p.config.occlusion,
             lod_distances=tuple(p.renderer.lod_distances), processor=p.config.processor_path, cull=p.config.cull, foot_lock=p.config.foot_lock,
+            survivor=p.survivor is not None,
             camera=CameraSetting(tuple(float(v) for v in cam.eye), tuple(float(v) for v in cam.target), float(cam.fov_y)))
 
     def save(self, path) -> Path | None:

@@ -221,6 +221,9 @@ _ALL = (
             "occlusion culling against the previous frame's depth pyramid (the gpu cull path; docs/BENCHMARKS.md says where it pays)"),
     Setting("lod_distances", "features", "ascending", (14.0, 40.0, 90.0), "metres from the camera where LOD1, LOD2 and LOD3 start",
             label="LOD distances", low=0, open_low=True, slider=(1, 500)),
+    Setting("survivor", "features", "bool", True,
+            "the player is a survivor to play: a built-in character drawn in the crowd's passes, animated from its speed and "
+            "actions, hurt by the zombies that reach it (off: the player is a point the zombies chase)"),
     Setting("foot_lock", "features", "bool", True,
             "feet that carry weight stay where they came down: the processor holds each planted foot through turns, pushes and "
             "blends, and solves the leg to it (two-bone IK; the compute path only; docs/ACCURACY.md)"),

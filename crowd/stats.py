@@ -46,6 +46,14 @@ def weapon_stats(pipeline) -> dict:
             "gathered": pipeline.readback.last_count, "stalls": pipeline.readback_stalls, "reads": len(pipeline.readback_waits)}
 
 
+def survivor_stats(survivor) -> dict | None:
+    if survivor is None:
+        return None
+    return {"health": survivor.health, "kills": survivor.kills, "round": survivor.rounds, "round_s": round(survivor.round_time, 3),
+            "best_s": round(max(survivor.best_time, survivor.round_time), 3), "blows_taken": survivor.blows,
+            "position": [round(float(v), 4) for v in survivor.position]}
+
+
 def pipeline_stats(pipeline) -> dict:
     """What the pipeline did: its bake, the AI's states, pass timings, passes run, GPU bytes, weapons."""
     p = pipeline
@@ -61,9 +69,11 @@ def pipeline_stats(pipeline) -> dict:
         "cast": [{"name": m.name, "model": str(m.spec.model or "zombie"), "share": m.spec.share, "agents": int(count),
                   "visible": int(visible), "roles": m.roles, "clips": [c.name for c in m.bake.clips], "bytes": m.bake.nbytes,
                   "joints": m.bake.joint_count}
-                 for m, count, visible in zip(p.cast, p.ai.cast, p.renderer.last.get("cast_visible", [0] * len(p.cast)))],
+                 for m, count, visible in zip(p.cast, p.counts, p.renderer.last.get("cast_visible", [0] * len(p.cast)))],
+        # The player's character: its health, score and round (None without one).
+        "survivor": survivor_stats(p.survivor),
         "ai": {"states": p.ai.counts(), "player_hits_taken": p.ai.player_hits_taken, "faults": p.ai.check(),
-               "notes": [note for m in p.cast for note in m.motion.notes],
+               "notes": [note for m in p.cast if m.motion is not None for note in m.motion.notes],
                # The think budget: whether this crowd uses it, and how many zombies think every substep.
                "think_budget": {"on": p.ai.budgeted(), "exact": p.ai.exact_count()}},
         "passes_ms": p.timer.medians(),
@@ -92,7 +102,7 @@ def collect_stats(ctx: moderngl.Context, pipeline, timings: dict[str, list], siz
         "frames": frames,
         "size": list(size),
         "seed": pipeline.config.seed,
-        "model": ", ".join(str(spec.model or "zombie") for spec in config.cast()),
+        "model": ", ".join(str(m.spec.model or "zombie") for m in pipeline.cast),
         **{key: ({**percentiles(timings[key]), "frames": len(timings[key])} if timings.get(key) else None)
            for key in ("frame_period_ms", "frame_latency_ms")},
         "nan_count": pipeline.processor.nan_rows(),

@@ -208,7 +208,7 @@ def test_a_mixed_scene_of_three_draws_each_at_its_share(gl_context, chain_file, 
     if cull == "gpu" and not has_compute(gl_context):
         pytest.skip("no GL 4.3 here")
     cast = (CharacterSpec("zombie", 5.0), CharacterSpec("brute", 3.0), CharacterSpec(str(chain_file), 2.0))
-    config = PipelineConfig(agents=300, seed=4, characters=cast, cull=cull, ai=AIConfig(armed_share=1.0))
+    config = PipelineConfig(agents=300, seed=4, characters=cast, cull=cull, ai=AIConfig(armed_share=1.0), survivor=False)
     size = (480, 270)
     with Offscreen(gl_context, size) as target, CrowdPipeline(gl_context, config) as p:
         assert p.ai.cast == (150, 90, 60)
@@ -237,17 +237,17 @@ def test_a_mixed_scene_of_three_draws_each_at_its_share(gl_context, chain_file, 
 def test_the_crowd_resizes_from_zero_to_thousands_and_back_without_leaks(gl_context):
     from crowd.gl import gpu_bytes
 
-    config = PipelineConfig(agents=0, characters=(CharacterSpec("zombie", 3.0), CharacterSpec("brute", 1.0)))
+    config = PipelineConfig(agents=0, characters=(CharacterSpec("zombie", 3.0), CharacterSpec("brute", 1.0)), survivor=True)
     with Offscreen(gl_context, (96, 54)) as target, CrowdPipeline(gl_context, config) as p:
         p.frame(target.framebuffer, 1 / 30)
         empty = p.gpu_bytes()
         for n in (5, 3000, 7, 0, 1200, 0):
             p.set_agent_count(n)
             p.frame(target.framebuffer, 1 / 30)
-            assert p.ai.cast == cast_counts(n, (3.0, 1.0)) and p.processor.layout.counts == p.ai.cast
+            assert p.ai.cast == cast_counts(n, (3.0, 1.0)) and p.processor.layout.counts == p.counts == p.ai.cast + (1,)
             assert p.processor.nan_rows() == 0
         p.refresh_counts()
-        assert p.gpu_bytes()["palette"] == empty["palette"] == 0
+        assert p.gpu_bytes()["palette"] == empty["palette"]  # the survivor's row alone
 
 
 # -- the AI: each agent moves and animates as its character
@@ -350,7 +350,7 @@ def test_the_characters_flag(tmp_path):
     import json
 
     stats = json.loads((tmp_path / "s.json").read_text())
-    assert [(c["name"], c["agents"]) for c in stats["cast"]] == [("zombie", 4), ("brute", 4)]
+    assert [(c["name"], c["agents"]) for c in stats["cast"]] == [("zombie", 4), ("brute", 4), ("survivor", 1)]  # and the player's
     bad = subprocess.run([sys.executable, "-m", "app.demo", "--headless", "--characters", "zombie=1,nowhere.glb=2"],
                          capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "nowhere.glb" in bad.stderr

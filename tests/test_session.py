@@ -21,7 +21,8 @@ def session(gl_context):
     made = []
 
     def make(**scene):
-        one = {"characters": (CharacterEntry(),)}  # the built-in zombie alone (tests/test_cast.py has the mixed crowd's)
+        # The built-in zombie alone and no survivor (tests/test_cast.py has the mixed crowd's, test_survivor.py the game's).
+        one = {"characters": (CharacterEntry(),), "survivor": False}
         s = CrowdSession(gl_context, Scene(**{"agents": 30, "shadows": False, "ai": AIConfig(half_extent=8.0), **one, **scene}), SIZE[0] / SIZE[1])
         target = Offscreen(gl_context, SIZE)
         fb = target.framebuffer

@@ -214,9 +214,9 @@ def test_crowd_bench_frame_reports_period_and_latency(tmp_path):
     assert [r["agents"] for r in report["rows"]] == [0, 20] and report["device"]
     for row in report["rows"]:
         assert len(row["periods_ms"]) == 2 and row["period_ms"] > 0 and row["latency_ms"] > 0
-    assert "draw" in report["rows"][1]["passes_ms"] and "draw" not in report["rows"][0]["passes_ms"]  # nobody to draw at 0
+    assert "draw" in report["rows"][1]["passes_ms"] and "draw" in report["rows"][0]["passes_ms"]  # the survivor, at 0 too
     row = report["rows"][1]
-    assert row["cull"] == "gpu" and row["drawn"]["visible"] == 20 and row["drawn"]["triangles"] > 0
+    assert row["cull"] == "gpu" and row["drawn"]["visible"] == 21 and row["drawn"]["triangles"] > 0  # 20 zombies and the survivor
     assert set(row["frame_period_ms"]) == {"p50", "p95", "max"} and row["gpu_bytes"]["cull"] > 0
     assert row["weapons"]["weapons"] >= row["weapons"]["drawn"] >= 0  # placed, and drawn of them
     assert main(["frame", "--size", "1x1"]) == 2  # a bad size: one line, exit 2

@@ -52,6 +52,11 @@ def test_window_renders_zombies_and_the_panel_and_takes_clip_settings(display, t
     assert result["bad_refused"] and "playback speed" in result["status"]  # refused in the panel's status line
     assert result["player_moved"] > 0.1 and result["paused"]  # a right click moved the player; P paused
     assert result["selected"] == result["nearest"]  # a left click on a zombie selected it
+    # The survivor: behind it the camera follows; W runs (the run clip), D strafes, space swings; the
+    # zombies that reach it take its health, and the HUD shows it; C switches to the orbit camera.
+    assert result["camera"] == "follow" and result["camera_after_c"] == "orbit"
+    assert result["ran_m"] > 1.0 and result["ran_weight"] > 0.5 and result["strafe_weight"] > 0.5 and result["swinging"]
+    assert result["hud_before"]["health"] == 100 and result["hud_after"]["health"] < 100, (result["hud_before"], result["hud_after"])
     with_panel, without_panel, empty = (np.asarray(Image.open(tmp_path / f"{n}.png"), np.int32) for n in ("with_panel", "without_panel", "empty"))
     assert with_panel.shape == (450, 800, 3)
     # The panel: its corner of the screen changes when it is hidden; the far side does not.

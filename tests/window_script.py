@@ -43,17 +43,54 @@ ai = session.pipeline.ai
 before = ai.player.copy()
 window.on_mouse_press_event(400, 300, wnd.mouse.right)
 window.on_mouse_release_event(400, 300, wnd.mouse.right)
-result["player_moved"] = float(abs(ai.player - before).max())
+for _ in range(10):  # the survivor runs to the clicked point
+    render_frame(window, 1 / 30)
+result["player_moved"] = float(abs(session.pipeline.ai.player - before).max())
 import numpy as np  # noqa: E402
 
 chest = np.stack([ai.x, np.full(ai.n, 1.2), ai.z], axis=1)
-near = int(np.argmin(np.linalg.norm(chest - session.pipeline.camera.eye, axis=1)))
+camera = session.pipeline.camera
+ahead = (chest - camera.eye) @ (np.asarray(camera.target) - camera.eye) > 0  # in front of the camera (the follow camera sees some)
+pixels = session.pipeline.project(chest, wnd.buffer_size)
+shown = ahead & np.all((pixels > 0) & (pixels < wnd.buffer_size), axis=1)
+near = int(np.flatnonzero(shown)[np.argmin(np.linalg.norm(chest[shown] - camera.eye, axis=1))])
 x, y = session.pipeline.project(chest[near : near + 1], wnd.buffer_size)[0] / wnd.pixel_ratio
 window.on_mouse_press_event(x, y, wnd.mouse.left)
 window.on_mouse_release_event(x, y, wnd.mouse.left)
 result["selected"], result["nearest"] = session.selected, near
 window.on_key_event(wnd.keys.P, wnd.keys.ACTION_PRESS, KeyModifiers())
 result["paused"] = session.paused
+window.on_key_event(wnd.keys.P, wnd.keys.ACTION_PRESS, KeyModifiers())
+window.on_key_event(wnd.keys.P, wnd.keys.ACTION_RELEASE, KeyModifiers())
+# The survivor, driven as a player drives it: W held behind it (the follow camera), D to strafe, space to
+# swing; the zombies close in and hurt it, and the HUD's health goes down.
+survivor = session.pipeline.survivor
+result["camera"] = window.camera_mode
+render_frame(window, 1 / 30)
+result["hud_before"] = dict(window.hud_shown)
+start = survivor.position.copy()
+window.on_key_event(wnd.keys.W, wnd.keys.ACTION_PRESS, KeyModifiers())
+for _ in range(20):
+    render_frame(window, 1 / 30)
+result["ran_m"] = float(np.hypot(*(survivor.position - start)))
+result["ran_weight"] = float(session.pipeline.processor.read_palette().shape[0] and window.session.pipeline.survivor._weights[1])
+window.on_key_event(wnd.keys.W, wnd.keys.ACTION_RELEASE, KeyModifiers())
+window.on_key_event(wnd.keys.D, wnd.keys.ACTION_PRESS, KeyModifiers())
+for _ in range(10):
+    render_frame(window, 1 / 30)
+result["strafe_weight"] = float(survivor._weights[2])
+window.on_key_event(wnd.keys.D, wnd.keys.ACTION_RELEASE, KeyModifiers())
+window.on_key_event(wnd.keys.SPACE, wnd.keys.ACTION_PRESS, KeyModifiers())
+window.on_key_event(wnd.keys.SPACE, wnd.keys.ACTION_RELEASE, KeyModifiers())
+render_frame(window, 1 / 30)
+result["swinging"] = survivor.action == 1
+for _ in range(240):  # standing among the horde
+    render_frame(window, 1 / 30)
+    if window.hud_shown["health"] < result["hud_before"]["health"]:
+        break
+result["hud_after"] = dict(window.hud_shown)
+window.on_key_event(wnd.keys.C, wnd.keys.ACTION_PRESS, KeyModifiers())
+result["camera_after_c"] = window.camera_mode
 result["gl"] = window.ctx.info["GL_RENDERER"]
 window.release()
 window.wnd.destroy()

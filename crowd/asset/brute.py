@@ -5,7 +5,7 @@ with nothing downloaded. The brute is the zombie's rig at heavier proportions (t
 names, so every role, mask, foot and socket rule finds the same joints), with clips of its own: a slow,
 wide, lumbering shamble, a heavy charge, and an overhead smash with a sledgehammer held in both hands.
 
-How its body is made from the zombie's (``remodel``): the brute's joints stand where its proportions
+How its body is made from the zombie's (crowd.asset.zombie.remodel): the brute's joints stand where its proportions
 put them (10 % taller, shoulders and hips wider, arms set out); each vertex of the zombie's meshes,
 built with the brute's colours, moves with the joints it is skinned to, each joint carrying it along and
 scaling it about the joint's bone: along the bone by the bone's change in length, across it by the
@@ -29,7 +29,7 @@ import numpy as np
 
 from ..resources import ASSET_DIR
 from . import zombie as z
-from .model import Character, Prop, SkinnedMesh, vertex_normals
+from .model import Character, Prop, SkinnedMesh
 
 ASSET_PATH = ASSET_DIR / "brute.glb"
 TAU = 2.0 * math.pi
@@ -46,13 +46,6 @@ _GIRTH = {
     "hand_r_socket": (1.0, 1.35, 1.35),
     "thigh": (1.40, 1.0, 1.40), "shin": (1.35, 1.0, 1.35), "foot": (1.15, 1.15, 1.0), "toe": (1.15, 1.15, 1.0),
 }
-# The bone each joint's vertices scale about: its own (to the child named here), else (a leaf: the
-# head, the jaw, the left hand, the socket, the toes) its parent's.
-_CHILD = {"hips": "spine", "spine": "chest", "chest": "neck", "neck": "head", "hand_r": "hand_r_socket",
-          **{f"{a}_{s}": f"{b}_{s}" for s in "lr" for a, b in (("shoulder", "upper_arm"), ("upper_arm", "forearm"), ("forearm", "hand"),
-                                                              ("thigh", "shin"), ("shin", "foot"), ("foot", "toe"))}}
-
-
 def _brute_joint(name: str, position) -> tuple[float, float, float]:
     """A joint of the zombie's rest pose moved to the brute's proportions."""
     x, y, zz = position
@@ -87,48 +80,8 @@ PALETTE = z.Palette(skin=(0.52, 0.50, 0.47), pants=(0.28, 0.22, 0.15), shoes=(0.
 # The body: the zombie's meshes, coloured as the brute, moved onto its skeleton.
 
 
-def _scale_about_bones() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per joint: the zombie's rest position, the brute's, and the 3x3 scale about the joint's bone."""
-    names = z.JOINT_NAMES
-    before, after = z.ZOMBIE_BODY.positions(), BRUTE_BODY.positions()
-    parents = [names.index(p) if p else -1 for _, p, _ in z.ZOMBIE_BODY.joints]
-    scales = np.zeros((len(names), 3, 3))
-    for j, name in enumerate(names):
-        base = name[:-2] if name.endswith(("_l", "_r")) else name
-        if name in _CHILD:
-            c = names.index(_CHILD[name])
-            bone_before, bone_after = before[c] - before[j], after[c] - after[j]
-        else:  # a leaf: its parent's bone
-            p = parents[j]
-            bone_before, bone_after = before[j] - before[p], after[j] - after[p]
-        d = bone_before / np.linalg.norm(bone_before)
-        along = np.linalg.norm(bone_after) / np.linalg.norm(bone_before)
-        across = np.eye(3) - np.outer(d, d)
-        girth = np.diag(_GIRTH.get(name, _GIRTH[base]))
-        scales[j] = along * np.outer(d, d) + across @ girth @ across
-    return before, after, scales
-
-
-def remodel(mesh: SkinnedMesh) -> SkinnedMesh:
-    """A zombie mesh on the brute's skeleton: each vertex moved by its joints' moves (position, and scale
-    about the bone), blended by its own skin weights; normals made anew; quantised as the zombie's are."""
-    before, after, scales = _scale_about_bones()
-    p = np.asarray(mesh.positions, np.float64)
-    moved = np.zeros_like(p)
-    for k in range(mesh.joints.shape[1]):
-        j = mesh.joints[:, k].astype(np.int64)
-        w = mesh.weights[:, k].astype(np.float64)[:, None]
-        moved += w * (after[j] + np.einsum("vij,vj->vi", scales[j], p - before[j]))
-    moved = z._quantise(moved / np.sum(mesh.weights, axis=1, dtype=np.float64)[:, None], 1e-6)
-    normals = z._quantise(vertex_normals(moved, mesh.indices.astype(np.int64)), 1e-6)
-    name = mesh.name.replace("zombie_", "brute_")
-    return SkinnedMesh(name=name, piece=mesh.piece, lod=mesh.lod, positions=moved.astype(np.float32), normals=normals.astype(np.float32),
-                       joints=mesh.joints, weights=mesh.weights, indices=mesh.indices, colors=mesh.colors, base_color=mesh.base_color,
-                       group=mesh.group)
-
-
 def build_meshes() -> list[SkinnedMesh]:
-    return [remodel(m) for m in z.build_meshes(PALETTE)]
+    return [z.remodel(m, BRUTE_BODY, _GIRTH, "brute") for m in z.build_meshes(PALETTE)]
 
 
 # ------------------------------------------------------------------------------------------------

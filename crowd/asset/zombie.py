@@ -301,6 +301,9 @@ class Palette:
     shoes: tuple = (0.12, 0.10, 0.09)
     shirt: tuple = (0.55, 0.50, 0.40)
     blood: tuple = (0.35, 0.05, 0.04)
+    eyes: tuple = (0.9, 0.85, 0.55)  # milky
+    wounds: float = 0.45  # how much of a skin blotch is blood (0: clean skin)
+    ragged: bool = True  # torn trouser hems over bare shins (False: trousers down to the shoes)
 
 
 ZOMBIE_PALETTE = Palette()
@@ -310,13 +313,15 @@ BLOOD = np.array(ZOMBIE_PALETTE.blood)
 def _skin_color(pos, u, seed=0, palette: Palette = ZOMBIE_PALETTE):
     blotch = _smoothstep((np.sin(pos[:, 0] * 41.0 + 1.3) * np.sin(pos[:, 1] * 37.0) * np.sin(pos[:, 2] * 53.0 + 0.7) - 0.55) * 4.0)
     c = np.array(palette.skin)[None] * (0.92 + 0.08 * np.sin(pos[:, 1] * 23.0))[:, None]
-    c = c * (1.0 - 0.45 * blotch[:, None]) + np.array(palette.blood)[None] * 0.45 * blotch[:, None]
+    c = c * (1.0 - palette.wounds * blotch[:, None]) + np.array(palette.blood)[None] * palette.wounds * blotch[:, None]
     return np.concatenate([c, np.ones((pos.shape[0], 1))], axis=1)
 
 
 def _leg_color(pos, u, palette: Palette = ZOMBIE_PALETTE):
     skin = _skin_color(pos, u, palette=palette)[:, :3]
-    c = np.where((pos[:, 1] > 0.22)[:, None], np.array(palette.pants)[None], skin)
+    c = np.where((pos[:, 1] > (0.22 if palette.ragged else 0.0))[:, None], np.array(palette.pants)[None], skin)
+    if not palette.ragged:
+        return np.concatenate([c, np.ones((pos.shape[0], 1))], axis=1)
     torn = (pos[:, 1] > 0.22) & (pos[:, 1] < 0.36)  # ragged trouser hems above bare shins
     ragged = np.sin(np.arctan2(pos[:, 2], pos[:, 0] - np.sign(pos[:, 0]) * 0.1) * 7.0) * 0.05 + 0.29
     c = np.where((torn & (pos[:, 1] < ragged))[:, None], skin, c)
@@ -444,7 +449,7 @@ def _build_head(div: int, variant: str, palette: Palette = ZOMBIE_PALETTE) -> Sk
     w[:, J("head")] = 1.0 - w[:, J("jaw")] - neck
     col = _skin_color(pos, None)
     eye = (np.abs(np.abs(pos[:, 0]) - 0.03) < 0.018) & (np.abs(pos[:, 1] - (cy + 0.015)) < 0.014) & (pos[:, 2] > 0.05)
-    col[eye, :3] = np.array([0.9, 0.85, 0.55])  # milky eyes
+    col[eye, :3] = np.array(palette.eyes)
     mouth = (np.abs(pos[:, 0]) < 0.035) & (np.abs(pos[:, 1] - (cy - 0.05)) < 0.008) & (pos[:, 2] > 0.05)
     col[mouth, :3] = np.array([0.15, 0.03, 0.03])
     if variant == "head_b":
@@ -535,6 +540,58 @@ def build_meshes(palette: Palette = ZOMBIE_PALETTE) -> list[SkinnedMesh]:
     proxy.lod = len(LOD_DIVISORS)
     proxy.name = f"{proxy.name}_lod{proxy.lod}"
     return meshes + [proxy]
+
+
+# ------------------------------------------------------------------------------------------------
+# Other builds of the rig (crowd.asset.brute, crowd.asset.survivor): the same joints at other rest
+# positions, and the zombie's meshes moved onto them.
+
+# The bone each joint's vertices scale about: its own (to the child named here), else (a leaf: the
+# head, the jaw, the left hand, the socket, the toes) its parent's.
+_CHILD = {"hips": "spine", "spine": "chest", "chest": "neck", "neck": "head", "hand_r": "hand_r_socket",
+          **{f"{a}_{s}": f"{b}_{s}" for s in "lr" for a, b in (("shoulder", "upper_arm"), ("upper_arm", "forearm"), ("forearm", "hand"),
+                                                              ("thigh", "shin"), ("shin", "foot"), ("foot", "toe"))}}
+
+
+def _scale_about_bones(body: Body, girth: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per joint: the zombie's rest position, `body`'s, and the 3x3 scale about the joint's bone: along
+    the bone by its change in length, across it by the joint's `girth` (x, y, z: the components across
+    the bone, in model axes at rest; by joint name, or its name without the side)."""
+    names = JOINT_NAMES
+    before, after = ZOMBIE_BODY.positions(), body.positions()
+    parents = [names.index(p) if p else -1 for _, p, _ in ZOMBIE_BODY.joints]
+    scales = np.zeros((len(names), 3, 3))
+    for j, name in enumerate(names):
+        base = name[:-2] if name.endswith(("_l", "_r")) else name
+        if name in _CHILD:
+            c = names.index(_CHILD[name])
+            bone_before, bone_after = before[c] - before[j], after[c] - after[j]
+        else:  # a leaf: its parent's bone
+            p = parents[j]
+            bone_before, bone_after = before[j] - before[p], after[j] - after[p]
+        d = bone_before / np.linalg.norm(bone_before)
+        along = np.linalg.norm(bone_after) / np.linalg.norm(bone_before)
+        across = np.eye(3) - np.outer(d, d)
+        scales[j] = along * np.outer(d, d) + across @ np.diag(girth.get(name, girth[base])) @ across
+    return before, after, scales
+
+
+def remodel(mesh: SkinnedMesh, body: Body, girth: dict, name: str) -> SkinnedMesh:
+    """A zombie mesh on `body`'s skeleton: each vertex moved by its joints' moves (position, and scale
+    about the bone), blended by its own skin weights, as skinning blends; normals made anew; quantised
+    as the zombie's are. Named after `name` instead of the zombie."""
+    before, after, scales = _scale_about_bones(body, girth)
+    p = np.asarray(mesh.positions, np.float64)
+    moved = np.zeros_like(p)
+    for k in range(mesh.joints.shape[1]):
+        j = mesh.joints[:, k].astype(np.int64)
+        w = mesh.weights[:, k].astype(np.float64)[:, None]
+        moved += w * (after[j] + np.einsum("vij,vj->vi", scales[j], p - before[j]))
+    moved = _quantise(moved / np.sum(mesh.weights, axis=1, dtype=np.float64)[:, None], 1e-6)
+    normals = _quantise(vertex_normals(moved, mesh.indices.astype(np.int64)), 1e-6)
+    return SkinnedMesh(name=mesh.name.replace("zombie_", f"{name}_"), piece=mesh.piece, lod=mesh.lod, positions=moved.astype(np.float32),
+                       normals=normals.astype(np.float32), joints=mesh.joints, weights=mesh.weights, indices=mesh.indices, colors=mesh.colors,
+                       base_color=mesh.base_color, group=mesh.group)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -713,6 +770,7 @@ class _Gait:
     toe_out: tuple[float, float]  # yaw of each foot, toes outward, radians
     width: float = 0.10  # the feet's distance from the midline
     reach: float = 0.0  # model-space z of the ankle at mid-stance
+    direction: float = 0.0  # radians from +Z (forward) toward +X (the left) that the body travels: pi / 2 steps sideways to the left
 
 
 
@@ -730,14 +788,15 @@ def _foot_path(g: _Gait, side: int, p: np.ndarray, body: Body = ZOMBIE_BODY) -> 
     u = np.where(stance, 0.0, np.mod(delta - 0.5 * g.duty, 1.0) / (1.0 - g.duty))  # share of the swing done
     travel = _smootherstep((u - g.lift) / (1.0 - 2.0 * g.lift))  # share of the stride travelled in world space
     since_mid = np.where(stance, delta, 0.5 * g.duty + u * (1.0 - g.duty))  # body travel since mid-stance, cycles
-    z = g.reach + g.stride * (travel - since_mid)
+    d = g.stride * (travel - since_mid)  # the foot's travel from its mid-stance place, along the body's direction
+    z = g.reach + math.cos(g.direction) * d
     # Straight up (or down) to the swing's height, which clears the contact height at once even in a
     # blend that gives this clip a small weight, then forward in a low arc.
     rise = np.minimum(_smootherstep(u / g.lift), _smootherstep((1.0 - u) / g.lift))
     rise = np.where(stance, 0.0, rise)
     y = body.stance_ankle_y + g.height[side] * rise * (1.0 + 0.25 * np.sin(math.pi * travel))
     sign = 1.0 if side == 0 else -1.0
-    ankle = np.stack([np.full_like(p, sign * g.width), y, z], axis=1)
+    ankle = np.stack([sign * g.width + math.sin(g.direction) * d, y, z], axis=1)
     pitch = np.where(stance, 0.0, g.toe_down[side] * np.sin(math.pi * travel) ** 2)
     return ankle, _toe_of(ankle, pitch, np.full_like(p, sign * g.toe_out[side]), body)
 

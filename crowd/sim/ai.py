@@ -352,12 +352,22 @@ class PlayerScript:
         self.strike_reach = float(strike_reach)
         self._next_strike = self.strike_every
 
-    def update(self, ai: "CrowdAI") -> None:
+    def update(self, ai: "CrowdAI", survivor=None) -> None:
+        """Move the player along its circle and strike on the beat: the AI's player point itself, or,
+        with a `survivor` (crowd.sim.player), that character, told to run to the circle's point and to
+        swing (its blow lands when the swing does)."""
         t = ai.time
         angle = t * self.speed / max(self.radius, 1e-3)
-        ai.player = ai.origin + self.radius * np.array([math.cos(angle), math.sin(angle)])
+        point = ai.origin + self.radius * np.array([math.cos(angle), math.sin(angle)])
+        if survivor is not None:
+            survivor.walk_to(point)
+        else:
+            ai.player = point
         while t >= self._next_strike:
             self._next_strike += self.strike_every
+            if survivor is not None:
+                survivor.strike()
+                continue
             target = ai.nearest_alive(ai.player, self.strike_reach)
             if target >= 0:
                 ai.hit(np.array([target]))
@@ -683,14 +693,15 @@ class CrowdAI:
         i = int(np.argmin(d))
         return i if d[i] <= reach else -1
 
-    def hit(self, agents) -> None:
+    def hit(self, agents) -> int:
         """The player strikes these agents: the last hit kills (where there is a death clip), others
-        play the hit reaction. Dead or dying agents and unknown indices are ignored."""
+        play the hit reaction. Dead or dying agents and unknown indices are ignored. Returns how many
+        the blow killed."""
         idx = np.unique(np.asarray(agents, np.int64).reshape(-1))
         idx = idx[(idx >= 0) & (idx < self.n)]
         idx = idx[self.alive()[idx]]
         if not idx.size:
-            return
+            return 0
         kind = self.kind[idx]
         self.health[idx] -= (self._role_clip["death"][kind] >= 0).astype(np.int16)  # without a death clip, a zombie does not die
         dying = idx[self.health[idx] <= 0]
@@ -700,6 +711,7 @@ class CrowdAI:
         self.aware[hurt] = np.maximum(self.aware[hurt], self.reaction[hurt])  # a hit agent knows where the player is
         self._exact[idx] = True  # a hit is exact from the next substep on, whatever the budget
         self._pending[idx] = 0.0
+        return int(dying.size)
 
     def _start(self, idx: np.ndarray, state: int, action: int, a=None) -> None:
         """Agents `idx` of `a` (the agents of one think; by default the crowd) start an action."""
