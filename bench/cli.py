@@ -179,10 +179,17 @@ def bench_ai(args) -> int:
     rows = []
     budgets = [int(k) for k in args.think_every.split(",")] if args.think_every else [AIConfig().think_every]
     pools = [int(k) for k in args.workers.split(",")] if args.workers else [AIConfig().workers]
-    cases = [(n, k, w) for n in [int(x) for x in args.agents.split(",")] for k in budgets for w in pools]
-    for n, think_every, workers in steps(cases, desc="ai", unit="case"):
-        ai = CrowdAI(n, args.seed, motion, AIConfig(think_every=think_every, workers=workers))
-        script = PlayerScript(ai.half_extent * 0.5)
+    towns = [False, True] if args.town else [False]
+    cases = [(n, k, w, town) for n in [int(x) for x in args.agents.split(",")] for k in budgets for w in pools for town in towns]
+    if args.town:
+        from crowd.asset.town import build_town
+        from crowd.pipeline import TOWN_CIRCLE_M
+
+        obstacles = build_town().obstacles()
+    for n, think_every, workers, town in steps(cases, desc="ai", unit="case"):
+        ai = CrowdAI(n, args.seed, motion, AIConfig(think_every=think_every, workers=workers), obstacles=obstacles if town else None)
+        # The player's circle, as the headless loop walks it (in a town, round the crossing).
+        script = PlayerScript(min(ai.half_extent * 0.5, TOWN_CIRCLE_M) if town else ai.half_extent * 0.5)
         spent = []  # seconds of separation per timed step
         for _ in range(args.warmup):
             script.update(ai)
@@ -208,10 +215,11 @@ def bench_ai(args) -> int:
                "p95_ms": round(float(np.percentile(times, 95)) * 1e3, 4), "separation_ms": round(float(np.median(spent)) * 1e3, 4),
                "separation_mean_ms": round(float(np.mean(spent)) * 1e3, 4),
                "list_builds_per_step": round((ai.pair_builds - builds) / args.steps, 4), "states": ai.counts(),
-               "think_every": think_every, "budgeted": ai.budgeted(), "exact": ai.exact_count(), "workers": used}
+               "think_every": think_every, "budgeted": ai.budgeted(), "exact": ai.exact_count(), "workers": used, "town": town}
         rows.append(row)
         print(f"{n:>8} {think_every if ai.budgeted() else 1:>11} {used:>7} {row['ms_per_step']:>9.3f} {row['mean_ms']:>7.3f} {row['p95_ms']:>8.3f} "
-              f"{row['separation_ms']:>11.3f} {row['list_builds_per_step']:>12.3f} {row['states']['chase']:>8} {row['exact']:>6}")
+              f"{row['separation_ms']:>11.3f} {row['list_builds_per_step']:>12.3f} {row['states']['chase']:>8} {row['exact']:>6}"
+              + ("  town" if town else ""))
     if args.json:
         from crowd.files import atomic_write_bytes
 
@@ -236,7 +244,8 @@ def bench_frame(args) -> int:
     dt = FIXED_DT if args.dt is None else args.dt
 
     size = parse("size", args.size)
-    scene = load_scene(args.scene) if args.scene else Scene()
+    # The default scene on the empty plane (the benchmarks' ground since before the town); a scene file decides for itself.
+    scene = load_scene(args.scene) if args.scene else Scene(town=False)
     ctx = headless_context()
     info = describe(ctx)
     device = f"{info['gl_renderer']}, {info['gl_version']}; {device_cpu()}; moderngl {moderngl.__version__}"
@@ -386,7 +395,7 @@ def bench_compaction(args) -> int:
     rows = []
     print(f"{info['gl_renderer']} | the demo camera, default scene without weapons | median of {args.repeats} runs")
     for n in steps([int(x) for x in args.agents.split(",")], desc="compaction", unit="size"):
-        with CrowdPipeline(ctx, Scene().with_overrides(agents=n, weapons=False, cull="gpu").pipeline_config()) as pipeline:
+        with CrowdPipeline(ctx, Scene(town=False).with_overrides(agents=n, weapons=False, cull="gpu").pipeline_config()) as pipeline:
             pipeline.camera = pipeline.overview_camera(16 / 9)
             row = measure(ctx, pipeline, args.repeats)
         rows.append(row)
@@ -493,6 +502,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "the budget applies from the think_from setting's crowd size on")
     p.add_argument("--workers", default=None,
                    help="comma-separated process counts to compare (1: this process only; 0: one per core; default: the setting's)")
+    p.add_argument("--town", action="store_true", help="each case twice: on open ground, and in the built-in town (its obstacles)")
     p.add_argument("--json", type=Path, help='write the results as JSON to this file')
     p.set_defaults(run=bench_ai)
     p = sub.add_parser("frame", help="the whole headless frame: period (frames back to back, one finish) and latency (a finish per frame)")

@@ -52,7 +52,10 @@ from .settings import DEFAULTS, SETTINGS
 from .sim.ai import LAYERS, AIConfig, CrowdAI, Motion, PlayerScript, motion_for, upper_body_mask
 from .sim.player import ROLES as SURVIVOR_ROLES
 from .sim.player import STRIKE_REACH, Survivor, SurvivorMotion, survivor_motion
+from .asset.town import build_town
+from .draw.town import TownRenderer
 from .stages import CastPart, StageSpec, Stages, build_processor, build_readback, build_renderer, build_weapons
+from .stages import build_town as build_town_stage
 from .timing import PassTimer
 
 # The default camera's neighbourhood of the player in a crowd too big to frame whole, and how far it sees
@@ -61,6 +64,7 @@ from .timing import PassTimer
 VIEW_RADIUS_M = 20.0
 FOG_FAR_M = -math.log(0.05) / LIGHTING["u_fog_density"]
 FOOT_SKATE_SAMPLE = 32  # agents whose feet are read back for the stats' foot_skate: 128 entries beside the sockets
+TOWN_CIRCLE_M = 9.0  # the headless player's circle in a town: round the crossing, clear of the buildings at its corners
 
 
 class PipelineError(ValueError):
@@ -106,6 +110,9 @@ class PipelineConfig:
     # The player drawn as the built-in survivor (crowd.sim.player), after the crowd. Off here, on in scenes (the
     # settings' default): a PipelineConfig is the crowd the library draws, a scene is the game the demo plays.
     survivor: bool = False
+    # The built-in town (crowd.asset.town): drawn, and steered around by the crowd. Off here, on in scenes,
+    # as the survivor: the benchmarks measure the crowd on the empty plane.
+    town: bool = False
 
     def cast(self) -> tuple[CharacterSpec, ...]:
         """The crowd's characters, in order: ``characters``, or the one that model, roles and model_scale name."""
@@ -192,15 +199,19 @@ class CrowdPipeline(GLStage):
         self.crowd_cast = len(specs)  # the cast's first characters are the crowd's; a survivor comes after them
         for k in range(self.crowd_cast):
             self.cast[k].motion = self._motion(k)
+        # The town's obstacles, which the crowd steers around (the town's meshes are the town stage's).
+        self.obstacles = build_town().obstacles() if config.town else None
         self.ai = CrowdAI(config.agents, config.seed, [m.motion for m in self.cast[:self.crowd_cast]], config.ai, config.origin,
-                          shares=[s.share for s in specs])
+                          shares=[s.share for s in specs], obstacles=self.obstacles)
         self.survivor: Survivor | None = None
         self._survivor_layers = np.zeros((1, LAYERS, 4), np.float32)
         self._blows_seen = 0  # the AI's strikes on the player already dealt to the survivor
         if config.survivor:
             self.survivor = Survivor(self._survivor_motion(), self.ai.origin)
             self.ai.player = self.survivor.position.copy()
-        self.player_script = PlayerScript(self.ai.half_extent * 0.5) if config.scripted_player else None
+        # The headless player's circle: through the horde, or in a town round the crossing at the centre, in its streets.
+        radius = self.ai.half_extent * 0.5 if self.obstacles is None else min(self.ai.half_extent * 0.5, TOWN_CIRCLE_M)
+        self.player_script = PlayerScript(radius) if config.scripted_player else None
         if self.player_script is not None:
             self.player_script.update(self.ai, self.survivor)  # where it starts (time 0: it moves, it strikes nothing yet)
         self.layers = np.empty((config.agents, LAYERS, 4), np.float32)  # this frame's layers, as processed
@@ -309,6 +320,10 @@ class CrowdPipeline(GLStage):
         return self.stages.weapons
 
     @property
+    def town(self) -> TownRenderer | None:
+        return self.stages.town
+
+    @property
     def agents(self) -> int:
         return self.ai.n
 
@@ -323,7 +338,7 @@ class CrowdPipeline(GLStage):
         c = self.config
         return StageSpec(layers=LAYERS, processor_path=c.processor_path, interpolation=c.interpolation, lod_distances=c.lod_distances,
                          shadows=c.shadows, culling=c.culling, occlusion=c.occlusion, armed=self.readback is not None if armed is None else armed,
-                         readback_latency=self.latency, cull=c.cull, foot_lock=c.foot_lock)
+                         readback_latency=self.latency, cull=c.cull, foot_lock=c.foot_lock, town=c.town)
 
     # -- run-time settings: the panel and the command line both come through these
 
@@ -344,6 +359,8 @@ class CrowdPipeline(GLStage):
         self.stages.replace("renderer", build_renderer(self.ctx, self._parts(), spec))
         if self.weapons is not None:
             self.stages.replace("weapons", build_weapons(self.ctx, self._parts(), spec))
+        if self.town is not None:
+            self.stages.replace("town", build_town_stage(self.ctx, spec))
 
     def set_cull_path(self, path: str) -> None:
         """Cull on the GPU or the CPU from the next frame: the renderer is built again for it."""
@@ -557,7 +574,7 @@ class CrowdPipeline(GLStage):
     def _new_crowd(self, seed: int) -> None:
         """Every agent anew from `seed` (same count, settings and clips)."""
         old, self.ai = self.ai, CrowdAI(self.agents, seed, [m.motion for m in self.cast[:self.crowd_cast]], self.ai.config,
-                                        self.config.origin, shares=self.ai.shares)
+                                        self.config.origin, shares=self.ai.shares, obstacles=self.obstacles)
         if self.survivor is not None:
             self.ai.player = self.survivor.position.copy()
         self._blows_seen = 0
@@ -581,18 +598,21 @@ class CrowdPipeline(GLStage):
         if self.ai.half_extent <= VIEW_RADIUS_M:
             return self.overview_camera(aspect)
         centre = np.array([self.ai.player[0], 0.0, self.ai.player[1]])
-        return self._three_quarter(centre, VIEW_RADIUS_M, aspect, FOG_FAR_M)
+        return self._three_quarter(centre, VIEW_RADIUS_M, aspect, FOG_FAR_M, self.obstacles is not None)
 
     def overview_camera(self, aspect: float) -> Camera:
         """A three-quarter view that frames the whole crowd (or one agent up close): the benchmarks' view,
         which every agent is in."""
         centre = np.array([self.ai.origin[0], 0.0, self.ai.origin[1]])
-        return self._three_quarter(centre, max(self.ai.half_extent, 1.2), aspect, 0.0)
+        return self._three_quarter(centre, max(self.ai.half_extent, 1.2), aspect, 0.0, self.obstacles is not None)
 
     @staticmethod
-    def _three_quarter(centre: np.ndarray, extent: float, aspect: float, far: float) -> Camera:
+    def _three_quarter(centre: np.ndarray, extent: float, aspect: float, far: float, town: bool = False) -> Camera:
+        """A view of `centre` from up and to one side, `extent` metres around it in the picture. In a town,
+        from above the street that runs along z through the centre (the origin is a crossing), looking down
+        it: a diagonal view would look at the buildings' walls and roofs, not at the crowd in the streets."""
         dist = extent * 1.5 + 2.5
-        eye = centre + np.array([dist * 0.45, dist * 0.5, dist * 0.85])
+        eye = centre + (np.array([0.0, dist * 0.55, dist * 0.9]) if town else np.array([dist * 0.45, dist * 0.5, dist * 0.85]))
         return Camera(eye=eye, target=centre + np.array([0.0, 0.8, 0.0]), aspect=aspect, far=max(200.0, dist * 4, far))
 
     def _run(self, name: str) -> None:
@@ -637,6 +657,8 @@ class CrowdPipeline(GLStage):
             if survivor is not None:  # the player's character moves first: the zombies chase where it is now
                 half = self.ai.half_extent
                 landed = survivor.step(dt, (self.ai.origin - half, self.ai.origin + half))
+                if self.obstacles is not None:  # it does not walk through walls either
+                    survivor.collide(self.ai.keep_out, self.obstacles)
                 self.ai.player = survivor.position.copy()
             self.ai.focus = (np.asarray(self.camera.eye, np.float64)[[0, 2]],)  # zombies near the camera think every substep
             steps_before = self.ai.steps
@@ -700,12 +722,17 @@ class CrowdPipeline(GLStage):
             # the CPU's copying while the GPU waits for it).
             # The shadow cascades cover the AI's world square (crowd.draw.shadows), known without a pass over the agents.
             half, centre = self.ai.half_extent, self.ai.origin
-            self.renderer.crowd_box = (np.array([centre[0] - half, 0.0, centre[1] - half]), np.array([centre[0] + half, 0.0, centre[1] + half]))
+            top = 0.0 if self.town is None else self.town.height  # (the town's roofs cast shadows into the streets)
+            self.renderer.crowd_box = (np.array([centre[0] - half, 0.0, centre[1] - half]), np.array([centre[0] + half, top, centre[1] + half]))
             view = self.renderer.prepare(self.camera, instances, row_offset, cull_now=False, palette=self.processor.layout)
             if self.renderer.gpu is not None and rows:
                 with t.gpu("cull"):
                     self.renderer.cull()
         self._run("cull_lod")
+        if self.town is not None:
+            with t.cpu("town_cull"):
+                self.town.prepare(view)
+            self._run("town_cull")
         if self.renderer.gpu is not None and rows:
             self._run("cull")
         agent_frames = None
@@ -725,6 +752,8 @@ class CrowdPipeline(GLStage):
                 self.renderer.shadow_pass(view, self.processor)
                 if self.weapons is not None and self.weapons.casts_shadows():
                     self.weapons.depth_pass(view, self.renderer)
+                if self.town is not None:
+                    self.town.depth_pass(view, self.renderer)
             self._run("shadow")
         if self.renderer.draws_anything(rows):
             with t.gpu("draw"):
@@ -734,6 +763,10 @@ class CrowdPipeline(GLStage):
             with t.gpu("weapons"):
                 self.weapons.color_pass(framebuffer, view, self.renderer)
             self._run("weapons")
+        if self.town is not None:
+            with t.gpu("town"):
+                self.town.color_pass(framebuffer, view, self.renderer)
+            self._run("town")
         with t.gpu("ground"):
             self.renderer.ground_pass(framebuffer, view)
         self._run("ground")
@@ -852,6 +885,8 @@ class CrowdPipeline(GLStage):
             out["readback"] = self.readback.gpu_bytes()
         if self.weapons is not None:
             out["weapons"] = self.weapons.gpu_bytes()
+        if self.town is not None:
+            out["town"] = self.town.gpu_bytes()
         return out
 
     def release(self) -> None:

@@ -96,6 +96,7 @@ class Scene:
     cull: str = DEFAULTS["cull"]
     foot_lock: bool = DEFAULTS["foot_lock"]
     survivor: bool = DEFAULTS["survivor"]
+    town: bool = DEFAULTS["town"]
     camera: CameraSetting | None = None
 
     # The first character's (the only one's in a scene of one character).
@@ -168,7 +169,7 @@ class Scene:
                               precision=self.precision, compression_bound_mm=self.compression_bound_mm, interpolation=self.interpolation, processor_path=self.processor, shadows=self.shadows, culling=self.culling,
                               occlusion=self.occlusion, lod_distances=tuple(self.lod_distances), ai=self.ai, weapons=self.weapons,
                               readback_latency=self.readback_latency, cull=self.cull, foot_lock=self.foot_lock,
-                              survivor=self.survivor)
+                              survivor=self.survivor, town=self.town)
 
 
 # The keys of each table: the settings of its group, and the few structured keys only scenes have.

@@ -337,7 +337,7 @@ class CrowdSession(GLStage):
             "lod_distances": lambda v: self.set_lod_distances(*SETTINGS["lod_distances"].check(v, SessionError)),
             "readback_latency": self.set_readback_latency, "cull": self.set_cull_path, "foot_lock": self.set_foot_lock,
         }
-        if name in ("model_scale", "survivor"):  # what the cast is made of: set when the crowd is built
+        if name in ("model_scale", "survivor", "town"):  # what the cast and its world are made of: set when the crowd is built
             SETTINGS[name].check(value, SessionError)
             raise SessionError(f"{SETTINGS[name].words} is applied when the crowd is built: save the scene and run it again")
         if name in AI_SETTINGS:
@@ -504,7 +504,7 @@ class CrowdSession(GLStage):
             compression_bound_mm=p.bake.bound_mm, interpolation=p.processor.interpolation, ai=p.ai.config,
             weapons=p.config.weapons, readback_latency=p.latency, shadows=p.renderer.shadows, culling=p.renderer.culling, occlusion=p.config.occlusion,
             lod_distances=tuple(p.renderer.lod_distances), processor=p.config.processor_path, cull=p.config.cull, foot_lock=p.config.foot_lock,
-            survivor=p.survivor is not None,
+            survivor=p.survivor is not None, town=p.town is not None,
             camera=CameraSetting(tuple(float(v) for v in cam.eye), tuple(float(v) for v in cam.target), float(cam.fov_y)))
 
     def save(self, path) -> Path | None:

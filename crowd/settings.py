@@ -221,6 +221,9 @@ _ALL = (
             "occlusion culling against the previous frame's depth pyramid (the gpu cull path; docs/BENCHMARKS.md says where it pays)"),
     Setting("lod_distances", "features", "ascending", (14.0, 40.0, 90.0), "metres from the camera where LOD1, LOD2 and LOD3 start",
             label="LOD distances", low=0, open_low=True, slider=(1, 500)),
+    Setting("town", "features", "bool", True,
+            "streets to fight in: a built-in town of blocks, buildings, parked cars and barriers, repeating over the world; "
+            "the crowd steers around it (off: the empty plane the benchmarks measure on)"),
     Setting("survivor", "features", "bool", True,
             "the player is a survivor to play: a built-in character drawn in the crowd's passes, animated from its speed and "
             "actions, hurt by the zombies that reach it (off: the player is a point the zombies chase)"),

@@ -22,6 +22,7 @@ from .anim.processor import AnimationProcessor, resolve_path
 from .asset.model import Character
 from .draw.readback import SocketReadback
 from .draw.render import CrowdRenderer, RenderError
+from .draw.town import TownRenderer
 from .draw.weapons import WeaponRenderer
 from .gl import has_compute
 from .frame import MAX_LAYERS
@@ -60,6 +61,7 @@ class StageSpec:
     cull: str = DEFAULTS["cull"]
     armed: bool = False  # somebody carries a weapon: the read-back stage and weapon meshes exist
     foot_lock: bool = DEFAULTS["foot_lock"]
+    town: bool = False  # the built-in town is drawn (the town stage exists)
     readback_latency: int = DEFAULTS["readback_latency"]
 
     @property
@@ -86,7 +88,8 @@ def build_processor(ctx: moderngl.Context, cast, spec: StageSpec, agents=0) -> A
 
 def build_renderer(ctx: moderngl.Context, cast, spec: StageSpec) -> CrowdRenderer:
     return CrowdRenderer(ctx, [part.character for part in as_cast(cast)], lod_distances=spec.lod_distances, shadows=spec.shadows,
-                         culling=spec.culling, cull_path=cull_path(ctx, spec.cull), weapons_visibility=spec.armed, occlusion=spec.occlusion)
+                         culling=spec.culling, cull_path=cull_path(ctx, spec.cull), weapons_visibility=spec.armed, occlusion=spec.occlusion,
+                         town=spec.town)
 
 
 def cull_path(ctx: moderngl.Context, asked: str) -> str:
@@ -101,6 +104,12 @@ def build_readback(ctx: moderngl.Context, processor: AnimationProcessor, spec: S
     return SocketReadback(ctx) if spec.armed else None
 
 
+def build_town(ctx: moderngl.Context, spec: StageSpec) -> TownRenderer | None:
+    from .asset.town import build_town as town
+
+    return TownRenderer(ctx, town(), spec.shadows) if spec.town else None
+
+
 def build_weapons(ctx: moderngl.Context, cast, spec: StageSpec) -> WeaponRenderer | None:
     return WeaponRenderer(ctx, [part.character for part in as_cast(cast)], spec.shadows, gpu_cull=cull_path(ctx, spec.cull) == "gpu") if spec.armed else None
 
@@ -111,8 +120,9 @@ class Stages:
     renderer: CrowdRenderer | None = None
     readback: SocketReadback | None = None
     weapons: WeaponRenderer | None = None
+    town: TownRenderer | None = None
 
-    ORDER = ("processor", "renderer", "readback", "weapons")  # built in this order, released in reverse
+    ORDER = ("processor", "renderer", "readback", "weapons", "town")  # built in this order, released in reverse
 
     @classmethod
     def build(cls, ctx: moderngl.Context, cast, spec: StageSpec, agents=0) -> "Stages":
@@ -124,6 +134,7 @@ class Stages:
             stages.renderer = build_renderer(ctx, cast, spec)
             stages.readback = build_readback(ctx, stages.processor, spec)
             stages.weapons = build_weapons(ctx, cast, spec)
+            stages.town = build_town(ctx, spec)
         except BaseException:
             stages.release()
             raise

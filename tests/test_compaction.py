@@ -14,7 +14,7 @@ def test_prefix_sum_and_atomics_list_the_same_agents(gl_context, agents):
         pytest.skip("the GPU cull needs GL 4.3")
     from bench.compaction_probe import measure
 
-    config = Scene().with_overrides(agents=agents, weapons=False, cull="gpu", lod_distances=(10.0, 20.0, 30.0)).pipeline_config()
+    config = Scene(town=False).with_overrides(agents=agents, weapons=False, cull="gpu", lod_distances=(10.0, 20.0, 30.0)).pipeline_config()
     with CrowdPipeline(gl_context, config) as pipeline:
         pipeline.camera = pipeline.default_camera(16 / 9)
         row = measure(gl_context, pipeline, repeats=1)

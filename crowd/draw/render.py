@@ -33,6 +33,7 @@ from ..gl import GLStage, gpu_bytes, load_shader
 from ..settings import DEFAULTS, SETTINGS
 from ..lighting import FOG_COLOR, LIGHTING, SUN_DIR
 from ..asset.model import PACKED_UV_SPAN, Character, SkinnedMesh
+from ..asset.town import TILE
 from ..anim.processor import PaletteLayout, texel_code
 from ..asset.vertex_cache import best_triangle_order
 from .gpu_cull import CHARACTER_SHIFT, MAX_CAST, MAX_GROUPS, RECORD_DTYPE, CullCharacter, GpuCull, GpuCullError
@@ -249,7 +250,7 @@ class CrowdRenderer(GLStage):
 
     def __init__(self, ctx: moderngl.Context, characters, pieces: tuple[str, ...] | None = None, lod_distances=DEFAULT_LOD_DISTANCES,
                  shadows: bool = True, shadow_size: int = 2048, culling: bool = True, cull_path: str = "cpu",
-                 weapons_visibility: bool = False, occlusion: bool = False):
+                 weapons_visibility: bool = False, occlusion: bool = False, town: bool = False):
         """`characters`: one Character, or the cast's, in its order (its agents come in that order,
         crowd.frame). `cull_path`: "cpu" or "gpu" (a GL 4.3 context; see the module docstring); with
         `weapons_visibility` the GPU cull also writes each agent's visibility, for the weapons; with
@@ -265,6 +266,7 @@ class CrowdRenderer(GLStage):
             raise RenderError(f"cull path must be one of {', '.join(CULL_PATHS)}, got {cull_path!r}")
         self.cull_path = cull_path
         self.ctx = ctx
+        self.town = town  # the ground shows the town's streets, sidewalks and lots (crowd.asset.town)
         self.culling = culling
         self.lod_distances = SETTINGS["lod_distances"].check(tuple(lod_distances), RenderError)
         cast = [characters] if isinstance(characters, Character) else list(characters)
@@ -401,7 +403,13 @@ class CrowdRenderer(GLStage):
         if self.shadows:
             defines.update(SHADOWS=1, CASCADES=CASCADES)
         if kind == "ground":
+            if self.town:
+                defines["TOWN"] = 1
             prog = self.ctx.program(vertex_shader=load_shader("ground.vert.glsl"), fragment_shader=load_shader("ground.frag.glsl", defines))
+            if self.town:
+                from ..asset.town import SIDEWALK, STREET
+
+                prog["u_tile"], prog["u_street"], prog["u_sidewalk"] = TILE, STREET, SIDEWALK
         else:
             vdefs = {} if skinned else {"UNSKINNED": 1}
             if kind == "depth":
@@ -777,7 +785,8 @@ class CrowdRenderer(GLStage):
         prog = self._program("ground", False)
         prog["u_view_proj"].write(gl_bytes(view.view_proj))
         eye = np.asarray(view.camera.eye, np.float64)
-        prog["u_eye"] = (float(np.mod(eye[0], 1000.0)), float(eye[1]), float(np.mod(eye[2], 1000.0)))
+        period = TILE if self.town else 1000.0  # (a whole number of metres: the 1 m grid stays where it is)
+        prog["u_eye"] = (float(np.mod(eye[0], period)), float(eye[1]), float(np.mod(eye[2], period)))
         self.set_lighting(prog, view)
         self._ground_vao.render(moderngl.TRIANGLES)
 

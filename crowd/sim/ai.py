@@ -81,6 +81,15 @@ DEFAULT_RUN_SPEED = 3.0
 RUN_OVER_WALK = 1.8  # top speed of a runner over a walker when one clip plays both
 FOOT_SAMPLES = 64  # phases a locomotion clip's pivot is tabled at (Motion.pivots)
 WALK_SLOWEST = 0.25  # the slowest a walk plays, as a share of its own rate (Motion.walk_slowest)
+# Obstacles (a town: crowd.asset.town.Obstacles). An agent's centre is kept CLEARANCE metres from every
+# obstacle, by its signed distance field; chasers find their way around buildings by a flow field of
+# FLOW_CELLS x FLOW_CELLS cells of FLOW_CELL metres around the player, made anew when the player
+# crosses a cell (every process makes the same one: no memory to share).
+CLEARANCE = 0.35
+FLOW_CELL = 1.0
+FLOW_CELLS = 96
+FLOW_BLOCKED = CLEARANCE + 0.05  # a flow cell whose centre is nearer an obstacle than this is a wall (a 2 m alley stays open)
+FLOW_DIRECT = 3.0  # metres from the player within which a chaser goes straight at it
 
 
 class AIError(ValueError):
@@ -140,10 +149,12 @@ class AIConfig:
             raise AIError("AI think_radius must be >= notice_radius (a zombie that may notice the player thinks every substep)")
         return self
 
-    def half_extent_for(self, agents: int) -> float:
+    def half_extent_for(self, agents: int, free_share: float = 1.0) -> float:
+        """The world's half width for a crowd: area_per_agent of open ground each, on a ground of which
+        `free_share` is open (the rest buildings and cars)."""
         if self.half_extent > 0:
             return float(self.half_extent)
-        return max(self.min_half_extent, 0.5 * math.sqrt(agents * self.area_per_agent))
+        return max(self.min_half_extent, 0.5 * math.sqrt(agents * self.area_per_agent / free_share))
 
 
 @dataclass(frozen=True)
@@ -397,10 +408,14 @@ class _Agents:
 
 
 class CrowdAI:
-    def __init__(self, agents: int, seed: int, motion, config: AIConfig | None = None, origin=(0.0, 0.0), shares=None):
+    def __init__(self, agents: int, seed: int, motion, config: AIConfig | None = None, origin=(0.0, 0.0), shares=None,
+                 obstacles=None):
         """`motion`: a Motion, or one per character of a cast, whose `shares` (as many, each above 0;
-        default equal) say how much of the crowd each character is."""
+        default equal) say how much of the crowd each character is. `obstacles`: where the crowd cannot
+        walk (crowd.asset.town.Obstacles), or None for open ground."""
         self.config = (config or AIConfig()).validate()
+        self.obstacles = obstacles
+        self._flow = (None, None)  # (the player's flow cell, its distance field): see _flow_field
         motions = (motion,) if isinstance(motion, Motion) else tuple(motion)
         shares = (1.0,) * len(motions) if shares is None else tuple(shares)
         if not motions or len(shares) != len(motions):
@@ -501,7 +516,7 @@ class CrowdAI:
         if self._pool is not None and config.workers != self.config.workers:
             self._stop_pool()  # restarted at its new size when a substep needs it
         self.config = config
-        self.half_extent = self.config.half_extent_for(self.n)
+        self.half_extent = self.config.half_extent_for(self.n, self._free_share())
         self._pairs = False
         self._stale = True
         self._exact[:] = self._must_be_exact(self)  # a new budget, or none: everyone starts from now
@@ -597,7 +612,7 @@ class CrowdAI:
         n = int(agents)
         cast = cast_counts(n, self.shares)
         moves = cast_moves(self.cast, cast)
-        self.half_extent = self.config.half_extent_for(n)
+        self.half_extent = self.config.half_extent_for(n, self._free_share())
         kept = {name: [getattr(self, name)[before:before + count] for before, _, count in moves] for name in self._names()}
         was = self._allocate(n)
         for name, blocks in kept.items():
@@ -630,6 +645,12 @@ class CrowdAI:
         cfg, rng, h = self.config, self.rng, self.half_extent
         if anywhere:
             pos = rng.uniform(-h, h, (k, 2))
+            if self.obstacles is not None:  # on the streets: places in or by an obstacle are drawn again
+                for _ in range(32):
+                    blocked = np.flatnonzero(self.obstacles.distance(self.origin[0] + pos[:, 0], self.origin[1] + pos[:, 1]) < CLEARANCE + 0.1)
+                    if not blocked.size:
+                        break
+                    pos[blocked] = rng.uniform(-h, h, (blocked.size, 2))
             yaw = rng.uniform(-math.pi, math.pi, k)
             a.phase[idx] = rng.uniform(0.0, 1.0, k)
             a.speed_factor[idx] = rng.uniform(cfg.speed_min, cfg.speed_max, k)
@@ -656,6 +677,8 @@ class CrowdAI:
             yaw = np.arctan2(-pos[:, 0], -pos[:, 1])  # face the middle
         a.x[idx] = self.origin[0] + pos[:, 0]
         a.z[idx] = self.origin[1] + pos[:, 1]
+        if self.obstacles is not None:  # (an edge of the world that runs through a building)
+            a.x[idx], a.z[idx] = self.keep_out(a.x[idx], a.z[idx])
         a.hx[idx], a.hz[idx] = np.sin(yaw), np.cos(yaw)
         a.vx[idx] = a.vz[idx] = 0.0
         a.tx[idx], a.tz[idx] = a.x[idx], a.z[idx]
@@ -728,6 +751,8 @@ class CrowdAI:
         if isinstance(dt, bool) or not isinstance(dt, (int, float, np.floating)) or not math.isfinite(dt) or dt < 0:
             raise AIError(f"dt must be a finite number >= 0, got {dt!r}")
         dt = min(float(dt), self.config.max_dt)
+        if self.obstacles is not None:  # a player put in a building is chased to the street beside it
+            self.player = np.concatenate(self.keep_out(self.player[:1], self.player[1:]))
         count = max(1, math.ceil(dt / self.config.substep - 1e-9)) if dt > 0.0 else 0
         for _ in range(count):
             self._substep(dt / count)
@@ -808,7 +833,7 @@ class CrowdAI:
             grid = self._grid_block
             message = dict(block=(self._block.name, self._block.layout), grid=(grid.name, grid.layout) if grid else None,
                            config=self.config, motions=self.motions, shares=self.shares, cast=self.cast, seed=self.seed,
-                           origin=self.origin, half_extent=self.half_extent, n=self.n)
+                           origin=self.origin, half_extent=self.half_extent, n=self.n, obstacles=self.obstacles)
             self._on_pool(self._pool.sync, [message] * self._pool.workers)
             self._stale = False
 
@@ -862,6 +887,7 @@ class CrowdAI:
         ai = cls.__new__(cls)
         ai._block = ai._grid_block = ai._pool = ai._range_list = None
         ai._respawns, ai.player_hits_taken, ai.focus, ai.rng = 0, 0, (), None  # (a worker spawns only at edges: keyed draws)
+        ai.obstacles, ai._flow = None, (None, None)
         return ai
 
     def sync_worker(self, message: dict | None) -> None:
@@ -876,6 +902,8 @@ class CrowdAI:
         if message is None:
             return
         self.config, self.motions, self.shares, self.seed = message["config"], message["motions"], message["shares"], message["seed"]
+        if getattr(self, "obstacles", None) is None or message["obstacles"] is None or self.obstacles.boxes != message["obstacles"].boxes:
+            self.obstacles, self._flow = message["obstacles"], (None, None)  # (its field is built here, on first use)
         self.origin, self.half_extent, self.n, self.cast = message["origin"], message["half_extent"], message["n"], message["cast"]
         self._kind_fields = _KIND_FIELDS if len(self.motions) > 1 else ()
         self._motion_tables()
@@ -951,6 +979,8 @@ class CrowdAI:
             if self.config.plant_feet:
                 self._step_with_push(agents, push_x, push_z)
         self._bound(lo, hi)
+        if self.obstacles is not None:
+            self._clear_obstacles(lo, hi)
 
     def _step_with_push(self, agents: np.ndarray, push_x: np.ndarray, push_z: np.ndarray) -> None:
         """A push along a walking agent's heading moves its body as its own steps do, so its locomotion
@@ -1114,6 +1144,10 @@ class CrowdAI:
             self._wander(a, wandering, h)
         dx = np.where(chasing, to_px, a.tx - a.x)
         dz = np.where(chasing, to_pz, a.tz - a.z)
+        if self.obstacles is not None and chasing.any():  # around the buildings, by the flow field to the player
+            c = np.flatnonzero(chasing)
+            ux, uz = self._flow_directions(a.x[c], a.z[c], to_px[c], to_pz[c])
+            dx[c], dz[c] = ux * dist[c], uz * dist[c]
         d = np.sqrt(dx * dx + dz * dz)
         top = np.where(chasing, a.chase_top, cfg.wander_speed * a.walk_top * (wandering & (a.pause <= 0.0)))
         gap = np.where(chasing, d - 0.8 * cfg.attack_reach, d)
@@ -1214,7 +1248,10 @@ class CrowdAI:
                 continue
             dx, dz = turn_about_planted_foot(m, a.phase[mine], [w[mine] for w in weights], hx0[mine], hz0[mine],
                                              a.hx[mine], a.hz[mine], a.scale[mine])
-            a.x[mine], a.z[mine] = self._inside(a.x[mine] + dx, a.z[mine] + dz)
+            x, z = self._inside(a.x[mine] + dx, a.z[mine] + dz)
+            if self.obstacles is not None:  # (a pivot by a wall must not step into it: this comes after the apply phase's clearing)
+                x, z = self.keep_out(x, z)
+            a.x[mine], a.z[mine] = x, z
 
     def _inside(self, x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ground positions clamped into the world square (a pivot at its edge must not step out)."""
@@ -1231,6 +1268,120 @@ class CrowdAI:
                 p[out] = np.minimum(np.maximum(p[out], low), high)
                 v[out] = 0.0
 
+    # -- obstacles
+
+    def _free_share(self) -> float:
+        return 1.0 if self.obstacles is None else self.obstacles.free_share
+
+    def keep_out(self, x, z, iterations: int = 4) -> tuple[np.ndarray, np.ndarray]:
+        """Points (x, z) moved out along the obstacle field's gradient until CLEARANCE from every
+        obstacle (each move aims 5 mm past it: the field is bilinear, not linear), and into the world;
+        a point in a corner between two obstacles steps out of both in a few moves."""
+        x, z = np.array(x, np.float64), np.array(z, np.float64)
+        o, e = self.obstacles, self.half_extent
+        ox, oz = self.origin
+        for _ in range(iterations):
+            d = o.distance(x, z)
+            near = np.flatnonzero(d < CLEARANCE)
+            if not near.size:
+                break
+            gx, gz = o.gradient(x[near], z[near])
+            move = CLEARANCE + 0.005 - d[near]
+            x[near] = np.minimum(np.maximum(x[near] + gx * move, ox - e), ox + e)
+            z[near] = np.minimum(np.maximum(z[near] + gz * move, oz - e), oz + e)
+        return x, z
+
+    def _clear_obstacles(self, lo: int, hi: int) -> None:
+        """Agents lo..hi out of the obstacles (CLEARANCE from each), and their velocity into them stopped:
+        they slide along a wall instead of pressing into it. A nearest-cell look first, so only the
+        agents near an obstacle pay for the bilinear field and its gradient."""
+        o = self.obstacles
+        x, z = self.x[lo:hi], self.z[lo:hi]
+        near = np.flatnonzero(o.cell_distance(x, z) < CLEARANCE + o.cell)
+        if not near.size:
+            return
+        cx, cz = self.keep_out(x[near], z[near])
+        moved = (cx != x[near]) | (cz != z[near])
+        if not moved.any():
+            return
+        agents = near[moved]
+        x[agents], z[agents] = cx[moved], cz[moved]
+        gx, gz = o.gradient(x[agents], z[agents])
+        vx, vz = self.vx[lo:hi], self.vz[lo:hi]
+        into = np.minimum(vx[agents] * gx + vz[agents] * gz, 0.0)
+        vx[agents] -= into * gx
+        vz[agents] -= into * gz
+
+    def _flow_field(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(the window's first cell's corner (x, z), path distances (FLOW_CELLS, FLOW_CELLS) to the player
+        through the streets, inf where walled off), made anew when the player crosses a cell: relaxed
+        over 8 neighbours (diagonals sqrt 2) until nothing shortens. None without obstacles."""
+        if self.obstacles is None:
+            return None
+        cell = np.floor(np.asarray(self.player, np.float64) / FLOW_CELL).astype(np.int64)
+        key = (int(cell[0]), int(cell[1]))
+        if self._flow[0] == key:
+            return self._flow[1]
+        corner = (cell - FLOW_CELLS // 2) * FLOW_CELL
+        centres = corner[:, None] + (np.arange(FLOW_CELLS) + 0.5) * FLOW_CELL
+        cx, cz = np.meshgrid(centres[0], centres[1], indexing="ij")
+        open_ = self.obstacles.distance(cx, cz) >= FLOW_BLOCKED
+        dist = np.full((FLOW_CELLS, FLOW_CELLS), np.inf)
+        dist[FLOW_CELLS // 2, FLOW_CELLS // 2] = 0.0
+        steps = [(di, dj, math.hypot(di, dj)) for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj]
+        for _ in range(4 * FLOW_CELLS):
+            before = dist.copy()
+            for di, dj, w in steps:
+                a = dist[max(di, 0):FLOW_CELLS + min(di, 0), max(dj, 0):FLOW_CELLS + min(dj, 0)]
+                b = before[max(-di, 0):FLOW_CELLS + min(-di, 0), max(-dj, 0):FLOW_CELLS + min(-dj, 0)]
+                np.minimum(a, b + w * FLOW_CELL, out=a)
+            dist[~open_] = np.inf
+            dist[FLOW_CELLS // 2, FLOW_CELLS // 2] = 0.0
+            if np.array_equal(dist, before):
+                break
+        self._flow = (key, (corner, dist))
+        return self._flow[1]
+
+    def _flow_directions(self, x: np.ndarray, z: np.ndarray, to_x: np.ndarray, to_z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Directions (unit, x and z) chasers at (x, z) take toward the player: down the flow field's
+        distances where they are in its window and not within FLOW_DIRECT of the player, else straight
+        (`to_x`, `to_z`: their offsets to the player)."""
+        straight = np.hypot(to_x, to_z)
+        ux, uz = to_x / np.maximum(straight, 1e-12), to_z / np.maximum(straight, 1e-12)
+        flow = self._flow_field()
+        if flow is None:
+            return ux, uz
+        corner, dist = flow
+        i = np.floor((x - corner[0]) / FLOW_CELL).astype(np.int64)
+        j = np.floor((z - corner[1]) / FLOW_CELL).astype(np.int64)
+        inside = (i >= 1) & (i < FLOW_CELLS - 1) & (j >= 1) & (j < FLOW_CELLS - 1) & (straight > FLOW_DIRECT)
+        k = np.flatnonzero(inside)
+        if not k.size:
+            return ux, uz
+        i, j = i[k], j[k]
+        here = dist[i, j]
+        # The neighbour cell nearest the player by path (walls are inf): the way down the field. An agent
+        # in a cell the field calls a wall (pressed against one, its centre too near it) looks two cells out.
+        reach = np.where(np.isfinite(here), 1, 2)
+        best = np.full(k.size, np.inf)
+        bx, bz = np.zeros(k.size), np.zeros(k.size)
+        for di in range(-2, 3):
+            for dj in range(-2, 3):
+                if di or dj:
+                    ok = (np.maximum(abs(di), abs(dj)) <= reach) & (i + di >= 0) & (i + di < FLOW_CELLS) & (j + dj >= 0) & (j + dj < FLOW_CELLS)
+                    d = np.where(ok, dist[np.clip(i + di, 0, FLOW_CELLS - 1), np.clip(j + dj, 0, FLOW_CELLS - 1)], np.inf)
+                    better = d < best
+                    best = np.where(better, d, best)
+                    bx, bz = np.where(better, di, bx), np.where(better, dj, bz)
+        usable = np.isfinite(best) & (best < here)
+        # Toward that neighbour's centre from where the agent stands (not from its own cell's centre).
+        tx = corner[0] + (i + bx + 0.5) * FLOW_CELL - x[k]
+        tz = corner[1] + (j + bz + 0.5) * FLOW_CELL - z[k]
+        norm = np.maximum(np.hypot(tx, tz), 1e-12)
+        ux[k] = np.where(usable, tx / norm, ux[k])
+        uz[k] = np.where(usable, tz / norm, uz[k])
+        return ux, uz
+
     def _wander(self, a, wandering: np.ndarray, h) -> None:
         a.pause -= h
         dx, dz = a.tx - a.x, a.tz - a.z
@@ -1244,6 +1395,8 @@ class CrowdAI:
             a.tx[idx] = np.clip(a.x[idx] + radius * np.sin(angle), self.origin[0] - inner, self.origin[0] + inner)
             a.tz[idx] = np.clip(a.z[idx] + radius * np.cos(angle), self.origin[1] - inner, self.origin[1] + inner)
             a.pause[idx] = np.where(draw[2] < 0.5, 1.0 + 3.0 * draw[3], 0.0)
+            if self.obstacles is not None:  # a target in a building is moved out to the street beside it
+                a.tx[idx], a.tz[idx] = self.keep_out(a.tx[idx], a.tz[idx])
 
     def _push_range(self, lo: int, hi: int, gain: float):
         """Separation pushes of agents lo..hi, from everyone's positions (nothing is moved here: the apply

@@ -205,6 +205,18 @@ class Survivor:
                 self.action, self.action_time = NONE, 0.0
         return landed
 
+    def collide(self, keep_out, obstacles) -> None:
+        """Out of the obstacles (`keep_out`: the AI's, which moves points out of them), its velocity into
+        them stopped: it slides along a wall as the crowd does."""
+        x, z = keep_out(self.position[:1], self.position[1:])
+        moved = np.array([x[0], z[0]])
+        if np.array_equal(moved, self.position):
+            return
+        self.position = moved
+        gx, gz = obstacles.gradient(moved[:1], moved[1:])
+        g = np.array([gx[0], gz[0]])
+        self.velocity -= min(float(self.velocity @ g), 0.0) * g
+
     def _desired_velocity(self, move: np.ndarray) -> np.ndarray:
         """The velocity a move asks for: its direction at the speed the survivor has that way (run
         forward, back off slower, side-step slower still; an ellipse between them)."""

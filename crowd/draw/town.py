@@ -1,0 +1,152 @@
+"""The town's draw stage: the buildings, cars, barriers and kerbs of crowd.asset.town, one instanced draw
+per mesh in the colour pass and per shadow cascade, lit, shadowed and fogged as the crowd is.
+
+Contract: ``prepare(view)`` after the crowd's ``prepare`` (it takes that FrameView: the camera, its
+matrix and the sun's cascades), then ``depth_pass(view, renderer)`` into each cascade's tile after the
+crowd's shadow pass, and ``color_pass(framebuffer, view, renderer)``, before the ground. ``prepare``
+places the district's pieces in every district within sight of the camera (the town repeats), culls
+each placement's sphere against the view (and each cascade's box, for its shadow), and uploads the
+kept ones per mesh: a few thousand placements for the largest world, in numpy.
+
+Positions are camera-relative, as the crowd's: the CPU subtracts the eye in float64. The stage exists
+only when the scene has a town (``town`` setting); without it there is no mesh, buffer or pass.
+"""
+
+from __future__ import annotations
+
+import math
+
+import moderngl
+import numpy as np
+
+from ..asset.town import PERIOD, TINTS, Town
+from ..gl import GLObjects, GLStage, load_shader
+from .render import frustum_planes, gl_bytes, sphere_visible, write_heading
+from .shadows import CASCADES
+from .weapons import VERTEX_DTYPE, pack_rigid
+
+INSTANCE_DTYPE = np.dtype([("position", "<f4", 3), ("fields", "<u4", 2)])  # town.vert.glsl's i_position, i_fields
+SIGHT_M = 800.0  # metres from the eye within which districts are placed: the fog has hidden the rest (crowd.lighting)
+
+
+class TownRenderer(GLStage):
+    """Owns the town's meshes, instance buffers and programs."""
+
+    def __init__(self, ctx: moderngl.Context, town: Town, shadows: bool):
+        self._objects = GLObjects()
+        self.ctx = ctx
+        self.town = town
+        self.shadows = shadows
+        self._pieces = []
+        for piece in town.pieces:
+            vertices = pack_rigid(piece.mesh, np.eye(4))
+            positions = np.asarray(piece.mesh.positions, np.float64)
+            self._pieces.append({
+                "piece": piece, "triangles": piece.mesh.triangle_count,
+                "vbo": self._objects.add(ctx.buffer(vertices.tobytes())),
+                "ibo": self._objects.add(ctx.buffer(np.ascontiguousarray(piece.mesh.indices, np.uint32).tobytes())),
+                "instances": self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize)),
+                "shadow_instances": [self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize)) for _ in range(CASCADES)]
+                if shadows and piece.casts_shadow else [],
+                "count": 0, "shadow_counts": [0] * CASCADES, "vaos": {},
+                # A sphere about the placement's origin that holds the mesh whatever its heading.
+                "radius": float(np.max(np.linalg.norm(positions, axis=1))),
+            })
+        defines = {"SHADOWS": 1, "CASCADES": CASCADES} if shadows else {}
+        self._programs = {
+            "color": self._objects.add(ctx.program(vertex_shader=load_shader("town.vert.glsl"), fragment_shader=load_shader("skin.frag.glsl", defines))),
+            "depth": self._objects.add(ctx.program(vertex_shader=load_shader("town.vert.glsl", {"DEPTH_ONLY": 1}),
+                                                   fragment_shader=load_shader("depth.frag.glsl"))),
+        }
+        if "u_shadow_map" in self._programs["color"]:
+            self._programs["color"]["u_shadow_map"] = 3
+        self.height = max(float(np.max(np.asarray(p.mesh.positions)[:, 1])) for p in town.pieces)  # the tallest roof
+        self.last = {"instances": 0, "triangles": 0, "shadow_instances": 0, "draws": 0}
+
+    def _vao(self, piece: dict, kind: str, cascade: int = 0) -> moderngl.VertexArray:
+        if (kind, cascade) not in piece["vaos"]:
+            prog = self._programs[kind]
+            vertex = ("3f 2u", "in_position", "in_packed") if kind == "color" else ("3f 8x", "in_position")
+            instances = piece["shadow_instances"][cascade] if kind == "depth" else piece["instances"]
+            instance = ("3f 2u/i", "i_position", "i_fields")
+            piece["vaos"][kind, cascade] = self._objects.add(self.ctx.vertex_array(
+                prog, [(piece["vbo"], *vertex), (instances, *instance)], index_buffer=piece["ibo"], index_element_size=4))
+        return piece["vaos"][kind, cascade]
+
+    # -- per frame
+
+    def placements(self, eye: np.ndarray, piece) -> np.ndarray:
+        """(K, 4) float64 placements of `piece` (x, z, yaw, tint) in every district within SIGHT_M of `eye`."""
+        lo = np.floor((eye[[0, 2]] - SIGHT_M) / PERIOD).astype(np.int64)
+        hi = np.floor((eye[[0, 2]] + SIGHT_M) / PERIOD).astype(np.int64)
+        dx, dz = np.meshgrid(np.arange(lo[0], hi[0] + 1) * PERIOD, np.arange(lo[1], hi[1] + 1) * PERIOD, indexing="ij")
+        offsets = np.stack([dx.ravel(), dz.ravel()], axis=1)
+        p = piece.placements
+        out = np.repeat(p[None], len(offsets), axis=0)
+        out[..., 0] += offsets[:, 0, None]
+        out[..., 1] += offsets[:, 1, None]
+        return out.reshape(-1, 4)
+
+    def prepare(self, view) -> None:
+        """Cull and upload this frame's placements: the view's, and each shadow cascade's (with shadows)."""
+        eye = np.asarray(view.camera.eye, np.float64)
+        planes = frustum_planes(view.view_proj)
+        light = [(frustum_planes(m), reach) for m, reach in zip(view.shadow.view_proj, view.shadow.reach_m)] if view.shadow is not None else []
+        total, triangles, shadowed, draws = 0, 0, 0, 0
+        for piece in self._pieces:
+            p = self.placements(eye, piece["piece"])
+            rel = np.zeros((len(p), 3))
+            rel[:, 0], rel[:, 2] = p[:, 0] - eye[0], p[:, 1] - eye[2]
+            rel[:, 1] = -eye[1]
+            radii = np.full(len(p), piece["radius"])
+            records = np.zeros(len(p), INSTANCE_DTYPE)
+            records["position"] = rel
+            write_heading(p[:, 2], records["fields"][:, 0])
+            records["fields"][:, 1] = TINTS[p[:, 3].astype(np.int64)].view("<u4")[:, 0]
+            seen = sphere_visible(planes, rel, radii) & (np.linalg.norm(rel, axis=1) - radii <= view.camera.far)
+            piece["count"] = self._upload(piece["instances"], records[seen])
+            total += piece["count"]
+            triangles += piece["count"] * piece["triangles"]
+            draws += int(piece["count"] > 0)
+            for k, shadow in enumerate(piece["shadow_instances"]):
+                cast = sphere_visible(light[k][0], rel, radii) & (np.linalg.norm(rel, axis=1) - radii <= light[k][1])
+                piece["shadow_counts"][k] = self._upload(shadow, records[cast])
+                shadowed += piece["shadow_counts"][k]
+        self.last = {"instances": total, "triangles": triangles, "shadow_instances": shadowed, "draws": draws}
+
+    @staticmethod
+    def _upload(buffer: moderngl.Buffer, records: np.ndarray) -> int:
+        size = max(records.nbytes, INSTANCE_DTYPE.itemsize)
+        if buffer.size != size:
+            buffer.orphan(size)
+        if len(records):
+            buffer.write(records.tobytes())
+        return len(records)
+
+    def depth_pass(self, view, renderer) -> None:
+        """Into each shadow cascade's tile (``renderer.shadow_tiles``), after the crowd's shadow pass."""
+        prog = self._programs["depth"]
+        for k, matrix in renderer.shadow_tiles(view):
+            prog["u_view_proj"].write(gl_bytes(matrix))
+            for piece in self._pieces:
+                if piece["shadow_instances"] and piece["shadow_counts"][k]:
+                    self._vao(piece, "depth", k).render(moderngl.TRIANGLES, instances=piece["shadow_counts"][k])
+
+    def color_pass(self, framebuffer, view, renderer) -> None:
+        """`view`: this frame's FrameView; `renderer` lights the town as it lights the crowd."""
+        framebuffer.use()
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.disable(moderngl.CULL_FACE)
+        prog = self._programs["color"]
+        prog["u_view_proj"].write(gl_bytes(view.view_proj))
+        renderer.set_lighting(prog, view)
+        for piece in self._pieces:
+            if piece["count"]:
+                self._vao(piece, "color").render(moderngl.TRIANGLES, instances=piece["count"])
+
+    def gpu_bytes(self) -> int:
+        return self._objects.gpu_bytes()
+
+    def release(self) -> None:
+        self._objects.release()
+        self._pieces = []
