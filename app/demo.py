@@ -25,6 +25,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--scene", type=Path, default=None, help="a scene file (TOML; see scenes/); flags given as well override it")
     p.add_argument("--screenshot", type=Path, default=None, help="PNG of the last frame (headless default out/demo.png)")
     p.add_argument("--stats", type=Path, default=None, help="JSON of frame and pass timings")
+    p.add_argument("--panel", action="store_true", help="headless: draw the frame as the window does: the panel, the HUD and "
+                                                        "the camera behind the survivor (the window always does)")
     p.add_argument("--model", default=None, help="one character for the whole crowd: a skinned .glb/.gltf, or a built-in's name "
                                                  "(zombie, brute); default: the scene's cast")
     p.add_argument("--characters", default=None, metavar="MODEL=SHARE,...",
@@ -102,8 +104,13 @@ def main(argv=None) -> int:
             if stats is None:
                 _headless_defaults(args)
         if stats is None:
+            overlay = None
+            if args.panel:
+                from app.overlay import HeadlessPanel
+
+                overlay = HeadlessPanel.factory(scene, follow=True)
             stats = run_headless(scene.pipeline_config(), args.frames, size, args.screenshot, args.stats,
-                                 camera=scene.camera_for(size[0] / size[1]))
+                                 camera=scene.camera_for(size[0] / size[1]), overlay=overlay)
     except (AIError, GltfImportError, BakeError, PipelineError, ProcessorError, RenderError, RoleError, GLUnavailable,
             ReadbackError, WeaponError, SceneError, SettingError, FrameError) as exc:
         print(f"crowd-demo: {exc}", file=sys.stderr)

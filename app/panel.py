@@ -5,6 +5,8 @@ window). A control given a bad value shows its one-line error in the panel and c
 
 from __future__ import annotations
 
+import math
+import time
 from collections import deque
 from pathlib import Path
 
@@ -28,7 +30,18 @@ BOUND = SETTINGS["compression_bound_mm"]
 CULL_PATHS = SETTINGS["cull"].choices
 
 HISTORY_SECONDS = 5.0
+REFRESH_SECONDS = 0.25  # how often the pass medians are worked out again
+PLOT_HEIGHT = 90.0  # pixels: with the default sections open the panel fits a 720-pixel window unscrolled
 LAYER_NAMES = ("idle", "walk", "run", "action")
+# The panel's width: this share of the display's, within these pixels; it keeps MARGIN pixels from the edges.
+PANEL_WIDTH_SHARE, PANEL_WIDTH_MIN, PANEL_WIDTH_MAX, MARGIN = 0.3, 360.0, 560.0, 10.0
+# The labels drawn right of sliders and combos (the longest decides how wide they are).
+LABELS = ("agents", "agents (any)", "time scale", "seed", "cross-fade (s)", "character", "speed", "precision", "bound (mm)",
+          "interpolation", "LOD distances (m)", "cull path", "read-back lag", "bake fps") + LAYER_NAMES
+SECTIONS = ("Frame", "Crowd", "Clips", "Layer weights", "Bake and rendering", "Selected agent", "Keys")
+OPEN_AT_START = ("Frame", "Crowd")  # with these open the panel fits a 720-pixel window; the others fold
+KEYS = ("W/A/S/D: run (strafe with A and D)", "right click: run there", "space: swing", "C: follow or orbit camera",
+        "drag: turn the camera", "wheel: zoom", "left click: select a zombie", "P: pause", ".: one step", "H: hide this panel")
 
 
 class Panel:
@@ -48,6 +61,10 @@ class Panel:
         self._weights_selected_only = False
         self._character = 0  # whose clips the clip section shows (the selected agent's, once one is picked)
         self._selected = -1
+        self._opened_for = -1  # the selection the inspector's section was last opened for
+        self._to_open: set[str] = set()
+        self._passes: list[tuple[str, str, float]] = []  # (pass, clock, median ms), as last worked out
+        self._passes_at = -math.inf
 
     # -- actions: the only way the panel changes anything
 
@@ -87,30 +104,47 @@ class Panel:
             self.status = failed
         if not self.visible:
             return
-        imgui.set_next_window_pos(imgui.ImVec2(10, 10), imgui.Cond_.first_use_ever)
-        imgui.set_next_window_size(imgui.ImVec2(380, 640), imgui.Cond_.first_use_ever)
-        imgui.begin("crowd")
-        self._draw_timing(imgui)
-        if imgui.collapsing_header("Crowd", imgui.TreeNodeFlags_.default_open):
-            self._draw_crowd(imgui)
-        if imgui.collapsing_header("Clips", imgui.TreeNodeFlags_.default_open):
-            self._draw_clips(imgui)
-        if imgui.collapsing_header("Layer weights"):
-            self._draw_weights(imgui)
-        if imgui.collapsing_header("Bake and rendering"):
-            self._draw_rendering(imgui)
-        if imgui.collapsing_header("Selected agent", imgui.TreeNodeFlags_.default_open):
-            self._draw_inspector(imgui)
+        # Sized by the display, every frame: a fixed width (a share of the display's, clamped), and as tall
+        # as its open sections up to the display's height (then it scrolls). Text wraps at that width.
+        display = imgui.get_io().display_size
+        width = min(max(display.x * PANEL_WIDTH_SHARE, PANEL_WIDTH_MIN), PANEL_WIDTH_MAX, max(display.x - 2 * MARGIN, 1.0))
+        imgui.set_next_window_pos(imgui.ImVec2(MARGIN, MARGIN), imgui.Cond_.first_use_ever)
+        imgui.set_next_window_size_constraints(imgui.ImVec2(width, 0), imgui.ImVec2(width, max(display.y - 2 * MARGIN, 1.0)))
+        imgui.begin("crowd", None, imgui.WindowFlags_.always_auto_resize)
+        # Every slider and combo leaves room for the longest label on its right.
+        imgui.push_item_width(-(max(imgui.calc_text_size(label).x for label in LABELS) + imgui.get_style().item_inner_spacing.x))
+        if self.session.selected != self._opened_for:  # a new selection opens its section
+            self._opened_for = self.session.selected
+            if self.session.selected >= 0:
+                self.open_sections("Selected agent")
+        for name, draw in zip(SECTIONS, (self._draw_timing, self._draw_crowd, self._draw_clips, self._draw_weights,
+                                         self._draw_rendering, self._draw_inspector, self._draw_keys)):
+            if name in self._to_open:
+                self._to_open.discard(name)
+                imgui.set_next_item_open(True)
+            if imgui.collapsing_header(name, imgui.TreeNodeFlags_.default_open if name in OPEN_AT_START else 0):
+                draw(imgui)
         imgui.separator()
         if imgui.button("Save scene"):
             self.apply("save")
         imgui.same_line()
-        imgui.text(str(self.scene_path))
+        imgui.text_wrapped(str(self.scene_path))
         if self.session.rebake_progress is not None:
-            imgui.text(self.session.rebake_progress)
+            imgui.text_wrapped(self.session.rebake_progress)
         if self.status:
-            imgui.text_colored(imgui.ImVec4(1.0, 0.6, 0.3, 1.0), self.status)
+            imgui.push_style_color(imgui.Col_.text, imgui.ImVec4(1.0, 0.6, 0.3, 1.0))
+            imgui.text_wrapped(self.status)
+            imgui.pop_style_color()
+        imgui.pop_item_width()
         imgui.end()
+
+    def open_sections(self, *names: str) -> None:
+        """Unfold these sections at the next frame (a new selection opens its own; the tests open them all)."""
+        self._to_open.update(names)
+
+    def _draw_keys(self, imgui) -> None:
+        for line in KEYS:
+            imgui.text_wrapped(line)
 
     def _draw_timing(self, imgui) -> None:
         from imgui_bundle import implot
@@ -118,25 +152,30 @@ class Panel:
         times = np.asarray(self.frame_times, np.float64)
         if times.size:
             recent = times[-int(min(times.size, max(1, HISTORY_SECONDS / max(np.median(times[-60:]), 1e-4)))):]
-            imgui.text(f"{1.0 / max(np.median(recent[-60:]), 1e-6):.0f} fps   frame {np.median(recent[-60:]) * 1e3:.2f} ms (median of 60)")
-            if implot.begin_plot("frame time", imgui.ImVec2(-1, 110)):
-                implot.setup_axes("frame", "ms", implot.AxisFlags_.no_tick_labels, implot.AxisFlags_.auto_fit)
+            imgui.text_wrapped(f"{1.0 / max(np.median(recent[-60:]), 1e-6):.0f} fps   frame {np.median(recent[-60:]) * 1e3:.2f} ms (median of 60)")
+            if implot.begin_plot("##frame time", imgui.ImVec2(-1, PLOT_HEIGHT), implot.Flags_.no_legend | implot.Flags_.no_mouse_text):
+                implot.setup_axes("", "ms", implot.AxisFlags_.no_tick_labels, implot.AxisFlags_.auto_fit)
                 implot.setup_axis_limits(implot.ImAxis_.x1, 0, len(recent), implot.Cond_.always)
                 implot.plot_line("ms", np.ascontiguousarray(recent * 1e3))
                 implot.end_plot()
-        timer = self.session.pipeline.timer
-        if imgui.begin_table("passes", 3):
-            for name in timer.order:
-                samples = timer.recent(name, 60)
-                if not samples:
-                    continue
-                imgui.table_next_row()
+        # The passes' medians in two pairs of columns, so the section stays short. Worked out a few times
+        # a second, not every frame: a figure that changes every frame cannot be read, and 15 medians a
+        # frame were a third of the panel's CPU time.
+        now = time.perf_counter()
+        if now - self._passes_at >= REFRESH_SECONDS:
+            timer = self.session.pipeline.timer
+            self._passes = [(name, timer.clock[name], float(np.median(samples))) for name in timer.order
+                            if len(samples := timer.recent(name, 60))]
+            self._passes_at = now
+        shown = self._passes
+        if shown and imgui.begin_table("passes", 4, imgui.TableFlags_.sizing_stretch_prop):
+            for k, (name, clock, ms) in enumerate(shown):
+                if k % 2 == 0:
+                    imgui.table_next_row()
                 imgui.table_next_column()
                 imgui.text(name)
                 imgui.table_next_column()
-                imgui.text(timer.clock[name].upper())
-                imgui.table_next_column()
-                imgui.text(f"{np.median(samples):.3f} ms")
+                imgui.text(f"{ms:.3f} {clock.upper()}")
             imgui.end_table()
 
     def _draw_crowd(self, imgui) -> None:
@@ -156,19 +195,22 @@ class Panel:
         changed, scale = imgui.slider_float("time scale", s.time_scale, *TIME_SCALE.slider)
         if changed:
             self.apply("time_scale", scale)
-        _, self._seed = imgui.input_int("seed", self._seed)
-        imgui.same_line()
         if imgui.button("new crowd"):
             self.apply("seed", self._seed)
+        imgui.same_line()
+        imgui.set_next_item_width(imgui.get_content_region_avail().x - imgui.calc_text_size("seed").x - imgui.get_style().item_inner_spacing.x)
+        _, self._seed = imgui.input_int("seed", self._seed)
         changed, fade = imgui.slider_float("cross-fade (s)", s.ai_setting("crossfade"), *CROSSFADE.slider)
         if changed:
             self.apply("crossfade", fade)
         counts = s.pipeline.ai.counts()
-        imgui.text("  ".join(f"{k} {v}" for k, v in counts.items()))
+        if imgui.begin_table("states", 3):
+            for name, count in counts.items():
+                imgui.table_next_column()
+                imgui.text(f"{name} {count:,}")
+            imgui.end_table()
         if len(s.pipeline.cast) > 1:
-            imgui.text("cast: " + ", ".join(f"{m.name} {n:,}" for m, n in zip(s.pipeline.cast, s.pipeline.ai.cast)))
-        imgui.text("W/A/S/D: run  right click: run there  space: swing  C: camera")
-        imgui.text("drag: turn the camera  wheel: zoom  click: select  P: pause  .: step  H: panel")
+            imgui.text_wrapped("cast: " + ", ".join(f"{m.name} {n:,}" for m, n in zip(s.pipeline.cast, s.pipeline.ai.cast)))
 
     def _draw_clips(self, imgui) -> None:
         s = self.session
@@ -185,7 +227,7 @@ class Panel:
         for i, clip in enumerate(member.bake.clips):
             imgui.push_id(f"clip{k}_{i}")
             roles = [r for r, name in member.roles.items() if name == clip.name]
-            imgui.text(f"{clip.name} ({', '.join(roles) or '-'}, {clip.duration:.2f} s)")
+            imgui.text_wrapped(f"{clip.name} ({', '.join(roles) or '-'}, {clip.duration:.2f} s)")
             changed, speed = imgui.slider_float("speed", member.clip_speed.get(clip.name, 1.0), *CLIP_SPEED.slider)
             if changed:
                 self.apply("clip_speed", clip.name, speed, character=k)
@@ -220,9 +262,8 @@ class Panel:
     def _draw_rendering(self, imgui) -> None:
         s = self.session
         p = s.pipeline
-        _, self._source_rate = imgui.checkbox("source rate", self._source_rate)
+        _, self._source_rate = imgui.checkbox("source rate (each clip at its own key rate)", self._source_rate)
         if not self._source_rate:
-            imgui.same_line()
             _, self._bake_fps = imgui.slider_float("bake fps", self._bake_fps, *BAKE_FPS.slider, "%.0f")
         _, index = imgui.combo("precision", PRECISIONS.index(self._precision), list(PRECISIONS))
         self._precision = PRECISIONS[index]
@@ -238,13 +279,13 @@ class Panel:
             self.apply("measure_error")
         rate = "source rate" if p.bake.fps == SOURCE_RATE else f"{p.bake.fps:g} fps"
         clips, size = sum(len(m.bake.clips) for m in p.cast), sum(m.bake.nbytes for m in p.cast)
-        imgui.text(f"baked: {clips} clips at {rate}, {p.bake.precision}, {p.processor.interpolation}, {size:,} bytes")
+        imgui.text_wrapped(f"baked: {clips} clips at {rate}, {p.bake.precision}, {p.processor.interpolation}, {size:,} bytes")
         if p.bake.compression is not None:
             c = p.bake.compression
-            imgui.text(f"compressed {c['ratio']:.2f}:1 against f32, keys within {c['max_key_error_mm']:.3g} mm (bound {c['bound_mm']:g} mm)")
+            imgui.text_wrapped(f"compressed {c['ratio']:.2f}:1 against f32, keys within {c['max_key_error_mm']:.3g} mm (bound {c['bound_mm']:g} mm)")
         if s.bake_error is not None:
             e = s.bake_error
-            imgui.text(f"shell error against float64: max {e['max_error_mm']:.3g} mm, p99 {e['p99_error_mm']:.3g} mm "
+            imgui.text_wrapped(f"shell error against float64: max {e['max_error_mm']:.3g} mm, p99 {e['p99_error_mm']:.3g} mm "
                        f"({e['poses']} poses, GPU)")
         changed, distances = imgui.drag_float3("LOD distances (m)", list(p.renderer.lod_distances), 0.5, *LOD.slider)
         if changed:
@@ -256,12 +297,10 @@ class Panel:
         changed, on = imgui.checkbox("occlusion", p.config.occlusion)
         if changed:
             self.apply("occlusion", on)
-        imgui.same_line()
         changed, index = imgui.combo("cull path", CULL_PATHS.index(p.config.cull), list(CULL_PATHS))
         if changed:
             self.apply("cull", CULL_PATHS[index])
-        imgui.same_line()
-        imgui.text(f"({p.renderer.cull_path})")
+        imgui.text_wrapped(f"culled on the {p.renderer.cull_path.upper()}" if p.renderer.culling else "no culling")
         changed, on = imgui.checkbox("shadows", p.renderer.shadows)
         if changed:
             self.apply("shadows", on)
@@ -274,25 +313,24 @@ class Panel:
             self.apply("foot_lock", on)
         lock = p.foot_lock_state()
         if not lock["on"] and p.config.foot_lock:
-            imgui.same_line()
-            imgui.text(f"(off: {lock['why']})")
-        changed, latency = imgui.slider_int("read-back latency (frames)", p.latency, *LATENCY.slider)
+            imgui.text_wrapped(f"foot lock off: {lock['why']}")
+        changed, latency = imgui.slider_int("read-back lag", p.latency, *LATENCY.slider, "%d frames")
         if changed:
             self.apply("latency", latency)
         if p.weapons is not None:
             w = weapon_stats(p)
-            imgui.text(f"{w['drawn']} weapons, pose lag {w['pose_lag_ms']:.1f} ms ({w['latency_frames']} frames x frame time), {w['stalls']} stalls")
-        imgui.text("skinning: dual quaternions (linear blend skinning is not built)")
+            imgui.text_wrapped(f"{w['drawn']} weapons, pose lag {w['pose_lag_ms']:.1f} ms ({w['latency_frames']} frames x frame time), {w['stalls']} stalls")
+        imgui.text_wrapped("skinning: dual quaternions (linear blend skinning is not built)")
         last = p.renderer.last
-        imgui.text(f"{last['instances']:,} instances, {last['triangles']:,} triangles, LODs {last['lod_counts']}")
+        imgui.text_wrapped(f"{last['instances']:,} instances, {last['triangles']:,} triangles, LODs {last['lod_counts']}")
 
     def _draw_inspector(self, imgui) -> None:
         info = self.session.inspect()
         if info is None:
-            imgui.text("click a zombie to select it")
+            imgui.text_wrapped("click a zombie to select it")
             return
-        imgui.text(f"agent {info['agent']} ({info['character']}): {info['state']}, health {info['health']}, {info['speed']:.2f} m/s")
-        imgui.text(f"phase {info['phase']:.3f}, weapon {info['weapon'] or 'none'}")
+        imgui.text_wrapped(f"agent {info['agent']} ({info['character']}): {info['state']}, health {info['health']}, {info['speed']:.2f} m/s")
+        imgui.text_wrapped(f"phase {info['phase']:.3f}, weapon {info['weapon'] or 'none'}")
         for name, layer in zip(LAYER_NAMES, info["layers"]):
-            imgui.text(f"  {name:6s} {layer['clip']:10s} phase {layer['phase']:.3f} weight {layer['weight']:.3f}"
+            imgui.text_wrapped(f"{name}: {layer['clip']}, phase {layer['phase']:.3f} weight {layer['weight']:.3f}"
                        + (f" mask {layer['mask']}" if layer["mask"] >= 0 else ""))

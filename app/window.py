@@ -25,9 +25,8 @@ from crowd.scene import Scene
 from crowd.session import CrowdSession
 
 from .camera import FollowControl, OrbitControl
-from .hud import draw_hud
 from .markers import MarkerRings
-from .panel import Panel
+from .overlay import Overlay
 
 PLAYER_SPEED = 4.0  # m/s with W/A/S/D
 MAX_FRAME_DT = 0.25
@@ -62,11 +61,11 @@ class CrowdWindow(mglw.WindowConfig):
         except BaseException:
             self.session.release()
             raise
-        self.panel = Panel(self.session, self.launch.get("scene_path"))
+        self.overlay = Overlay(self.gui, self.session, self.launch.get("scene_path"))
+        self.panel = self.overlay.panel
         self.orbit = OrbitControl(self.session.pipeline.camera)
         self.follow = FollowControl()
         self.camera_mode = "follow" if self.session.pipeline.survivor is not None else "orbit"
-        self.hud_shown: dict | None = None  # what the HUD showed last (the window test reads it)
         self._steering = False  # whether the keys steered the survivor last frame
         self.keys_down: set = set()
         self._press = None  # where a left press started, to tell a click from a drag
@@ -93,12 +92,7 @@ class CrowdWindow(mglw.WindowConfig):
         fbo = self.wnd.fbo
         self.session.frame(fbo, dt)
         self.markers.draw(fbo, self.session.last.view, *self.session.markers())
-        self.panel.record_frame(frame_time if frame_time > 0 else dt)
-        self.imgui.new_frame()
-        self.hud_shown = draw_hud(self.imgui, self.session.hud(), width)
-        self.panel.draw()
-        self.imgui.render()
-        self.gui.render(self.imgui.get_draw_data())
+        self.overlay.draw(fbo, frame_time if frame_time > 0 else dt)
 
     def _walk_player(self, dt: float) -> None:
         keys = self.wnd.keys

@@ -10,7 +10,9 @@
   interpolation, with the Pareto front, the default it picks and the stiff and extreme cases
   (bench/error_report.py); ``plot-error`` redraws its plot from the JSON.
 - ``frame``: the whole headless frame's period (frames back to back, one finish at the end) and latency
-  (one finish per frame), with the pass medians, against agent count.
+  (one finish per frame), with the pass medians, against agent count; ``--panel`` adds the panel and
+  HUD drawn into the frame, side by side.
+- ``soak``: the default scene for many frames: resident memory, live GL objects and faults (bench/soak.py).
 - ``readback``: the weapons' socket gather and GPU→CPU transfer against the number of armed agents,
   the CPU's wait on it, and the weapon-to-hand error with the body drawn in step with the read-back
   (sync) and from the newest palette (unsync), side by side in one run.
@@ -19,6 +21,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import sys
@@ -241,6 +244,8 @@ def bench_frame(args) -> int:
     from crowd.settings import parse
     from crowd.smoke import FIXED_DT, paced_frames
 
+    if args.panel:
+        from app.overlay import HeadlessPanel
     dt = FIXED_DT if args.dt is None else args.dt
 
     size = parse("size", args.size)
@@ -250,24 +255,32 @@ def bench_frame(args) -> int:
     info = describe(ctx)
     device = f"{info['gl_renderer']}, {info['gl_version']}; {device_cpu()}; moderngl {moderngl.__version__}"
     print(f"{device} | {size[0]}x{size[1]} | {args.frames} frames per period, {args.repeats} repeats")
-    print(f"{'agents':>8} {'period ms':>10} {'latency ms':>11} {'fps':>7}  biggest passes (median ms)")
+    print(f"{'agents':>15} {'period ms':>10} {'latency ms':>11} {'fps':>7}  biggest passes (median ms)")
     rows = []
     with Offscreen(ctx, size) as target:
-        for n in steps([int(x) for x in args.agents.split(",")], desc="frame", unit="size"):
+        cases = [(n, panel) for n in [int(x) for x in args.agents.split(",")] for panel in ((False, True) if args.panel else (False,))]
+        for n, panel in steps(cases, desc="frame", unit="case"):
             config = scene.with_overrides(agents=n, workers=args.workers).pipeline_config()
-            with CrowdPipeline(ctx, config) as pipeline:
+            with CrowdPipeline(ctx, config) as pipeline, \
+                    (HeadlessPanel(ctx, pipeline, size, scene) if panel else contextlib.nullcontext()) as overlay:
                 pipeline.camera = scene.camera_for(size[0] / size[1]) or pipeline.overview_camera(size[0] / size[1])
-                for _ in range(args.warmup):
+
+                def frame():
                     pipeline.frame(target.framebuffer, dt)
+                    if overlay is not None:  # the panel and HUD, as the window draws them
+                        overlay.draw(target.framebuffer, dt)
+
+                for _ in range(args.warmup):
+                    frame()
                 ctx.finish()
                 periods, latencies, intervals = [], [], []
                 for _ in range(args.repeats):
-                    paced = paced_frames(ctx, lambda: pipeline.frame(target.framebuffer, dt), args.frames)
+                    paced = paced_frames(ctx, frame, args.frames)
                     periods.append(sum(paced) / len(paced))
                     intervals += paced
                     for _ in range(max(1, args.frames // 2)):
                         t0 = time.perf_counter()
-                        pipeline.frame(target.framebuffer, dt)
+                        frame()
                         ctx.finish()
                         latencies.append((time.perf_counter() - t0) * 1e3)
                 pipeline.timer.end_frame(drain=True)
@@ -280,13 +293,13 @@ def bench_frame(args) -> int:
                 memory = pipeline.gpu_bytes()
                 cull = pipeline.renderer.cull_path
                 ai_processes = pipeline.ai.ranges()
-            row = {"agents": n, "cull": cull, "ai_processes": ai_processes, "drawn": drawn, "weapons": weapons, "gpu_bytes": memory, "period_ms": round(float(np.median(periods)), 3), "periods_ms": [round(p, 3) for p in periods],
+            row = {"agents": n, "panel": panel, "cull": cull, "ai_processes": ai_processes, "drawn": drawn, "weapons": weapons, "gpu_bytes": memory, "period_ms": round(float(np.median(periods)), 3), "periods_ms": [round(p, 3) for p in periods],
                    "frame_period_ms": {"p50": round(float(np.percentile(intervals, 50)), 3), "p95": round(float(np.percentile(intervals, 95)), 3),
                                        "max": round(float(np.max(intervals)), 3)},
                    "latency_ms": round(float(np.median(latencies)), 3), "passes_ms": passes, "gpu_passes_alone_ms": alone}
             rows.append(row)
             top = sorted(passes.items(), key=lambda kv: -kv[1])[:4]
-            print(f"{n:>8} {row['period_ms']:>10.2f} {row['latency_ms']:>11.2f} {1e3 / row['period_ms']:>7.1f}  "
+            print(f"{n:>8}{' +panel' if panel else '':7} {row['period_ms']:>10.2f} {row['latency_ms']:>11.2f} {1e3 / row['period_ms']:>7.1f}  "
                   + ", ".join(f"{k} {v:.2f}" for k, v in top))
     if args.json:
         from crowd.files import atomic_write_bytes
@@ -377,6 +390,37 @@ def bench_vertex_cache(args) -> int:
 
         atomic_write_bytes(Path(args.json), json.dumps(out, indent=1).encode())
     return 0
+
+
+def bench_soak(args) -> int:
+    """The game as shipped for many frames: resident memory, live GL objects and faults (bench/soak.py)."""
+    from crowd.files import atomic_write_bytes
+    from crowd.progress import bar
+    from crowd.settings import parse
+
+    from .soak import run_soak
+
+    size = parse("size", args.size)
+
+    def partial(samples):  # a long soak stopped early still leaves its samples
+        if args.json:
+            atomic_write_bytes(Path(args.json), json.dumps({"partial": True, "samples": samples}, indent=1).encode())
+
+    with bar(args.frames, f"soak, {args.agents:,} agents", "frame") as shown:
+        result = run_soak(args.agents, args.frames, size, args.warmup, args.every, args.scene, progress=shown, on_sample=partial)
+    print(f"{result['device']} | {result['agents']:,} agents, {result['frames']:,} frames at {size[0]}x{size[1]} in {result['seconds']} s, "
+          f"{result['rounds']} rounds")
+    rss, gl = result["rss_mb"], result["gl_objects"]
+    print(f"after {result['warmup']} frames, {len(result['samples'])} samples: resident memory {rss['first']} MB to {rss['last']} MB "
+          f"(drift {100 * rss['drift']:+.2f} %; range {rss['min']} to {rss['max']} MB, spread {100 * rss['spread']:.2f} %; "
+          f"untrimmed drift {100 * result['rss_untrimmed_mb']['drift']:+.2f} %, spread {100 * result['rss_untrimmed_mb']['spread']:.2f} %); "
+          f"GL objects {gl['first']:.0f} to {gl['last']:.0f} (drift {100 * gl['drift']:+.2f} %, spread {100 * gl['spread']:.2f} %); "
+          f"faults {len(result['faults'])}")
+    for fault in result["faults"][:20]:
+        print(f"  fault: {fault}")
+    if args.json:
+        atomic_write_bytes(Path(args.json), json.dumps(result, indent=1).encode())
+    return 0 if not result["faults"] else 1
 
 
 def bench_compaction(args) -> int:
@@ -516,6 +560,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="simulated seconds a frame (default: the headless loop's 1/30 s, two AI substeps; 1/60 is what a 60 fps window steps)")
     p.add_argument("--workers", type=int, default=None,
                    help="processes that step the AI (the workers setting: 1 this process only, 0 one per core; default: the scene's)")
+    p.add_argument("--panel", action="store_true",
+                   help="each count twice: without, then with the panel and HUD drawn into the frame as the window draws them")
     p.add_argument("--json", type=Path, help="write the rows here")
     p.set_defaults(run=bench_frame)
     p = sub.add_parser("lod", help="silhouette IoU of each coarser LOD against LOD0 at its switch distance (float64, CPU)")
@@ -528,6 +574,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
     p.add_argument("--json", type=Path, help='write the results as JSON to this file')
     p.set_defaults(run=bench_vertex_cache)
+    p = sub.add_parser("soak", help="the default scene for many frames: resident memory and live GL objects after warm-up, faults")
+    p.add_argument("--agents", type=int, default=10000, help="crowd size")
+    p.add_argument("--frames", type=int, default=20000, help="frames to run (a fixed 1/30 s step each)")
+    p.add_argument("--warmup", type=int, default=1000, help="frames before the first sample (buffers grow, rounds start)")
+    p.add_argument("--every", type=int, default=250, help="frames between samples")
+    p.add_argument("--size", default="320x180", help="frame size WxH (small: the soak is about growth, not pixels)")
+    p.add_argument("--scene", type=Path, help="a scene file (default: the default scene, the game as shipped)")
+    p.add_argument("--json", type=Path, help="write the samples and figures here")
+    p.set_defaults(run=bench_soak)
     p = sub.add_parser("compaction", help="the GPU cull's lists compacted by atomics and by a prefix sum: same lists, GPU ms")
     p.add_argument("--agents", default="10000,100000,1000000", help='comma-separated agent counts')
     p.add_argument("--repeats", type=int, default=40, help='timed runs per agent count (the median is reported)')

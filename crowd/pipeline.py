@@ -56,7 +56,7 @@ from .asset.town import build_town
 from .draw.town import TownRenderer
 from .stages import CastPart, StageSpec, Stages, build_processor, build_readback, build_renderer, build_weapons
 from .stages import build_town as build_town_stage
-from .timing import PassTimer
+from .timing import PassTimer, SampleRing
 
 # The default camera's neighbourhood of the player in a crowd too big to frame whole, and how far it sees
 # then: where the fog (crowd.lighting) has hidden 95 % of what is there, so the crowd fades out rather
@@ -225,7 +225,7 @@ class CrowdPipeline(GLStage):
         # The running crowd's foot skate: FOOT_SKATE_SAMPLE agents' foot joints ride on the socket read-back.
         self.foot_skate = FootSkateMonitor(self.character.skeleton, FOOT_SKATE_SAMPLE)
         self._socket_entries: dict[int, int] = {}  # frame -> how many of its gathered entries are weapon sockets
-        self.readback_waits: list[float] = []
+        self.readback_waits = SampleRing()  # ms the CPU waited on each read-back
         self.readback_stalls = 0
         self._pose_lag: deque = deque(maxlen=RING + 1)  # simulated seconds of the last frames
         self.frames = 0
@@ -575,6 +575,7 @@ class CrowdPipeline(GLStage):
         """Every agent anew from `seed` (same count, settings and clips)."""
         old, self.ai = self.ai, CrowdAI(self.agents, seed, [m.motion for m in self.cast[:self.crowd_cast]], self.ai.config,
                                         self.config.origin, shares=self.ai.shares, obstacles=self.obstacles)
+        self.ai.take_workers(old)
         if self.survivor is not None:
             self.ai.player = self.survivor.position.copy()
         self._blows_seen = 0

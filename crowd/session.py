@@ -41,11 +41,25 @@ class SessionError(ValueError):
 
 
 class CrowdSession(GLStage):
-    def __init__(self, ctx: moderngl.Context, scene: Scene, aspect: float = 16 / 9, scripted_player: bool = False):
+    def __init__(self, ctx: moderngl.Context, scene: Scene, aspect: float = 16 / 9, scripted_player: bool = False,
+                 pipeline: CrowdPipeline | None = None):
+        """`pipeline`: one already built from `scene` (the headless loop's, when it draws the panel): the
+        session drives it as it is and leaves its release to its owner."""
         self.pipeline = None  # a failure before it exists releases nothing; after, GLStage releases it
+        self._owns_pipeline = pipeline is None
         self._rebake: dict | None = None  # a re-bake under way on its thread (start_rebake)
         self.ctx = ctx
         self.scene = scene
+        self.paused = False
+        self.time_scale = 1.0
+        self.selected = -1
+        self.overrides = LayerOverrides()  # clips forced and layer weights held: the frame applies them
+        self.bake_error: dict | None = None  # the last measure_error(), until the next re-bake
+        self._pending_steps = 0
+        if pipeline is not None:
+            self.pipeline = pipeline
+            self.last = pipeline.last
+            return
         config = dataclasses.replace(scene.pipeline_config(), scripted_player=scripted_player)
         self.pipeline = CrowdPipeline(ctx, config)
         try:
@@ -57,13 +71,7 @@ class CrowdSession(GLStage):
         except (BakeError, AIError) as exc:
             raise SceneError(f"scene {scene.name!r}: {exc}") from None
         self.pipeline.camera = scene.camera_for(aspect) or self.pipeline.default_camera(aspect)
-        self.paused = False
-        self.time_scale = 1.0
-        self.selected = -1
-        self.overrides = LayerOverrides()  # clips forced and layer weights held: the frame applies them
-        self.bake_error: dict | None = None  # the last measure_error(), until the next re-bake
         self.last = self.pipeline.last  # the last frame's state (its view: where the window draws markers)
-        self._pending_steps = 0
 
     # -- time
 
@@ -515,5 +523,5 @@ class CrowdSession(GLStage):
         if self._rebake is not None:  # its thread touches no GL; it is waited for so nothing outlives the session
             self._rebake["thread"].join()
             self._rebake = None
-        if self.pipeline is not None:
+        if self.pipeline is not None and self._owns_pipeline:
             self.pipeline.release()

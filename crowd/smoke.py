@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from contextlib import nullcontext
 from pathlib import Path
 
 import moderngl
@@ -54,16 +55,21 @@ def paced_frames(ctx: moderngl.Context, frame, count: int, in_flight: int = FRAM
 
 
 def run_headless(config: PipelineConfig, frames: int, size: tuple[int, int], screenshot: Path | None = None,
-                 stats_path: Path | None = None, ctx: moderngl.Context | None = None, camera=None) -> dict:
+                 stats_path: Path | None = None, ctx: moderngl.Context | None = None, camera=None, overlay=None) -> dict:
+    """`overlay`: drawn over every frame, as a window draws its panel: called as overlay(ctx, pipeline, size)
+    once the pipeline exists, it gives a GL stage with draw(framebuffer, dt), released when the run ends."""
     own_ctx = ctx is None
     ctx = ctx or headless_context()
     try:
         with Offscreen(ctx, size) as target, CrowdPipeline(ctx, config) as pipeline:
             pipeline.camera = camera if camera is not None else pipeline.default_camera(size[0] / size[1])
-            with bar(frames, f"{config.agents:,} agents", "frame") as shown:  # on a terminal only (crowd.progress)
+            with (overlay(ctx, pipeline, size) if overlay is not None else nullcontext()) as drawn_over, \
+                    bar(frames, f"{config.agents:,} agents", "frame") as shown:  # on a terminal only (crowd.progress)
 
                 def frame():
                     pipeline.frame(target.framebuffer, FIXED_DT)
+                    if drawn_over is not None:
+                        drawn_over.draw(target.framebuffer, FIXED_DT)
                     shown.update(1)
 
                 period_ms = paced_frames(ctx, frame, frames // 2)

@@ -43,7 +43,7 @@ def weapon_stats(pipeline) -> dict:
             "armed": int(np.count_nonzero(pipeline.ai.armed())), "placed": pipeline.weapons.last["weapons"],
             "dropped": pipeline.weapons.last["dropped"], "drawn": pipeline.weapons.last["drawn"],  # drawn: in hand and on the ground
             "triangles": pipeline.weapons.last["triangles"],
-            "gathered": pipeline.readback.last_count, "stalls": pipeline.readback_stalls, "reads": len(pipeline.readback_waits)}
+            "gathered": pipeline.readback.last_count, "stalls": pipeline.readback_stalls, "reads": pipeline.readback_waits.total}
 
 
 def survivor_stats(survivor) -> dict | None:

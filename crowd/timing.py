@@ -6,9 +6,7 @@ a timing never waits for the GPU in a windowed frame loop. Medians are what the 
 
 from __future__ import annotations
 
-import itertools
 import time
-from collections import deque
 from contextlib import contextmanager
 
 import moderngl
@@ -20,6 +18,38 @@ RING = 3
 KEEP = 100_000  # samples kept per pass: a window left running for hours does not grow without bound
 
 
+class SampleRing:
+    """The last KEEP samples of a measure, in one float64 array (8 bytes a sample, where a deque of
+    floats took about 40): appending never allocates, so a long run's memory stays flat once full.
+    ``np.asarray(ring)`` gives them oldest first; ``total`` counts every sample ever appended."""
+
+    def __init__(self, capacity: int = KEEP):
+        self._values = np.zeros(capacity)
+        self._next = 0
+        self.total = 0
+
+    def append(self, value: float) -> None:
+        self._values[self._next] = value
+        self._next = (self._next + 1) % len(self._values)
+        self.total += 1
+
+    def clear(self) -> None:
+        self._next = self.total = 0
+
+    def __len__(self) -> int:
+        return min(self.total, len(self._values))
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        kept = len(self)
+        out = np.roll(self._values, -self._next)[len(self._values) - kept:] if kept == len(self._values) else self._values[:kept].copy()
+        return out if dtype is None else out.astype(dtype)
+
+    def recent(self, count: int) -> np.ndarray:
+        """The last `count` samples, newest first (only those are read: the panel asks every frame)."""
+        count = min(count, len(self))
+        return self._values[(self._next - 1 - np.arange(count)) % len(self._values)]
+
+
 class PassTimer(GLStage):
     def __init__(self, ctx: moderngl.Context | None):
         self.ctx = ctx
@@ -27,7 +57,7 @@ class PassTimer(GLStage):
         self._queries: dict[str, list] = {}
         self._pending: list[tuple[int, str, object]] = []
         self._flush = None  # glFlush, looked up on the first GPU pass
-        self.samples: dict[str, deque] = {}
+        self.samples: dict[str, SampleRing] = {}
         self.clock: dict[str, str] = {}
         self.order: list[str] = []
 
@@ -78,14 +108,15 @@ class PassTimer(GLStage):
         self._pending = keep
         self.frame += 1
 
-    def _samples(self, name: str) -> deque:
+    def _samples(self, name: str) -> SampleRing:
         if name not in self.samples:
-            self.samples[name] = deque(maxlen=KEEP)
+            self.samples[name] = SampleRing()
         return self.samples[name]
 
-    def recent(self, name: str, count: int) -> list[float]:
-        """The last `count` samples of a pass (the panel's live numbers)."""
-        return list(itertools.islice(reversed(self.samples.get(name, ())), count))
+    def recent(self, name: str, count: int) -> np.ndarray:
+        """The last `count` samples of a pass, newest first (the panel's live numbers)."""
+        ring = self.samples.get(name)
+        return ring.recent(count) if ring is not None else np.zeros(0)
 
     def medians(self) -> dict[str, float]:
         return {name: round(float(np.median(self.samples[name])), 4) for name in self.order if self.samples.get(name)}

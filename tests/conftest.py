@@ -37,3 +37,8 @@ def gl_context():
         pytest.skip(str(exc))
     yield ctx
     ctx.release()
+
+
+# -- GL objects alive (the leak tests count them): the soak's census
+
+from bench.soak import gl_census  # noqa: E402,F401

@@ -88,6 +88,37 @@ def test_the_same_seed_gives_the_same_crowd_for_any_worker_count(motion, think_e
     assert created_blocks and not _left_behind(created_blocks), "shared memory left behind"
 
 
+def test_a_new_round_keeps_the_workers_and_is_the_crowd_a_fresh_start_gives(motion, created_blocks):
+    """A new round's crowd takes the last crowd's worker processes (no restart: it froze the round's first
+    frame), and steps exactly as a crowd of the same seed started afresh in one process."""
+    config = AIConfig(workers=3, health=1, corpse_time=0.5, area_per_agent=2.0)
+    last = CrowdAI(AGENTS, 5, motion, config)
+    fresh = CrowdAI(AGENTS, 9, motion, AIConfig(**{**config.__dict__, "workers": 1}))
+    try:
+        for _ in range(4):
+            last.step(STEP)
+        pool = last._pool
+        procs = list(pool._procs)
+        crowd = CrowdAI(AGENTS, 9, motion, config)
+        crowd.take_workers(last)
+        last.close()
+        assert crowd._pool is pool and last._pool is None and all(p.is_alive() for p in procs)
+        for ai in (crowd, fresh):
+            script = PlayerScript(ai.half_extent * 0.3, strike_every=0.1)
+            for _ in range(40):
+                script.update(ai)
+                ai.step(STEP)
+        assert crowd._pool is pool  # the same processes all along
+        ours, theirs = _state(crowd), _state(fresh)
+        assert [name for name in ours if not np.array_equal(ours[name], theirs[name])] == []
+        crowd.close()
+    finally:
+        for ai in (last, fresh):
+            ai.close()
+    assert not any(p.is_alive() for p in procs)
+    assert created_blocks and not _left_behind(created_blocks)
+
+
 def test_the_pool_follows_the_crowd_size_and_releases_everything(motion, created_blocks):
     ai = CrowdAI(500, 2, motion, AIConfig(workers=3))
     try:

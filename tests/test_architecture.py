@@ -3,7 +3,6 @@ release their GL objects on every path."""
 
 from __future__ import annotations
 
-import ctypes
 import dataclasses
 import math
 import subprocess
@@ -13,9 +12,9 @@ import tomllib
 import numpy as np
 import pytest
 
-from conftest import ROOT
+from conftest import ROOT, gl_census
 from crowd.frame import ForcedClip, LayerOverrides
-from crowd.gl import Offscreen, current_context_function
+from crowd.gl import Offscreen
 from crowd.pipeline import CrowdPipeline, PipelineConfig
 from crowd.scene import Scene, SceneError, load_scene
 from crowd.session import CrowdSession, SessionError
@@ -169,29 +168,6 @@ def test_layer_overrides_are_an_input_of_the_frame(gl_context):
 
 
 # -- GL objects are released on every path
-
-
-_GL_KINDS = ("Buffer", "Texture", "Program", "Shader", "VertexArray", "Framebuffer", "Renderbuffer", "Sampler")
-_DELETE_STATUS = 0x8B80
-
-
-def gl_census() -> dict[str, set[int]]:
-    """The GL object names alive in the current context, by kind (names are small integers that the
-    driver hands out and reuses). A program or shader that was released but is still referenced by
-    the context's state (Mesa keeps the last one bound) reports GL_DELETE_STATUS and is not counted:
-    the driver frees it when the state moves on. Queries are left out: moderngl 5.13 cannot release
-    them, and the pass timer reuses a fixed ring of them."""
-    int_out = ctypes.CFUNCTYPE(None, ctypes.c_uint, ctypes.c_uint, ctypes.POINTER(ctypes.c_int))
-    deleted = {"Program": current_context_function("glGetProgramiv", int_out), "Shader": current_context_function("glGetShaderiv", int_out)}
-    out = {}
-    for kind in _GL_KINDS:
-        is_kind = current_context_function(f"glIs{kind}", ctypes.CFUNCTYPE(ctypes.c_ubyte, ctypes.c_uint))
-        names = {name for name in range(1, 3000) if is_kind(name)}
-        if kind in deleted:
-            status = ctypes.c_int(0)
-            names = {n for n in names if not (deleted[kind](n, _DELETE_STATUS, ctypes.byref(status)) or status.value)}
-        out[kind] = names
-    return out
 
 
 def test_an_exception_inside_a_frame_leaves_no_gl_object(gl_context, monkeypatch):

@@ -67,7 +67,7 @@ window.on_key_event(wnd.keys.P, wnd.keys.ACTION_RELEASE, KeyModifiers())
 survivor = session.pipeline.survivor
 result["camera"] = window.camera_mode
 render_frame(window, 1 / 30)
-result["hud_before"] = dict(window.hud_shown)
+result["hud_before"] = dict(window.overlay.hud_shown)
 start = survivor.position.copy()
 window.on_key_event(wnd.keys.W, wnd.keys.ACTION_PRESS, KeyModifiers())
 for _ in range(20):
@@ -86,9 +86,9 @@ render_frame(window, 1 / 30)
 result["swinging"] = survivor.action == 1
 for _ in range(240):  # standing among the horde
     render_frame(window, 1 / 30)
-    if window.hud_shown["health"] < result["hud_before"]["health"]:
+    if window.overlay.hud_shown["health"] < result["hud_before"]["health"]:
         break
-result["hud_after"] = dict(window.hud_shown)
+result["hud_after"] = dict(window.overlay.hud_shown)
 window.on_key_event(wnd.keys.C, wnd.keys.ACTION_PRESS, KeyModifiers())
 result["camera_after_c"] = window.camera_mode
 result["gl"] = window.ctx.info["GL_RENDERER"]

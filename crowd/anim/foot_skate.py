@@ -154,7 +154,7 @@ class FootSkateMonitor:
             track = self._tracks.setdefault(a, deque(maxlen=self.window))
             if track and track[-1][0] != frame - 1:
                 track.clear()  # a frame missing: the stretch starts again
-            track.append((frame, t, ground[i], world[i]))
+            track.append((frame, t, ground[i].copy(), world[i].copy()))  # copies: a view would keep the frame's whole array alive
 
     def summary(self) -> dict | None:
         """The crowd's foot skate over the sampled agents' windows that walked at least min_walk_m:

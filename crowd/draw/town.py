@@ -62,6 +62,7 @@ class TownRenderer(GLStage):
             self._programs["color"]["u_shadow_map"] = 3
         self.height = max(float(np.max(np.asarray(p.mesh.positions)[:, 1])) for p in town.pieces)  # the tallest roof
         self.last = {"instances": 0, "triangles": 0, "shadow_instances": 0, "draws": 0}
+        self._placed_for: dict | None = None  # _place's districts in sight and what was placed there
 
     def _vao(self, piece: dict, kind: str, cascade: int = 0) -> moderngl.VertexArray:
         if (kind, cascade) not in piece["vaos"]:
@@ -75,11 +76,18 @@ class TownRenderer(GLStage):
 
     # -- per frame
 
-    def placements(self, eye: np.ndarray, piece) -> np.ndarray:
-        """(K, 4) float64 placements of `piece` (x, z, yaw, tint) in every district within SIGHT_M of `eye`."""
+    @staticmethod
+    def _districts(eye: np.ndarray) -> tuple[int, int, int, int]:
+        """The district indices (x from, z from, x to, z to) within SIGHT_M of the eye."""
         lo = np.floor((eye[[0, 2]] - SIGHT_M) / PERIOD).astype(np.int64)
         hi = np.floor((eye[[0, 2]] + SIGHT_M) / PERIOD).astype(np.int64)
-        dx, dz = np.meshgrid(np.arange(lo[0], hi[0] + 1) * PERIOD, np.arange(lo[1], hi[1] + 1) * PERIOD, indexing="ij")
+        return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
+
+    @staticmethod
+    def _placed(districts: tuple[int, int, int, int], piece) -> np.ndarray:
+        """(K, 4) float64 placements of `piece` (x, z, yaw, tint) in these districts."""
+        x0, z0, x1, z1 = districts
+        dx, dz = np.meshgrid(np.arange(x0, x1 + 1) * PERIOD, np.arange(z0, z1 + 1) * PERIOD, indexing="ij")
         offsets = np.stack([dx.ravel(), dz.ravel()], axis=1)
         p = piece.placements
         out = np.repeat(p[None], len(offsets), axis=0)
@@ -87,30 +95,72 @@ class TownRenderer(GLStage):
         out[..., 1] += offsets[:, 1, None]
         return out.reshape(-1, 4)
 
+    def _place(self, eye: np.ndarray) -> dict:
+        """Every piece's placements in sight, piece after piece, with their radii and records' constant fields.
+        They change only when the eye crosses into another district's reach, so they are kept until then
+        (placing and packing them each frame was most of the stage's CPU time)."""
+        districts = self._districts(eye)
+        if self._placed_for is not None and self._placed_for["districts"] == districts:
+            return self._placed_for
+        parts = [self._placed(districts, piece["piece"]) for piece in self._pieces]
+        counts = np.array([len(part) for part in parts])
+        placed = np.concatenate(parts)
+        records = np.zeros(len(placed), INSTANCE_DTYPE)
+        write_heading(placed[:, 2], records["fields"][:, 0])
+        records["fields"][:, 1] = TINTS[placed[:, 3].astype(np.int64)].view("<u4")[:, 0]
+        # Each district's bounding sphere, culled first: only the placements of districts in view are tested.
+        x0, z0, x1, z1 = districts
+        dx, dz = np.meshgrid(np.arange(x0, x1 + 1) * PERIOD, np.arange(z0, z1 + 1) * PERIOD, indexing="ij")
+        local = np.concatenate([piece["piece"].placements[:, :2] for piece in self._pieces])
+        reach = max(piece["radius"] for piece in self._pieces)
+        low, high = local.min(axis=0) - reach, local.max(axis=0) + reach
+        centres = np.zeros((dx.size, 3))
+        centres[:, 0], centres[:, 1], centres[:, 2] = dx.ravel() + (low[0] + high[0]) / 2, self.height / 2, dz.ravel() + (low[1] + high[1]) / 2
+        self._placed_for = {
+            "districts": districts, "xz": placed[:, :2], "records": records, "bounds": np.concatenate([[0], np.cumsum(counts)]),
+            "radius": np.repeat([piece["radius"] for piece in self._pieces], counts),
+            "casts": np.repeat([bool(piece["shadow_instances"]) for piece in self._pieces], counts),
+            "district": np.concatenate([np.repeat(np.arange(dx.size), len(piece["piece"].placements)) for piece in self._pieces]),
+            "centres": centres, "district_radius": float(np.hypot(np.hypot(*(high - low)), self.height) / 2),
+        }
+        return self._placed_for
+
     def prepare(self, view) -> None:
-        """Cull and upload this frame's placements: the view's, and each shadow cascade's (with shadows)."""
+        """Cull and upload this frame's placements: the view's, and each shadow cascade's (with shadows).
+        All pieces' placements are culled together (districts first, then the placements of those in
+        view), then uploaded piece by piece."""
         eye = np.asarray(view.camera.eye, np.float64)
-        planes = frustum_planes(view.view_proj)
-        light = [(frustum_planes(m), reach) for m, reach in zip(view.shadow.view_proj, view.shadow.reach_m)] if view.shadow is not None else []
+        placed = self._place(eye)
+        records, radius, bounds = placed["records"], placed["radius"], placed["bounds"]
+        rel = np.empty((len(records), 3))
+        rel[:, 0], rel[:, 1], rel[:, 2] = placed["xz"][:, 0] - eye[0], -eye[1], placed["xz"][:, 1] - eye[2]
+        records["position"] = rel
+        centres = placed["centres"] - eye
+        centre_edge = np.sqrt(np.einsum("ij,ij->i", centres, centres)) - placed["district_radius"]
+        district_radius = np.full(len(centres), placed["district_radius"])
+
+        def kept(matrix, reach, among=None):
+            planes = frustum_planes(matrix)
+            districts = sphere_visible(planes, centres, district_radius) & (centre_edge <= reach)
+            candidates = np.flatnonzero(districts[placed["district"]] & (True if among is None else among))
+            near = rel[candidates]
+            near_edge = np.sqrt(np.einsum("ij,ij->i", near, near)) - radius[candidates]
+            out = np.zeros(len(records), bool)
+            out[candidates] = sphere_visible(planes, near, radius[candidates]) & (near_edge <= reach)
+            return out
+
+        seen = kept(view.view_proj, view.camera.far)
+        casts = [kept(matrix, reach, placed["casts"]) for matrix, reach in zip(view.shadow.view_proj, view.shadow.reach_m)] \
+            if view.shadow is not None else []
         total, triangles, shadowed, draws = 0, 0, 0, 0
-        for piece in self._pieces:
-            p = self.placements(eye, piece["piece"])
-            rel = np.zeros((len(p), 3))
-            rel[:, 0], rel[:, 2] = p[:, 0] - eye[0], p[:, 1] - eye[2]
-            rel[:, 1] = -eye[1]
-            radii = np.full(len(p), piece["radius"])
-            records = np.zeros(len(p), INSTANCE_DTYPE)
-            records["position"] = rel
-            write_heading(p[:, 2], records["fields"][:, 0])
-            records["fields"][:, 1] = TINTS[p[:, 3].astype(np.int64)].view("<u4")[:, 0]
-            seen = sphere_visible(planes, rel, radii) & (np.linalg.norm(rel, axis=1) - radii <= view.camera.far)
-            piece["count"] = self._upload(piece["instances"], records[seen])
+        for i, piece in enumerate(self._pieces):
+            a, b = bounds[i], bounds[i + 1]
+            piece["count"] = self._upload(piece["instances"], records[a:b][seen[a:b]])
             total += piece["count"]
             triangles += piece["count"] * piece["triangles"]
             draws += int(piece["count"] > 0)
             for k, shadow in enumerate(piece["shadow_instances"]):
-                cast = sphere_visible(light[k][0], rel, radii) & (np.linalg.norm(rel, axis=1) - radii <= light[k][1])
-                piece["shadow_counts"][k] = self._upload(shadow, records[cast])
+                piece["shadow_counts"][k] = self._upload(shadow, records[a:b][casts[k][a:b]])
                 shadowed += piece["shadow_counts"][k]
         self.last = {"instances": total, "triangles": triangles, "shadow_instances": shadowed, "draws": draws}
 

@@ -92,6 +92,51 @@ FLOW_BLOCKED = CLEARANCE + 0.05  # a flow cell whose centre is nearer an obstacl
 FLOW_DIRECT = 3.0  # metres from the player within which a chaser goes straight at it
 
 
+def path_distances(open_: np.ndarray, target: tuple[int, int]) -> np.ndarray:
+    """Shortest 8-neighbour path lengths (in cells; diagonals sqrt 2) from every open cell of a grid to
+    `target`, inf where walled off: every cell relaxed from its 8 neighbours at once, until nothing
+    shortens (a pass per cell of the longest path: 54 to 67 passes, 4 to 5 ms for the town's 96 x 96
+    window on the dev container). Written here rather than taken from scipy (csgraph's Dijkstra): the
+    AI is numpy only, and this is the one graph search it needs. A version relaxing whole lines at
+    once (running minimums along rows, columns and diagonals) needed 7 passes but took 4.3 ms: numpy's
+    running minimum costs more per cell than the passes it saves."""
+    n, m = open_.shape
+    dist = np.full((n, m), np.inf)
+    dist[target] = 0.0
+    steps = [(di, dj, math.hypot(di, dj)) for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj]
+    for _ in range(4 * max(n, m)):
+        before = dist.copy()
+        for di, dj, w in steps:
+            a = dist[max(di, 0):n + min(di, 0), max(dj, 0):m + min(dj, 0)]
+            b = before[max(-di, 0):n + min(-di, 0), max(-dj, 0):m + min(-dj, 0)]
+            np.minimum(a, b + w, out=a)
+        dist[~open_] = np.inf
+        dist[target] = 0.0
+        if np.array_equal(dist, before):
+            break
+    return dist
+
+
+def _downhill(dist: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each cell's way down the distances: the neighbour (di, dj) nearest the target by path, and whether
+    it is nearer than the cell itself (walls are inf). A cell the field calls a wall (an agent pressed
+    against one stands in one) looks two cells out. Per cell, once per field: the chasers look it up."""
+    n = dist.shape[0]
+    padded = np.full((n + 4, n + 4), np.inf)
+    padded[2:-2, 2:-2] = dist
+    reach = np.where(np.isfinite(dist), 1, 2)
+    best = np.full(dist.shape, np.inf)
+    step_i, step_j = np.zeros(dist.shape, np.int64), np.zeros(dist.shape, np.int64)
+    for di in range(-2, 3):
+        for dj in range(-2, 3):
+            if di or dj:
+                d = np.where(max(abs(di), abs(dj)) <= reach, padded[2 + di:n + 2 + di, 2 + dj:n + 2 + dj], np.inf)
+                better = d < best
+                best = np.where(better, d, best)
+                step_i, step_j = np.where(better, di, step_i), np.where(better, dj, step_j)
+    return step_i, step_j, np.isfinite(best) & (best < dist)
+
+
 class AIError(ValueError):
     """Bad AI input; the message is one line."""
 
@@ -874,6 +919,19 @@ class CrowdAI:
         if was is not None:
             was.close()
 
+    def take_workers(self, other: "CrowdAI") -> None:
+        """Step with `other`'s worker processes from now on (a new round's new crowd: starting 15 processes
+        again froze the first frame of every round for 0.4 s on the dev container, 1 s on the H200 host).
+        `other` is left without them; nothing happens if it has none or they are another size."""
+        pool = other._pool
+        if pool is None or pool.closed or self._pool is not None or other.config.workers != self.config.workers:
+            return
+        other._pool, other._params = None, other._params.copy()
+        other._rehome()  # its arrays leave the shared memory the workers will map anew
+        self._pool = pool
+        self._params = pool.params
+        self._rehome()  # this crowd's arrays into shared memory; the next substep tells the workers (_stale)
+
     def close(self) -> None:
         """Stop the worker processes and free the shared memory (also done when the AI is collected)."""
         self._stop_pool(copy=True)
@@ -1312,10 +1370,10 @@ class CrowdAI:
         vx[agents] -= into * gx
         vz[agents] -= into * gz
 
-    def _flow_field(self) -> tuple[np.ndarray, np.ndarray] | None:
+    def _flow_field(self) -> tuple | None:
         """(the window's first cell's corner (x, z), path distances (FLOW_CELLS, FLOW_CELLS) to the player
-        through the streets, inf where walled off), made anew when the player crosses a cell: relaxed
-        over 8 neighbours (diagonals sqrt 2) until nothing shortens. None without obstacles."""
+        through the streets, inf where walled off, and each cell's way down them: the neighbour (di, dj)
+        and whether there is one), made anew when the player crosses a cell. None without obstacles."""
         if self.obstacles is None:
             return None
         cell = np.floor(np.asarray(self.player, np.float64) / FLOW_CELL).astype(np.int64)
@@ -1325,33 +1383,20 @@ class CrowdAI:
         corner = (cell - FLOW_CELLS // 2) * FLOW_CELL
         centres = corner[:, None] + (np.arange(FLOW_CELLS) + 0.5) * FLOW_CELL
         cx, cz = np.meshgrid(centres[0], centres[1], indexing="ij")
-        open_ = self.obstacles.distance(cx, cz) >= FLOW_BLOCKED
-        dist = np.full((FLOW_CELLS, FLOW_CELLS), np.inf)
-        dist[FLOW_CELLS // 2, FLOW_CELLS // 2] = 0.0
-        steps = [(di, dj, math.hypot(di, dj)) for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj]
-        for _ in range(4 * FLOW_CELLS):
-            before = dist.copy()
-            for di, dj, w in steps:
-                a = dist[max(di, 0):FLOW_CELLS + min(di, 0), max(dj, 0):FLOW_CELLS + min(dj, 0)]
-                b = before[max(-di, 0):FLOW_CELLS + min(-di, 0), max(-dj, 0):FLOW_CELLS + min(-dj, 0)]
-                np.minimum(a, b + w * FLOW_CELL, out=a)
-            dist[~open_] = np.inf
-            dist[FLOW_CELLS // 2, FLOW_CELLS // 2] = 0.0
-            if np.array_equal(dist, before):
-                break
-        self._flow = (key, (corner, dist))
+        dist = path_distances(self.obstacles.distance(cx, cz) >= FLOW_BLOCKED, (FLOW_CELLS // 2, FLOW_CELLS // 2)) * FLOW_CELL
+        self._flow = (key, (corner, dist, *_downhill(dist)))
         return self._flow[1]
 
     def _flow_directions(self, x: np.ndarray, z: np.ndarray, to_x: np.ndarray, to_z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Directions (unit, x and z) chasers at (x, z) take toward the player: down the flow field's
-        distances where they are in its window and not within FLOW_DIRECT of the player, else straight
-        (`to_x`, `to_z`: their offsets to the player)."""
+        """Directions (unit, x and z) chasers at (x, z) take toward the player: toward the centre of their
+        cell's way down the flow field where they are in its window and not within FLOW_DIRECT of the
+        player, else straight (`to_x`, `to_z`: their offsets to the player)."""
         straight = np.hypot(to_x, to_z)
         ux, uz = to_x / np.maximum(straight, 1e-12), to_z / np.maximum(straight, 1e-12)
         flow = self._flow_field()
         if flow is None:
             return ux, uz
-        corner, dist = flow
+        corner, _, step_i, step_j, usable = flow
         i = np.floor((x - corner[0]) / FLOW_CELL).astype(np.int64)
         j = np.floor((z - corner[1]) / FLOW_CELL).astype(np.int64)
         inside = (i >= 1) & (i < FLOW_CELLS - 1) & (j >= 1) & (j < FLOW_CELLS - 1) & (straight > FLOW_DIRECT)
@@ -1359,27 +1404,13 @@ class CrowdAI:
         if not k.size:
             return ux, uz
         i, j = i[k], j[k]
-        here = dist[i, j]
-        # The neighbour cell nearest the player by path (walls are inf): the way down the field. An agent
-        # in a cell the field calls a wall (pressed against one, its centre too near it) looks two cells out.
-        reach = np.where(np.isfinite(here), 1, 2)
-        best = np.full(k.size, np.inf)
-        bx, bz = np.zeros(k.size), np.zeros(k.size)
-        for di in range(-2, 3):
-            for dj in range(-2, 3):
-                if di or dj:
-                    ok = (np.maximum(abs(di), abs(dj)) <= reach) & (i + di >= 0) & (i + di < FLOW_CELLS) & (j + dj >= 0) & (j + dj < FLOW_CELLS)
-                    d = np.where(ok, dist[np.clip(i + di, 0, FLOW_CELLS - 1), np.clip(j + dj, 0, FLOW_CELLS - 1)], np.inf)
-                    better = d < best
-                    best = np.where(better, d, best)
-                    bx, bz = np.where(better, di, bx), np.where(better, dj, bz)
-        usable = np.isfinite(best) & (best < here)
         # Toward that neighbour's centre from where the agent stands (not from its own cell's centre).
-        tx = corner[0] + (i + bx + 0.5) * FLOW_CELL - x[k]
-        tz = corner[1] + (j + bz + 0.5) * FLOW_CELL - z[k]
+        tx = corner[0] + (i + step_i[i, j] + 0.5) * FLOW_CELL - x[k]
+        tz = corner[1] + (j + step_j[i, j] + 0.5) * FLOW_CELL - z[k]
         norm = np.maximum(np.hypot(tx, tz), 1e-12)
-        ux[k] = np.where(usable, tx / norm, ux[k])
-        uz[k] = np.where(usable, tz / norm, uz[k])
+        go = usable[i, j]
+        ux[k] = np.where(go, tx / norm, ux[k])
+        uz[k] = np.where(go, tz / norm, uz[k])
         return ux, uz
 
     def _wander(self, a, wandering: np.ndarray, h) -> None:

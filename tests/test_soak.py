@@ -1,0 +1,24 @@
+"""The soak, short: the game as shipped (the mixed horde in the town, the scripted survivor through its
+rounds) headless; after the warm-up its resident memory and live GL objects stay within 2 % and no
+fault is logged. ``crowd-bench soak`` runs the issue's 20,000 frames at 10,000 agents (docs/BENCHMARKS.md)."""
+
+from __future__ import annotations
+
+import pytest
+
+from bench.soak import run_soak
+
+
+def test_a_short_soak_holds_memory_and_gl_objects_and_logs_no_fault(gl_context):
+    # The warm-up covers the first rounds: on llvmpipe the memory settles over its first 300 frames or so
+    # (from frame 100 to 420 it rose 2.6 %; from 320 to 640 it moved -0.6 and +0.03 % in two runs).
+    result = run_soak(agents=300, frames=640, size=(96, 54), warmup=320, every=20)
+    assert result["faults"] == []
+    assert len(result["samples"]) == 17 and result["samples"][-1]["agents"] == 300 and result["rounds"] >= 3
+    assert abs(result["rss_mb"]["drift"]) <= 0.02, result["rss_mb"]
+    assert result["gl_objects"]["spread"] <= 0.02, result["gl_objects"]
+
+
+def test_the_soak_refuses_a_warmup_past_its_frames():
+    with pytest.raises(ValueError, match="warmup"):
+        run_soak(agents=10, frames=10, size=(16, 16), warmup=10, every=5)
