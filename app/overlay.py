@@ -45,13 +45,29 @@ class Overlay:
         self.gui.render(imgui.get_draw_data())
 
 
+def _renderer(base, ctx: moderngl.Context, size: tuple[int, int]):
+    """moderngl-window's ImGui renderer, which on a failure half-way through its constructor keeps what it
+    had made (its program, buffers, vertex array): released here before the error goes on."""
+
+    class Renderer(base):
+        def __init__(self):
+            try:
+                super().__init__(ctx=ctx, display_size=tuple(float(v) for v in size))
+            except BaseException:
+                self._invalidate_device_objects()
+                raise
+
+    return Renderer()
+
+
 class HeadlessPanel(GLStage):
     """The overlay on the headless loop's pipeline (its session adopts the pipeline and leaves it to its
     owner). Owns the ImGui and ImPlot contexts and the renderer's GL objects, and releases them."""
 
     def __init__(self, ctx: moderngl.Context, pipeline: CrowdPipeline, size: tuple[int, int], scene: Scene, follow: bool = False):
         """`follow`: the window's third-person camera behind the survivor, from the next frame on (the demo's
-        picture); off, the loop's camera stays (the benchmark compares the same view with and without)."""
+        picture); off, the loop's camera stays (the benchmark compares the same view with and without).
+        The loop steps the pipeline itself, and nobody clicks: the panel is drawn, its controls do nothing."""
         self.gui = self.session = None
         import_moderngl_window()  # first, without its PyGLM warning
         from imgui_bundle import imgui, implot
@@ -61,7 +77,7 @@ class HeadlessPanel(GLStage):
         self._context = imgui.create_context()
         imgui.get_io().set_ini_filename("")  # headless: no imgui.ini written where the run started
         self._plot_context = implot.create_context()
-        self.gui = ModernGLRenderer(ctx=ctx, display_size=tuple(float(v) for v in size))
+        self.gui = _renderer(ModernGLRenderer, ctx, size)
         self.session = CrowdSession(ctx, scene, size[0] / size[1], pipeline=pipeline)
         self.overlay = Overlay(self.gui, self.session, None)
         self.follow = FollowControl() if follow and pipeline.survivor is not None else None

@@ -408,18 +408,21 @@ def bench_soak(args) -> int:
 
     with bar(args.frames, f"soak, {args.agents:,} agents", "frame") as shown:
         result = run_soak(args.agents, args.frames, size, args.warmup, args.every, args.scene, progress=shown, on_sample=partial)
+    if args.json:
+        atomic_write_bytes(Path(args.json), json.dumps(result, indent=1).encode())
     print(f"{result['device']} | {result['agents']:,} agents, {result['frames']:,} frames at {size[0]}x{size[1]} in {result['seconds']} s, "
           f"{result['rounds']} rounds")
     rss, gl = result["rss_mb"], result["gl_objects"]
-    print(f"after {result['warmup']} frames, {len(result['samples'])} samples: resident memory {rss['first']} MB to {rss['last']} MB "
-          f"(drift {100 * rss['drift']:+.2f} %; range {rss['min']} to {rss['max']} MB, spread {100 * rss['spread']:.2f} %; "
-          f"untrimmed drift {100 * result['rss_untrimmed_mb']['drift']:+.2f} %, spread {100 * result['rss_untrimmed_mb']['spread']:.2f} %); "
-          f"GL objects {gl['first']:.0f} to {gl['last']:.0f} (drift {100 * gl['drift']:+.2f} %, spread {100 * gl['spread']:.2f} %); "
-          f"faults {len(result['faults'])}")
+    if rss is None:  # a fault before the first sample
+        print("no sample taken: the run ended before its warm-up did")
+    else:
+        print(f"after {result['warmup']} frames, {len(result['samples'])} samples: resident memory {rss['first']} MB to {rss['last']} MB "
+              f"(drift {100 * rss['drift']:+.2f} %; range {rss['min']} to {rss['max']} MB, spread {100 * rss['spread']:.2f} %; "
+              f"untrimmed drift {100 * result['rss_untrimmed_mb']['drift']:+.2f} %, spread {100 * result['rss_untrimmed_mb']['spread']:.2f} %); "
+              f"GL objects {gl['first']:.0f} to {gl['last']:.0f} (drift {100 * gl['drift']:+.2f} %, spread {100 * gl['spread']:.2f} %)")
+    print(f"faults {len(result['faults'])}")
     for fault in result["faults"][:20]:
         print(f"  fault: {fault}")
-    if args.json:
-        atomic_write_bytes(Path(args.json), json.dumps(result, indent=1).encode())
     return 0 if not result["faults"] else 1
 
 
@@ -622,12 +625,15 @@ def main(argv=None) -> int:
     from crowd.draw.readback import ReadbackError
     from crowd.draw.weapons import WeaponError
     from crowd.frame import FrameError
+    from crowd.scene import SceneError
     from crowd.settings import SettingError
+
+    from .soak import SoakError
 
     try:
         return args.run(args)
     except (GltfImportError, BakeError, GLUnavailable, PipelineError, ProcessorError, AIError, ReadbackError, WeaponError,
-            FrameError, SettingError) as exc:
+            FrameError, SettingError, SceneError, SoakError) as exc:
         print(f"crowd-bench: {exc}", file=sys.stderr)
         return 2
 

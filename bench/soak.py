@@ -29,6 +29,10 @@ _DELETE_STATUS = 0x8B80
 NAMES_SEARCHED = 4096  # GL names are small integers handed out from 1 and reused; this covers every run here
 
 
+class SoakError(ValueError):
+    """Soak settings that cannot run; the message is one line."""
+
+
 def gl_census() -> dict[str, set[int]]:
     """The GL object names alive in the current context, by kind. A program or shader that was released
     but is still referenced by the context's state (Mesa keeps the last one bound) reports
@@ -81,7 +85,7 @@ def run_soak(agents: int, frames: int, size: tuple[int, int], warmup: int, every
     from crowd.smoke import FIXED_DT
 
     if not 0 < warmup < frames or every < 1:
-        raise ValueError(f"soak: need 0 < warmup < frames and every >= 1, got warmup {warmup}, frames {frames}, every {every}")
+        raise SoakError(f"soak: need 0 < warmup < frames and every >= 1, got warmup {warmup}, frames {frames}, every {every}")
     scene = (load_scene(scene_path) if scene_path else Scene()).with_overrides(agents=agents, seed=seed)
     faults: list[str] = []
     handler = _Faults()

@@ -21,7 +21,8 @@ KEEP = 100_000  # samples kept per pass: a window left running for hours does no
 class SampleRing:
     """The last KEEP samples of a measure, in one float64 array (8 bytes a sample, where a deque of
     floats took about 40): appending never allocates, so a long run's memory stays flat once full.
-    ``np.asarray(ring)`` gives them oldest first; ``total`` counts every sample ever appended."""
+    ``np.asarray(ring)`` gives them oldest first; ``total`` counts the samples appended since the last
+    ``clear()``, kept or not."""
 
     def __init__(self, capacity: int = KEEP):
         self._values = np.zeros(capacity)

@@ -88,3 +88,23 @@ def test_the_panel_sizes_with_the_window_and_releases_what_it_made(gl_context, s
         assert short["content_w"] <= short["region_w"] + 0.5
         pipeline.frame(target.framebuffer, FIXED_DT)  # the pipeline, adopted, goes on after the panel's release
         assert {k: len(v) for k, v in gl_census().items()} == {k: len(v) for k, v in before.items()}
+
+
+def test_a_panel_that_fails_half_built_leaves_nothing(gl_context, scene, monkeypatch):
+    """moderngl-window's ImGui renderer failing inside its constructor (after its program and buffers
+    exist): the error goes on, and no GL object or ImGui context is left behind."""
+    import moderngl_window.integrations.imgui_bundle as integration
+
+    with Offscreen(gl_context, (320, 180)) as target, CrowdPipeline(gl_context, scene.pipeline_config()) as pipeline:
+        for _ in range(3):
+            pipeline.frame(target.framebuffer, FIXED_DT)
+        before = gl_census()
+
+        def fails(self):
+            raise RuntimeError("injected")
+
+        monkeypatch.setattr(integration.ModernGLRenderer, "refresh_font_texture", fails)
+        with pytest.raises(RuntimeError, match="injected"):
+            HeadlessPanel(gl_context, pipeline, (320, 180), scene)
+        assert {k: len(v) for k, v in gl_census().items()} == {k: len(v) for k, v in before.items()}
+        assert imgui.get_current_context() is None

@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import pytest
 
-from bench.soak import run_soak
+from bench.cli import main
+from bench.soak import SoakError, run_soak
 
 
 def test_a_short_soak_holds_memory_and_gl_objects_and_logs_no_fault(gl_context):
@@ -19,6 +20,11 @@ def test_a_short_soak_holds_memory_and_gl_objects_and_logs_no_fault(gl_context):
     assert result["gl_objects"]["spread"] <= 0.02, result["gl_objects"]
 
 
-def test_the_soak_refuses_a_warmup_past_its_frames():
-    with pytest.raises(ValueError, match="warmup"):
+def test_the_soak_refuses_settings_it_cannot_run_in_one_line(tmp_path, capsys):
+    with pytest.raises(SoakError, match="warmup"):
         run_soak(agents=10, frames=10, size=(16, 16), warmup=10, every=5)
+    for argv in (["soak", "--warmup", "0"], ["soak", "--every", "0"], ["soak", "--agents", "-5"],
+                 ["soak", "--scene", str(tmp_path / "missing.toml")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("crowd-bench: ") and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err

@@ -88,19 +88,23 @@ def test_ten_thousand_agents_over_sixty_seconds_never_end_a_step_inside_an_obsta
     assert ai.counts()["chase"] + ai.counts()["attack"] > 0  # it played: zombies chased the player through the streets
 
 
-@pytest.mark.parametrize("dt", [0.0, 10.0])
+@pytest.mark.parametrize("dt", [1.0 / 60.0, 10.0])
 def test_a_thousand_agents_spawned_at_one_point_by_a_wall(town, motion, dt):
-    """The stiff case in the town: a pile at one point beside a building, stepped with dt 0 and dt 10 s
-    (clamped): they come apart and none is left inside the building."""
+    """The stiff case in the town: a pile at one point 0.1 m from a building's wall (inside the clearance),
+    stepped 1/60 s or 10 s (clamped) at a time: they come apart and none is left in the clearance; a step
+    of 0 s changes nothing."""
     o = town.obstacles()
-    wall = next(b for b in town.boxes if b.height > 5)
+    wall = next(b for b in town.boxes if b.height > 5 and b.yaw == 0.0)
     ai = CrowdAI(1000, 2, motion, AIConfig(workers=1, half_extent=60.0), obstacles=o, origin=(wall.x, wall.z))
-    ai.x[:] = wall.x + wall.half_x + 0.5
+    ai.x[:] = wall.x + wall.half_x + 0.1
     ai.z[:] = wall.z
+    ai.step(0.0)
+    assert np.all(ai.x == wall.x + wall.half_x + 0.1) and np.all(ai.z == wall.z)
     for _ in range(30):
         ai.step(dt)
     assert o.distance(ai.x, ai.z).min() >= CLEARANCE - 0.01
     assert _exact(_repeated(town.boxes), ai.x, ai.z).min() > 0.0 and ai.check() == []
+    assert np.ptp(ai.x) + np.ptp(ai.z) > 2.0  # the pile came apart
 
 
 def test_the_horde_spawns_on_the_streets(town, motion):
@@ -172,3 +176,16 @@ def test_occlusion_culling_in_the_town_hides_nothing_that_shows(gl_context):
             culled[occlusion] = p.renderer.last["visible"]
     assert culled[True] < culled[False]  # occlusion culled agents behind the buildings
     assert np.abs(pictures[True] - pictures[False]).max() <= 2  # and none that shows
+
+
+def test_the_town_culls_districts_only_where_all_their_pieces_are_out(town, gl_context):
+    """The district spheres culled first hold every placement's sphere, wherever the eye is: culling a
+    district never drops a piece the per-placement test would keep."""
+    from crowd.draw.town import TownRenderer
+
+    with TownRenderer(gl_context, town, shadows=False) as renderer:
+        for eye in ([0.0, 20.0, 0.0], [1234.5, 3.0, -987.25], [-96.0, 400.0, 191.9]):
+            placed = renderer._place(np.array(eye))
+            centre = placed["centres"][placed["district"]]
+            reach = np.hypot(placed["xz"][:, 0] - centre[:, 0], placed["xz"][:, 1] - centre[:, 2]) + placed["radius"]
+            assert placed["centres"][:, 1].max() == 0.0 and reach.max() <= placed["district_radius"] + 1e-9

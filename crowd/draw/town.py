@@ -111,17 +111,20 @@ class TownRenderer(GLStage):
         # Each district's bounding sphere, culled first: only the placements of districts in view are tested.
         x0, z0, x1, z1 = districts
         dx, dz = np.meshgrid(np.arange(x0, x1 + 1) * PERIOD, np.arange(z0, z1 + 1) * PERIOD, indexing="ij")
+        # The district's sphere holds every placement's sphere (they are centred on the ground, as the
+        # placements are culled): centred among the placements, its radius the farthest one's reach.
         local = np.concatenate([piece["piece"].placements[:, :2] for piece in self._pieces])
-        reach = max(piece["radius"] for piece in self._pieces)
-        low, high = local.min(axis=0) - reach, local.max(axis=0) + reach
+        radii = np.concatenate([np.full(len(piece["piece"].placements), piece["radius"]) for piece in self._pieces])
+        middle = (local.min(axis=0) + local.max(axis=0)) / 2
+        district_radius = float(np.max(np.hypot(*(local - middle).T) + radii))
         centres = np.zeros((dx.size, 3))
-        centres[:, 0], centres[:, 1], centres[:, 2] = dx.ravel() + (low[0] + high[0]) / 2, self.height / 2, dz.ravel() + (low[1] + high[1]) / 2
+        centres[:, 0], centres[:, 2] = dx.ravel() + middle[0], dz.ravel() + middle[1]
         self._placed_for = {
             "districts": districts, "xz": placed[:, :2], "records": records, "bounds": np.concatenate([[0], np.cumsum(counts)]),
             "radius": np.repeat([piece["radius"] for piece in self._pieces], counts),
             "casts": np.repeat([bool(piece["shadow_instances"]) for piece in self._pieces], counts),
             "district": np.concatenate([np.repeat(np.arange(dx.size), len(piece["piece"].placements)) for piece in self._pieces]),
-            "centres": centres, "district_radius": float(np.hypot(np.hypot(*(high - low)), self.height) / 2),
+            "centres": centres, "district_radius": district_radius,
         }
         return self._placed_for
 
@@ -160,7 +163,7 @@ class TownRenderer(GLStage):
             triangles += piece["count"] * piece["triangles"]
             draws += int(piece["count"] > 0)
             for k, shadow in enumerate(piece["shadow_instances"]):
-                piece["shadow_counts"][k] = self._upload(shadow, records[a:b][casts[k][a:b]])
+                piece["shadow_counts"][k] = self._upload(shadow, records[a:b][casts[k][a:b]]) if k < len(casts) else 0
                 shadowed += piece["shadow_counts"][k]
         self.last = {"instances": total, "triangles": triangles, "shadow_instances": shadowed, "draws": draws}
 

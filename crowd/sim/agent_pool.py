@@ -234,6 +234,11 @@ class AgentPool:
     def closed(self) -> bool:
         return not self._finalizer.alive
 
+    @property
+    def healthy(self) -> bool:
+        """Open, and every worker process still running (one that exited is only found by the next wait)."""
+        return not self.closed and all(proc.is_alive() for proc in self._procs)
+
     @staticmethod
     def _shutdown(procs, go, params, conns, control, results) -> None:
         if not control.closed:

@@ -922,15 +922,20 @@ class CrowdAI:
     def take_workers(self, other: "CrowdAI") -> None:
         """Step with `other`'s worker processes from now on (a new round's new crowd: starting 15 processes
         again froze the first frame of every round for 0.4 s on the dev container, 1 s on the H200 host).
-        `other` is left without them; nothing happens if it has none or they are another size."""
+        `other` is left without them (and is to be closed); nothing happens if it has none, if one of them
+        has exited, or if they are another size."""
         pool = other._pool
-        if pool is None or pool.closed or self._pool is not None or other.config.workers != self.config.workers:
-            return
-        other._pool, other._params = None, other._params.copy()
-        other._rehome()  # its arrays leave the shared memory the workers will map anew
-        self._pool = pool
-        self._params = pool.params
-        self._rehome()  # this crowd's arrays into shared memory; the next substep tells the workers (_stale)
+        if pool is None or not pool.healthy or self._pool is not None or other.config.workers != self.config.workers:
+            return  # (a pool that lost a worker is left to `other`, whose close() stops it; this crowd starts its own)
+        other._pool, other._params = None, other._params.copy()  # `other` keeps its arrays: its close() frees them
+        params = self._params
+        self._pool, self._params = pool, pool.params
+        try:
+            self._rehome()  # this crowd's arrays into shared memory; the next substep tells the workers (_stale)
+        except BaseException:
+            self._pool, self._params = None, params
+            pool.close()
+            raise
 
     def close(self) -> None:
         """Stop the worker processes and free the shared memory (also done when the AI is collected)."""
