@@ -1,4 +1,5 @@
-"""The window's camera control: orbit, pan and zoom around a target point."""
+"""The window's cameras: the orbit camera (orbit, pan and zoom around a target point) and the follow
+camera behind the survivor, which the town's buildings stop."""
 
 from __future__ import annotations
 
@@ -44,6 +45,11 @@ class OrbitControl:
         camera.far = max(400.0, self.distance * 4.0)
 
 
+WALL_SAMPLES = 32  # points tested along the line from the survivor to the follow camera
+WALL_CLEARANCE = 0.4  # metres the follow camera keeps from a building's wall
+MIN_SHARE = 0.05  # of its ground distance: the least the follow camera keeps when a wall is right behind
+
+
 class FollowControl:
     """A third-person camera behind the survivor: drag turns it around the survivor and tilts it, the
     wheel moves it in and out. Its ground forward is where the survivor faces and W runs."""
@@ -66,9 +72,29 @@ class FollowControl:
         """The camera's forward on the ground (x, z): away from the camera, past the survivor."""
         return np.array([-math.sin(self.yaw), -math.cos(self.yaw)])
 
-    def apply(self, camera: Camera, survivor_position) -> None:
+    @classmethod
+    def walls_in(cls, obstacles):
+        """What stops the camera in a town (crowd.asset.town.Obstacles): what stands taller than a metre
+        above the survivor's head, so buildings, not cars or barriers. None without a town."""
+        return obstacles.taller_than(cls.HEIGHT + 1.0) if obstacles is not None else None
+
+    def apply(self, camera: Camera, survivor_position, walls=None) -> None:
+        """Place `camera` behind the survivor. `walls` (crowd.asset.town.Obstacles, the town's buildings):
+        where one stands between the survivor and the camera's place, the camera comes in to the last
+        point on the survivor's side, WALL_CLEARANCE metres off it, at the same height, instead of looking
+        from inside it."""
         target = np.array([survivor_position[0], self.HEIGHT, survivor_position[1]], np.float64)
         cp = math.cos(self.pitch)
+        offset = self.distance * np.array([cp * math.sin(self.yaw), math.sin(self.pitch), cp * math.cos(self.yaw)])
+        if walls is not None:
+            along = np.linspace(0.0, 1.0, WALL_SAMPLES + 1)[1:]  # from the survivor outwards
+            clear = walls.distance(target[0] + offset[0] * along, target[2] + offset[2] * along) >= WALL_CLEARANCE
+            if not clear.all():
+                # The first sample too near a wall: the camera comes in to the one before it, at its height
+                # (so it looks down over the survivor's shoulder, never from inside the wall; a sliver of
+                # the way out stays, since a view straight down has no up).
+                first = int(np.argmin(clear))
+                offset[[0, 2]] *= max(along[first - 1] if first else 0.0, MIN_SHARE)
         camera.target = target
-        camera.eye = target + self.distance * np.array([cp * math.sin(self.yaw), math.sin(self.pitch), cp * math.cos(self.yaw)])
+        camera.eye = target + offset
         camera.far = 800.0

@@ -81,6 +81,7 @@ class HeadlessPanel(GLStage):
         self.session = CrowdSession(ctx, scene, size[0] / size[1], pipeline=pipeline)
         self.overlay = Overlay(self.gui, self.session, None)
         self.follow = FollowControl() if follow and pipeline.survivor is not None else None
+        self.walls = FollowControl.walls_in(pipeline.obstacles) if self.follow is not None else None
         self._last: float | None = None
 
     @classmethod
@@ -90,7 +91,7 @@ class HeadlessPanel(GLStage):
 
     def draw(self, framebuffer, dt: float) -> None:
         if self.follow is not None:
-            self.follow.apply(self.session.pipeline.camera, self.session.pipeline.survivor.position)
+            self.follow.apply(self.session.pipeline.camera, self.session.pipeline.survivor.position, self.walls)
         now = time.perf_counter()
         period = dt if self._last is None else now - self._last
         self._last = now

@@ -65,6 +65,7 @@ class CrowdWindow(mglw.WindowConfig):
         self.panel = self.overlay.panel
         self.orbit = OrbitControl(self.session.pipeline.camera)
         self.follow = FollowControl()
+        self.walls = FollowControl.walls_in(self.session.pipeline.obstacles)
         self.camera_mode = "follow" if self.session.pipeline.survivor is not None else "orbit"
         self._steering = False  # whether the keys steered the survivor last frame
         self.keys_down: set = set()
@@ -84,7 +85,7 @@ class CrowdWindow(mglw.WindowConfig):
         self._walk_player(dt)
         survivor = self.session.pipeline.survivor
         if self.camera_mode == "follow" and survivor is not None:
-            self.follow.apply(self.session.pipeline.camera, survivor.position)
+            self.follow.apply(self.session.pipeline.camera, survivor.position, self.walls)
         else:
             self.orbit.apply(self.session.pipeline.camera)
         width, height = self.wnd.buffer_size

@@ -189,3 +189,29 @@ def test_the_town_culls_districts_only_where_all_their_pieces_are_out(town, gl_c
             centre = placed["centres"][placed["district"]]
             reach = np.hypot(placed["xz"][:, 0] - centre[:, 0], placed["xz"][:, 1] - centre[:, 2]) + placed["radius"]
             assert placed["centres"][:, 1].max() == 0.0 and reach.max() <= placed["district_radius"] + 1e-9
+
+
+def test_the_follow_camera_stays_out_of_buildings(town):
+    """Behind the survivor with a building's wall between: the camera comes in to the survivor's side of
+    it (not inside); with nothing in the way, or only a car, it keeps its distance."""
+    from app.camera import WALL_CLEARANCE, FollowControl
+    from crowd.frame import Camera
+
+    walls = FollowControl.walls_in(town.obstacles())
+    building = next(b for b in town.boxes if b.height > 5 and b.yaw == 0.0)
+    follow = FollowControl(yaw=-math.pi / 2)  # the camera sits toward -x of the survivor: into the building
+    camera = Camera(eye=np.zeros(3), target=np.ones(3))
+    survivor = (building.x + building.half_x + 1.0, building.z)  # 1 m off the building's +x wall
+    follow.apply(camera, survivor)
+    assert camera.eye[0] < building.x + building.half_x - 1.0  # unstopped, it would be inside
+    follow.apply(camera, survivor, walls)
+    assert walls.distance(camera.eye[0], camera.eye[2]) >= WALL_CLEARANCE - 1e-9
+    assert camera.eye[1] - camera.target[1] == pytest.approx(follow.distance * math.sin(follow.pitch))  # at its height
+    pressed = (building.x + building.half_x + CLEARANCE, building.z)  # backed against the wall: no room behind
+    follow.apply(camera, pressed, walls)
+    assert walls.distance(camera.eye[0], camera.eye[2]) > 0.0 and np.all(np.isfinite(camera.eye))
+    assert abs(camera.eye[0] - camera.target[0]) > 0.1  # never straight down (a view with no up)
+    car = next(b for b in town.boxes if 1.0 < b.height < 2.0)
+    open_ground = FollowControl(yaw=0.0)
+    open_ground.apply(camera, (car.x, car.z - 3.0), walls)  # a car in the way: seen over
+    assert np.linalg.norm(camera.eye - camera.target) == pytest.approx(open_ground.distance)

@@ -292,6 +292,11 @@ class Obstacles:
                     np.minimum(d[lo_i:hi_i, lo_j:hi_j], near.astype(np.float32), out=d[lo_i:hi_i, lo_j:hi_j])
         return np.pad(d, ((0, 1), (0, 1)), mode="wrap")
 
+    def taller_than(self, height: float) -> "Obstacles":
+        """The obstacles taller than `height` metres, as a field of their own (a camera above a car or a
+        barrier sees over it; a building's wall stops it)."""
+        return Obstacles([b for b in self.boxes if b.height > height], self.period, self.cell)
+
     @functools.cached_property
     def free_share(self) -> float:
         """The share of the ground the crowd may walk on (outside every obstacle)."""
