@@ -205,3 +205,37 @@ def test_a_mixed_cast_is_the_same_crowd_for_any_worker_count(mixed, think_every,
     assert not differ, f"3 workers: {differ} differ from one process"
     assert set(np.unique(alone["kind"])) == {0, 1}
     assert created_blocks and not _left_behind(created_blocks), "shared memory left behind"
+
+
+def test_a_crowd_in_the_town_is_the_same_for_any_worker_count(motion, created_blocks):
+    """In the town the chasers steer by the flow field, made by the main process a few units of work a
+    substep and published into the shared arrays when done: the same crowd, bit for bit, for 1 and 3
+    processes, while the player runs through cells (fields made and published again and again), and the
+    published field is the one made at once."""
+    from crowd.asset.town import build_town
+    from crowd.sim.ai import flow_field
+
+    obstacles = build_town().obstacles()
+    states, published = [], []
+    for workers in (1, 3):
+        ai = CrowdAI(AGENTS, 4, motion, AIConfig(workers=workers, notice_radius=30.0, forget_radius=40.0, area_per_agent=4.0), obstacles=obstacles)
+        try:
+            script = PlayerScript(12.0, strike_every=0.2)
+            cells = set()
+            for _ in range(60):
+                script.update(ai)
+                ai.step(STEP)
+                cells.add(ai._flow_cell)
+            assert ai.check() == [] and ai.counts()["chase"] > 0 and ai._flow_corner[2] == 1.0
+            if workers > 1:  # the field is in the block the workers map, not made again in each of them
+                assert ai._pool is not None and ai._block.arrays["_flow_steps"] is ai._flow_steps
+            corner, step_i, step_j, usable = flow_field(obstacles, ai._flow_cell)
+            assert np.array_equal(ai._flow_corner[:2], corner) and np.array_equal(ai._flow_usable, usable)
+            assert np.array_equal(ai._flow_steps[0], step_i) and np.array_equal(ai._flow_steps[1], step_j)
+            published.append(len(cells))
+            states.append(_state(ai))
+        finally:
+            ai.close()
+    assert published[0] > 3  # the player crossed cells: fields were made and published again
+    assert [name for name in states[0] if not np.array_equal(states[0][name], states[1][name])] == []
+    assert not _left_behind(created_blocks)

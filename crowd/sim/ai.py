@@ -84,22 +84,30 @@ WALK_SLOWEST = 0.25  # the slowest a walk plays, as a share of its own rate (Mot
 # Obstacles (a town: crowd.asset.town.Obstacles). An agent's centre is kept CLEARANCE metres from every
 # obstacle, by its signed distance field; chasers find their way around buildings by a flow field of
 # FLOW_CELLS x FLOW_CELLS cells of FLOW_CELL metres around the player, made anew when the player
-# crosses a cell (every process makes the same one: no memory to share).
+# crosses a cell.
 CLEARANCE = 0.35
 FLOW_CELL = 1.0
 FLOW_CELLS = 96
 FLOW_BLOCKED = CLEARANCE + 0.05  # a flow cell whose centre is nearer an obstacle than this is a wall (a 2 m alley stays open)
 FLOW_DIRECT = 3.0  # metres from the player within which a chaser goes straight at it
+_FLOW_ARRAYS = ("_flow_steps", "_flow_usable", "_flow_corner")
+# A field takes 4.5 to 5 ms on the dev container (about 70 units of flow_field_work): made in one substep
+# it made the AI's slowest substeps. The main process does FLOW_WORK units a substep, before the think,
+# and publishes the field into the agents' shared arrays when it is done (about 6 substeps, 0.1 s, after
+# the player crossed into the cell), so every process steps with the same field: the same crowd for any
+# worker count, and any machine.
+FLOW_WORK = 12
 
 
-def path_distances(open_: np.ndarray, target: tuple[int, int]) -> np.ndarray:
+def _relaxations(open_: np.ndarray, target: tuple[int, int]):
     """Shortest 8-neighbour path lengths (in cells; diagonals sqrt 2) from every open cell of a grid to
-    `target`, inf where walled off: every cell relaxed from its 8 neighbours at once, until nothing
-    shortens (a pass per cell of the longest path: 54 to 67 passes, 4 to 5 ms for the town's 96 x 96
-    window on the dev container). Written here rather than taken from scipy (csgraph's Dijkstra): the
-    AI is numpy only, and this is the one graph search it needs. A version relaxing whole lines at
-    once (running minimums along rows, columns and diagonals) needed 7 passes but took 4.3 ms: numpy's
-    running minimum costs more per cell than the passes it saves."""
+    `target`, inf where walled off, as a generator: None after each relaxation pass, then the lengths. Every
+    cell relaxed from its 8 neighbours at once, until nothing shortens (a pass per cell of the longest
+    path: 54 to 67 passes, 4 to 5 ms for the town's 96 x 96 window on the dev container). Written here
+    rather than taken from scipy (csgraph's Dijkstra): the AI is numpy only, this is the one graph
+    search it needs, and passes can be spread over substeps (_update_flow). A version relaxing whole
+    lines at once (running minimums along rows, columns and diagonals) needed 7 passes but took 4.3 ms:
+    numpy's running minimum costs more per cell than the passes it saves."""
     n, m = open_.shape
     dist = np.full((n, m), np.inf)
     dist[target] = 0.0
@@ -114,13 +122,48 @@ def path_distances(open_: np.ndarray, target: tuple[int, int]) -> np.ndarray:
         dist[target] = 0.0
         if np.array_equal(dist, before):
             break
-    return dist
+        yield None
+    yield dist
 
 
-def _downhill(dist: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def flow_field(obstacles, cell: tuple[int, int]) -> tuple:
+    """The flow field toward the player's `cell` (see flow_field_work), made at once."""
+    work = flow_field_work(obstacles, cell)
+    while True:
+        field = next(work)
+        if field is not None:
+            return field
+
+
+def flow_field_work(obstacles, cell: tuple[int, int]):
+    """The flow field toward the player's `cell`, as a generator of units of work of 0.05 to 0.3 ms (None),
+    the last of which gives the field: (the window's first cell's corner (x, z), each cell's way down the
+    path distances: di and dj (int8), and whether there is one), over FLOW_CELLS x FLOW_CELLS cells of
+    FLOW_CELL metres centred on it (a cell whose centre is within FLOW_BLOCKED of an obstacle is a wall).
+    The units are fixed by the field alone, not by time, so a field spread over substeps comes in at the
+    same substep on any machine."""
+    cell = np.asarray(cell, np.int64)
+    corner = (cell - FLOW_CELLS // 2) * FLOW_CELL
+    centres = corner[:, None] + (np.arange(FLOW_CELLS) + 0.5) * FLOW_CELL
+    cx, cz = np.meshgrid(centres[0], centres[1], indexing="ij")
+    open_ = obstacles.distance(cx, cz) >= FLOW_BLOCKED
+    yield None
+    passes = _relaxations(open_, (FLOW_CELLS // 2, FLOW_CELLS // 2))
+    while (dist := next(passes)) is None:
+        yield None
+    dist *= FLOW_CELL
+    downhill = _downhill(dist)
+    while (steps := next(downhill)) is None:
+        yield None
+    step_i, step_j, usable = steps
+    yield corner.astype(np.float64), step_i.astype(np.int8), step_j.astype(np.int8), usable
+
+
+def _downhill(dist: np.ndarray):
     """Each cell's way down the distances: the neighbour (di, dj) nearest the target by path, and whether
     it is nearer than the cell itself (walls are inf). A cell the field calls a wall (an agent pressed
-    against one stands in one) looks two cells out. Per cell, once per field: the chasers look it up."""
+    against one stands in one) looks two cells out. Per cell, once per field: the chasers look it up.
+    A generator: None after each row of 5 neighbours, then (di, dj, whether)."""
     n = dist.shape[0]
     padded = np.full((n + 4, n + 4), np.inf)
     padded[2:-2, 2:-2] = dist
@@ -134,7 +177,8 @@ def _downhill(dist: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
                 better = d < best
                 best = np.where(better, d, best)
                 step_i, step_j = np.where(better, di, step_i), np.where(better, dj, step_j)
-    return step_i, step_j, np.isfinite(best) & (best < dist)
+        yield None
+    yield step_i, step_j, np.isfinite(best) & (best < dist)
 
 
 class AIError(ValueError):
@@ -460,7 +504,8 @@ class CrowdAI:
         walk (crowd.asset.town.Obstacles), or None for open ground."""
         self.config = (config or AIConfig()).validate()
         self.obstacles = obstacles
-        self._flow = (None, None)  # (the player's flow cell, its distance field): see _flow_field
+        self._flow_job = None  # (cell, its flow_field_work) while a field is being made: see _update_flow
+        self._flow_cell = None  # the cell of the field in the shared arrays
         motions = (motion,) if isinstance(motion, Motion) else tuple(motion)
         shares = (1.0,) * len(motions) if shares is None else tuple(shares)
         if not motions or len(shares) != len(motions):
@@ -589,6 +634,9 @@ class CrowdAI:
         layout.update(_cell=(np.int64, (n,)), _cell_order=(np.intp, (n,)),  # the grid of the neighbour lists' last build
                       _pairs_x=(np.float64, (n,)), _pairs_z=(np.float64, (n,)),  # where the agents stood at it
                       _layer_out=(np.float32, (n, LAYERS, 4)), _yaw_out=(np.float32, (n,)))
+        if self.obstacles is not None:  # the published flow field (_update_flow), which every process reads
+            layout.update(_flow_steps=(np.int8, (2, FLOW_CELLS, FLOW_CELLS)), _flow_usable=(bool, (FLOW_CELLS, FLOW_CELLS)),
+                          _flow_corner=(np.float64, (3,)))  # x, z, and 1 once a field is in
         return layout
 
     def _allocate(self, n: int):
@@ -659,7 +707,10 @@ class CrowdAI:
         moves = cast_moves(self.cast, cast)
         self.half_extent = self.config.half_extent_for(n, self._free_share())
         kept = {name: [getattr(self, name)[before:before + count] for before, _, count in moves] for name in self._names()}
+        flow = {name: getattr(self, name).copy() for name in _FLOW_ARRAYS} if self.obstacles is not None else {}
         was = self._allocate(n)
+        for name, array in flow.items():  # the published flow field stays (it is the player's, not the agents')
+            getattr(self, name)[...] = array
         for name, blocks in kept.items():
             array = getattr(self, name)
             for (_, after, count), block in zip(moves, blocks):
@@ -815,6 +866,7 @@ class CrowdAI:
         if not self.n:
             return
         ranges = self._ready_ranges()
+        self._update_flow()
         p = self._params
         p[P_H], p[P_TIME], p[P_SUBSTEPS], p[P_STEPS] = h, self.time, self.substeps, self.steps
         p[P_PLAYER:P_PLAYER + 2] = self.player
@@ -950,7 +1002,7 @@ class CrowdAI:
         ai = cls.__new__(cls)
         ai._block = ai._grid_block = ai._pool = ai._range_list = None
         ai._respawns, ai.player_hits_taken, ai.focus, ai.rng = 0, 0, (), None  # (a worker spawns only at edges: keyed draws)
-        ai.obstacles, ai._flow = None, (None, None)
+        ai.obstacles = None
         return ai
 
     def sync_worker(self, message: dict | None) -> None:
@@ -966,7 +1018,7 @@ class CrowdAI:
             return
         self.config, self.motions, self.shares, self.seed = message["config"], message["motions"], message["shares"], message["seed"]
         if getattr(self, "obstacles", None) is None or message["obstacles"] is None or self.obstacles.boxes != message["obstacles"].boxes:
-            self.obstacles, self._flow = message["obstacles"], (None, None)  # (its field is built here, on first use)
+            self.obstacles = message["obstacles"]  # (its distance field is built here, on first use; the flow field is shared)
         self.origin, self.half_extent, self.n, self.cast = message["origin"], message["half_extent"], message["n"], message["cast"]
         self._kind_fields = _KIND_FIELDS if len(self.motions) > 1 else ()
         self._motion_tables()
@@ -1375,22 +1427,33 @@ class CrowdAI:
         vx[agents] -= into * gx
         vz[agents] -= into * gz
 
-    def _flow_field(self) -> tuple | None:
-        """(the window's first cell's corner (x, z), path distances (FLOW_CELLS, FLOW_CELLS) to the player
-        through the streets, inf where walled off, and each cell's way down them: the neighbour (di, dj)
-        and whether there is one), made anew when the player crosses a cell. None without obstacles."""
+    def _update_flow(self) -> None:
+        """(The main process, before a substep's think.) Do FLOW_WORK units of the field toward the
+        player's cell, started when the player has left the published field's cell and none is being
+        made, and publish it into the shared arrays when it is done."""
         if self.obstacles is None:
+            return
+        cell = tuple(int(c) for c in np.floor(np.asarray(self.player, np.float64) / FLOW_CELL))
+        if self._flow_job is None:
+            if cell == self._flow_cell:
+                return
+            self._flow_job = (cell, flow_field_work(self.obstacles, cell))
+        for _ in range(FLOW_WORK):
+            field = next(self._flow_job[1])
+            if field is not None:
+                corner, step_i, step_j, usable = field
+                self._flow_steps[0], self._flow_steps[1], self._flow_usable[...] = step_i, step_j, usable
+                self._flow_corner[:] = corner[0], corner[1], 1.0
+                self._flow_cell, self._flow_job = self._flow_job[0], None
+                return
+
+    def _flow_field(self) -> tuple | None:
+        """The published flow field: (the window's first cell's corner (x, z), each cell's way down the
+        path distances to the player: the neighbour (di, dj), and whether there is one); None without
+        obstacles or before the first field is in."""
+        if self.obstacles is None or not self._flow_corner[2]:
             return None
-        cell = np.floor(np.asarray(self.player, np.float64) / FLOW_CELL).astype(np.int64)
-        key = (int(cell[0]), int(cell[1]))
-        if self._flow[0] == key:
-            return self._flow[1]
-        corner = (cell - FLOW_CELLS // 2) * FLOW_CELL
-        centres = corner[:, None] + (np.arange(FLOW_CELLS) + 0.5) * FLOW_CELL
-        cx, cz = np.meshgrid(centres[0], centres[1], indexing="ij")
-        dist = path_distances(self.obstacles.distance(cx, cz) >= FLOW_BLOCKED, (FLOW_CELLS // 2, FLOW_CELLS // 2)) * FLOW_CELL
-        self._flow = (key, (corner, dist, *_downhill(dist)))
-        return self._flow[1]
+        return self._flow_corner[:2], self._flow_steps[0], self._flow_steps[1], self._flow_usable
 
     def _flow_directions(self, x: np.ndarray, z: np.ndarray, to_x: np.ndarray, to_z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Directions (unit, x and z) chasers at (x, z) take toward the player: toward the centre of their
@@ -1401,7 +1464,7 @@ class CrowdAI:
         flow = self._flow_field()
         if flow is None:
             return ux, uz
-        corner, _, step_i, step_j, usable = flow
+        corner, step_i, step_j, usable = flow
         i = np.floor((x - corner[0]) / FLOW_CELL).astype(np.int64)
         j = np.floor((z - corner[1]) / FLOW_CELL).astype(np.int64)
         inside = (i >= 1) & (i < FLOW_CELLS - 1) & (j >= 1) & (j < FLOW_CELLS - 1) & (straight > FLOW_DIRECT)
