@@ -42,3 +42,24 @@ def gl_context():
 # -- GL objects alive (the leak tests count them): the soak's census
 
 from bench.soak import gl_census  # noqa: E402,F401
+
+
+def khronos_issues(path) -> dict:
+    """The Khronos glTF-Validator's report (its "issues": numErrors, numWarnings, messages) on a file;
+    skips the test where the validator is not installed (.ci/run installs it with npm)."""
+    import json
+    import shutil
+    import subprocess
+
+    node = shutil.which("node")
+    script = ROOT / ".ci" / "node" / "node_modules" / "gltf-validator"
+    if not node or not script.is_dir():
+        pytest.skip("Khronos glTF-Validator not installed (.ci/run installs it with npm)")
+    js = (
+        "const v=require(process.argv[1]);const fs=require('fs');"
+        "v.validateBytes(new Uint8Array(fs.readFileSync(process.argv[2]))).then(r=>{"
+        "console.log(JSON.stringify(r.issues));}).catch(e=>{console.error(String(e));process.exit(2);});"
+    )
+    out = subprocess.run([node, "-e", js, str(script), str(path)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout)

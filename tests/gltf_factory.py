@@ -22,6 +22,17 @@ JOINT_T = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
 POSITIONS = np.array([[-0.1, 0.0, 0], [0.1, 0.0, 0], [-0.1, 1.0, 0], [0.1, 1.0, 0], [-0.1, 2.0, 0], [0.1, 2.0, 0]], dtype=np.float32)
 JOINTS = np.array([[0, 1, 0, 0], [0, 0, 0, 0], [1, 0, 2, 0], [1, 2, 0, 0], [2, 1, 0, 0], [2, 0, 0, 0]])
 WEIGHTS = np.array([[0.7, 0.3, 0, 0], [1, 0, 0, 0], [0.5, 0.25, 0.25, 0], [0.6, 0.4, 0, 0], [0.8, 0.2, 0, 0], [1, 0, 0, 0]])
+# Morph targets (morph=True): "bulge" pushes the middle pair out along z and tilts their normals, "stretch"
+# lengthens the top pair; the mesh's default weights are overridden by the node's; the clip keys both.
+MORPH_NAMES = ["bulge", "stretch"]
+MORPH_POSITIONS = np.zeros((2, 6, 3), np.float32)
+MORPH_POSITIONS[0, 2:4, 2] = 0.25
+MORPH_POSITIONS[1, 4:6, 1] = 0.5
+MORPH_NORMALS = np.zeros((2, 6, 3), np.float32)
+MORPH_NORMALS[0, 2:4, 0] = 0.5
+MESH_MORPH_WEIGHTS = [0.25, 0.0]
+NODE_MORPH_WEIGHTS = [0.5, 0.125]
+MORPH_KEYS = np.array([[0.0, 1.0], [1.0, 0.5], [0.25, 0.0]])  # per key time, the two targets' weights
 
 
 def armature_matrix(scale: float, with_rotation: bool) -> np.ndarray:
@@ -126,11 +137,19 @@ def make_gltf(folder: Path, name="test.gltf", armature_scale=1.0, armature_rotat
     ]
     prim = {"attributes": {"POSITION": pos_acc, "NORMAL": nrm_acc, "JOINTS_0": j_acc, "WEIGHTS_0": w_acc}, "indices": i_acc}
     if morph:
-        d_acc = add(np.zeros((6, 3), dtype=np.float32), 5126, "VEC3", minmax=True)
-        prim["targets"] = [{"POSITION": d_acc}]
+        prim["targets"] = [{"POSITION": add(MORPH_POSITIONS[k], 5126, "VEC3", minmax=True), "NORMAL": add(MORPH_NORMALS[k], 5126, "VEC3")}
+                           for k in range(2)]
+        nodes[4]["weights"] = NODE_MORPH_WEIGHTS
+        keys = MORPH_KEYS
+        if interpolation == "CUBICSPLINE":
+            keys = np.stack([np.zeros_like(keys), keys, np.zeros_like(keys)], axis=1)
+        w_out = add(keys.reshape(-1, 1).astype(np.float32), 5126, "SCALAR")
     samplers = [{"input": t_acc, "output": r_acc, "interpolation": interpolation},
                 {"input": t_acc, "output": m_acc, "interpolation": interpolation}]
     channels = [{"sampler": 0, "target": {"node": 2, "path": "rotation"}}, {"sampler": 1, "target": {"node": 1, "path": "translation"}}]
+    if morph:
+        samplers.append({"input": t_acc, "output": w_out, "interpolation": interpolation})
+        channels.append({"sampler": 2, "target": {"node": 4, "path": "weights"}})
     if split_animations:
         animations = [{"name": "mid", "samplers": [samplers[0]], "channels": [dict(channels[0], sampler=0)]},
                       {"name": "root", "samplers": [samplers[1]], "channels": [dict(channels[1], sampler=0)]}]
@@ -141,7 +160,7 @@ def make_gltf(folder: Path, name="test.gltf", armature_scale=1.0, armature_rotat
         "scene": 0,
         "scenes": [{"nodes": [0, 4]}],
         "nodes": nodes,
-        "meshes": [{"name": "body", "primitives": [prim]}],
+        "meshes": [{"name": "body", "primitives": [prim], **({"weights": MESH_MORPH_WEIGHTS, "extras": {"targetNames": MORPH_NAMES}} if morph else {})}],
         "skins": [{"joints": [1, 2, 3], "inverseBindMatrices": ibm_acc, "skeleton": 1}],
         "animations": animations,
         "accessors": accessors,

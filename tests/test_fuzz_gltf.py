@@ -1,6 +1,7 @@
 """Property-based fuzzing of the importer (issue 18, point 4).
 
-Mutants of the built-in zombie and of the third-party samples in ../shared/gltf (when present), made at
+Mutants of the built-in zombie, of the third-party samples in ../shared/gltf (when present) and of a file with
+morph targets (the test strip, written sparse by the project's writer), made at
 the JSON level (numbers in accessors, bufferViews, buffers, nodes, skins, meshes and animations made
 negative, huge, NaN or of the wrong type; keys removed; indices out of range; array elements swapped
 or dropped) and at the byte level (bits flipped, ranges zeroed or garbled inside a bufferView, the
@@ -34,10 +35,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from conftest import shared_files
+from gltf_factory import make_gltf
 from crowd.anim.bake import MAX_ROWS, BakeError, bake
 from crowd.anim.processor import INTERPOLATIONS, reference_palette
 from crowd.asset import gltf
 from crowd.asset.gltf import GltfImportError, load_character
+from crowd.asset.gltf_write import glb_bytes
+from crowd.asset.pose import morph_vertices, sample_morph_weights
 from crowd.asset.zombie import ASSET_PATH
 
 JSON_EXAMPLES = 220
@@ -110,7 +114,13 @@ class Source:
         return out
 
 
-SOURCES = [Source(p) for p in [ASSET_PATH, *shared_files()]]
+# The morph targets, weights channels and default weights the samples lack: the test strip with two
+# targets (tests/gltf_factory.py), written sparse by the project's writer.
+_MORPH_FOLDER = tempfile.TemporaryDirectory(prefix="morph_source")
+_MORPH_PATH = Path(_MORPH_FOLDER.name) / "morph.glb"
+_MORPH_PATH.write_bytes(glb_bytes(load_character(make_gltf(Path(_MORPH_FOLDER.name), morph=True, interpolation="CUBICSPLINE"), scale=1.0),
+                                  sparse=True))
+SOURCES = [Source(p) for p in [ASSET_PATH, *shared_files(), _MORPH_PATH]]
 
 # -- JSON-level mutations
 
@@ -262,6 +272,13 @@ def check_mutant(source: Source, doc, buffers, cut, mutation: str) -> str:
         for m in character.meshes:
             assert np.all(np.isfinite(m.positions)) and np.all(np.isfinite(m.normals)), mutation
             assert np.allclose(np.linalg.norm(m.normals, axis=1), 1.0, atol=1e-3), mutation
+        assert np.all(np.isfinite(character.morph_defaults)), mutation
+        for clip in character.clips:  # morph weights and morphed vertices are finite wherever they are sampled
+            weights = sample_morph_weights(character.morph_defaults, clip, PHASES)
+            assert np.all(np.isfinite(weights)), mutation
+            for m in character.meshes:
+                if m.morph_count:
+                    assert all(np.all(np.isfinite(v)) for w in weights for v in morph_vertices(m, w)), mutation
         for a in character.attachments:
             assert np.all(np.isfinite(a.offset)) and np.all(np.isfinite(a.mesh.positions)), mutation
         for prop in character.props.values():  # the weapons stage draws a prop through inverse(grip)

@@ -78,11 +78,6 @@ def test_sparse_accessor_is_read(tmp_path):
     np.testing.assert_allclose(skinned_at_key(c, 1), expected_skinning(1), atol=1e-5)
 
 
-def test_morph_targets_are_left_out_with_a_warning(tmp_path):
-    c = load_character(make_gltf(tmp_path, morph=True))
-    assert any("morph targets left out" in w for w in c.warnings)
-
-
 def _corrupt(tmp_path, mutate):
     path = make_gltf(tmp_path)
     doc = json.loads(path.read_text())

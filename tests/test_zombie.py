@@ -1,12 +1,8 @@
-import json
-import shutil
-import subprocess
-
 import numpy as np
 import pygltflib
 import pytest
 
-from conftest import ROOT
+from conftest import khronos_issues
 from crowd.anim import reference
 from crowd.asset.gltf_write import glb_bytes
 from crowd.asset.zombie import ASSET_PATH, SOCKET_JOINT, build_character
@@ -167,27 +163,11 @@ def test_structure_of_the_file():
             assert gl.accessors[s.input].min is not None
 
 
-def _validator():
-    node = shutil.which("node")
-    script = ROOT / ".ci" / "node" / "node_modules" / "gltf-validator"
-    if not node or not script.is_dir():
-        pytest.skip("Khronos glTF-Validator not installed (.ci/run installs it with npm)")
-    return node, script
-
-
 @pytest.mark.parametrize("asset", ["zombie", "brute"])
 def test_khronos_validator_finds_no_errors_or_warnings(asset):
     import importlib
 
     path = importlib.import_module(f"crowd.asset.{asset}").ASSET_PATH
-    node, script = _validator()
-    js = (
-        "const v=require(process.argv[1]);const fs=require('fs');"
-        "v.validateBytes(new Uint8Array(fs.readFileSync(process.argv[2]))).then(r=>{"
-        "console.log(JSON.stringify(r.issues));}).catch(e=>{console.error(String(e));process.exit(2);});"
-    )
-    out = subprocess.run([node, "-e", js, str(script), str(path)], capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr
-    issues = json.loads(out.stdout)
+    issues = khronos_issues(path)
     bad = [m for m in issues["messages"] if m["severity"] <= 1]
     assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, bad[:5]

@@ -2,8 +2,14 @@
 
 Contract: ``load_character(path, clips=None)`` returns a validated ``Character`` whose skeleton is
 sorted parents-first, or raises ``GltfImportError`` with one line that names the file and the culprit.
-Whatever is read but cannot be used (morph targets, textures, other characters' skins, static meshes) is
+Whatever is read but cannot be used (textures, tangent morph deltas, other characters' skins, static meshes) is
 listed in ``character.warnings``; nothing is dropped silently.
+
+Morph targets. Each skinned primitive's ``targets`` (POSITION and NORMAL deltas; sparse or dense, float
+or KHR_mesh_quantization integers) become the mesh's ``morph_positions`` / ``morph_normals``; targets are
+the character's by name (``extras.targetNames``, else "<mesh>.target<k>"), so a mesh's LODs and
+primitives share theirs; default weights come from the mesh, overridden by the node drawing it; a
+``weights`` channel becomes a ``MorphChannel`` of its clip (LINEAR, STEP or CUBICSPLINE, as stored).
 
 Several skins. The main skin is the one most mesh nodes draw with (ties: the lowest index). Another skin
 whose joints all hang, in the joint forest of the joints of every skin drawing a mesh, in a tree that
@@ -53,8 +59,9 @@ leaves a correct file unchanged; each repair is named in ``character.warnings``:
   without weight are bound to the first root joint; an index count that is not a multiple of 3 loses
   its incomplete triangle.
 Everything else that cannot be drawn is refused, naming the element and its index: NaN or infinity in
-positions, key times and values, node transforms, inverse binds, weights or colours; positions and
-translations beyond ±MAX_COORDINATE, scales beyond ±MAX_SCALE or multiplying beyond it along a joint
+positions, key times and values, node transforms, inverse binds, weights, morph deltas and weights or
+colours; positions, translations and morph deltas beyond ±MAX_COORDINATE, morph weights beyond
+±MAX_MORPH_WEIGHT; primitives of one mesh with different numbers of targets; scales beyond ±MAX_SCALE or multiplying beyond it along a joint
 chain; a zero quaternion among rotation keys (which pose the clip means there is unknown, and a bake of
 it draws NaN) or a CUBICSPLINE rotation passing through zero; negative weights; a clip longer than
 MAX_CLIP_SECONDS; extensions the file requires that the importer does not implement (Draco, meshopt);
@@ -80,7 +87,7 @@ from .pose import sample_clip
 from .pieces import attachments_as_pieces
 from .root_motion import take_out_root_motion
 from .units import AUTO, to_crowd_units
-from .model import Attachment, Channel, Character, Clip, ModelError, Prop, RigidMesh, Skeleton, SkinnedMesh, vertex_normals
+from .model import MAX_MORPHS, Attachment, Channel, Character, Clip, ModelError, MorphChannel, Prop, RigidMesh, Skeleton, SkinnedMesh, vertex_normals
 
 _COMPONENT = {5120: np.dtype("<i1"), 5121: np.dtype("<u1"), 5122: np.dtype("<i2"), 5123: np.dtype("<u2"),
               5125: np.dtype("<u4"), 5126: np.dtype("<f4")}
@@ -109,6 +116,7 @@ MAX_DECODED_BYTES = 1 << 30  # every accessor read of one import, together
 MAX_COORDINATE = 1e6  # positions and translations, in the file's units (metres)
 MAX_SCALE = 1e6  # one scale component, and the product of the largest scales along a joint chain
 MAX_CLIP_SECONDS = 3600.0
+MAX_MORPH_WEIGHT = 10.0  # a morph weight, keyed or default: glTF allows any (overshoots, negative correctives)
 ZERO_QUATERNION = 1e-6  # a rotation this short has no direction (int16-normalised keys are >= 3e-5)
 WEIGHT_NOISE = 1e-6  # float exporters leave -1e-8 where they mean 0
 AFFINE_TOLERANCE = 1e-4  # a matrix's last row against (0, 0, 0, 1)
@@ -411,6 +419,12 @@ class _Reader:
         size = elements * 8  # float64, what the importer turns every accessor into
         if size > MAX_ACCESSOR_BYTES:
             self.fail(f"{what} holds {elements:,} numbers ({size:,} bytes as float64), more than the {MAX_ACCESSOR_BYTES:,} allowed")
+        self._decoded_bytes += size
+        if self._decoded_bytes > MAX_DECODED_BYTES:
+            self.fail(f"{what} brings the data read to {self._decoded_bytes:,} bytes, more than the {MAX_DECODED_BYTES:,} allowed")
+
+    def charge_bytes(self, size: int, what: str) -> None:
+        """Counts `size` bytes the import makes from the file against MAX_DECODED_BYTES."""
         self._decoded_bytes += size
         if self._decoded_bytes > MAX_DECODED_BYTES:
             self.fail(f"{what} brings the data read to {self._decoded_bytes:,} bytes, more than the {MAX_DECODED_BYTES:,} allowed")
@@ -846,7 +860,8 @@ def _import(r: _Reader) -> Character:
     skeleton = Skeleton(tuple(names), parents, rest_t, tf.quat_normalize(rest_q), rest_s, ibm).validate()
 
     materials = Materials(r)
-    meshes = _read_meshes(r, tree, skin_maps, materials, warn)
+    morphs = _Morphs(r, warn)
+    meshes = _read_meshes(r, tree, skin_maps, materials, morphs, warn)
     if not meshes:
         r.fail("the skinned meshes have no triangles")
     attachments, props = _read_rigid(r, tree, new_index, factor, materials, warn)
@@ -856,12 +871,13 @@ def _import(r: _Reader) -> Character:
         name = crowd_extras(nodes[node]).get("socket")
         if isinstance(name, str):
             sockets[name] = i
-    clips = _read_clips(r, tree, skeleton, new_index, folds, factor, warn)
+    clips = _read_clips(r, tree, skeleton, new_index, folds, factor, morphs, warn)
     if not clips:
         r.fail("no animation animates the skin's joints: the crowd needs at least one clip")
     _check_scale_chains(r, skeleton, clips)
     name = Path(r.path).stem
-    character = Character(name, skeleton, meshes, clips, attachments, props, sockets, warn, materials.textures)
+    character = Character(name, skeleton, meshes, clips, attachments, props, sockets, warn, materials.textures,
+                          tuple(morphs.names), np.array(morphs.defaults, np.float64))
     return character.validate()
 
 
@@ -1082,7 +1098,107 @@ def _mesh_extras(r: _Reader, extras: dict, label: str) -> tuple[str, int, str]:
     return str(extras.get("piece", label)), lod, str(extras.get("group", ""))
 
 
-def _read_meshes(r: _Reader, tree: _Tree, skin_maps: dict[int, np.ndarray], materials: Materials, warn: list[str]) -> list[SkinnedMesh]:
+class _Morphs:
+    """The character's morph targets, gathered from its skinned meshes: one per target name (a mesh's
+    targets, its other primitives' and its LODs' share a name), with the default weight of the first
+    mesh that has it. glTF names targets in mesh.extras.targetNames (the exporters' convention, Blender's
+    among them); unnamed ones are named after their mesh and number, so they are never merged by accident."""
+
+    def __init__(self, r: _Reader, warn: list[str]):
+        self.r, self.warn = r, warn
+        self.names: list[str] = []
+        self.defaults: list[float] = []
+        self._index: dict[str, int] = {}
+        self.of_mesh: dict[int, np.ndarray] = {}  # glTF mesh index -> its targets' morph indices
+
+    def mesh(self, mesh_index: int, mesh: dict, node: dict, label: str, count: int) -> np.ndarray:
+        """The morph indices of the `count` targets of glTF mesh `mesh_index`, as drawn by `node`."""
+        if mesh_index in self.of_mesh:
+            return self.of_mesh[mesh_index]
+        r = self.r
+        where = f"mesh {mesh_index} ({label})"
+        names = (mesh.get("extras") or {}).get("targetNames") if isinstance(mesh.get("extras"), dict) else None
+        if names is not None and (not isinstance(names, list) or len(names) != count or not all(isinstance(n, str) and n for n in names)):
+            self.warn.append(f"{where}: extras.targetNames is not {count} names; its targets are named by number")
+            names = None
+        base = mesh.get("name") if isinstance(mesh.get("name"), str) and mesh.get("name") else f"mesh{mesh_index}"
+        names = list(names) if names else [f"{base}.target{k}" for k in range(count)]
+        for k, name in enumerate(names):
+            if names.index(name) != k:
+                self.warn.append(f"{where}: target {k} has the name {name!r} of target {names.index(name)}; named {name}.{k}")
+                names[k] = f"{name}.{k}"
+        defaults = r.numbers(mesh, "weights", count, where, np.zeros(count))
+        defaults = r.numbers(node, "weights", count, f"the node drawing {where}", defaults)
+        big = np.abs(defaults) > MAX_MORPH_WEIGHT
+        if np.any(big):
+            r.fail(f"{where}: default weight {_first(big)} is {float(defaults[big][0]):.6g}, beyond ±{MAX_MORPH_WEIGHT:g}")
+        out = np.empty(count, np.int64)
+        for k, (name, weight) in enumerate(zip(names, defaults)):
+            if name not in self._index:
+                if len(self.names) >= MAX_MORPHS:
+                    r.fail(f"{where}: more than the {MAX_MORPHS} morph targets a character may have")
+                self._index[name] = len(self.names)
+                self.names.append(name)
+                self.defaults.append(float(weight))
+            elif self.defaults[self._index[name]] != float(weight):
+                self.warn.append(f"{where}: target {name!r} has default weight {float(weight):g}, another mesh's "
+                                 f"{self.defaults[self._index[name]]:g}; the first is kept")
+            out[k] = self._index[name]
+        self.of_mesh[mesh_index] = out
+        return out
+
+
+def _target_deltas(r: _Reader, target, key: str, k: int, v: int, label: str) -> np.ndarray | None:
+    """Target k's per-vertex differences of `key` (POSITION or NORMAL), float64 (V, 3), or None."""
+    index = r.index(target, key, "accessors", f"{label} target {k}")
+    if index is None:
+        return None
+    what = f"accessor {index} ({label} target {k} {key})"
+    # glTF and KHR_mesh_quantization: float, or (normalised or not) signed bytes and shorts.
+    d = r.accessor(index, f"{label} target {k} {key}", ("VEC3",), (5126, 5120, 5122)).astype(np.float64)
+    if d.shape[0] != v:
+        r.fail(f"{what} has {d.shape[0]} elements for {v} vertices")
+    bad = ~np.isfinite(d)
+    if np.any(bad):
+        r.fail(f"{what}: vertex {_first(bad)} is NaN or infinite")
+    far = np.abs(d) > MAX_COORDINATE
+    if np.any(far):
+        r.fail(f"{what}: vertex {_first(far)} moves beyond ±{MAX_COORDINATE:g}")
+    return d
+
+
+def _read_targets(r: _Reader, morphs: _Morphs, mesh_index: int, mesh: dict, node: dict, prim: dict, primitives: list,
+                  label: str, v: int, warn: list[str]):
+    """A primitive's morph targets: (morph indices, position deltas, normal deltas), or Nones."""
+    targets = r.list(prim, "targets", label)
+    counts = {len(p.get("targets") or []) if isinstance(p, dict) and isinstance(p.get("targets") or [], list) else -1
+              for p in primitives} if prim is primitives[0] else ()  # (once a mesh)
+    if len(counts) > 1:
+        r.fail(f"mesh {mesh_index}: its primitives have different numbers of morph targets ({', '.join(map(str, sorted(counts)))}); glTF requires one")
+    if not targets:
+        return None, None, None
+    if len(targets) > MAX_MORPHS:
+        r.fail(f"{label}: {len(targets):,} morph targets, more than the {MAX_MORPHS} allowed")
+    indices = morphs.mesh(mesh_index, mesh, node, label, len(targets))
+    # Dense float32 deltas for every target, however sparse the file's: charged before they are made.
+    r.charge_bytes(2 * len(targets) * v * 3 * 4, f"{label}'s {len(targets)} morph targets")
+    positions, normals = np.zeros((len(targets), v, 3), np.float32), np.zeros((len(targets), v, 3), np.float32)
+    others: set[str] = set()
+    for k, target in enumerate(targets):
+        if not isinstance(target, dict):
+            r.fail(f"{label} target {k} is not a JSON object")
+        for key, out in (("POSITION", positions), ("NORMAL", normals)):
+            d = _target_deltas(r, target, key, k, v, label)
+            if d is not None:
+                out[k] = d
+        others |= set(target) - {"POSITION", "NORMAL"}
+    if others:
+        warn.append(f"{label}: morph target {', '.join(sorted(map(str, others)))} deltas left out (positions and normals are drawn)")
+    return indices, positions, normals
+
+
+def _read_meshes(r: _Reader, tree: _Tree, skin_maps: dict[int, np.ndarray], materials: Materials, morphs: _Morphs,
+                 warn: list[str]) -> list[SkinnedMesh]:
     """The meshes drawn with the merged skins; `skin_maps[k]` maps skin k's joint indices to the skeleton's."""
     meshes: list[SkinnedMesh] = []
     seen_mesh: set[tuple[int, int]] = set()
@@ -1112,9 +1228,6 @@ def _read_meshes(r: _Reader, tree: _Tree, skin_maps: dict[int, np.ndarray], mate
             if mode != 4:
                 warn.append(f"{label}: primitive mode {mode} is not triangles; left out")
                 continue
-            targets = r.list(prim, "targets", label)
-            if targets:
-                warn.append(f"{label}: {len(targets)} morph targets left out")
             if _attr(r, prim, "POSITION", label) is None:
                 r.fail(f"{label} has no POSITION")
             pos = _positions(r, prim, label)
@@ -1166,12 +1279,14 @@ def _read_meshes(r: _Reader, tree: _Tree, skin_maps: dict[int, np.ndarray], mate
             surface = materials.surface(prim, label)
             uvs = _uvs(r, prim, surface, materials, label, v)
             piece, lod, group = _mesh_extras(r, extras, label)
+            morph_targets, morph_positions, morph_normals = _read_targets(r, morphs, mesh_index, mesh, node, prim, primitives, label, v, warn)
             meshes.append(SkinnedMesh(
                 name=label, piece=piece, lod=lod,
                 positions=pos.astype(np.float32), normals=tf.quat_normalize(np.concatenate([nrm, np.zeros((v, 1))], 1))[:, :3].astype(np.float32),
                 joints=joints.astype(np.uint16), weights=weights.astype(np.float32), indices=idx.astype(np.uint32),
                 colors=None if colors is None else colors.astype(np.float32), base_color=surface.base_color, group=group,
                 texture=surface.texture if uvs is not None else -1, uvs=uvs,
+                morph_targets=morph_targets, morph_positions=morph_positions, morph_normals=morph_normals,
             ))
     return meshes
 
@@ -1296,7 +1411,8 @@ def _channel_targets(r: _Reader, anims: list) -> list[set]:
     return out
 
 
-def _read_clips(r: _Reader, tree: _Tree, skeleton: Skeleton, new_index, folds, factor: float, warn: list[str]) -> list[Clip]:
+def _read_clips(r: _Reader, tree: _Tree, skeleton: Skeleton, new_index, folds, factor: float, morphs: _Morphs,
+                warn: list[str]) -> list[Clip]:
     anims = r.array("animations")
     joint_set = tree.joints
     targets = _channel_targets(r, anims)
@@ -1315,6 +1431,7 @@ def _read_clips(r: _Reader, tree: _Tree, skeleton: Skeleton, new_index, folds, f
     clip_names = set()
     for name, members in groups:
         channels: dict[tuple[int, str], Channel] = {}
+        morph_channels: list[MorphChannel] = []
         extras = crowd_extras(anims[members[0]])
         for ai in members:
             anim = anims[ai]
@@ -1326,7 +1443,13 @@ def _read_clips(r: _Reader, tree: _Tree, skeleton: Skeleton, new_index, folds, f
                     continue
                 node, path = target["node"], target.get("path")
                 if path == "weights":
-                    warn.append(f"{where}: morph weight animation left out")
+                    channel = _morph_channel(r, anims[ai], ch, node, morphs, where, warn)
+                    if channel is not None:
+                        driven = set().union(*(set(c.morphs.tolist()) for c in morph_channels))
+                        if driven & set(channel.morphs.tolist()):
+                            warn.append(f"{where}: drives morph targets another weights channel of the clip drives; left out")
+                        else:
+                            morph_channels.append(channel)
                     continue
                 if path not in ("translation", "rotation", "scale"):
                     warn.append(f"{where}: target path {_show(path)} is not a joint transform; left out")
@@ -1359,15 +1482,15 @@ def _read_clips(r: _Reader, tree: _Tree, skeleton: Skeleton, new_index, folds, f
                 _check_keys(r, path, interp, times, values, f"accessor {output_index} ({path} keys of {where})")
                 values = _convert_keys(path, values, interp, folds[j], factor, skeleton.parents[j] < 0)
                 channels[key] = Channel(j, path, interp, times, values)
-        if not channels:
-            warn.append(f"animation {name!r} animates no joint of the skin; left out")
+        if not channels and not morph_channels:
+            warn.append(f"animation {name!r} animates no joint of the skin and no morph target; left out")
             continue
         chans = sorted(channels.values(), key=lambda c: (c.joint, c.path))
-        start = min(float(c.times[0]) for c in chans)
-        end = max(float(c.times[-1]) for c in chans)
+        start = min(float(c.times[0]) for c in (*chans, *morph_channels))
+        end = max(float(c.times[-1]) for c in (*chans, *morph_channels))
         if end - start > MAX_CLIP_SECONDS:
             r.fail(f"animation {name!r} lasts {end - start:.3g} s, more than the {MAX_CLIP_SECONDS:g} s a clip may last")
-        clip = Clip(name, chans, start, end, False, {}, None)
+        clip = Clip(name, chans, start, end, False, {}, None, morph_channels)
         loop = extras.get("loop")
         clip.loop = bool(loop) if isinstance(loop, bool) else _looks_looped(skeleton, clip)
         markers = extras.get("markers")
@@ -1387,6 +1510,40 @@ def _read_clips(r: _Reader, tree: _Tree, skeleton: Skeleton, new_index, folds, f
         clip_names.add(clip.name)
         clips.append(clip)
     return clips
+
+
+def _morph_channel(r: _Reader, anim: dict, ch: dict, node: int, morphs: _Morphs, where: str, warn: list[str]) -> MorphChannel | None:
+    """A `weights` channel: the weights of the targets of the mesh `node` draws, N a key (glTF: the
+    output holds K * N values, or 3 * K * N for CUBICSPLINE, key by key)."""
+    mesh_index = r.item("nodes", node).get("mesh")
+    indices = morphs.of_mesh.get(mesh_index) if _is_whole(mesh_index) else None
+    if indices is None:
+        warn.append(f"{where}: animates the morph weights of node {node}, which draws no skinned mesh with morph targets; left out")
+        return None
+    samplers = r.list(anim, "samplers", where)
+    si = ch.get("sampler")
+    if not _is_whole(si) or not 0 <= si < len(samplers) or not isinstance(samplers[si], dict):
+        r.fail(f"{where} sampler index {_show(si)} is out of range")
+    sampler = samplers[si]
+    interp = r.choice(sampler, "interpolation", where, ("LINEAR", "STEP", "CUBICSPLINE"), default="LINEAR")
+    input_index = r.index(sampler, "input", "accessors", where, required=True)
+    output_index = r.index(sampler, "output", "accessors", where, required=True)
+    times = r.accessor(input_index, f"key times of {where}", ("SCALAR",))[:, 0].astype(np.float64)
+    _check_times(r, times, f"accessor {input_index} (key times of {where})")
+    what = f"accessor {output_index} (morph weights of {where})"
+    values = r.accessor(output_index, f"morph weights of {where}", ("SCALAR",), (5126, 5120, 5121, 5122, 5123))[:, 0].astype(np.float64)
+    k, n = times.shape[0], indices.shape[0]
+    want = (3 if interp == "CUBICSPLINE" else 1) * k * n
+    if values.shape[0] != want:
+        r.fail(f"{what}: {values.shape[0]} weights for {k} keys of {n} targets ({interp}: {want})")
+    bad = ~np.isfinite(values)
+    if np.any(bad):
+        r.fail(f"{what}: weight {_first(bad)} is NaN or infinite")
+    big = np.abs(values) > MAX_MORPH_WEIGHT
+    if np.any(big):
+        r.fail(f"{what}: weight {_first(big)} is {float(values[big][0]):.6g}, beyond ±{MAX_MORPH_WEIGHT:g}")
+    values = values.reshape((k, 3, n) if interp == "CUBICSPLINE" else (k, n))
+    return MorphChannel(indices.copy(), interp, times, values)
 
 
 def _check_times(r: _Reader, times: np.ndarray, what: str) -> None:

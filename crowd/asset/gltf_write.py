@@ -10,7 +10,12 @@ Layout, chosen so a standard viewer shows something sensible and the importer re
 - base-colour textures as PNG images in the binary chunk, each with its sampler; a textured mesh has
   a material of its own (its base colour factor and texture) and TEXCOORD_0;
 - project-specific facts (piece, LOD, group, loop flag, phase markers, stride, socket, prop) live in
-  ``extras.crowd``, which viewers ignore.
+  ``extras.crowd``, which viewers ignore;
+- morph targets as each primitive's ``targets`` (POSITION and NORMAL deltas), named in the mesh's
+  ``extras.targetNames`` (the exporters' convention), with its default ``weights``; a target's deltas are
+  written sparse (glTF 2.0 3.6.2.3: the vertices it moves, and their deltas) where that is smaller than
+  dense, or as the caller says; a clip's morph weights as one ``weights`` channel per mesh node whose
+  targets it drives, in that mesh's target order (glTF animates all of a node's weights at once).
 Every write goes through a temporary file and an atomic rename.
 """
 
@@ -22,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import pygltflib as g
 
-from .model import Character, SkinnedMesh
+from .model import Character, Clip, ModelError, MorphChannel, SkinnedMesh
 from ..files import atomic_write_bytes
 from ..transforms import mat4_decompose
 
@@ -60,6 +65,25 @@ class _Blob:
         return index
 
 
+    def sparse_accessor(self, array: np.ndarray, kind: str) -> int:
+        """A float accessor of `array` (count, C) written as its rows that are not zero, over zeros (no
+        bufferView); all zeros needs no sparse part at all."""
+        count = array.shape[0]
+        moved = np.flatnonzero(np.any(array != 0, axis=1))
+        acc = g.Accessor(componentType=FLOAT, count=count, type=kind, byteOffset=None,
+                         min=[float(x) for x in array.min(axis=0)], max=[float(x) for x in array.max(axis=0)])
+        if moved.size:
+            wide = count > 65535
+            indices = self.accessor(moved.astype(np.uint32 if wide else np.uint16), UINT if wide else USHORT, "SCALAR")
+            values = self.accessor(np.ascontiguousarray(array[moved], np.float32), FLOAT, kind)
+            acc.sparse = g.Sparse(count=int(moved.size), indices=g.AccessorSparseIndices(
+                bufferView=self.gltf.accessors[indices].bufferView, componentType=UINT if wide else USHORT),
+                values=g.AccessorSparseValues(bufferView=self.gltf.accessors[values].bufferView))
+            del self.gltf.accessors[values], self.gltf.accessors[indices]  # (their views stay: the sparse part's)
+        self.gltf.accessors.append(acc)
+        return len(self.gltf.accessors) - 1
+
+
 def _trs_fields(t: np.ndarray, q: np.ndarray, s: np.ndarray) -> dict:
     """Node TRS fields, leaving out those at their defaults."""
     out = {}
@@ -72,7 +96,21 @@ def _trs_fields(t: np.ndarray, q: np.ndarray, s: np.ndarray) -> dict:
     return out
 
 
-def _primitive(blob: _Blob, mesh, joint_count: int | None, material: int) -> g.Primitive:
+def _targets(blob: _Blob, mesh: SkinnedMesh, sparse: bool | None) -> list[g.Attributes]:
+    """The mesh's morph targets: POSITION (with the min and max glTF asks of it) and NORMAL deltas."""
+    out = []
+    for positions, normals in zip(mesh.morph_positions, mesh.morph_normals):
+        moved = int(np.count_nonzero(np.any(positions != 0, axis=1) | np.any(normals != 0, axis=1)))
+        # Sparse costs an index (2 or 4 bytes) and a delta (12) per moved vertex against 12 a vertex dense.
+        if sparse if sparse is not None else moved * (14 if len(positions) <= 65535 else 16) < 12 * len(positions):
+            out.append(g.Attributes(POSITION=blob.sparse_accessor(positions, "VEC3"), NORMAL=blob.sparse_accessor(normals, "VEC3")))
+        else:
+            out.append(g.Attributes(POSITION=blob.accessor(np.ascontiguousarray(positions, np.float32), FLOAT, "VEC3", ARRAY_BUFFER, minmax=True),
+                                    NORMAL=blob.accessor(np.ascontiguousarray(normals, np.float32), FLOAT, "VEC3", ARRAY_BUFFER)))
+    return out
+
+
+def _primitive(blob: _Blob, mesh, joint_count: int | None, material: int, sparse: bool | None = None) -> g.Primitive:
     attrs = g.Attributes(
         POSITION=blob.accessor(mesh.positions.astype(np.float32), FLOAT, "VEC3", ARRAY_BUFFER, minmax=True),
         NORMAL=blob.accessor(mesh.normals.astype(np.float32), FLOAT, "VEC3", ARRAY_BUFFER),
@@ -88,8 +126,33 @@ def _primitive(blob: _Blob, mesh, joint_count: int | None, material: int) -> g.P
         attrs.WEIGHTS_0 = blob.accessor(mesh.weights.astype(np.float32), FLOAT, "VEC4", ARRAY_BUFFER)
     wide = mesh.positions.shape[0] > 65535
     idx = mesh.indices.astype(np.uint32 if wide else np.uint16)
+    targets = _targets(blob, mesh, sparse) if isinstance(mesh, SkinnedMesh) and mesh.morph_count else []
     return g.Primitive(attributes=attrs, indices=blob.accessor(idx, UINT if wide else USHORT, "SCALAR", ELEMENT_ARRAY_BUFFER),
-                       material=material, mode=4)
+                       material=material, mode=4, targets=targets)
+
+
+def _weights_channel(clip: Clip, targets: np.ndarray) -> MorphChannel | None:
+    """The weights of a mesh's `targets` (character morph indices, in the mesh's order) over `clip`, as one
+    channel, or None when the clip drives none of them. The clip's channels that drive them must share
+    key times and interpolation (as a glTF file's do: it drives each node's weights with one); targets
+    none of them drives hold their default weight, which the caller fills in (NaN here)."""
+    used = [ch for ch in clip.morph_channels if np.isin(ch.morphs, targets).any()]
+    if not used:
+        return None
+    first = used[0]
+    if any(ch.interpolation != first.interpolation or not np.array_equal(ch.times, first.times) for ch in used[1:]):
+        raise ModelError(f"clip {clip.name!r}: the morph channels of one mesh have different key times or interpolations; "
+                         "glTF animates a mesh's weights with one channel")
+    cubic = first.interpolation == "CUBICSPLINE"
+    values = np.full(first.values.shape[:-1] + (len(targets),), np.nan)
+    for ch in used:
+        for column, morph in enumerate(ch.morphs):
+            where = np.flatnonzero(targets == morph)
+            if where.size:
+                values[..., where[0]] = ch.values[..., column]
+    if cubic:  # an undriven target holds still: zero tangents
+        values[:, 0::2][np.isnan(values[:, 0::2])] = 0.0
+    return MorphChannel(targets, first.interpolation, first.times, values)
 
 
 def _png(pixels: np.ndarray) -> bytes:
@@ -127,7 +190,9 @@ def _material(gl: g.GLTF2, mesh, untextured: int) -> int:
     return len(gl.materials) - 1
 
 
-def character_to_gltf(character: Character) -> tuple[g.GLTF2, bytes]:
+def character_to_gltf(character: Character, sparse: bool | None = None) -> tuple[g.GLTF2, bytes]:
+    """The glTF document and binary chunk of `character`; `sparse` writes every morph target sparse
+    (True) or dense (False) instead of whichever is smaller (None)."""
     character.validate()
     sk = character.skeleton
     gl = g.GLTF2(asset=g.Asset(version="2.0", generator="crowd gltf_write"))
@@ -152,10 +217,18 @@ def character_to_gltf(character: Character) -> tuple[g.GLTF2, bytes]:
 
     scenes: dict[str, list[int]] = {}
     seen_groups: dict[tuple[int, str], str] = {}
+    morph_nodes: list[tuple[int, SkinnedMesh]] = []
     for mesh in character.meshes:
-        gl.meshes.append(g.Mesh(name=mesh.name, primitives=[_primitive(blob, mesh, sk.joint_count, _material(gl, mesh, 0))],
-                                extras={"crowd": {"piece": mesh.piece, "lod": mesh.lod, "group": mesh.group}}))
+        extras = {"crowd": {"piece": mesh.piece, "lod": mesh.lod, "group": mesh.group}}
+        weights = []
+        if mesh.morph_count:
+            extras["targetNames"] = [character.morphs[t] for t in mesh.morph_targets]
+            weights = [float(character.morph_defaults[t]) for t in mesh.morph_targets]
+        gl.meshes.append(g.Mesh(name=mesh.name, primitives=[_primitive(blob, mesh, sk.joint_count, _material(gl, mesh, 0), sparse)],
+                                extras=extras, weights=weights))
         gl.nodes.append(g.Node(name=mesh.name, mesh=len(gl.meshes) - 1, skin=0))
+        if mesh.morph_count:
+            morph_nodes.append((len(gl.nodes) - 1, mesh))
         first = not mesh.group or seen_groups.setdefault((mesh.lod, mesh.group), mesh.piece) == mesh.piece
         scene = ("zombie" if mesh.lod == 0 else f"lod{mesh.lod}") if first else "variants"
         scenes.setdefault(scene, [0]).append(len(gl.nodes) - 1)
@@ -183,6 +256,17 @@ def character_to_gltf(character: Character) -> tuple[g.GLTF2, bytes]:
             anim.samplers.append(g.AnimationSampler(input=times, output=out, interpolation=ch.interpolation))
             anim.channels.append(g.AnimationChannel(sampler=len(anim.samplers) - 1,
                                                     target=g.AnimationChannelTarget(node=1 + ch.joint, path=ch.path)))
+        for node, mesh in morph_nodes:
+            ch = _weights_channel(clip, mesh.morph_targets)
+            if ch is None:
+                continue
+            values = ch.values.copy()
+            undriven = np.isnan(values)
+            values[undriven] = np.broadcast_to(character.morph_defaults[mesh.morph_targets], values.shape)[undriven]
+            times = blob.accessor(ch.times.astype(np.float32), FLOAT, "SCALAR", minmax=True, dedupe=True)
+            out = blob.accessor(values.reshape(-1, 1).astype(np.float32), FLOAT, "SCALAR")
+            anim.samplers.append(g.AnimationSampler(input=times, output=out, interpolation=ch.interpolation))
+            anim.channels.append(g.AnimationChannel(sampler=len(anim.samplers) - 1, target=g.AnimationChannelTarget(node=node, path="weights")))
         gl.animations.append(anim)
 
     order = ["zombie"] + sorted(k for k in scenes if k.startswith("lod")) + ["variants", "props", "prop_lods"]
@@ -194,14 +278,14 @@ def character_to_gltf(character: Character) -> tuple[g.GLTF2, bytes]:
     return gl, bytes(blob.data)
 
 
-def glb_bytes(character: Character) -> bytes:
-    gl, data = character_to_gltf(character)
+def glb_bytes(character: Character, sparse: bool | None = None) -> bytes:
+    gl, data = character_to_gltf(character, sparse)
     gl.set_binary_blob(data)
     return b"".join(gl.save_to_bytes())
 
 
-def write_glb(character: Character, path: Path) -> int:
-    data = glb_bytes(character)
+def write_glb(character: Character, path: Path, sparse: bool | None = None) -> int:
+    data = glb_bytes(character, sparse)
     atomic_write_bytes(Path(path), data)
     return len(data)
 

@@ -21,6 +21,9 @@ WRAPS = (REPEAT, CLAMP_TO_EDGE, MIRRORED_REPEAT)
 # their box, which keeps 1/4 texel of a 2048 texture; a wider span is drawn with float coordinates.
 PACKED_UV_SPAN = 16.0
 PATHS = {"translation": 3, "rotation": 4, "scale": 3}
+# Morph targets (blend shapes): at most this many in one character, all its meshes' together (a face rig
+# has 50 to 300; the bound keeps a hostile file's per-agent weight rows finite).
+MAX_MORPHS = 1024
 
 
 # Feet: the joints the foot-skate measure watches (crowd.anim.foot_skate) and the AI turns agents about
@@ -146,6 +149,38 @@ class Channel:
 
 
 @dataclass
+class MorphChannel:
+    """The weights of some of the character's morph targets over a clip, as one glTF ``weights`` channel
+    stores them (the targets of the mesh its node draws): ``values`` is (K, N) for LINEAR and STEP and
+    (K, 3, N) for CUBICSPLINE (in-tangent, value, out-tangent), N = len(morphs). Weights interpolate
+    linearly (no slerp), and are not clamped: glTF allows any real weight."""
+
+    morphs: np.ndarray  # int64 (N,): indices into Character.morphs
+    interpolation: str
+    times: np.ndarray  # float64 (K,)
+    values: np.ndarray
+
+    path = "weights"  # (read by crowd.asset.pose.sample_channel, as a Channel's)
+
+    def validate(self, morph_count: int, where: str) -> None:
+        if self.interpolation not in INTERPOLATIONS:
+            raise ModelError(f"{where}: unknown interpolation {self.interpolation!r}")
+        m = np.asarray(self.morphs)
+        if m.ndim != 1 or not m.size or np.any(m < 0) or np.any(m >= morph_count) or len(set(m.tolist())) != m.size:
+            raise ModelError(f"{where}: morph indices {m.tolist()} must be distinct and below {morph_count}")
+        k = self.times.shape[0] if self.times.ndim == 1 else -1
+        if k < 1:
+            raise ModelError(f"{where}: a channel needs at least one key")
+        want = (k, 3, m.size) if self.interpolation == "CUBICSPLINE" else (k, m.size)
+        if self.values.shape != want:
+            raise ModelError(f"{where}: weights have shape {self.values.shape}, expected {want}")
+        _finite(f"{where} times", self.times)
+        _finite(f"{where} weights", self.values)
+        if k > 1 and np.any(np.diff(self.times) <= 0.0):
+            raise ModelError(f"{where}: key times must increase strictly")
+
+
+@dataclass
 class Clip:
     name: str
     channels: list[Channel]
@@ -155,12 +190,15 @@ class Clip:
     # Phase markers in [0, 1): for locomotion, left_foot_down = 0.0 and right_foot_down = 0.5.
     markers: dict[str, float] = field(default_factory=dict)
     stride: float | None = None  # metres travelled per cycle, for locomotion clips played in place
+    morph_channels: list[MorphChannel] = field(default_factory=list)  # no morph is driven by two
 
     @property
     def duration(self) -> float:
         return self.end - self.start
 
-    def validate(self, skeleton: Skeleton) -> "Clip":
+    def validate(self, skeleton: Skeleton, morph_count: int | None = None) -> "Clip":
+        """Checks the clip against `skeleton`, and its morph weight channels against `morph_count`
+        morph targets (None: not checked, for users of the joints alone such as the joint bake)."""
         where = f"clip {self.name!r}"
         if not np.isfinite(self.start) or not np.isfinite(self.end):
             raise ModelError(f"{where}: start/end must be finite")
@@ -173,6 +211,12 @@ class Clip:
             if key in seen:
                 raise ModelError(f"{where}: two {ch.path} channels for joint {skeleton.names[ch.joint]!r}")
             seen.add(key)
+        driven: set[int] = set()
+        for k, ch in enumerate(self.morph_channels if morph_count is not None else ()):
+            ch.validate(morph_count, f"{where}, morph weights channel {k}")
+            if driven & set(ch.morphs.tolist()):
+                raise ModelError(f"{where}: morph weights channel {k} drives a morph target another channel drives")
+            driven |= set(ch.morphs.tolist())
         for name, phase in self.markers.items():
             if not 0.0 <= phase < 1.0:
                 raise ModelError(f"{where}: marker {name!r} phase {phase} is outside [0, 1)")
@@ -223,12 +267,22 @@ class SkinnedMesh:
     # it is sampled at, KHR_texture_transform already applied (float32 (V, 2)).
     texture: int = -1
     uvs: np.ndarray | None = None
+    # Morph targets: per target, the character's morph it is (an index into Character.morphs) and its
+    # per-vertex differences of position and normal, in bind space: drawn, a vertex is
+    # position + sum over targets of weight * delta, before skinning (glTF).
+    morph_targets: np.ndarray | None = None  # int64 (T,), distinct
+    morph_positions: np.ndarray | None = None  # float32 (T, V, 3)
+    morph_normals: np.ndarray | None = None  # float32 (T, V, 3), zeros where the source gives none
 
     @property
     def triangle_count(self) -> int:
         return int(self.indices.shape[0] // 3)
 
-    def validate(self, joint_count: int, texture_count: int = 0) -> "SkinnedMesh":
+    @property
+    def morph_count(self) -> int:
+        return 0 if self.morph_targets is None else int(self.morph_targets.shape[0])
+
+    def validate(self, joint_count: int, texture_count: int = 0, morph_count: int = 0) -> "SkinnedMesh":
         where = f"mesh {self.name!r}"
         v = self.positions.shape[0]
         for attr, shape, dtype in (
@@ -254,7 +308,24 @@ class SkinnedMesh:
             raise ModelError(f"{where}: a vertex references joint {int(self.joints.max())} of {joint_count}")
         if np.any(self.weights < 0.0) or np.any(np.abs(self.weights.sum(axis=1) - 1.0) > 1e-4):
             raise ModelError(f"{where}: weights must be non-negative and sum to 1")
+        _check_morphs(where, self, v, morph_count)
         return self
+
+
+def _check_morphs(where: str, mesh: "SkinnedMesh", vertices: int, morph_count: int) -> None:
+    fields = (mesh.morph_targets, mesh.morph_positions, mesh.morph_normals)
+    if all(f is None for f in fields):
+        return
+    if any(f is None for f in fields):
+        raise ModelError(f"{where}: morph_targets, morph_positions and morph_normals come together")
+    t = mesh.morph_targets
+    if t.ndim != 1 or not t.size or np.any(t < 0) or np.any(t >= morph_count) or len(set(t.tolist())) != t.size:
+        raise ModelError(f"{where}: morph targets {t.tolist()[:8]} must be distinct indices below {morph_count}")
+    for attr in ("morph_positions", "morph_normals"):
+        a = getattr(mesh, attr)
+        if a.shape != (t.size, vertices, 3) or a.dtype != np.float32:
+            raise ModelError(f"{where}: {attr} must be float32 {(t.size, vertices, 3)}, got {a.dtype} {a.shape}")
+        _finite(f"{where} {attr}", a)
 
 
 def _check_texture(where: str, texture: int, uvs, vertices: int, texture_count: int) -> None:
@@ -322,6 +393,10 @@ class Character:
     sockets: dict[str, int] = field(default_factory=dict)  # socket name -> joint index
     warnings: list[str] = field(default_factory=list)  # what the import left out or approximated
     textures: list[Texture] = field(default_factory=list)  # base-colour textures the meshes index
+    # Morph targets by name, across meshes (a mesh's targets and its LODs' share a name), and each one's
+    # weight where no clip drives it (glTF's mesh or node default weights).
+    morphs: tuple[str, ...] = ()
+    morph_defaults: np.ndarray = field(default_factory=lambda: np.zeros(0))  # float64 (M,)
 
     @property
     def armed(self) -> bool:
@@ -338,13 +413,19 @@ class Character:
         self.skeleton.validate()
         for t in self.textures:
             t.validate()
-        for m in self.meshes:
-            m.validate(self.skeleton.joint_count, len(self.textures))
+        m = len(self.morphs)
+        if m > MAX_MORPHS or len(set(self.morphs)) != m or not all(isinstance(n, str) for n in self.morphs):
+            raise ModelError(f"character {self.name!r}: morph names must be at most {MAX_MORPHS} distinct strings")
+        if not isinstance(self.morph_defaults, np.ndarray) or self.morph_defaults.shape != (m,):
+            raise ModelError(f"character {self.name!r}: morph_defaults must have shape ({m},)")
+        _finite(f"character {self.name!r} morph_defaults", self.morph_defaults)
+        for mesh in self.meshes:
+            mesh.validate(self.skeleton.joint_count, len(self.textures), m)
         names = [c.name for c in self.clips]
         if len(set(names)) != len(names):
             raise ModelError(f"character {self.name!r} has duplicate clip names")
         for c in self.clips:
-            c.validate(self.skeleton)
+            c.validate(self.skeleton, m)
         return self
 
 

@@ -6,7 +6,9 @@ generator to place its pieces, and the float64 reference (crowd.anim.reference) 
   [0, 1) in float64, one-shot clips clamp it to [0, 1];
 - keys are interpolated as glTF says: LINEAR lerps translation/scale and slerps rotation, STEP holds,
   CUBICSPLINE is the Hermite spline of the spec (rotations renormalised);
-- joints a clip does not animate keep their rest transform.
+- joints a clip does not animate keep their rest transform;
+- morph weights interpolate linearly (STEP and CUBICSPLINE as for other paths), and targets a clip does
+  not drive keep their default weight; a morphed vertex is its position plus the weighted deltas.
 """
 
 from __future__ import annotations
@@ -100,3 +102,28 @@ def global_matrices(skeleton: Skeleton, local: LocalPose | np.ndarray) -> np.nda
     for i, p in enumerate(skeleton.parents):
         out[:, i] = m[:, i] if p < 0 else out[:, p] @ m[:, i]
     return out
+
+
+def sample_morph_weights(defaults: np.ndarray, clip: Clip, phases) -> np.ndarray:
+    """Morph weights (P, M) of `clip` at each phase (P,): its weights channels' keys interpolated as glTF
+    says (linearly: weights are not rotations), `defaults` (M,) for the targets no channel drives."""
+    times = np.atleast_1d(phase_to_time(clip, phases))
+    defaults = np.asarray(defaults, np.float64)
+    out = np.broadcast_to(defaults, (times.shape[0], defaults.shape[0])).copy()
+    for ch in clip.morph_channels:
+        out[:, ch.morphs] = sample_channel(ch, times)
+    return out
+
+
+def morph_vertices(mesh, weights) -> tuple[np.ndarray, np.ndarray]:
+    """A skinned mesh's bind-space positions and unit normals (float64) with the character's morph
+    `weights` (M,) applied, as glTF defines it: position + sum of w * position delta over the mesh's
+    targets, and likewise the normal (then normalised), before skinning."""
+    positions = np.asarray(mesh.positions, np.float64).copy()
+    normals = np.asarray(mesh.normals, np.float64).copy()
+    if mesh.morph_count:
+        w = np.asarray(weights, np.float64)[mesh.morph_targets]
+        positions += np.einsum("t,tvc->vc", w, np.asarray(mesh.morph_positions, np.float64))
+        normals += np.einsum("t,tvc->vc", w, np.asarray(mesh.morph_normals, np.float64))
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    return positions, np.where(length > 1e-12, normals / np.maximum(length, 1e-12), normals)

@@ -8,8 +8,9 @@ scaled to TARGET_HEIGHT with one warning that says so; a scene's or the command 
 sets the factor instead ("auto" measures).
 
 Scaling is uniform and exact in meaning: joint translations (rest and keyed), the translations of the
-inverse binds, mesh positions, attachment offsets and prop grips are multiplied by the factor, and
-rotations, normals and weights are untouched, so every skinned vertex moves by exactly that factor.
+inverse binds, mesh positions and morph position deltas, attachment offsets and prop grips are multiplied
+by the factor, and rotations, normals and weights are untouched, so every skinned vertex moves by exactly
+that factor.
 """
 
 from __future__ import annotations
@@ -95,9 +96,13 @@ def scale_character(character: Character, factor: float) -> Character:
     def rigid(mesh):
         return dataclasses.replace(mesh, positions=(np.asarray(mesh.positions, np.float64) * f).astype(np.float32))
 
+    def skinned(mesh):  # its morph targets' position deltas are lengths too (normal deltas are not)
+        deltas = mesh.morph_positions if mesh.morph_positions is None else (np.asarray(mesh.morph_positions, np.float64) * f).astype(np.float32)
+        return dataclasses.replace(rigid(mesh), morph_positions=deltas)
+
     return dataclasses.replace(
         character, skeleton=skeleton,
-        meshes=[dataclasses.replace(m, positions=(np.asarray(m.positions, np.float64) * f).astype(np.float32)) for m in character.meshes],
+        meshes=[skinned(m) for m in character.meshes],
         clips=[clip(c) for c in character.clips],
         attachments=[dataclasses.replace(a, mesh=rigid(a.mesh), offset=moved(a.offset)) for a in character.attachments],
         props={name: dataclasses.replace(p, mesh=rigid(p.mesh), grip=moved(p.grip), coarser=tuple(rigid(c) for c in p.coarser))
