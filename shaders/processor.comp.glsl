@@ -1,8 +1,14 @@
 #version 430
-// Animation processor, compute path (GL 4.3): one invocation per (agent, joint); a work group holds
-// 256 / J whole agents of one character (a dispatch per character of the cast, over its agents). Each invocation blends its joint's local transform once into shared memory,
-// then walks its chain to the root through shared memory and writes its skinning matrix.
+// Animation processor, compute path (GL 4.3): one invocation per (agent, texel of its palette row): a
+// work group holds 256 / u_stride whole agents of one character (a dispatch per character of the cast,
+// over its agents). An agent's row is MORPH_SLOTS texels of morph pairs (0 or 1), then its joints. Each
+// joint's invocation blends its joint's local transform once into shared memory, then walks its chain
+// to the root through shared memory and writes its skinning matrix; a morph slot's invocation works out
+// the agent's morph pairs (morph_weights.glsl).
 #include "processor_common.glsl"
+#ifdef MORPHS
+#include "morph_weights.glsl"
+#endif
 
 layout(local_size_x = 256) in;
 layout(rgba32f, binding = 0) uniform writeonly image2DArray u_palette0;
@@ -11,6 +17,7 @@ layout(rgba32f, binding = 2) uniform writeonly image2DArray u_palette2;
 uniform int u_agents_per_group;
 uniform int u_row_offset;    // first palette row (counted across layers) of this character's block in the ring slot this run writes
 uniform int u_palette_rows;  // texture rows per layer
+uniform int u_stride;        // texels an agent: MORPH_SLOTS, then u_joints
 
 shared vec4 s_local0[256];
 shared vec4 s_local1[256];
@@ -21,20 +28,21 @@ shared vec4 s_local2[256];
 
 void main() {
     int t = int(gl_LocalInvocationIndex);
-    int slot = t / u_joints;
-    int joint = t - slot * u_joints;
+    int slot = t / u_stride;
+    int texel_in_row = t - slot * u_stride;
+    int joint = texel_in_row - MORPH_SLOTS;  // < 0: a morph slot
     int group = int(gl_WorkGroupID.y * gl_NumWorkGroups.x + gl_WorkGroupID.x);
     int local = group * u_agents_per_group + slot;  // among this character's agents
     int agent = u_first_agent + local;
     bool working = slot < u_agents_per_group && local < u_agents;
-    if (working) {
+    if (working && joint >= 0) {
         Affine m = blended_local(agent, joint);
         s_local0[t] = m.r0;
         s_local1[t] = m.r1;
         s_local2[t] = m.r2;
     }
     barrier();
-    int base = slot * u_joints;
+    int base = slot * u_stride + MORPH_SLOTS;  // the agent's joint 0 in shared memory
 #ifdef FOOT_LOCK
     // The first leg's ankle invocation locks the agent's feet, leg after leg: it rewrites their locals,
     // which every invocation of the agent reads after the barrier (reached by all, working or not).
@@ -44,6 +52,19 @@ void main() {
     barrier();
 #endif
     if (!working) return;
+    int y = local / u_agents_per_row + u_row_offset;
+    int layer = y / u_palette_rows;
+    ivec3 texel = ivec3((local % u_agents_per_row) * u_stride + texel_in_row, y - layer * u_palette_rows, layer);
+    if (joint < 0) {
+#ifdef MORPHS
+        vec2 pairs[MORPH_PAIRS];
+        morph_pairs(agent, local, pairs);
+        imageStore(u_palette0, texel, vec4(pairs[0], pairs[1]));
+        imageStore(u_palette1, texel, vec4(pairs[2], pairs[3]));
+        imageStore(u_palette2, texel, vec4(pairs[4], pairs[5]));
+#endif
+        return;
+    }
     Affine m = Affine(s_local0[t], s_local1[t], s_local2[t]);
     int p = parent_of(joint);
     for (int k = 0; k < MAX_JOINTS && p >= 0; ++k) {
@@ -51,9 +72,6 @@ void main() {
         p = parent_of(p);
     }
     m = compose(m, stored_affine(joint, 0, 0));  // row 0 holds the inverse bind pose
-    int y = local / u_agents_per_row + u_row_offset;
-    int layer = y / u_palette_rows;
-    ivec3 texel = ivec3((local % u_agents_per_row) * u_joints + joint, y - layer * u_palette_rows, layer);
     imageStore(u_palette0, texel, m.r0);
     imageStore(u_palette1, texel, m.r1);
     imageStore(u_palette2, texel, m.r2);

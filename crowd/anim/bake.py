@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -47,6 +48,9 @@ from .. import transforms as tf
 from ..asset.model import Clip, ModelError, Skeleton
 from ..progress import Report, steps
 from ..settings import DEFAULTS, SETTINGS, SOURCE_RATE
+
+if TYPE_CHECKING:
+    from .morph import MorphBake
 
 PRECISIONS = {"f32": np.float32, "f16": np.float16}  # texture storage; "compressed" stores crowd.anim.compress's words
 COMPRESSED = "compressed"
@@ -92,6 +96,9 @@ class AnimationBake:
     # (the processor's twin reads it) and only its rows 0 and rest_row reach the GPU.
     packed: CompressedKeys | None = None
     bound_mm: float = DEFAULT_BOUND_MM  # the compression bound asked (kept for a later re-bake; used when compressed)
+    # The character's morph weight tracks for these clips (crowd.anim.morph), or None where the scene
+    # moves no morph target: then the processor and the draw have no morph code at all.
+    morphs: "MorphBake | None" = None
 
     @property
     def joint_count(self) -> int:

@@ -62,6 +62,7 @@ from .compress import PER_KEY
 from . import foot_lock as lock
 from ..gl import GLStage, gpu_bytes, has_compute, load_shader
 from ..settings import DEFAULTS, SETTINGS
+from .morph import ACTIVE_WEIGHT, MAX_MORPH_WEIGHT, MORPH_PAIRS
 from .reference import CANCELLED_NORM, REST_THRESHOLD, aligned_sign
 
 MAX_JOINTS = 256  # one compute work group of 256 invocations holds at least one whole agent
@@ -297,17 +298,23 @@ def palette_joint_positions(palette_rows: np.ndarray, inverse_bind: np.ndarray) 
 @dataclass(frozen=True)
 class PalettePart:
     """One character's block of a palette ring slot: its agents (first_agent .. first_agent + count - 1),
-    agents_per_row of them side by side in a texture row, each `joints` texels wide, from row first_row."""
+    agents_per_row of them side by side in a texture row, each `width` texels wide (`slots` texels of
+    morph targets to draw (crowd.anim.morph), then its `joints`), from row first_row."""
 
     first_agent: int
     count: int
     joints: int
     agents_per_row: int
     first_row: int
+    slots: int = 0
 
     @property
     def rows(self) -> int:
         return math.ceil(self.count / self.agents_per_row)
+
+    @property
+    def width(self) -> int:
+        return self.slots + self.joints
 
 
 @dataclass(frozen=True)
@@ -320,10 +327,11 @@ class PaletteLayout:
     parts: tuple[PalettePart, ...]
 
     @staticmethod
-    def make(joint_counts, counts) -> "PaletteLayout":
+    def make(joint_counts, counts, slots=None) -> "PaletteLayout":
+        """`slots`: each character's morph texels an agent (None: none)."""
         parts, agent, row = [], 0, 0
-        for joints, count in zip(joint_counts, counts):
-            part = PalettePart(agent, int(count), int(joints), max(1, MAX_TEXTURE_WIDTH // int(joints)), row)
+        for joints, count, s in zip(joint_counts, counts, slots or [0] * len(joint_counts)):
+            part = PalettePart(agent, int(count), int(joints), max(1, MAX_TEXTURE_WIDTH // (int(joints) + int(s))), row, int(s))
             parts.append(part)
             agent += part.count
             row += part.rows
@@ -341,7 +349,7 @@ class PaletteLayout:
     @property
     def width(self) -> int:
         """Texels a palette row has: the widest character's (constant for a cast, whatever its counts)."""
-        return max(p.agents_per_row * p.joints for p in self.parts)
+        return max(p.agents_per_row * p.width for p in self.parts)
 
     @property
     def counts(self) -> tuple[int, ...]:
@@ -358,19 +366,20 @@ class PaletteLayout:
         agents = np.asarray(agents, np.int64)
         if len(self.parts) == 1:
             p = self.parts[0]
-            x, y = palette_texel(agents, joints, row_offset, p.agents_per_row, p.joints)
+            x, y = palette_texel(agents, np.asarray(joints, np.int64) + p.slots, row_offset, p.agents_per_row, p.width)
             return x, y + p.first_row
         k = self.part_of(agents)
-        table = np.array([(p.first_agent, p.agents_per_row, p.joints, p.first_row) for p in self.parts], np.int64)
-        first, per_row, width, first_row = (table[k, c] for c in range(4))
+        table = np.array([(p.first_agent, p.agents_per_row, p.width, p.first_row, p.slots) for p in self.parts], np.int64)
+        first, per_row, width, first_row, slots = (table[k, c] for c in range(5))
         local = agents - first
-        return (local % per_row) * width + np.asarray(joints, np.int64), first_row + local // per_row + np.asarray(row_offset, np.int64)
+        return ((local % per_row) * width + slots + np.asarray(joints, np.int64),
+                first_row + local // per_row + np.asarray(row_offset, np.int64))
 
     def agents_at(self, x, y) -> np.ndarray:
         """The agents whose joints' texels (x, y) are, y counted from their ring slot's first row: the
         inverse of ``texel`` (tests and benchmarks read the lists back by it)."""
         x, y = np.asarray(x, np.int64), np.asarray(y, np.int64)
-        table = np.array([(p.first_agent, p.agents_per_row, p.joints, p.first_row) for p in self.parts], np.int64)
+        table = np.array([(p.first_agent, p.agents_per_row, p.width, p.first_row) for p in self.parts], np.int64)
         k = np.searchsorted(table[:, 3], y, side="right") - 1
         return table[k, 0] + (y - table[k, 3]) * table[k, 1] + x // table[k, 2]
 
@@ -382,6 +391,7 @@ class _Part:
         self.bake = bake
         self.masks = masks
         self.legs = legs
+        self.slots = 0 if bake.morphs is None else 1  # texels of morph pairs before an agent's joints
         self.program = None
         self.textures: dict = {}
         self.lock_state = self.lock_motion = None
@@ -401,7 +411,7 @@ class AnimationProcessor(GLStage):
                  history: int = 1, interpolation: str = DEFAULT_INTERPOLATION, legs=None):
         """`bakes`: one AnimationBake, or one per character of the cast; `masks` and `legs` likewise (one
         value for one bake, a sequence of them for several)."""
-        self._own: dict[str, list] = {"animation": [], "palette": [], "layers": [], "processor_quad": [], "foot_lock": []}
+        self._own: dict[str, list] = {"animation": [], "palette": [], "layers": [], "processor_quad": [], "foot_lock": [], "morphs": []}
         self.parts: list[_Part] = []
         self._programs: dict[str, moderngl.Program] = {}
         single = isinstance(bakes, AnimationBake)
@@ -446,7 +456,7 @@ class AnimationProcessor(GLStage):
             part = _Part(bake, validate_masks(m, bake.joint_count), l)
             self.parts.append(part)
             self._make_part(part)
-        self.layout = PaletteLayout.make([p.bake.joint_count for p in self.parts], [0] * len(self.parts))
+        self.layout = self._layout([0] * len(self.parts))
         self.agents = 0
 
     # -- what the stages and tests read
@@ -493,7 +503,16 @@ class AnimationProcessor(GLStage):
         if part.masks is not None:
             t["u_masks"] = self._texture("animation", (jc, part.masks.shape[0]), 1, part.masks, "f4")
         defines = {"LAYERS": self.layer_count, "REST_THRESHOLD": f"{REST_THRESHOLD:.1e}", "CANCELLED_NORM": f"{CANCELLED_NORM:.1e}",
-                   "MAX_JOINTS": MAX_JOINTS}
+                   "MAX_JOINTS": MAX_JOINTS, "MORPH_SLOTS": part.slots}
+        morphs = bake.morphs
+        if morphs is not None:  # the morph weight tracks (crowd.anim.morph): only where the scene moves a target
+            if len(morphs.clip_rows) != len(bake.clips):
+                raise ProcessorError(f"the morph bake has {len(morphs.clip_rows)} clips, the joint bake {len(bake.clips)}")
+            t["u_morph_tracks"] = self._texture("morphs", (morphs.count, morphs.tracks.shape[0]), 1, morphs.tracks, "f4")
+            t["u_morph_clips"] = self._texture("morphs", (len(bake.clips), 1), 2, morphs.clip_rows.astype(np.int32), "i4")
+            t["u_morph_variation"] = self._texture("morphs", (morphs.count, 1), 2, morphs.variation, "f4")
+            defines.update(MORPHS=1, MORPH_COUNT=morphs.count, MORPH_PAIRS=MORPH_PAIRS, ACTIVE_WEIGHT=f"{ACTIVE_WEIGHT!r}",
+                           MAX_MORPH_WEIGHT=f"{MAX_MORPH_WEIGHT!r}")
         if bake.scale is not None:
             defines["HAS_SCALE"] = 1
         if compressed:
@@ -524,8 +543,13 @@ class AnimationProcessor(GLStage):
                 self._programs[source] = self.ctx.program(vertex_shader=load_shader("processor.vert.glsl"),
                                                           geometry_shader=load_shader("processor.geom.glsl"), fragment_shader=source)
         part.program = self._programs[source]
-        part.uniforms = {"u_joints": jc, "u_agents_per_group": GROUP_SIZE // jc, "u_rest_row": anim_rows.shape[0] - 1,
+        stride = part.slots + jc
+        if stride > GROUP_SIZE:
+            raise ProcessorError(f"{jc} joints and a morph slot need {stride} invocations an agent; a work group has {GROUP_SIZE}")
+        part.uniforms = {"u_joints": jc, "u_stride": stride, "u_agents_per_group": GROUP_SIZE // stride, "u_rest_row": anim_rows.shape[0] - 1,
                          "u_rest_scale_row": bake.rest_row, "u_layer_agents_per_row": self.layer_agents_per_row}
+        if morphs is not None:
+            part.uniforms.update(u_morph_seed=morphs.seed, u_character=self.parts.index(part))
         if compressed:
             part.uniforms["u_key_width"] = words.shape[1]
         if part.legs is not None:
@@ -554,7 +578,7 @@ class AnimationProcessor(GLStage):
         """Palette rows the agents fill (one ring slot's); `agents`: counts per character (default the current)."""
         if agents is None:
             return self.layout.rows
-        return PaletteLayout.make([p.bake.joint_count for p in self.parts], self._counts(agents)).rows
+        return self._layout(self._counts(agents)).rows
 
     def slot_rows(self) -> int:
         """Palette rows from one ring slot's start to the next's: its layers' rows."""
@@ -573,6 +597,10 @@ class AnimationProcessor(GLStage):
             self.history = history
             self._allocate(self.layout.counts)
 
+    def _layout(self, counts) -> PaletteLayout:
+        """The palette's layout for `counts` agents per character (each with its morph slots, if any)."""
+        return PaletteLayout.make([p.bake.joint_count for p in self.parts], counts, [p.slots for p in self.parts])
+
     def _counts(self, agents) -> tuple[int, ...]:
         """Agent counts per character from a count (one character) or a sequence of them, checked."""
         counts = (agents,) if isinstance(agents, (int, np.integer)) and not isinstance(agents, bool) else tuple(agents) \
@@ -590,7 +618,7 @@ class AnimationProcessor(GLStage):
         counts = self._counts(agents)
         old = self.layout
         try:
-            new = PaletteLayout.make([p.bake.joint_count for p in self.parts], counts)
+            new = self._layout(counts)
             if new.rows == old.rows and self.planes and new.agents and all(a.first_row == b.first_row for a, b in zip(old.parts, new.parts)):
                 self.layout, self.agents = new, new.agents  # the same texture rows: the agents kept keep their palette history
                 self._update_quads()
@@ -627,7 +655,7 @@ class AnimationProcessor(GLStage):
                     obj.release()
 
     def _allocate(self, counts: tuple[int, ...], keep: bool = False) -> None:
-        layout = PaletteLayout.make([p.bake.joint_count for p in self.parts], counts)
+        layout = self._layout(counts)
         rows = layout.rows
         limit, max_layers = palette_limits(self.ctx)
         layer_rows = max(1, min(rows, limit))
@@ -669,7 +697,7 @@ class AnimationProcessor(GLStage):
             failure = f"the GPU ran out of memory for the palette of {agents:,} agents: {need:,} bytes were needed"
         if failure is not None:
             self._drop_palette()
-            self.layout, self.agents = PaletteLayout.make([p.bake.joint_count for p in self.parts], [0] * len(self.parts)), 0
+            self.layout, self.agents = self._layout([0] * len(self.parts)), 0
             for obj in old_objects:
                 obj.release()
             raise ProcessorError(failure)
@@ -742,9 +770,9 @@ class AnimationProcessor(GLStage):
         width, height = self.layout.width, self.layer_rows
         for part, block in zip(self.parts, self.layout.parts):
             full, partial = divmod(block.count, block.agents_per_row)
-            spans = [(block.first_row, block.first_row + full, block.agents_per_row * block.joints)]  # slot rows [y0, y1), width
+            spans = [(block.first_row, block.first_row + full, block.agents_per_row * block.width)]  # slot rows [y0, y1), width
             if partial:
-                spans.append((block.first_row + full, block.first_row + full + 1, partial * block.joints))
+                spans.append((block.first_row + full, block.first_row + full + 1, partial * block.width))
             verts = []
             for y0, y1, x1 in spans:
                 y = y0
@@ -855,11 +883,12 @@ class AnimationProcessor(GLStage):
             prog = part.program
             for unit, name in enumerate(("u_anim", "u_parents", "u_clips")):
                 part.textures[name].use(unit)
-            for unit, name in ((4, "u_anim_scale"), (5, "u_masks"), (6, "u_keys"), (7, "u_tracks")):
+            for unit, name in ((4, "u_anim_scale"), (5, "u_masks"), (6, "u_keys"), (7, "u_tracks"), (8, "u_morph_tracks"), (9, "u_morph_clips"),
+                               (10, "u_morph_variation")):
                 if name in part.textures:
                     part.textures[name].use(unit)
             for name, unit in (("u_anim", 0), ("u_parents", 1), ("u_clips", 2), ("u_layers", 3), ("u_anim_scale", 4), ("u_masks", 5),
-                               ("u_keys", 6), ("u_tracks", 7)):
+                               ("u_keys", 6), ("u_tracks", 7), ("u_morph_tracks", 8), ("u_morph_clips", 9), ("u_morph_variation", 10)):
                 self._set(prog, name, unit)
             for name, value in part.uniforms.items():
                 self._set(prog, name, value)
@@ -878,7 +907,7 @@ class AnimationProcessor(GLStage):
                 self._set(prog, "u_lock_decay", math.exp(-self._lock_dt / lock.RELEASE_S))
                 self._set(prog, "u_step_advance", self._lock_dt / lock.STEP_S)
             if self.path == "compute":
-                groups = math.ceil(block.count / (GROUP_SIZE // part.bake.joint_count))
+                groups = math.ceil(block.count / (GROUP_SIZE // block.width))
                 gx = min(groups, 32768)
                 prog.run(gx, math.ceil(groups / gx), 1)
             else:
@@ -941,12 +970,24 @@ class AnimationProcessor(GLStage):
         for block in self.layout.parts:
             if not block.count:
                 continue
-            rows, k, jc = block.rows, block.agents_per_row, block.joints
+            rows, k, jc, w = block.rows, block.agents_per_row, block.joints, block.width
             y0 = first + block.first_row
             for r, plane in enumerate(planes):
                 out[block.first_agent:block.first_agent + block.count, :jc, r] = \
-                    plane[y0:y0 + rows, :k * jc].reshape(rows * k, jc, 4)[:block.count]
+                    plane[y0:y0 + rows, :k * w].reshape(rows * k, w, 4)[:block.count, block.slots:]
         return out
+
+    def read_morph_pairs(self, character: int = 0, age: int = 0) -> np.ndarray:
+        """(N, MORPH_PAIRS, 2) float32 (target, weight) pairs of one character's agents, from the palette
+        written `age` runs ago (synchronous: tests only); (N, 0, 2) for a character without morphs."""
+        block = self.layout.parts[character]
+        if not block.slots or not block.count:
+            return np.zeros((block.count, 0, 2), np.float32)
+        first = self.row_offset(age) if self.runs else 0
+        rows, k, w = block.rows, block.agents_per_row, block.width
+        y0 = first + block.first_row
+        texels = [plane[y0:y0 + rows, :k * w].reshape(rows * k, w, 4)[:block.count, 0] for plane in self._read_planes()]
+        return np.concatenate(texels, axis=1).reshape(block.count, MORPH_PAIRS, 2)
 
     def _read_planes(self) -> list[np.ndarray]:
         """The three planes, every palette of the history, as (palette rows, width, 4) float32 (synchronous)."""
