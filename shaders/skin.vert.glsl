@@ -14,8 +14,11 @@
 // draw and buffers without bone fetches), TEXTURED (a piece with a base-colour texture: its position
 // comes as the float bits of a uvec4 whose w holds the texture coordinate, so it still reads two
 // attributes; a third attribute for the coordinate made the H200's draw of a textured crowd 43 %
-// slower, docs/BENCHMARKS.md "Textures"), and WIDE_UV (with TEXTURED: float coordinates as a third
-// attribute, for the rare piece whose coordinates span more than unorm16 can hold to a texel).
+// slower, docs/BENCHMARKS.md "Textures"), WIDE_UV (with TEXTURED: float coordinates as a third
+// attribute, for the rare piece whose coordinates span more than unorm16 can hold to a texel), and
+// MORPH (a piece with morph targets the scene moves: the agent's (target, weight) pairs, which the
+// processor wrote into the texel before its joint 0, add each target's deltas to the bind-space
+// position and normal before skinning; crowd/draw/morph.py has the textures' layout).
 
 #if defined(TEXTURED) && defined(WIDE_UV)
 in vec3 in_position;   // bind space
@@ -42,6 +45,54 @@ in uvec3 i_packed;         // x: palette texel code of joint 0 (palette.glsl) | 
 uniform mat4 u_view_proj;  // camera-relative: the camera sits at the origin
 #include "palette.glsl"
 
+#ifdef MORPH
+uniform isampler2D u_morph_vertices;  // per vertex: the first texel of its block of deltas, -1: no target moves it
+uniform usampler2D u_morph_deltas;    // per (moved vertex, target of its character): snorm16 deltas, two to a uint
+uniform int u_morph_vertex_base;      // the table index of this draw's gl_VertexID 0
+uniform float u_morph_step;           // metres a position delta's unit stands for
+
+ivec2 morph_texel(int index) {
+    return ivec2(index & 4095, index >> 12);
+}
+
+vec2 snorm16x2(uint v) {
+    return vec2(ivec2(uvec2(v) << uvec2(16u, 0u)) >> 16);
+}
+
+void add_target(int block, vec2 pair, inout vec3 position, inout vec3 normal) {
+    uvec3 d = texelFetch(u_morph_deltas, morph_texel(block + int(pair.x)), 0).xyz;
+    vec2 a = snorm16x2(d.x);
+    vec2 b = snorm16x2(d.y);
+    vec2 c = snorm16x2(d.z);
+    position += (pair.y * u_morph_step) * vec3(a, b.x);
+    normal += (pair.y * (2.0 / 32767.0)) * vec3(b.y, c);
+}
+
+// The agent's pairs are sorted by size with (0, 0) after the last, so the list ends at the first weight
+// of 0: an agent moving no target costs one fetch (the same texel for all its vertices), and a vertex
+// no target moves one more.
+void morph(ivec3 joint0, inout vec3 position, inout vec3 normal) {
+    ivec3 slot = joint0 - ivec3(1, 0, 0);
+    vec4 pairs = texelFetch(u_palette0, slot, 0);
+    if (pairs.y == 0.0) return;
+    int block = texelFetch(u_morph_vertices, morph_texel(u_morph_vertex_base + gl_VertexID), 0).x;
+    if (block < 0) return;
+    add_target(block, pairs.xy, position, normal);
+    if (pairs.w == 0.0) return;
+    add_target(block, pairs.zw, position, normal);
+    pairs = texelFetch(u_palette1, slot, 0);
+    if (pairs.y == 0.0) return;
+    add_target(block, pairs.xy, position, normal);
+    if (pairs.w == 0.0) return;
+    add_target(block, pairs.zw, position, normal);
+    pairs = texelFetch(u_palette2, slot, 0);
+    if (pairs.y == 0.0) return;
+    add_target(block, pairs.xy, position, normal);
+    if (pairs.w == 0.0) return;
+    add_target(block, pairs.zw, position, normal);
+}
+#endif
+
 #ifndef DEPTH_ONLY
 out vec3 v_world;      // camera-relative
 out vec3 v_normal;
@@ -58,7 +109,6 @@ void main() {
 #else
     vec3 position = in_position;
 #endif
-    vec4 p = vec4(position, 1.0);
     // Sign extension of each 10-bit field: shift it to the top, then arithmetic shift back down.
     vec3 bind_normal = vec3(ivec3(uvec3(in_packed.x) << uvec3(22u, 12u, 2u)) >> 22) / 511.0;
 #ifdef UNSKINNED
@@ -66,6 +116,10 @@ void main() {
     vec3 normal = bind_normal;
 #else
     ivec3 base = palette_texel(i_packed.x);  // an agent's joints sit side by side in one row of one layer
+#ifdef MORPH
+    morph(base, position, bind_normal);
+#endif
+    vec4 p = vec4(position, 1.0);
     ivec4 joints = ivec4((uvec4(in_packed.y) >> uvec4(0u, 8u, 16u, 24u)) & 0xFFu);
     vec3 w123 = vec3((uvec3(in_packed.z) >> uvec3(0u, 10u, 20u)) & 0x3FFu) / 2046.0;
     float w0 = 1.0 - (w123.x + w123.y + w123.z);

@@ -38,6 +38,7 @@ from ..anim.processor import PaletteLayout, texel_code
 from ..asset.vertex_cache import best_triangle_order
 from .gpu_cull import CHARACTER_SHIFT, MAX_CAST, MAX_GROUPS, RECORD_DTYPE, CullCharacter, GpuCull, GpuCullError
 from .materials import TEXTURE_UNIT, MaterialTextures
+from .morph import MorphDeltas
 from .occlusion import DepthPyramid
 from .shadows import CASCADES, Cascades, cascades
 
@@ -243,6 +244,8 @@ class _Draw:
     first_index: int = 0  # where its indices and vertices start in the GPU path's shared buffers (vbo None)
     base_vertex: int = 0
     character: int = 0  # whose piece it is: the cast's index
+    morph: bool = False  # drawn with its morph targets (crowd.draw.morph)
+    morph_base: int = 0  # the morph vertex table's index of its gl_VertexID 0
 
 
 class CrowdRenderer(GLStage):
@@ -250,13 +253,15 @@ class CrowdRenderer(GLStage):
 
     def __init__(self, ctx: moderngl.Context, characters, pieces: tuple[str, ...] | None = None, lod_distances=DEFAULT_LOD_DISTANCES,
                  shadows: bool = True, shadow_size: int = 2048, culling: bool = True, cull_path: str = "cpu",
-                 weapons_visibility: bool = False, occlusion: bool = False, town: bool = False):
+                 weapons_visibility: bool = False, occlusion: bool = False, town: bool = False, morphs=None):
         """`characters`: one Character, or the cast's, in its order (its agents come in that order,
         crowd.frame). `cull_path`: "cpu" or "gpu" (a GL 4.3 context; see the module docstring); with
         `weapons_visibility` the GPU cull also writes each agent's visibility, for the weapons; with
-        `occlusion` (the gpu path) it also drops agents hidden in the previous frame's depth."""
+        `occlusion` (the gpu path) it also drops agents hidden in the previous frame's depth. `morphs`: per
+        character, whether the scene moves its morph targets (its bake has morph tracks: the processor then
+        writes its agents' pairs); its pieces with targets are drawn with them."""
         self._objects: dict[str, list] = {"meshes": [], "instances": [], "programs": [], "shadow_map": [], "ground": [], "textures": [], "cull": [],
-                                          "occlusion": []}
+                                          "occlusion": [], "morphs": []}
         self.pyramid: DepthPyramid | None = None
         self._programs: dict[tuple, moderngl.Program] = {}
         self.draws: list[_Draw] = []
@@ -273,6 +278,10 @@ class CrowdRenderer(GLStage):
         if not 1 <= len(cast) <= MAX_CAST:
             raise RenderError(f"a crowd draws 1 to {MAX_CAST} characters, got {len(cast)}")
         self.cast = cast
+        self.morphs = tuple(bool(x) for x in (morphs if morphs is not None else [False] * len(cast)))
+        if len(self.morphs) != len(cast):
+            raise RenderError(f"morphs must say for each of the {len(cast)} characters whether its targets move, got {len(self.morphs)}")
+        self.morph: MorphDeltas | None = None
         per_character = [[m for m in c.meshes if pieces is None or m.piece in pieces] for c in cast]
         for c, meshes in zip(cast, per_character):
             if not meshes:
@@ -294,22 +303,28 @@ class CrowdRenderer(GLStage):
         self._piece_group = [{m.piece: m.group for m in meshes} for meshes in per_character]
         # Each character's textures follow the ones before it in one list, so a draw's index is unique.
         texture_first = np.concatenate([[0], np.cumsum([len(c.textures) for c in cast])]).astype(int).tolist()
-        # Untextured pieces first: on the GPU path they are one multi-draw per pass (below).
+        # Untextured pieces first: on the GPU path they are one multi-draw per pass (below), or two: those
+        # drawn without morph targets, then those drawn with them (another program).
         shared = []  # (vertices, indices) of the GPU path's untextured pieces, drawn from shared buffers
-        ordered = sorted(((k, m) for k, meshes in enumerate(per_character) for m in meshes), key=lambda km: (km[1].texture >= 0, km[0], km[1].lod, km[1].piece))
+        morphing = lambda k, m: self.morphs[k] and m.morph_count > 0  # noqa: E731
+        ordered = sorted(((k, m) for k, meshes in enumerate(per_character) for m in meshes),
+                         key=lambda km: (km[1].texture >= 0, morphing(*km), km[0], km[1].lod, km[1].piece))
+        morph_meshes = []  # the meshes drawn with their targets, in the morph vertex table's order
         for k, m in ordered:
             vertices, indices = pack_vertices(m), best_triangle_order(m.indices, len(m.positions))
             box = tuple(float(x) for x in np.concatenate(uv_box(m.uvs))) if m.texture >= 0 else (0.0, 0.0, 1.0, 1.0)
             texture = texture_first[k] + m.texture if m.texture >= 0 else -1
+            if morphing(k, m):
+                morph_meshes.append((m, len(cast[k].morphs)))
             if cull_path == "gpu" and m.texture < 0:
                 shared.append((vertices, indices))
-                self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, None, None, None, texture, "", box, character=k))
+                self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, None, None, None, texture, "", box, character=k, morph=morphing(k, m)))
                 continue
             vbo = self._own("meshes", ctx.buffer(vertices.tobytes()))
             ibo = self._own("meshes", ctx.buffer(indices.tobytes()))
             # The CPU path's instance records, per draw; the GPU path draws from the cull's lists.
             inst = self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize)) if cull_path == "cpu" else None
-            self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, vbo, ibo, inst, texture, uv_layout(m), box, character=k))
+            self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, vbo, ibo, inst, texture, uv_layout(m), box, character=k, morph=morphing(k, m)))
         # The GPU path's untextured draws (draws 0 .. merged - 1): one vertex and one index buffer, so a pass
         # draws them all with one glMultiDrawElementsIndirect instead of a call each (69 calls a frame for
         # the built-in zombie with shadows; each costs the CPU a call through moderngl and the driver).
@@ -320,6 +335,11 @@ class CrowdRenderer(GLStage):
             self._merged_buffers = (self._own("meshes", vbo), self._own("meshes", ibo))
             for draw, (first, base) in zip(self.draws, starts):  # the shared pieces are draws 0 .. merged - 1
                 draw.first_index, draw.base_vertex = first, base
+        self.merged_plain = sum(1 for d in self.draws[:self.merged] if not d.morph)  # then the shared morphing ones
+        if morph_meshes:
+            self.morph = self._own("morphs", MorphDeltas(ctx, morph_meshes))
+            for draw, base in zip([d for d in self.draws if d.morph], self.morph.bases):  # the table's order is the draws'
+                draw.morph_base = base - draw.base_vertex  # shared: gl_VertexID counts from the buffer's start
         self._merged_vaos: dict = {}
         for draw in self.draws if shadows else ():
             draw.shadow_counts = [0] * CASCADES
@@ -393,10 +413,11 @@ class CrowdRenderer(GLStage):
         self._objects[group].append(obj)
         return obj
 
-    def _program(self, kind: str, skinned: bool | str, layout: str = "") -> moderngl.Program:
+    def _program(self, kind: str, skinned: bool | str, layout: str = "", morph: bool = False) -> moderngl.Program:
         """kind: color, depth or ground; skinned: True, or False for the benchmark's unskinned ceiling;
-        layout: a textured piece's vertex layout ("packed" or "wide", see uv_layout), "" for none."""
-        key = (kind, skinned, layout)
+        layout: a textured piece's vertex layout ("packed" or "wide", see uv_layout), "" for none; morph:
+        pieces drawn with their morph targets."""
+        key = (kind, skinned, layout, morph)
         if key in self._programs:
             return self._programs[key]
         defines = {}
@@ -423,6 +444,8 @@ class CrowdRenderer(GLStage):
                 vdefs["TEXTURED"] = 1
             if layout == "wide":
                 vdefs["WIDE_UV"] = 1
+            if morph:
+                vdefs["MORPH"] = 1
             prog = self.ctx.program(vertex_shader=load_shader("skin.vert.glsl", vdefs), fragment_shader=frag)
             for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
                 if name in prog:
@@ -434,23 +457,30 @@ class CrowdRenderer(GLStage):
         self._programs[key] = self._own("programs", prog)
         return prog
 
-    def _merged_vao(self, kind: str, skinned: bool) -> moderngl.VertexArray:
-        """The GPU path's one vertex array over the untextured pieces' shared buffers and a pass's lists."""
-        key = (kind, skinned)
+    def _merged_vao(self, kind: str, skinned: bool, morph: bool = False) -> moderngl.VertexArray:
+        """The GPU path's vertex array over the untextured pieces' shared buffers and a pass's lists (for
+        the program of the pieces drawn without, or with, morph targets)."""
+        key = (kind, skinned, morph)
         if key not in self._merged_vaos:
-            prog = self._program(kind, skinned, "")
+            prog = self._program(kind, skinned, "", morph)
             instances = self.gpu.shadow_lists if kind == "depth" else self.gpu.lists
             vbo, ibo = self._merged_buffers
             content = [(vbo, *_read_by(prog, _LAYOUTS[""][1])), (instances, *_read_by(prog, INSTANCE_FORMAT))]
             self._merged_vaos[key] = self._own("programs", self.ctx.vertex_array(prog, content, index_buffer=ibo, index_element_size=4))
         return self._merged_vaos[key]
 
-    def _render_merged(self, kind: str, skinned: bool, cascade: int = 0) -> None:
-        """All untextured draws of a pass in one multi-draw: their commands are 0 .. merged - 1 (a cascade's
-        after the cascades before it)."""
+    def _render_merged(self, kind: str, skinned: bool, cascade: int = 0, morph: bool = False) -> None:
+        """The untextured draws of a pass drawn without (or with) morph targets in one multi-draw: their
+        commands are 0 .. merged_plain - 1 (merged_plain .. merged - 1), a cascade's after the cascades
+        before it. Unskinned (the benchmark's ceiling, which reads no palette) they are all one multi-draw."""
+        first, count = (self.merged_plain, self.merged - self.merged_plain) if morph else (0, self.merged_plain if skinned else self.merged)
+        if not count:
+            return
         commands = self.gpu.shadow_commands if kind == "depth" else self.gpu.commands
-        self._merged_vao(kind, skinned).render_indirect(commands, moderngl.TRIANGLES, count=self.merged,
-                                                        first=cascade * len(self.draws) if kind == "depth" else 0)
+        vao = self._merged_vao(kind, skinned, morph)
+        if morph:
+            vao.program["u_morph_vertex_base"] = self.draws[first].morph_base
+        vao.render_indirect(commands, moderngl.TRIANGLES, count=count, first=first + (cascade * len(self.draws) if kind == "depth" else 0))
 
     def _vao(self, draw: _Draw, kind: str, skinned: bool, cascade: int = 0) -> moderngl.VertexArray:
         key = (kind, skinned, cascade)
@@ -464,12 +494,12 @@ class CrowdRenderer(GLStage):
             draw.vaos[key] = self._own("programs", self.ctx.vertex_array(prog, content, index_buffer=draw.ibo, index_element_size=4))
         return draw.vaos[key]
 
-    def _variants(self) -> list[str]:
-        """The program variants a pass runs: one per vertex layout among the pieces."""
-        return sorted({d.layout for d in self.draws})
+    def _variants(self) -> list[tuple[str, bool]]:
+        """The program variants a pass runs: one per (vertex layout, drawn with morph targets) among the pieces."""
+        return sorted({(d.layout, d.morph) for d in self.draws})
 
     def _draw_program(self, draw: _Draw, kind: str, skinned: bool) -> moderngl.Program:
-        return self._program(kind, skinned, draw.layout)
+        return self._program(kind, skinned, draw.layout, draw.morph and skinned is True)
 
     def set_occlusion(self, on: bool) -> None:
         """Keep (or drop) the depth pyramid occlusion culling tests against; the cpu path has none."""
@@ -494,6 +524,7 @@ class CrowdRenderer(GLStage):
             out["cull"] = self.gpu.gpu_bytes()
         if self.pyramid is not None:
             out["occlusion"] = self.pyramid.gpu_bytes()
+        out["morphs"] = 0 if self.morph is None else self.morph.nbytes
         return out
 
     def release(self) -> None:
@@ -506,6 +537,7 @@ class CrowdRenderer(GLStage):
         self.materials = None
         self.gpu = None
         self.pyramid = None
+        self.morph = None
 
     # -- per frame
 
@@ -696,6 +728,8 @@ class CrowdRenderer(GLStage):
         """One draw of a pass: the colour pass from the colour lists, the depth pass from the shadow
         lists of `cascade`."""
         vao = self._vao(draw, kind, skinned, cascade if self.gpu is None else 0)
+        if draw.morph and "u_morph_vertex_base" in vao.program:
+            vao.program["u_morph_vertex_base"] = draw.morph_base
         if self.gpu is not None:
             commands = self.gpu.shadow_commands if kind == "depth" else self.gpu.commands
             vao.render_indirect(commands, moderngl.TRIANGLES, count=1, first=index + (cascade * len(self.draws) if kind == "depth" else 0))
@@ -732,15 +766,17 @@ class CrowdRenderer(GLStage):
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE)
         for k, matrix in self.shadow_tiles(view):
-            for layout in self._variants():
-                prog = self._program("depth", True, layout)
+            for layout, morph in self._variants():
+                prog = self._program("depth", True, layout, morph)
                 processor.bind_palette(0, prog)
+                if morph:
+                    self.morph.bind(prog)
                 prog["u_view_proj"].write(gl_bytes(matrix))
                 if layout == "" and self.merged:
-                    self._render_merged("depth", True, k)
+                    self._render_merged("depth", True, k, morph)
                     continue
                 for index, draw in enumerate(self.draws):
-                    if draw.layout == layout:
+                    if (draw.layout, draw.morph) == (layout, morph):
                         self._render(index, draw, "depth", True, k)
         return True
 
@@ -759,17 +795,20 @@ class CrowdRenderer(GLStage):
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE)
         try:
-            for layout in self._variants():
-                prog = self._program("color", skinned, layout)
+            # (The unskinned benchmark ceiling reads no palette, so no pairs: its pieces draw without morphs.)
+            for layout, morph in sorted({(layout, morph and skinned is True) for layout, morph in self._variants()}):
+                prog = self._program("color", skinned, layout, morph)
                 if skinned:
                     processor.bind_palette(0, prog)
+                if morph:
+                    self.morph.bind(prog)
                 prog["u_view_proj"].write(gl_bytes(view.view_proj))
                 self.set_lighting(prog, view)
                 if layout == "" and self.merged:
-                    self._render_merged("color", skinned)
+                    self._render_merged("color", skinned, morph=morph)
                     continue
                 for index, draw in enumerate(self.draws):
-                    if draw.layout == layout and (draw.count or self.gpu is not None):
+                    if (draw.layout, draw.morph and skinned is True) == (layout, morph) and (draw.count or self.gpu is not None):
                         if layout:
                             self.materials.bind(draw.texture, prog)
                         if layout == "packed":

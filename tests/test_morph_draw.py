@@ -1,0 +1,117 @@
+"""Morphed and skinned vertices (issue 23, point 3): what the skinned draw's vertex shader computes with
+an agent's morph pairs, captured with transform feedback, against the float64 evaluation of glTF's
+formula (the bind position plus the weighted deltas, then skinning), with each vertex's bound from the
+quantisation of the deltas, the weights and the heading."""
+
+from __future__ import annotations
+
+import moderngl
+import numpy as np
+import pytest
+
+from crowd.anim.morph import active_pairs, reference_weights
+from crowd.anim.processor import AnimationProcessor, reference_palette
+from crowd.draw.morph import NORMAL_RANGE, SNORM, pack_deltas, position_step, unpack_deltas
+from crowd.draw.render import INSTANCE_FORMAT, VERTEX_DTYPE, VERTEX_FORMAT, WEIGHT_STEP, Camera, CrowdRenderer, Instances, _read_by
+from crowd.gl import load_shader
+from test_morph_processor import _baked, _character, _layers
+
+AGENTS = 40
+
+
+def test_packed_deltas_decode_within_half_a_step():
+    rng = np.random.default_rng(1)
+    p = rng.normal(0.0, 0.03, (500, 3))
+    n = rng.uniform(-2.0, 2.0, (500, 3))
+    step = float(np.max(np.abs(p))) / SNORM
+    dp, dn = unpack_deltas(pack_deltas(p, n, step), step)
+    assert np.max(np.abs(dp - p)) <= 0.5 * step + 1e-15
+    assert np.max(np.abs(dn - n)) <= 0.5 * NORMAL_RANGE / SNORM + 1e-15
+
+
+def _capture(ctx, renderer, draw, proc):
+    """v_world and v_normal of every vertex of every instance of one draw, through the MORPH program."""
+    prog = ctx.program(vertex_shader=load_shader("skin.vert.glsl", {"MORPH": 1}), varyings=["v_world", "v_normal"])
+    for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
+        prog[name] = unit
+    proc.bind_palette(0, prog)
+    renderer.morph.bind(prog)
+    prog["u_morph_vertex_base"] = draw.morph_base
+    prog["u_view_proj"].write(np.eye(4, dtype=np.float32).tobytes())
+    vao = ctx.vertex_array(prog, [(draw.vbo, *_read_by(prog, VERTEX_FORMAT)), (draw.instances, *_read_by(prog, INSTANCE_FORMAT))])
+    vertices = draw.vbo.size // VERTEX_DTYPE.itemsize
+    out = ctx.buffer(reserve=vertices * draw.count * 6 * 4)
+    target = ctx.simple_framebuffer((1, 1))
+    target.use()
+    vao.transform(out, moderngl.POINTS, vertices=vertices, instances=draw.count)
+    target.release()
+    data = np.frombuffer(out.read(), np.float32).reshape(draw.count, vertices, 2, 3).astype(np.float64)
+    for obj in (out, vao, prog):
+        obj.release()
+    return data[:, :, 0], data[:, :, 1]
+
+
+@pytest.mark.parametrize("path", ["compute", "fragment"])
+def test_morphed_skinned_vertices_match_float64(gl_context, tmp_path, path):
+    from crowd.gl import has_compute
+
+    if path == "compute" and not has_compute(gl_context):
+        pytest.skip("no GL 4.3")
+    ctx = gl_context
+    character = _character(tmp_path)
+    baked = _baked(character, {"t0": (0.2, 0.6), "t4": (0.0, 0.5)})
+    layers = _layers(AGENTS, len(baked.clips))
+    rng = np.random.default_rng(9)
+    positions = np.column_stack([rng.uniform(-10, 10, AGENTS), np.zeros(AGENTS), rng.uniform(-10, 10, AGENTS)]) + [3e4, 0.0, -1e4]
+    yaw = rng.uniform(-np.pi, np.pi, AGENTS).astype(np.float32)
+    scale = rng.uniform(0.8, 1.25, AGENTS).astype(np.float32)
+    instances = Instances(positions, yaw, scale, np.full((AGENTS, 4), 255, np.uint8))
+    camera = Camera(eye=positions.mean(axis=0) + [0.0, 10.0, 30.0], target=positions.mean(axis=0))
+    (mesh,) = character.meshes
+    with AnimationProcessor(ctx, baked, 4, path=path) as proc, \
+            CrowdRenderer(ctx, character, lod_distances=(1e6, 2e6, 3e6), shadows=False, culling=False, morphs=[True]) as renderer:
+        proc.resize(AGENTS)
+        proc.process(layers)
+        renderer.prepare(camera, instances, palette=proc.layout)
+        (draw,) = renderer.draws
+        assert draw.morph and renderer.morph is not None and renderer.gpu_bytes()["morphs"] > 0
+        world, normal = _capture(ctx, renderer, draw, proc)
+        texel = np.frombuffer(draw.instances.read(), np.uint32).reshape(draw.count, 8)[:, 4]
+        agents = proc.layout.agents_at(texel & 0xFFF, texel >> 12)
+        gpu_pairs = proc.read_morph_pairs()
+    palette = reference_palette(baked, layers)
+    pairs = active_pairs(reference_weights(baked.morphs, baked, layers))
+    step = position_step([mesh])
+    w_skin = mesh.weights.astype(np.float64) / mesh.weights.sum(axis=1, keepdims=True)
+    worst, moved = 0.0, 0
+    for k, a in enumerate(agents):
+        weights = np.zeros(len(character.morphs))
+        listed = pairs[a, :, 1] != 0  # the list ends with (0, 0) pairs
+        weights[pairs[a, listed, 0].astype(int)] = pairs[a, listed, 1]
+        delta_p = np.einsum("t,tvc->vc", weights, mesh.morph_positions.astype(np.float64))
+        delta_n = np.einsum("t,tvc->vc", weights, mesh.morph_normals.astype(np.float64))
+        base = mesh.positions.astype(np.float64) + delta_p
+        n_bind = mesh.normals.astype(np.float64) + delta_n
+        m = palette[a][mesh.joints]
+        p = np.concatenate([base, np.ones((len(base), 1))], axis=1)
+        per_bone = np.einsum("vbij,vj->vbi", m, p)
+        skinned = np.einsum("vb,vbi->vi", w_skin, per_bone)
+        n = np.einsum("vb,vbij,vj->vi", w_skin, m[..., :3], n_bind)
+        c, s = np.cos(float(yaw[a])), np.sin(float(yaw[a]))
+        rot = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+        expect = positions[a] - camera.eye + float(scale[a]) * skinned @ rot.T
+        # Per vertex: the skinning bound of tests/test_render.py, plus each active target's deltas within
+        # half a step a component (times its weight), plus the pairs' float32 weights.
+        spread = np.linalg.norm(per_bone - per_bone[:, :1], axis=2)
+        total_w = float(np.sum(np.abs(pairs[a, :, 1])))
+        morph_bound = total_w * 0.5 * step * np.sqrt(3.0) + 1e-6 * np.linalg.norm(delta_p, axis=1)
+        bound = (0.5 * WEIGHT_STEP * spread.sum(axis=1) + 1.5 / 32767 * np.linalg.norm(skinned, axis=1) + morph_bound) * scale[a] + 2e-5
+        err = np.linalg.norm(world[k] - expect, axis=1)
+        assert np.all(err <= bound), f"agent {a}: {err.max() * 1e3:.4f} mm over a bound of {bound[np.argmax(err)] * 1e3:.4f} mm"
+        cos_angle = np.sum(normal[k] * (n @ rot.T), axis=1) / np.linalg.norm(normal[k], axis=1) / np.linalg.norm(n, axis=1)
+        assert np.degrees(np.arccos(np.clip(cos_angle.min(), -1, 1))) < 0.5
+        worst = max(worst, float(err.max()))
+        moved += int(np.count_nonzero(np.linalg.norm(delta_p, axis=1) > 1e-3))
+    assert moved > AGENTS  # the targets moved vertices by more than a millimetre in many agents
+    assert np.count_nonzero(gpu_pairs[..., 1]) > AGENTS
+    print(f"max morphed vertex error {worst * 1e3:.4f} mm")
