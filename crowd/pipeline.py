@@ -37,7 +37,8 @@ from .anim.bake import AnimationBake, bake
 from .anim.foot_lock import bake_legs
 from .anim.foot_skate import FootSkateMonitor
 from .anim.processor import AnimationProcessor, palette_joint_positions
-from .anim.roles import bake_roles, match_roles
+from .anim.morph import MorphError, bake_morphs
+from .anim.roles import clips_used, match_roles
 from .asset.gltf import load_character
 from .asset.model import Character, cast_weapons
 from .draw.readback import RING, SocketRead, SocketReadback
@@ -81,6 +82,7 @@ class CharacterSpec:
     share: float = 1.0
     roles: dict = field(default_factory=dict)
     model_scale: float | str = DEFAULTS["model_scale"]
+    morph: dict = field(default_factory=dict)  # morph target name → (lo, hi): each agent's offset (crowd.anim.morph)
 
 
 @dataclass
@@ -106,6 +108,7 @@ class PipelineConfig:
     readback_latency: int = DEFAULTS["readback_latency"]  # frames between gathering a socket and the CPU reading it
     cull: str = DEFAULTS["cull"]  # "auto", "gpu" or "cpu": where culling, LOD and the instance lists are made
     foot_lock: bool = DEFAULTS["foot_lock"]  # planted feet held by the processor (the compute path; crowd.anim.foot_lock)
+    morphs: bool = DEFAULTS["morphs"]  # morph targets drawn where the scene moves them (crowd.anim.morph, crowd.draw.morph)
     characters: tuple = ()  # CharacterSpec per character of a mixed crowd; () is one character: model, roles, model_scale above
     # The player drawn as the built-in survivor (crowd.sim.player), after the crowd. Off here, on in scenes (the
     # settings' default): a PipelineConfig is the crowd the library draws, a scene is the game the demo plays.
@@ -276,12 +279,19 @@ class CrowdPipeline(GLStage):
         """Agents the stages draw (the palette's rows of agents): the crowd's and the survivor."""
         return self.ai.n + (1 if self.survivor is not None else 0)
 
-    def _bake(self, member: CastMember, fps, precision: str, bound_mm: float, report=None) -> AnimationBake:
-        """A member's bake: the clips its roles play (only those), or the survivor's (crowd.sim.player.ROLES)."""
-        if member.player:
-            return bake(member.character.skeleton, [member.character.clip(r) for r in SURVIVOR_ROLES], fps, precision,
-                        bound_mm=bound_mm, report=report)
-        return bake_roles(member.character, member.roles, fps, precision, bound_mm, report=report)
+    def _bake(self, member: CastMember, fps, precision: str, bound_mm: float, report=None, morphs: bool | None = None) -> AnimationBake:
+        """A member's bake: the clips its roles play (only those), or the survivor's (crowd.sim.player.ROLES),
+        with their morph weight tracks where the scene moves the character's targets (`morphs`: the
+        morphs setting, default the config's)."""
+        clips = SURVIVOR_ROLES if member.player else clips_used(member.roles)
+        clips = [member.character.clip(c) for c in clips]
+        joints = bake(member.character.skeleton, clips, fps, precision, bound_mm=bound_mm, report=report)
+        if self.config.morphs if morphs is None else morphs:
+            try:
+                joints.morphs = bake_morphs(member.character, clips, joints, member.spec.morph, self.config.seed + self.cast.index(member))
+            except MorphError as exc:
+                raise PipelineError(f"{member.character.name}: {exc}") from None
+        return joints
 
     def _survivor_motion(self) -> SurvivorMotion:
         member = self.cast[-1]
@@ -442,7 +452,17 @@ class CrowdPipeline(GLStage):
                     bake.clips[i] = dataclasses.replace(clip, loop=old.loop)
         parts = [CastPart(m.character, bake, m.masks, bake_legs(m.character.skeleton, bake)) for m, bake in zip(self.cast, bakes)]
         spec = dataclasses.replace(self._spec(), interpolation=interpolation)
-        self.stages.replace("processor", build_processor(self.ctx, parts, spec, self.counts))
+        processor = build_processor(self.ctx, parts, spec, self.counts)
+        renderer = None
+        if tuple(b.morphs is not None for b in bakes) != self.renderer.morphs:  # the draw reads the pairs the processor writes
+            try:
+                renderer = build_renderer(self.ctx, parts, spec)
+            except BaseException:
+                processor.release()
+                raise
+        self.stages.replace("processor", processor)
+        if renderer is not None:
+            self.stages.replace("renderer", renderer)
         for member, part in zip(self.cast, parts):
             member.bake, member.legs = part.bake, part.legs
         self._lock_ground = None
@@ -457,6 +477,16 @@ class CrowdPipeline(GLStage):
             self.ai.set_motion(member.motion, k)
         if self.survivor is not None:
             self.survivor.motion = self._survivor_motion()
+
+    def set_morphs(self, on: bool) -> None:
+        """Morph targets drawn (the cast baked again with its weight tracks, the processor writing pairs,
+        the draw reading them) or not (none of it exists), live."""
+        on = SETTINGS["morphs"].check(on, PipelineError)
+        if on == self.config.morphs:
+            return
+        bakes = tuple(self._bake(m, m.bake.fps, m.bake.precision, m.bake.bound_mm, morphs=on) for m in self.cast)
+        self.use_bake(bakes)
+        self.config = dataclasses.replace(self.config, morphs=on)
 
     def set_processor_path(self, path: str) -> None:
         """Run the same bake on another processor path (compute, fragment or auto), live."""
@@ -699,6 +729,8 @@ class CrowdPipeline(GLStage):
             with t.gpu("process"):
                 self.processor.run()
             self._run("process")
+            if any(part.slots for part in self.processor.layout.parts):
+                self._run("morph_weights")  # (in the process pass; the draws add the deltas: gpu_bytes' "morphs")
             self.sync.processed(f, fresh=self.processor.runs == 1)  # a new palette: the frames kept before it are gone
         weapon_of_agent = self._weapon_of_agent()
         if self.readback is not None and rows:

@@ -10,8 +10,10 @@ only those are baked), the agent count and seed, the AI's settings, the features
                    roles = { walk = "shamble", ... }, speed = { shamble = 1.2, ... } (playback speed),
                    loop = { attack = true, ... }
     [[characters]] a crowd of several characters, one table each: model, share (relative: 3 and 1 make
-                   a quarter of the crowd the second's), and its own roles, speed, loop and model_scale;
-                   with these, [scene] names no model and [clips] no roles, speeds or loops
+                   a quarter of the crowd the second's), and its own roles, speed, loop, model_scale and
+                   morph = { belly_swell = [0.0, 0.9], ... } (each agent's offset of a morph target lies in
+                   [lo, hi], fixed for the agent); with these, [scene] names no model and [clips] no roles,
+                   speeds or loops
     [features]     the ``features`` settings (weapons, readback_latency, shadows, culling, occlusion,
                    lod_distances = [d1, d2, d3], processor, cull)
     [ai]           the ``ai`` settings (crowd.sim.ai.AIConfig), e.g. runner_share = 0.3
@@ -66,13 +68,16 @@ class CharacterEntry:
     clip_speed: dict = field(default_factory=dict)  # clip name → playback speed
     clip_loop: dict = field(default_factory=dict)  # clip name → loop (true) or play once (false), where set
     model_scale: float | str = DEFAULTS["model_scale"]
+    morph: dict = field(default_factory=dict)  # morph target → (lo, hi): each agent's body variation (crowd.anim.morph)
 
     def spec(self) -> CharacterSpec:
-        return CharacterSpec(self.model, self.share, dict(self.roles), self.model_scale)
+        return CharacterSpec(self.model, self.share, dict(self.roles), self.model_scale, dict(self.morph))
 
 
-# What a fresh clone shows: a mixed horde of the two built-in zombie types, three zombies to a brute.
-DEFAULT_CAST = (CharacterEntry("zombie", 3.0), CharacterEntry("brute", 1.0))
+# What a fresh clone shows: a mixed horde of the two built-in zombie types, three zombies to a brute, each
+# zombie's body its own (the built-ins' morph targets, crowd.asset.zombie.MORPH_TARGETS).
+BODY_VARIATION = {"belly_swell": (0.0, 0.9), "chest_sunken": (0.0, 1.0), "gaunt": (0.0, 1.0)}
+DEFAULT_CAST = (CharacterEntry("zombie", 3.0, morph=BODY_VARIATION), CharacterEntry("brute", 1.0, morph=BODY_VARIATION))
 
 
 @dataclass
@@ -95,6 +100,7 @@ class Scene:
     processor: str = DEFAULTS["processor"]
     cull: str = DEFAULTS["cull"]
     foot_lock: bool = DEFAULTS["foot_lock"]
+    morphs: bool = DEFAULTS["morphs"]
     survivor: bool = DEFAULTS["survivor"]
     town: bool = DEFAULTS["town"]
     camera: CameraSetting | None = None
@@ -168,7 +174,7 @@ class Scene:
         return PipelineConfig(agents=self.agents, seed=self.seed, characters=tuple(c.spec() for c in self.characters), bake_fps=self.bake_fps,
                               precision=self.precision, compression_bound_mm=self.compression_bound_mm, interpolation=self.interpolation, processor_path=self.processor, shadows=self.shadows, culling=self.culling,
                               occlusion=self.occlusion, lod_distances=tuple(self.lod_distances), ai=self.ai, weapons=self.weapons,
-                              readback_latency=self.readback_latency, cull=self.cull, foot_lock=self.foot_lock,
+                              readback_latency=self.readback_latency, cull=self.cull, foot_lock=self.foot_lock, morphs=self.morphs,
                               survivor=self.survivor, town=self.town)
 
 
@@ -177,7 +183,7 @@ _EXTRA_KEYS = {"scene": ("name", "model"), "clips": ("roles", "speed", "loop"), 
 _KEYS = {table: (*_EXTRA_KEYS[table], *group(table)) for table in SCENE_GROUPS}
 _KEYS["camera"] = ("eye", "target", "fov_y")
 _TABLE_OF = {key: table for table, keys in _KEYS.items() if table != "camera" for key in keys}
-_CHARACTER_KEYS = ("model", "share", "roles", "speed", "loop", "model_scale")  # one [[characters]] table
+_CHARACTER_KEYS = ("model", "share", "roles", "speed", "loop", "model_scale", "morph")  # one [[characters]] table
 MAX_SHARE = 1e6  # shares are relative; this bounds a typo's reach
 
 
@@ -227,6 +233,22 @@ def _clip_table(where: str, value, setting) -> dict:
     if not isinstance(value, dict):
         raise SceneError(f"{where} must be a table of clip name = value, got {value!r}")
     return {clip: setting.check(v, SceneError, f"{where}.{clip}") for clip, v in value.items()}
+
+
+def _morph(where: str, value) -> dict:
+    """A table of morph target = [lo, hi]: each agent's offset of that target lies in it (both ends checked
+    by the morph_weight setting, lo <= hi); the model is checked for the names when the crowd is built."""
+    if not isinstance(value, dict):
+        raise SceneError(f"{where} must be a table of morph target = [lo, hi], got {value!r}")
+    out = {}
+    for name, pair in value.items():
+        if not isinstance(pair, list) or len(pair) != 2:
+            raise SceneError(f"{where}.{name} must be [lo, hi], got {pair!r}")
+        lo, hi = (SETTINGS["morph_weight"].check(v, SceneError, f"{where}.{name}") for v in pair)
+        if lo > hi:
+            raise SceneError(f"{where}.{name}: lo {lo:g} is above hi {hi:g}")
+        out[str(name)] = (lo, hi)
+    return out
 
 
 def _roles(where: str, value) -> dict:
@@ -318,7 +340,8 @@ def _characters(value, base: Path | None, source: str) -> tuple[CharacterEntry, 
             _roles(f"{at}.roles", entry["roles"]) if "roles" in entry else {},
             _clip_table(f"{at}.speed", entry["speed"], SETTINGS["clip_speed"]) if "speed" in entry else {},
             _clip_table(f"{at}.loop", entry["loop"], SETTINGS["clip_loop"]) if "loop" in entry else {},
-            SETTINGS["model_scale"].check(entry["model_scale"], SceneError, f"{at}.model_scale") if "model_scale" in entry else DEFAULTS["model_scale"]))
+            SETTINGS["model_scale"].check(entry["model_scale"], SceneError, f"{at}.model_scale") if "model_scale" in entry else DEFAULTS["model_scale"],
+            _morph(f"{at}.morph", entry["morph"]) if "morph" in entry else {}))
     return tuple(out)
 
 
@@ -361,7 +384,8 @@ def scene_to_dict(scene: Scene, base: Path | None = None) -> dict:
         out["clips"].update(roles=dict(one.roles), speed=dict(one.clip_speed), loop=dict(one.clip_loop))
     else:
         out["characters"] = [{"model": _model_text(c.model, base) or "zombie", "share": c.share, "roles": dict(c.roles),
-                              "speed": dict(c.clip_speed), "loop": dict(c.clip_loop), "model_scale": _toml_value(c.model_scale)}
+                              "speed": dict(c.clip_speed), "loop": dict(c.clip_loop), "model_scale": _toml_value(c.model_scale),
+                              "morph": {name: list(pair) for name, pair in c.morph.items()}}
                              for c in scene.characters]
     out["ai"] = {key: getattr(scene.ai, key) for key, setting in group("ai").items() if getattr(scene.ai, key) != setting.default}
     if scene.camera is not None:

@@ -313,6 +313,9 @@ class CrowdSession(GLStage):
     def set_foot_lock(self, on: bool) -> None:
         self.pipeline.set_foot_lock(SETTINGS["foot_lock"].check(on, SessionError))
 
+    def set_morphs(self, on: bool) -> None:
+        self.pipeline.set_morphs(SETTINGS["morphs"].check(on, SessionError))
+
     def set_shadows(self, on: bool) -> None:
         self.pipeline.set_shadows(SETTINGS["shadows"].check(on, SessionError))
 
@@ -344,6 +347,7 @@ class CrowdSession(GLStage):
             "shadows": self.set_shadows, "culling": self.set_culling, "occlusion": self.set_occlusion, "weapons": self.set_weapons,
             "lod_distances": lambda v: self.set_lod_distances(*SETTINGS["lod_distances"].check(v, SessionError)),
             "readback_latency": self.set_readback_latency, "cull": self.set_cull_path, "foot_lock": self.set_foot_lock,
+            "morphs": self.set_morphs,
         }
         if name in ("model_scale", "survivor", "town"):  # what the cast and its world are made of: set when the crowd is built
             SETTINGS[name].check(value, SessionError)

@@ -224,6 +224,9 @@ _ALL = (
     Setting("town", "features", "bool", True,
             "streets to fight in: a built-in town of blocks, buildings, parked cars and barriers, repeating over the world; "
             "the crowd steers around it (off: the empty plane the benchmarks measure on)"),
+    Setting("morphs", "features", "bool", True,
+            "morph targets: each zombie's face and body shapes (its clips' snarl, its variation) drawn (off: no morph bake, "
+            "no morph texture, the draw without morph code)"),
     Setting("survivor", "features", "bool", True,
             "the player is a survivor to play: a built-in character drawn in the crowd's passes, animated from its speed and "
             "actions, hurt by the zombies that reach it (off: the player is a point the zombies chase)"),
@@ -274,6 +277,8 @@ _ALL = (
     Setting("clip_speed", "session", "float", 1.0, "a clip's playback speed; a faster walk also moves faster",
             label="playback speed", low=0.05, high=20, slider=(0.1, 3)),
     Setting("clip_loop", "session", "bool", True, "a clip loops (true) or plays once (false)", label="loop"),
+    Setting("morph_weight", "session", "float", 0.0, "a morph target's weight: each end of a character's variation range (scene "
+            "[[characters]] morph = { target = [lo, hi] })", label="morph weight", low=0, high=1, slider=(0, 1)),
     Setting("layer_weight", "session", "float", 1.0, "a layer's weight held at a value", label="weight", low=0, high=1000, slider=(0, 2)),
     # how long and how big (command line only)
     Setting("frames", "run", "int", 60, "frames to run (headless default 60; the window runs until closed)", low=1, high=100_000),

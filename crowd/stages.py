@@ -87,9 +87,12 @@ def build_processor(ctx: moderngl.Context, cast, spec: StageSpec, agents=0) -> A
 
 
 def build_renderer(ctx: moderngl.Context, cast, spec: StageSpec) -> CrowdRenderer:
-    return CrowdRenderer(ctx, [part.character for part in as_cast(cast)], lod_distances=spec.lod_distances, shadows=spec.shadows,
+    """The crowd's renderer; a character whose bake has morph tracks has its targets drawn (the processor
+    writes its agents' pairs: the two must agree, and both follow the bake)."""
+    cast = as_cast(cast)
+    return CrowdRenderer(ctx, [part.character for part in cast], lod_distances=spec.lod_distances, shadows=spec.shadows,
                          culling=spec.culling, cull_path=cull_path(ctx, spec.cull), weapons_visibility=spec.armed, occlusion=spec.occlusion,
-                         town=spec.town)
+                         town=spec.town, morphs=[part.bake.morphs is not None for part in cast])
 
 
 def cull_path(ctx: moderngl.Context, asked: str) -> str:

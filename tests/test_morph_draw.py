@@ -115,3 +115,50 @@ def test_morphed_skinned_vertices_match_float64(gl_context, tmp_path, path):
     assert moved > AGENTS  # the targets moved vertices by more than a millimetre in many agents
     assert np.count_nonzero(gpu_pairs[..., 1]) > AGENTS
     print(f"max morphed vertex error {worst * 1e3:.4f} mm")
+
+
+def _frames(p, target, dt, n):
+    for _ in range(n):
+        p.frame(target.framebuffer, dt)
+    return target.image().astype(int)
+
+
+@pytest.mark.parametrize("cull", ["gpu", "cpu"])
+def test_the_pipeline_draws_morphs_only_where_the_scene_moves_them(gl_context, cull):
+    """The built-in zombies, every one fully swollen: the morph bake, the pairs and the deltas exist and
+    change the picture; switched off, none of it exists, and on again the same picture comes back (the
+    foot lock is off: a new processor starts its planted feet anew); the two cull paths draw the same."""
+    from crowd.gl import Offscreen, has_compute
+    from crowd.pipeline import CharacterSpec, CrowdPipeline, PipelineConfig
+
+    if cull == "gpu" and not has_compute(gl_context):
+        pytest.skip("no GL 4.3 here")
+    size = (320, 180)
+    cast = (CharacterSpec("zombie", morph={"belly_swell": (1.0, 1.0)}),)
+    config = PipelineConfig(agents=30, seed=3, characters=cast, cull=cull, weapons=False, foot_lock=False)
+    with Offscreen(gl_context, size) as target, CrowdPipeline(gl_context, config) as p:
+        p.camera = p.overview_camera(size[0] / size[1])
+        _frames(p, target, 1 / 30, 6)
+        swollen = _frames(p, target, 0.0, 3)
+        assert "morph_weights" in p.passes_run
+        assert p.processor.gpu_bytes()["morphs"] > 0 and p.renderer.gpu_bytes()["morphs"] > 0
+        pairs = p.processor.read_morph_pairs()
+        assert np.all(pairs[:, 0, 0] == 1) and np.allclose(np.abs(pairs[:, 0, 1]), 1.0, atol=1e-6)  # belly_swell at 1 leads every list
+        p.set_morphs(False)
+        p.passes_run.clear()
+        plain = _frames(p, target, 0.0, 3)
+        assert "morph_weights" not in p.passes_run
+        assert p.processor.gpu_bytes()["morphs"] == 0 and p.renderer.gpu_bytes()["morphs"] == 0
+        assert p.processor.layout.parts[0].slots == 0 and not any(d.morph for d in p.renderer.draws)
+        changed = np.count_nonzero(np.abs(swollen - plain).max(axis=2) > 24)
+        assert changed > 30, changed  # the bellies show (30 zombies of about 20 px by 60 at this size)
+        p.set_morphs(True)
+        again = _frames(p, target, 0.0, 3)
+        assert np.count_nonzero(np.abs(again - swollen).max(axis=2) > 24) <= 3
+    if cull == "gpu":  # the same frame through the cpu path's draws (a draw per mesh, the table's base per draw)
+        config = PipelineConfig(agents=30, seed=3, characters=cast, cull="cpu", weapons=False, foot_lock=False)
+        with Offscreen(gl_context, size) as target, CrowdPipeline(gl_context, config) as p:
+            p.camera = p.overview_camera(size[0] / size[1])
+            _frames(p, target, 1 / 30, 6)
+            cpu = _frames(p, target, 0.0, 3)
+        assert np.count_nonzero(np.abs(cpu - swollen).max(axis=2) > 24) <= 10

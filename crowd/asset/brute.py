@@ -281,6 +281,8 @@ def build_character() -> Character:
         clips=z.build_clips(skeleton, CLIP_SPECS, BRUTE_BODY),
         props=build_props(),
         sockets={"weapon_r": skeleton.index(z.SOCKET_JOINT)},
+        morphs=z.MORPH_TARGETS,
+        morph_defaults=np.zeros(len(z.MORPH_TARGETS)),
     ).validate()
 
 

@@ -39,7 +39,7 @@ _GIRTH = {
 
 
 def build_meshes() -> list[SkinnedMesh]:
-    return [z.remodel(m, BODY, _GIRTH, "survivor") for m in z.build_meshes(PALETTE)]
+    return [z.remodel(m, BODY, _GIRTH, "survivor", targets=False) for m in z.build_meshes(PALETTE)]  # a survivor does not snarl
 
 
 # ------------------------------------------------------------------------------------------------
@@ -188,7 +188,7 @@ def build_character() -> Character:
         name="survivor",
         skeleton=skeleton,
         meshes=build_meshes(),
-        clips=z.build_clips(skeleton, CLIP_SPECS, BODY),
+        clips=z.build_clips(skeleton, CLIP_SPECS, BODY, snarl=False),
         props=build_props(),
         sockets={"weapon_r": skeleton.index(z.SOCKET_JOINT)},
     ).validate()

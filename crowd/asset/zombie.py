@@ -28,7 +28,7 @@ import numpy as np
 from .. import transforms as tf
 from ..resources import ASSET_DIR
 from .pose import LocalPose, global_matrices, rest_pose
-from .model import Channel, Character, Clip, Prop, RigidMesh, Skeleton, SkinnedMesh, vertex_normals
+from .model import Channel, Character, Clip, MorphChannel, Prop, RigidMesh, Skeleton, SkinnedMesh, vertex_normals
 
 ASSET_PATH = ASSET_DIR / "zombie.glb"
 SOURCE_FPS = 30  # clips are authored as keys at this rate; the bake resamples them
@@ -521,6 +521,68 @@ def _merged(parts: list[SkinnedMesh], like: SkinnedMesh) -> SkinnedMesh:
         colors=np.concatenate([p.colors for p in parts]), indices=np.concatenate([p.indices + k for p, k in zip(parts, starts)]).astype(np.uint32))
 
 
+# ------------------------------------------------------------------------------------------------
+# Morph targets (issue 23): each a displacement field in bind space, applied to every piece and LOD
+# alike, so a piece's LODs share its shapes by construction (the shadow proxy has none). The clips key
+# "snarl" (below); the others are a body variation a scene gives each zombie (crowd.anim.morph).
+
+MORPH_TARGETS = ("snarl", "belly_swell", "chest_sunken", "gaunt")
+
+
+def _morph_displacements(p: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """(T, V, 3) displacements of bind positions `p` with normals `n` at weight 1."""
+    out = np.zeros((len(MORPH_TARGETS), len(p), 3))
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+
+    def blob(centre, radii):
+        d = (p - np.asarray(centre)) / np.asarray(radii)
+        return _smoothstep(1.0 - np.sqrt(np.sum(d * d, axis=1)))
+
+    # Snarl: the upper lip and nose pulled up and back, the lower lip down, the cheeks up.
+    upper = blob((0.0, 1.68, 0.10), (0.055, 0.03, 0.06))
+    lower = blob((0.0, 1.645, 0.10), (0.045, 0.02, 0.06))
+    cheeks = blob((0.045, 1.675, 0.085), (0.03, 0.03, 0.05)) + blob((-0.045, 1.675, 0.085), (0.03, 0.03, 0.05))
+    out[0] = upper[:, None] * [0.0, 0.012, -0.006] + lower[:, None] * [0.0, -0.010, 0.002] + cheeks[:, None] * [0.0, 0.008, -0.004]
+    # The torso's own region: the arms (out past the shoulders in the T-pose) and the legs below the hips stay.
+    torso = _smoothstep((0.24 - np.abs(x)) / 0.06) * _smoothstep((y - 0.80) / 0.1)
+    radial = np.stack([x, np.zeros_like(x), z + 0.01], axis=1)
+    radial /= np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-9)
+    front = np.maximum(radial[:, 2], 0.0)
+    # Swollen belly: out around the navel, most to the front.
+    out[1] = radial * (0.07 * np.exp(-(((y - 1.05) / 0.1) ** 2)) * (0.3 + 0.7 * front) * torso)[:, None]
+    # Sunken chest: the breastbone in.
+    out[2] = -radial * (0.035 * np.exp(-(((y - 1.33) / 0.07) ** 2)) * front ** 2 * torso)[:, None]
+    # Gaunt: the torso, neck and face 1.2 cm in along their normals (the limbs are thin already).
+    out[3] = -n * (0.012 * _smoothstep((0.26 - np.abs(x)) / 0.05) * _smoothstep((y - 0.85) / 0.1))[:, None]
+    return out
+
+
+def with_targets(mesh: SkinnedMesh, displacements: np.ndarray | None = None) -> SkinnedMesh:
+    """`mesh` with the zombie's morph targets: position deltas as given (default its own bind
+    displacements), normal deltas the change of its smooth normals; quantised as positions are."""
+    p = np.asarray(mesh.positions, np.float64)
+    idx = mesh.indices.astype(np.int64)
+    d = _morph_displacements(p, np.asarray(mesh.normals, np.float64)) if displacements is None else displacements
+    d = _quantise(d, 1e-6)
+    base = vertex_normals(p, idx)
+    normals = np.stack([_quantise(vertex_normals(p + dk, idx) - base, 1e-6) for dk in d])
+    return dataclasses.replace(mesh, morph_targets=np.arange(len(MORPH_TARGETS)), morph_positions=d.astype(np.float32),
+                               morph_normals=normals.astype(np.float32))
+
+
+# Each clip's snarl, by phase: slack while wandering, bared while chasing, widest at an attack's strike.
+# The AI cross-fades the clips (crowd.sim.ai), and their snarls with them: that is how it sets the face.
+SNARL = {
+    "idle": lambda p: 0.1 + 0.05 * np.sin(TAU * p),
+    "shamble": lambda p: 0.2 + 0.05 * np.sin(2 * TAU * p),
+    "run": lambda p: 0.85 + 0.15 * np.sin(2 * TAU * p),
+    "attack": lambda p: np.interp(p, [0.0, 0.3, 0.48, 0.8, 1.0], [0.4, 0.9, 1.0, 0.6, 0.4]),
+    "hit": lambda p: np.interp(p, [0.0, 0.2, 1.0], [0.3, 0.8, 0.4]),
+    "death": lambda p: np.interp(p, [0.0, 0.3, 1.0], [0.6, 0.8, 0.0]),
+    "crawl": lambda p: 0.5 + 0.1 * np.sin(TAU * p),
+}
+
+
 def build_meshes(palette: Palette = ZOMBIE_PALETTE) -> list[SkinnedMesh]:
     meshes = []
     for lod, div in enumerate(LOD_DIVISORS):
@@ -535,7 +597,7 @@ def build_meshes(palette: Palette = ZOMBIE_PALETTE) -> list[SkinnedMesh]:
         for mesh in built:
             mesh.lod = lod
             mesh.name = f"{mesh.name}_lod{lod}"
-            meshes.append(mesh)
+            meshes.append(with_targets(mesh))
     proxy = _build_shadow_proxy(palette)
     proxy.lod = len(LOD_DIVISORS)
     proxy.name = f"{proxy.name}_lod{proxy.lod}"
@@ -576,10 +638,11 @@ def _scale_about_bones(body: Body, girth: dict) -> tuple[np.ndarray, np.ndarray,
     return before, after, scales
 
 
-def remodel(mesh: SkinnedMesh, body: Body, girth: dict, name: str) -> SkinnedMesh:
+def remodel(mesh: SkinnedMesh, body: Body, girth: dict, name: str, targets: bool = True) -> SkinnedMesh:
     """A zombie mesh on `body`'s skeleton: each vertex moved by its joints' moves (position, and scale
     about the bone), blended by its own skin weights, as skinning blends; normals made anew; quantised
-    as the zombie's are. Named after `name` instead of the zombie."""
+    as the zombie's are; its morph targets carried over (or left out: `targets` False). Named after
+    `name` instead of the zombie."""
     before, after, scales = _scale_about_bones(body, girth)
     p = np.asarray(mesh.positions, np.float64)
     moved = np.zeros_like(p)
@@ -587,11 +650,21 @@ def remodel(mesh: SkinnedMesh, body: Body, girth: dict, name: str) -> SkinnedMes
         j = mesh.joints[:, k].astype(np.int64)
         w = mesh.weights[:, k].astype(np.float64)[:, None]
         moved += w * (after[j] + np.einsum("vij,vj->vi", scales[j], p - before[j]))
-    moved = _quantise(moved / np.sum(mesh.weights, axis=1, dtype=np.float64)[:, None], 1e-6)
+    total = np.sum(mesh.weights, axis=1, dtype=np.float64)[:, None]
+    moved = _quantise(moved / total, 1e-6)
     normals = _quantise(vertex_normals(moved, mesh.indices.astype(np.int64)), 1e-6)
-    return SkinnedMesh(name=mesh.name.replace("zombie_", f"{name}_"), piece=mesh.piece, lod=mesh.lod, positions=moved.astype(np.float32),
-                       normals=normals.astype(np.float32), joints=mesh.joints, weights=mesh.weights, indices=mesh.indices, colors=mesh.colors,
-                       base_color=mesh.base_color, group=mesh.group)
+    out = SkinnedMesh(name=mesh.name.replace("zombie_", f"{name}_"), piece=mesh.piece, lod=mesh.lod, positions=moved.astype(np.float32),
+                      normals=normals.astype(np.float32), joints=mesh.joints, weights=mesh.weights, indices=mesh.indices, colors=mesh.colors,
+                      base_color=mesh.base_color, group=mesh.group)
+    if not targets or not mesh.morph_count:
+        return out
+    # A target's deltas move as its vertex's neighbourhood does: by the linear part of the same blend.
+    deltas = np.zeros(mesh.morph_positions.shape)
+    for k in range(mesh.joints.shape[1]):
+        j = mesh.joints[:, k].astype(np.int64)
+        w = mesh.weights[:, k].astype(np.float64)[:, None]
+        deltas += w * np.einsum("vij,tvj->tvi", scales[j], np.asarray(mesh.morph_positions, np.float64))
+    return with_targets(out, deltas / total)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -1148,8 +1221,9 @@ def _ground(skeleton: Skeleton, joints: dict[str, np.ndarray], hips_t: np.ndarra
     return out
 
 
-def build_clips(skeleton: Skeleton, specs=None, body: Body = ZOMBIE_BODY) -> list[Clip]:
-    """The clips of `specs` (CLIP_SPECS' shape; default the zombie's) on `skeleton`, built for `body`."""
+def build_clips(skeleton: Skeleton, specs=None, body: Body = ZOMBIE_BODY, snarl: bool = True) -> list[Clip]:
+    """The clips of `specs` (CLIP_SPECS' shape; default the zombie's) on `skeleton`, built for `body`,
+    each keying the snarl target where SNARL names it (`snarl` True)."""
     clips = []
     socket = skeleton.index(SOCKET_JOINT)
     for name, fn, duration, loop, markers, stride, grounded in CLIP_SPECS if specs is None else specs:
@@ -1170,7 +1244,11 @@ def build_clips(skeleton: Skeleton, specs=None, body: Body = ZOMBIE_BODY) -> lis
             q = tf.align_quat_track(tf.quat_normalize(q))
             channels.append(Channel(j, "rotation", "LINEAR", times.copy(), _quantise(q, 1e-7)))
         channels.sort(key=lambda c: (c.joint, c.path))
-        clips.append(Clip(name, channels, 0.0, float(times[-1]), loop, dict(markers), stride))
+        morph = []
+        if snarl and name in SNARL:
+            morph = [MorphChannel(np.array([MORPH_TARGETS.index("snarl")]), "LINEAR", times.copy(),
+                                  _quantise(SNARL[name](times / duration), 1e-6)[:, None])]
+        clips.append(Clip(name, channels, 0.0, float(times[-1]), loop, dict(markers), stride, morph))
     return clips
 
 
@@ -1183,6 +1261,8 @@ def build_character() -> Character:
         clips=build_clips(skeleton),
         props=build_props(),
         sockets={"weapon_r": skeleton.index(SOCKET_JOINT)},
+        morphs=MORPH_TARGETS,
+        morph_defaults=np.zeros(len(MORPH_TARGETS)),
     ).validate()
 
 

@@ -564,6 +564,9 @@ class CrowdRenderer(GLStage):
         eye = np.asarray(camera.eye, np.float64)
         palette = palette or PaletteLayout.make([c.skeleton.joint_count for c in self.cast], counts)
         self.palette = palette  # the layout this frame's records address (tests and benchmarks read lists back by it)
+        if tuple(p.slots > 0 for p in palette.parts) != self.morphs:
+            raise RenderError(f"the palette holds morph pairs for characters {[p.slots > 0 for p in palette.parts]}, the draw reads them for "
+                              f"{list(self.morphs)}: build both from the same bakes")
         # Shadows come from lists of their own, culled against the sun's volume (an agent outside the
         # view still shadows into it) one LOD coarser: the colour lists need no margin.
         if self.gpu is not None:
