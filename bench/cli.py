@@ -12,6 +12,7 @@
 - ``frame``: the whole headless frame's period (frames back to back, one finish at the end) and latency
   (one finish per frame), with the pass medians, against agent count; ``--panel`` adds the panel and
   HUD drawn into the frame, side by side.
+- ``morph``: the processor's and the skinned draw's GPU ms with morph targets off and 0 to 4 active (bench/morph_cost.py).
 - ``soak``: the default scene for many frames: resident memory, live GL objects and faults (bench/soak.py).
 - ``readback``: the weapons' socket gather and GPU→CPU transfer against the number of armed agents,
   the CPU's wait on it, and the weapon-to-hand error with the body drawn in step with the read-back
@@ -392,6 +393,13 @@ def bench_vertex_cache(args) -> int:
     return 0
 
 
+def bench_morph(args) -> int:
+    """What morph targets cost the processor and the skinned draw (bench/morph_cost.py)."""
+    from .morph_cost import bench_morph as run
+
+    return run(args)
+
+
 def bench_soak(args) -> int:
     """The game as shipped for many frames: resident memory, live GL objects and faults (bench/soak.py)."""
     from crowd.files import atomic_write_bytes
@@ -538,6 +546,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--layers", type=int, default=4, help='animation layers per agent (1 to 4)')
     p.add_argument("--json", type=Path, help='write the results as JSON to this file')
     p.set_defaults(run=bench_scale)
+    p = sub.add_parser("morph", help="GPU ms of the processor and the skinned draw with morph targets: off, and 0 to 4 active an agent")
+    p.add_argument("--agents", default="10000", help="agents on the grid, every one at LOD0")
+    p.add_argument("--size", default="1920x1080", help="frame size WxH")
+    p.add_argument("--rounds", type=int, default=5, help="rounds over the configurations, alternated")
+    p.add_argument("--frames", type=int, default=10, help="timed frames per configuration and round (the median of all is reported)")
+    p.add_argument("--json", type=Path, help="write the results as JSON to this file")
+    p.set_defaults(run=bench_morph)
     p = sub.add_parser("ai", help="CPU ms per crowd-AI step against agent count")
     p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
     p.add_argument("--agents", default="200,1000,10000,100000", help='comma-separated agent counts')

@@ -1,4 +1,7 @@
 #version 330 core
+#ifdef MORPH_BUFFERS
+#extension GL_ARB_shader_storage_buffer_object : require
+#endif
 // Skinned instancing: one instanced draw per (mesh piece, LOD) covers every agent that wears the
 // piece at that LOD. Each instance reads its agent's palette row, written once per frame by the
 // animation processor and reused by every pass (colour and shadow).
@@ -46,21 +49,46 @@ uniform mat4 u_view_proj;  // camera-relative: the camera sits at the origin
 #include "palette.glsl"
 
 #ifdef MORPH
-uniform isampler2D u_morph_vertices;  // per vertex: the first texel of its block of deltas, -1: no target moves it
-uniform usampler2D u_morph_deltas;    // per (moved vertex, target of its character): snorm16 deltas, two to a uint
-uniform int u_morph_vertex_base;      // the table index of this draw's gl_VertexID 0
-uniform float u_morph_step;           // metres a position delta's unit stands for
+// The vertex table (per vertex: the first entry of its block of deltas, -1: no target moves it) and the
+// deltas (per moved vertex and target of its character: snorm16 deltas, two to a uint), in storage
+// buffers where the context has them (MORPH_BUFFERS: loads beside the skinning's texture fetches,
+// docs/BENCHMARKS.md "Morph targets"), else in textures 4096 entries wide.
+#ifdef MORPH_BUFFERS
+readonly buffer MorphVertices { int morph_table[]; };
+readonly buffer MorphDeltas { uvec4 morph_entries[]; };
+
+int morph_block(int vertex) {
+    return morph_table[vertex];
+}
+
+uvec3 morph_entry(int index) {
+    return morph_entries[index].xyz;
+}
+#else
+uniform isampler2D u_morph_vertices;
+uniform usampler2D u_morph_deltas;
 
 ivec2 morph_texel(int index) {
     return ivec2(index & 4095, index >> 12);
 }
+
+int morph_block(int vertex) {
+    return texelFetch(u_morph_vertices, morph_texel(vertex), 0).x;
+}
+
+uvec3 morph_entry(int index) {
+    return texelFetch(u_morph_deltas, morph_texel(index), 0).xyz;
+}
+#endif
+uniform int u_morph_vertex_base;      // the table index of this draw's gl_VertexID 0
+uniform float u_morph_step;           // metres a position delta's unit stands for
 
 vec2 snorm16x2(uint v) {
     return vec2(ivec2(uvec2(v) << uvec2(16u, 0u)) >> 16);
 }
 
 void add_target(int block, vec2 pair, inout vec3 position, inout vec3 normal) {
-    uvec3 d = texelFetch(u_morph_deltas, morph_texel(block + int(pair.x)), 0).xyz;
+    uvec3 d = morph_entry(block + int(pair.x));
     vec2 a = snorm16x2(d.x);
     vec2 b = snorm16x2(d.y);
     vec2 c = snorm16x2(d.z);
@@ -68,15 +96,17 @@ void add_target(int block, vec2 pair, inout vec3 position, inout vec3 normal) {
     normal += (pair.y * (2.0 / 32767.0)) * vec3(b.y, c);
 }
 
-// The agent's pairs are sorted by size with (0, 0) after the last, so the list ends at the first weight
-// of 0: an agent moving no target costs one fetch (the same texel for all its vertices), and a vertex
-// no target moves one more.
+// A vertex no target moves costs one load (its table entry); for the others the agent's pairs follow,
+// sorted by size with (0, 0) after the last, so the list ends at the first weight of 0 (an agent moving
+// no target costs one fetch more, the same texel for all its vertices). The table first: with storage
+// buffers its load is nearly free beside the skinning's texture fetches, the pairs' fetch is not
+// (docs/BENCHMARKS.md, "Morph targets").
 void morph(ivec3 joint0, inout vec3 position, inout vec3 normal) {
+    int block = morph_block(u_morph_vertex_base + gl_VertexID);
+    if (block < 0) return;
     ivec3 slot = joint0 - ivec3(1, 0, 0);
     vec4 pairs = texelFetch(u_palette0, slot, 0);
     if (pairs.y == 0.0) return;
-    int block = texelFetch(u_morph_vertices, morph_texel(u_morph_vertex_base + gl_VertexID), 0).x;
-    if (block < 0) return;
     add_target(block, pairs.xy, position, normal);
     if (pairs.w == 0.0) return;
     add_target(block, pairs.zw, position, normal);

@@ -31,7 +31,8 @@ def test_packed_deltas_decode_within_half_a_step():
 
 def _capture(ctx, renderer, draw, proc):
     """v_world and v_normal of every vertex of every instance of one draw, through the MORPH program."""
-    prog = ctx.program(vertex_shader=load_shader("skin.vert.glsl", {"MORPH": 1}), varyings=["v_world", "v_normal"])
+    defines = {"MORPH": 1, **({"MORPH_BUFFERS": 1} if renderer.morph_buffers else {})}
+    prog = ctx.program(vertex_shader=load_shader("skin.vert.glsl", defines), varyings=["v_world", "v_normal"])
     for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
         prog[name] = unit
     proc.bind_palette(0, prog)
@@ -51,8 +52,9 @@ def _capture(ctx, renderer, draw, proc):
     return data[:, :, 0], data[:, :, 1]
 
 
-@pytest.mark.parametrize("path", ["compute", "fragment"])
-def test_morphed_skinned_vertices_match_float64(gl_context, tmp_path, path):
+@pytest.mark.parametrize("path, buffers", [("compute", True), ("compute", False), ("fragment", False)])
+def test_morphed_skinned_vertices_match_float64(gl_context, tmp_path, path, buffers):
+    """The deltas in storage buffers (GL 4.3) and in textures (the GL 3.3 path's) alike."""
     from crowd.gl import has_compute
 
     if path == "compute" and not has_compute(gl_context):
@@ -69,7 +71,8 @@ def test_morphed_skinned_vertices_match_float64(gl_context, tmp_path, path):
     camera = Camera(eye=positions.mean(axis=0) + [0.0, 10.0, 30.0], target=positions.mean(axis=0))
     (mesh,) = character.meshes
     with AnimationProcessor(ctx, baked, 4, path=path) as proc, \
-            CrowdRenderer(ctx, character, lod_distances=(1e6, 2e6, 3e6), shadows=False, culling=False, morphs=[True]) as renderer:
+            CrowdRenderer(ctx, character, lod_distances=(1e6, 2e6, 3e6), shadows=False, culling=False, morphs=[True],
+                              morph_buffers=buffers) as renderer:
         proc.resize(AGENTS)
         proc.process(layers)
         renderer.prepare(camera, instances, palette=proc.layout)

@@ -306,3 +306,61 @@ def test_many_empty_targets_are_charged_before_they_are_made(tmp_path, monkeypat
         del doc["meshes"][0]["weights"], doc["meshes"][0]["extras"], doc["nodes"][4]["weights"]
         doc["animations"][0]["channels"] = doc["animations"][0]["channels"][:2]
     _hostile(tmp_path, many, "1000 morph targets brings the data read to")
+
+
+@pytest.mark.parametrize("differ", [False, True])
+def test_nodes_sharing_targets_keep_one_channel(tmp_path, differ):
+    """A mesh drawn by two nodes (as a piece's LODs share target names), each with its weights channel:
+    the same keys are one channel, silently; other keys keep the first, with a warning."""
+    def second(doc):
+        doc["nodes"].append({"name": "body_copy", "mesh": 0, "skin": 0})
+        doc["scenes"][0]["nodes"].append(len(doc["nodes"]) - 1)
+        anim = doc["animations"][0]
+        sampler = dict(anim["samplers"][2])
+        if differ:  # other weights for the same 3 keys of 2 targets
+            sampler["output"] = _weights_accessor(doc, np.full(6, 0.5, np.float32))
+        anim["samplers"].append(sampler)
+        anim["channels"].append({"sampler": len(anim["samplers"]) - 1, "target": {"node": len(doc["nodes"]) - 1, "path": "weights"}})
+    c = load_character(_rewrite(make_gltf(tmp_path, morph=True), second), scale=1.0)
+    (channel,) = c.clips[0].morph_channels
+    assert np.allclose(channel.values, MORPH_KEYS)
+    assert any("keys morph targets another weights channel" in w for w in c.warnings) == differ
+
+
+def _weights_accessor(doc, values) -> int:
+    import base64
+
+    blob = bytearray(base64.b64decode(doc["buffers"][0]["uri"].split(",", 1)[1]))
+    while len(blob) % 4:
+        blob.append(0)
+    doc["bufferViews"].append({"buffer": 0, "byteOffset": len(blob), "byteLength": values.nbytes})
+    blob += values.tobytes()
+    doc["buffers"][0].update(byteLength=len(blob), uri="data:application/octet-stream;base64," + base64.b64encode(bytes(blob)).decode())
+    doc["accessors"].append({"bufferView": len(doc["bufferViews"]) - 1, "componentType": 5126, "count": len(values), "type": "SCALAR"})
+    return len(doc["accessors"]) - 1
+
+
+def test_a_coarser_lod_without_targets_takes_its_finer_meshes_by_nearest_vertex(tmp_path):
+    """A LOD1 of the strip (the same vertices) that came without targets gets the LOD0's, each vertex the
+    deltas of the LOD0 vertex nearest it, with one line saying so (nearest_vertices is checked below)."""
+    def lod1(doc):
+        prim = {k: v for k, v in doc["meshes"][0]["primitives"][0].items() if k != "targets"}
+        doc["meshes"][0]["extras"]["crowd"] = {"piece": "body", "lod": 0}
+        doc["meshes"].append({"name": "body_lod1", "primitives": [prim], "extras": {"crowd": {"piece": "body", "lod": 1}}})
+        doc["nodes"].append({"name": "body_lod1", "mesh": 1, "skin": 0})
+        doc["scenes"][0]["nodes"].append(len(doc["nodes"]) - 1)
+    c = load_character(_rewrite(make_gltf(tmp_path, morph=True), lod1), scale=1.0)
+    fine, coarse = sorted(c.meshes, key=lambda m: m.lod)
+    assert coarse.lod == 1 and coarse.morph_targets.tolist() == fine.morph_targets.tolist()
+    assert np.array_equal(coarse.morph_positions, fine.morph_positions)  # the same vertices: each its own
+    assert any("body_lod1" in w and "nearest vertex (farthest 0 mm)" in w for w in c.warnings)
+
+
+def test_nearest_vertices_are_the_nearest():
+    from crowd.asset.morph_transfer import nearest_vertices
+
+    rng = np.random.default_rng(2)
+    src, pts = rng.normal(size=(300, 3)), rng.normal(size=(500, 3))
+    index, dist = nearest_vertices(src, pts)
+    brute = np.linalg.norm(pts[:, None] - src[None], axis=2)
+    assert np.array_equal(index, np.argmin(brute, axis=1)) and np.allclose(dist, brute.min(axis=1))

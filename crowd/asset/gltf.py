@@ -84,6 +84,7 @@ import numpy as np
 from .. import transforms as tf
 from .gltf_materials import Materials
 from .pose import sample_clip
+from .morph_transfer import transfer_targets
 from .pieces import attachments_as_pieces
 from .root_motion import take_out_root_motion
 from .units import AUTO, to_crowd_units
@@ -640,7 +641,7 @@ def load_character(path: str | Path | None = None, clips: list[str] | None = Non
         # A safety net for what the checks above missed: one line for the person, and words the
         # hostile-file tests look for, so a miss still fails CI.
         raise GltfImportError(f"{path.name}: {_UNEXPECTED} ({type(exc).__name__}: {_one_line(exc)})") from None
-    return to_crowd_units(take_out_root_motion(attachments_as_pieces(_select_clips(character, clips, path.name))), scale)
+    return to_crowd_units(transfer_targets(take_out_root_motion(attachments_as_pieces(_select_clips(character, clips, path.name)))), scale)
 
 
 def _select_clips(character: Character, clips, where: str) -> Character:
@@ -1445,11 +1446,9 @@ def _read_clips(r: _Reader, tree: _Tree, skeleton: Skeleton, new_index, folds, f
                 if path == "weights":
                     channel = _morph_channel(r, anims[ai], ch, node, morphs, where, warn)
                     if channel is not None:
-                        driven = set().union(*(set(c.morphs.tolist()) for c in morph_channels))
-                        if driven & set(channel.morphs.tolist()):
-                            warn.append(f"{where}: drives morph targets another weights channel of the clip drives; left out")
-                        else:
-                            morph_channels.append(channel)
+                        channel = _new_morphs(channel, morph_channels, where, warn)
+                    if channel is not None:
+                        morph_channels.append(channel)
                     continue
                 if path not in ("translation", "rotation", "scale"):
                     warn.append(f"{where}: target path {_show(path)} is not a joint transform; left out")
@@ -1544,6 +1543,28 @@ def _morph_channel(r: _Reader, anim: dict, ch: dict, node: int, morphs: _Morphs,
         r.fail(f"{what}: weight {_first(big)} is {float(values[big][0]):.6g}, beyond ±{MAX_MORPH_WEIGHT:g}")
     values = values.reshape((k, 3, n) if interp == "CUBICSPLINE" else (k, n))
     return MorphChannel(indices.copy(), interp, times, values)
+
+
+def _new_morphs(channel: MorphChannel, kept: list[MorphChannel], where: str, warn: list[str]) -> MorphChannel | None:
+    """What `channel` adds to the clip's `kept` channels: the targets none of them drives. A mesh's nodes
+    (its LODs, its pieces) share targets by name, and each node's channel drives them: where they say the
+    same (keys, interpolation and weights), the repeat is dropped silently; where they differ, the first
+    stays, with a warning."""
+    fresh = np.ones(len(channel.morphs), bool)
+    for other in kept:
+        common, mine, theirs = np.intersect1d(channel.morphs, other.morphs, return_indices=True)
+        if not len(common):
+            continue
+        same = (other.interpolation == channel.interpolation and np.array_equal(other.times, channel.times)
+                and np.array_equal(other.values[..., theirs], channel.values[..., mine]))
+        if not same:
+            warn.append(f"{where}: keys morph targets another weights channel of the clip keys otherwise; the first is kept")
+        fresh[mine] = False
+    if fresh.all():
+        return channel
+    if not fresh.any():
+        return None
+    return MorphChannel(channel.morphs[fresh], channel.interpolation, channel.times, channel.values[..., fresh])
 
 
 def _check_times(r: _Reader, times: np.ndarray, what: str) -> None:

@@ -1,7 +1,9 @@
 """The morph targets' deltas the skinned draw adds before skinning (issue 23, point 3).
 
-Two textures, 4096 texels wide, for the meshes drawn with morphs (their character's targets moved by the
-scene, crowd.anim.morph):
+Two arrays for the meshes drawn with morphs (their character's targets moved by the scene,
+crowd.anim.morph), in storage buffers where the context has GL 4.3 (the draw then loads them beside the
+skinning's texture fetches: docs/BENCHMARKS.md, "Morph targets", measures both), else in textures 4096
+texels wide:
 - ``vertices`` (R32I): one texel per vertex of those meshes, in the order their draws read them (a
   draw's ``gl_VertexID`` plus its base, ``MorphDeltas.bases``): the first texel of the vertex's block of
   deltas, or -1 where no target moves it, so an unmoved vertex costs one fetch and nothing else;
@@ -24,7 +26,7 @@ from ..gl import GLStage, gpu_bytes
 WIDTH = 1 << 12  # texels a row: as the palette's
 SNORM = 32767.0
 NORMAL_RANGE = 2.0  # a normal delta's component, at most (the difference of two unit vectors)
-VERTICES_UNIT, DELTAS_UNIT = 4, 5  # texture units (0-2: the palette, 3: the shadow map, 6: the albedo array)
+VERTICES_UNIT, DELTAS_UNIT = 4, 5  # texture units (0-2: the palette, 3: the shadow map, 6: the albedo array), or storage bindings
 
 
 def _snorm16(values: np.ndarray) -> np.ndarray:
@@ -61,8 +63,9 @@ class MorphDeltas(GLStage):
     place in the vertex table (in the list's order). ``bases[i]`` is the table index of mesh i's first
     vertex; ``step`` the position step; ``nbytes`` what the two textures hold."""
 
-    def __init__(self, ctx: moderngl.Context, meshes: list[tuple[SkinnedMesh, int]]):
+    def __init__(self, ctx: moderngl.Context, meshes: list[tuple[SkinnedMesh, int]], buffers: bool = False):
         self.ctx = ctx
+        self.buffers = buffers
         self.step = position_step([m for m, _ in meshes])
         self.bases: list[int] = []
         table, blocks = [], []
@@ -87,8 +90,14 @@ class MorphDeltas(GLStage):
             first_block += count * targets
         if first_block >= 2**31:
             raise ValueError(f"{first_block:,} morph delta texels: more than a texel index holds")
-        self.vertices = self._texture(np.concatenate(table).astype(np.int32), 1, "i4")
-        self.deltas = self._texture(np.concatenate(blocks) if blocks else np.zeros((1, 3), np.uint32), 3, "u4")
+        table = np.concatenate(table).astype(np.int32)
+        deltas = np.concatenate(blocks) if blocks else np.zeros((1, 3), np.uint32)
+        if buffers:  # std430: an int a vertex, a uvec4 a delta (its fourth word unused)
+            self.vertices = ctx.buffer(table.tobytes())
+            self.deltas = ctx.buffer(np.concatenate([deltas, np.zeros((len(deltas), 1), np.uint32)], axis=1).tobytes())
+        else:
+            self.vertices = self._texture(table, 1, "i4")
+            self.deltas = self._texture(deltas, 3, "u4")
 
     def _texture(self, data: np.ndarray, components: int, dtype: str) -> moderngl.Texture:
         rows = data.reshape(len(data), components)
@@ -104,11 +113,19 @@ class MorphDeltas(GLStage):
         return gpu_bytes([self.vertices, self.deltas])
 
     def bind(self, *programs) -> None:
-        self.vertices.use(VERTICES_UNIT)
-        self.deltas.use(DELTAS_UNIT)
+        if self.buffers:
+            self.vertices.bind_to_storage_buffer(VERTICES_UNIT)
+            self.deltas.bind_to_storage_buffer(DELTAS_UNIT)
+        else:
+            self.vertices.use(VERTICES_UNIT)
+            self.deltas.use(DELTAS_UNIT)
         for prog in programs:
-            prog["u_morph_vertices"] = VERTICES_UNIT
-            prog["u_morph_deltas"] = DELTAS_UNIT
+            if self.buffers:
+                prog["MorphVertices"].binding = VERTICES_UNIT
+                prog["MorphDeltas"].binding = DELTAS_UNIT
+            else:
+                prog["u_morph_vertices"] = VERTICES_UNIT
+                prog["u_morph_deltas"] = DELTAS_UNIT
             prog["u_morph_step"] = self.step
 
     def release(self) -> None:

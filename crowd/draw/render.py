@@ -29,7 +29,7 @@ import numpy as np
 from pyglm import glm
 
 from ..frame import Camera, Instances
-from ..gl import GLStage, gpu_bytes, load_shader
+from ..gl import GLStage, gpu_bytes, has_compute, load_shader
 from ..settings import DEFAULTS, SETTINGS
 from ..lighting import FOG_COLOR, LIGHTING, SUN_DIR
 from ..asset.model import PACKED_UV_SPAN, Character, SkinnedMesh
@@ -253,13 +253,14 @@ class CrowdRenderer(GLStage):
 
     def __init__(self, ctx: moderngl.Context, characters, pieces: tuple[str, ...] | None = None, lod_distances=DEFAULT_LOD_DISTANCES,
                  shadows: bool = True, shadow_size: int = 2048, culling: bool = True, cull_path: str = "cpu",
-                 weapons_visibility: bool = False, occlusion: bool = False, town: bool = False, morphs=None):
+                 weapons_visibility: bool = False, occlusion: bool = False, town: bool = False, morphs=None, morph_buffers: bool | None = None):
         """`characters`: one Character, or the cast's, in its order (its agents come in that order,
         crowd.frame). `cull_path`: "cpu" or "gpu" (a GL 4.3 context; see the module docstring); with
         `weapons_visibility` the GPU cull also writes each agent's visibility, for the weapons; with
         `occlusion` (the gpu path) it also drops agents hidden in the previous frame's depth. `morphs`: per
         character, whether the scene moves its morph targets (its bake has morph tracks: the processor then
-        writes its agents' pairs); its pieces with targets are drawn with them."""
+        writes its agents' pairs); its pieces with targets are drawn with them, their deltas in storage
+        buffers (`morph_buffers`; None: where the context has GL 4.3) or textures."""
         self._objects: dict[str, list] = {"meshes": [], "instances": [], "programs": [], "shadow_map": [], "ground": [], "textures": [], "cull": [],
                                           "occlusion": [], "morphs": []}
         self.pyramid: DepthPyramid | None = None
@@ -282,6 +283,7 @@ class CrowdRenderer(GLStage):
         if len(self.morphs) != len(cast):
             raise RenderError(f"morphs must say for each of the {len(cast)} characters whether its targets move, got {len(self.morphs)}")
         self.morph: MorphDeltas | None = None
+        self.morph_buffers = has_compute(ctx) if morph_buffers is None else bool(morph_buffers)
         per_character = [[m for m in c.meshes if pieces is None or m.piece in pieces] for c in cast]
         for c, meshes in zip(cast, per_character):
             if not meshes:
@@ -337,7 +339,7 @@ class CrowdRenderer(GLStage):
                 draw.first_index, draw.base_vertex = first, base
         self.merged_plain = sum(1 for d in self.draws[:self.merged] if not d.morph)  # then the shared morphing ones
         if morph_meshes:
-            self.morph = self._own("morphs", MorphDeltas(ctx, morph_meshes))
+            self.morph = self._own("morphs", MorphDeltas(ctx, morph_meshes, self.morph_buffers))
             for draw, base in zip([d for d in self.draws if d.morph], self.morph.bases):  # the table's order is the draws'
                 draw.morph_base = base - draw.base_vertex  # shared: gl_VertexID counts from the buffer's start
         self._merged_vaos: dict = {}
@@ -446,6 +448,8 @@ class CrowdRenderer(GLStage):
                 vdefs["WIDE_UV"] = 1
             if morph:
                 vdefs["MORPH"] = 1
+                if self.morph_buffers:
+                    vdefs["MORPH_BUFFERS"] = 1
             prog = self.ctx.program(vertex_shader=load_shader("skin.vert.glsl", vdefs), fragment_shader=frag)
             for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
                 if name in prog:
