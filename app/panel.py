@@ -26,7 +26,7 @@ AGENTS, TIME_SCALE, CROSSFADE = SETTINGS["agents"], SETTINGS["time_scale"], SETT
 CLIP_SPEED, WEIGHT, BAKE_FPS = SETTINGS["clip_speed"], SETTINGS["layer_weight"], SETTINGS["bake_fps"]
 LOD, LATENCY = SETTINGS["lod_distances"], SETTINGS["readback_latency"]
 PRECISIONS, INTERPOLATIONS = SETTINGS["precision"].choices, SETTINGS["interpolation"].choices
-BOUND = SETTINGS["compression_bound_mm"]
+BOUND, MORPH_WEIGHT = SETTINGS["compression_bound_mm"], SETTINGS["morph_weight"]
 CULL_PATHS = SETTINGS["cull"].choices
 
 HISTORY_SECONDS = 5.0
@@ -38,7 +38,7 @@ PANEL_WIDTH_SHARE, PANEL_WIDTH_MIN, PANEL_WIDTH_MAX, MARGIN = 0.3, 360.0, 560.0,
 # The labels drawn right of sliders and combos (the longest decides how wide they are).
 LABELS = ("agents", "agents (any)", "time scale", "seed", "cross-fade (s)", "character", "speed", "precision", "bound (mm)",
           "interpolation", "LOD distances (m)", "cull path", "read-back lag", "bake fps") + LAYER_NAMES
-SECTIONS = ("Frame", "Crowd", "Clips", "Layer weights", "Bake and rendering", "Selected agent", "Keys")
+SECTIONS = ("Frame", "Crowd", "Clips", "Layer weights", "Morph targets", "Bake and rendering", "Selected agent", "Keys")
 OPEN_AT_START = ("Frame", "Crowd")  # with these open the panel fits a 720-pixel window; the others fold
 KEYS = ("W/A/S/D: run (strafe with A and D)", "right click: run there", "space: swing", "C: follow or orbit camera",
         "drag: turn the camera", "wheel: zoom", "left click: select a zombie", "P: pause", ".: one step", "H: hide this panel")
@@ -59,6 +59,8 @@ class Panel:
         self._seed = session.pipeline.config.seed
         self._held = {layer: [False, 1.0] for layer in range(4)}
         self._weights_selected_only = False
+        self._morphs_selected_only = False
+        self._morph_values: dict[str, float] = {}  # each target's slider, held or not
         self._character = 0  # whose clips the clip section shows (the selected agent's, once one is picked)
         self._selected = -1
         self._opened_for = -1  # the selection the inspector's section was last opened for
@@ -73,7 +75,7 @@ class Panel:
         "pause": "set_paused", "step": "step_once", "clip_speed": "set_clip_speed", "clip_loop": "set_clip_loop",
         "play": "play", "weight": "set_weight", "rebake": "start_rebake", "measure_error": "measure_error", "lod": "set_lod_distances", "culling": "set_culling", "occlusion": "set_occlusion",
         "shadows": "set_shadows", "weapons": "set_weapons", "latency": "set_readback_latency", "cull": "set_cull_path",
-        "foot_lock": "set_foot_lock",
+        "foot_lock": "set_foot_lock", "morph": "set_morph_weight", "morphs": "set_morphs",
     }
 
     def apply(self, action: str, *args, **kwargs) -> bool:
@@ -117,7 +119,7 @@ class Panel:
             self._opened_for = self.session.selected
             if self.session.selected >= 0:
                 self.open_sections("Selected agent")
-        for name, draw in zip(SECTIONS, (self._draw_timing, self._draw_crowd, self._draw_clips, self._draw_weights,
+        for name, draw in zip(SECTIONS, (self._draw_timing, self._draw_crowd, self._draw_clips, self._draw_weights, self._draw_morphs,
                                          self._draw_rendering, self._draw_inspector, self._draw_keys)):
             if name in self._to_open:
                 self._to_open.discard(name)
@@ -259,6 +261,30 @@ class Panel:
                 self._held[layer][1] = value
             imgui.pop_id()
 
+    def _draw_morphs(self, imgui) -> None:
+        """A slider per morph target of the selected agent's character (else the first whose targets move):
+        held, its weight replaces what the clips and the agent's variation give, on that agent or on all."""
+        k = self.session.morph_character()
+        if k is None:
+            imgui.text_wrapped("No character moves morph targets in this scene (the morphs setting is off, or no clip or "
+                               "variation moves one).")
+            return
+        member = self.session.pipeline.cast[k]
+        imgui.text_wrapped(f"{member.name}: a held weight replaces the clips' and the variation's.")
+        _, self._morphs_selected_only = imgui.checkbox("selected agent only##morphs", self._morphs_selected_only)
+        held = self.session.held_morphs()
+        for name in member.character.morphs:
+            imgui.push_id(f"morph {name}")
+            imgui.text_wrapped(name)
+            value = self._morph_values.get(name, held.get(name, 0.0))
+            changed_h, on = imgui.checkbox("hold", name in held)
+            imgui.same_line()
+            changed_v, value = imgui.slider_float("##weight", value, *MORPH_WEIGHT.slider)
+            self._morph_values[name] = value
+            if changed_h or (on and changed_v):
+                self.apply("morph", name, value if on else None, selected_only=self._morphs_selected_only)
+            imgui.pop_id()
+
     def _draw_rendering(self, imgui) -> None:
         s = self.session
         p = s.pipeline
@@ -311,6 +337,10 @@ class Panel:
         changed, on = imgui.checkbox("foot lock", p.config.foot_lock)
         if changed:
             self.apply("foot_lock", on)
+        imgui.same_line()
+        changed, on = imgui.checkbox("morph targets", p.config.morphs)
+        if changed:
+            self.apply("morphs", on)
         lock = p.foot_lock_state()
         if not lock["on"] and p.config.foot_lock:
             imgui.text_wrapped(f"foot lock off: {lock['why']}")

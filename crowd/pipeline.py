@@ -37,7 +37,7 @@ from .anim.bake import AnimationBake, bake
 from .anim.foot_lock import bake_legs
 from .anim.foot_skate import FootSkateMonitor
 from .anim.processor import AnimationProcessor, palette_joint_positions
-from .anim.morph import MorphError, bake_morphs
+from .anim.morph import NOT_HELD, MorphError, bake_morphs
 from .anim.roles import clips_used, match_roles
 from .asset.gltf import load_character
 from .asset.model import Character, cast_weapons
@@ -233,6 +233,9 @@ class CrowdPipeline(GLStage):
         self._pose_lag: deque = deque(maxlen=RING + 1)  # simulated seconds of the last frames
         self.frames = 0
         self.passes_run: list[str] = []
+        # Morph weights the panel holds, per character: (M,) weights (-1: not held) and whose (an agent's
+        # number among the character's, or crowd.anim.morph.ALL_HELD); handed to each new processor.
+        self.morph_holds: dict[int, tuple[np.ndarray, int]] = {}
         self.last = FrameState()
         self.camera = self.default_camera(16 / 9)
 
@@ -724,6 +727,9 @@ class CrowdPipeline(GLStage):
                 self.processor.upload(blocks, self._lock_motion(), stepped)
             else:
                 self.processor.upload(blocks)
+        for k, part in enumerate(self.processor.parts):
+            if part.held is not None:
+                self.processor.hold_morphs(k, *self.morph_holds.get(k, (np.full(len(part.held), -1.0), NOT_HELD)))
         rows = self.rows
         if rows:
             with t.gpu("process"):

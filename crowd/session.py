@@ -18,11 +18,12 @@ import moderngl
 import numpy as np
 
 from .anim.bake import BakeError
+from .anim.morph import ALL_HELD
 from .anim.processor import ProcessorError
 from .asset.model import cast_weapons
 from .draw.render import RenderError, view_proj
 from .draw.weapons import WeaponError
-from .frame import CLIP, MASK, PHASE, WEIGHT, ForcedClip, LayerOverrides
+from .frame import CLIP, MASK, PHASE, WEIGHT, ForcedClip, LayerOverrides, cast_firsts
 from .gl import GLStage
 from .pipeline import CrowdPipeline, PipelineError
 from .scene import CameraSetting, Scene, SceneError, save_scene
@@ -200,6 +201,43 @@ class CrowdSession(GLStage):
                 raise SessionError("no agent selected")
             held[layer] = (weight, np.array([self.selected]) if selected_only else None)
         self.overrides = dataclasses.replace(self.overrides, held=held)
+
+    def morph_character(self) -> int | None:
+        """The character whose morph weights the panel shows: the selected agent's, else the first whose
+        targets move in this scene; None when none does."""
+        moving = [k for k, m in enumerate(self.pipeline.cast) if m.bake.morphs is not None and not m.player]
+        if self.selected >= 0 and self.character_of(self.selected) in moving:
+            return self.character_of(self.selected)
+        return moving[0] if moving else None
+
+    def set_morph_weight(self, target: str, weight: float | None, selected_only: bool = False) -> None:
+        """Hold a morph target's weight (0 to 1) on the selected agent or on every agent of its character
+        (the morph_character's), or let the clips and variation decide it again (None). The character's
+        held targets apply to one set of agents: the last one named."""
+        k = self.morph_character()
+        if k is None:
+            raise SessionError("no character moves morph targets in this scene (the morphs setting is off, or its clips and scene move none)")
+        member = self.pipeline.cast[k]
+        if target not in member.character.morphs:
+            raise SessionError(f"the {member.name} has no morph target {target!r}; it has {', '.join(member.character.morphs)}")
+        if selected_only and self.selected < 0:
+            raise SessionError("no agent selected: click one, or hold the weight on all agents")
+        weights, _ = self.pipeline.morph_holds.get(k, (np.full(len(member.character.morphs), -1.0), ALL_HELD))
+        weights = weights.copy()
+        weights[member.character.morphs.index(target)] = -1.0 if weight is None else SETTINGS["morph_weight"].check(weight, SessionError)
+        agent = self.selected - cast_firsts(self.pipeline.ai.cast)[k] if selected_only else ALL_HELD
+        if np.all(weights < 0.0):
+            self.pipeline.morph_holds.pop(k, None)
+        else:
+            self.pipeline.morph_holds[k] = (weights, agent)
+
+    def held_morphs(self) -> dict[str, float]:
+        """The morph_character's held weights, by target."""
+        k = self.morph_character()
+        if k is None or k not in self.pipeline.morph_holds:
+            return {}
+        weights, _ = self.pipeline.morph_holds[k]
+        return {name: float(w) for name, w in zip(self.pipeline.cast[k].character.morphs, weights) if w >= 0.0}
 
     # -- rendering features
 

@@ -10,6 +10,10 @@ uniform isampler2D u_morph_clips;     // (clips, 1): a clip's first row and fram
 uniform sampler2D u_morph_variation;  // (MORPH_COUNT, 1): lo, hi of the agents' offsets
 uniform uint u_morph_seed;
 uniform uint u_character;             // the character's place in the cast (its agents' variation differs)
+// Weights held from the panel: a target's weight where it is >= 0 (-1: not held), for agent number
+// u_morph_held_agent among the character's, or every agent (-1), or none (-2).
+uniform float u_morph_held[MORPH_COUNT];
+uniform int u_morph_held_agent;
 
 // PCG's output permutation (crowd.anim.morph.pcg_hash).
 uint pcg_hash(uint v) {
@@ -55,6 +59,7 @@ void morph_pairs(int agent, int local, out vec2 pairs[MORPH_PAIRS]) {
         row1[l] = rows.x + min(int(i0) + 1, rows.y - 1);
     }
     for (int k = 0; k < MORPH_PAIRS; ++k) pairs[k] = vec2(0.0);
+    bool held = u_morph_held_agent == -1 || u_morph_held_agent == local;
     for (int m = 0; m < MORPH_COUNT; ++m) {
         float w;
         if (total > 0.0) {
@@ -71,6 +76,7 @@ void morph_pairs(int agent, int local, out vec2 pairs[MORPH_PAIRS]) {
             w = texelFetch(u_morph_tracks, ivec2(m, 0), 0).x;
         }
         w = clamp(w + morph_variation(local, m), -MAX_MORPH_WEIGHT, MAX_MORPH_WEIGHT);
+        if (held && u_morph_held[m] >= 0.0) w = u_morph_held[m];
         if (abs(w) < ACTIVE_WEIGHT) continue;
         // Into the list kept sorted by size: the pair goes down the list, swapping places with each
         // smaller one (an earlier target stays ahead of an equal one). A loop of constant bounds, so

@@ -11,7 +11,7 @@ import pytest
 from crowd.anim.bake import bake
 from crowd.anim.morph import (ACTIVE_WEIGHT, MORPH_PAIRS, MorphError, active_pairs, bake_morphs, reference_weights,
                               variation_offsets)
-from crowd.anim.processor import AnimationProcessor, reference_palette
+from crowd.anim.processor import AnimationProcessor, ProcessorError, reference_palette
 from crowd.asset.gltf import load_character
 from crowd.asset.model import MorphChannel
 from crowd.asset.pose import sample_morph_weights
@@ -154,3 +154,31 @@ def test_without_morphs_there_is_no_slot_and_nothing_allocated(gl_context, morph
         proc.process(_layers(10, len(baked.clips)))
         assert proc.layout.parts[0].slots == 0 and proc.gpu_bytes()["morphs"] == 0
         assert proc.read_morph_pairs().shape == (10, 0, 2)
+
+
+@pytest.mark.parametrize("agent", [-1, 17])
+def test_held_weights_replace_the_clips_and_the_variation(gl_context, morph_character, agent):
+    """The panel's held weights, on every agent (-1) or one: those targets at exactly that weight."""
+    from crowd.anim.morph import ALL_HELD
+
+    baked = _baked(morph_character, {"t0": (0.2, 0.6)})
+    layers = _layers(AGENTS, len(baked.clips))
+    held = np.full(TARGETS, -1.0)
+    held[[0, 5]] = 0.0, 0.75  # t0 held at 0 (off), t5 at 0.75
+    with AnimationProcessor(gl_context, baked, 4) as proc:
+        proc.resize(AGENTS)
+        proc.hold_morphs(0, held, agent)
+        proc.process(layers)
+        pairs = proc.read_morph_pairs()
+        with pytest.raises(ProcessorError, match="at most 1"):
+            proc.hold_morphs(0, np.full(TARGETS, 2.0), ALL_HELD)
+        with pytest.raises(ProcessorError):
+            proc.hold_morphs(0, np.full(TARGETS, np.nan), ALL_HELD)
+    want = active_pairs(reference_weights(baked.morphs, baked, layers, held=held, held_agent=agent))
+    _compare_pairs(pairs, want)
+    rows = slice(None) if agent == ALL_HELD else [agent]
+    got = pairs[rows]
+    assert np.all(np.any((got[..., 0] == 5) & np.isclose(got[..., 1], 0.75), axis=-1))
+    assert not np.any((got[..., 0] == 0) & (got[..., 1] != 0))  # t0 held at 0: never drawn
+    if agent != ALL_HELD:
+        assert np.any((pairs[:, :, 0] == 0) & (pairs[:, :, 1] != 0))  # the others keep their own t0

@@ -261,3 +261,43 @@ def test_panel_actions_go_through_the_session_and_report_refusals(session, tmp_p
     assert load_scene(tmp_path / "panel.toml").clip_speed == {"idle": 0.5}
     assert load_scene(tmp_path / "panel.toml").cull == "cpu"
     assert panel.apply("save") and "panel.toml.bak" in panel.status
+
+
+def test_held_morph_weights_from_the_panel(session):
+    """A target's weight held on every zombie, then on the selected one only; bad values refused in one
+    line; the morphs switched off and on live, the held weights kept for the new processor."""
+    s, fb = session()
+    s.frame(fb, DT)
+    assert s.morph_character() == 0  # the zombie's clips key its snarl
+    s.set_morph_weight("belly_swell", 0.8)
+    s.frame(fb, DT)
+    pairs = s.pipeline.processor.read_morph_pairs()
+    belly = list(s.pipeline.character.morphs).index("belly_swell")
+    assert np.all(np.any((pairs[..., 0] == belly) & np.isclose(pairs[..., 1], 0.8), axis=1))
+    for bad, words in ((float("nan"), "morph weight"), (1.5, "morph weight"), (-0.2, "morph weight")):
+        with pytest.raises(SessionError, match=words) as info:
+            s.set_morph_weight("belly_swell", bad)
+        assert "\n" not in str(info.value)
+    with pytest.raises(SessionError, match="no morph target 'nose'"):
+        s.set_morph_weight("nose", 0.5)
+    with pytest.raises(SessionError, match="no agent selected"):
+        s.set_morph_weight("gaunt", 0.5, selected_only=True)
+    s.selected = 4
+    s.set_morph_weight("gaunt", 1.0, selected_only=True)  # the character's held targets now apply to agent 4 alone
+    s.frame(fb, DT)
+    pairs = s.pipeline.processor.read_morph_pairs()
+    gaunt = list(s.pipeline.character.morphs).index("gaunt")
+    has = np.any((pairs[..., 0] == gaunt) & np.isclose(pairs[..., 1], 1.0), axis=1)
+    assert has[4] and has.sum() == 1
+    assert s.held_morphs() == {"belly_swell": pytest.approx(0.8), "gaunt": 1.0}
+    s.apply_setting("morphs", False)
+    s.frame(fb, DT)
+    assert s.morph_character() is None and s.pipeline.processor.gpu_bytes()["morphs"] == 0
+    with pytest.raises(SessionError, match="no character moves morph targets"):
+        s.set_morph_weight("gaunt", 0.5)
+    s.apply_setting("morphs", True)
+    s.frame(fb, DT)
+    assert s.pipeline.processor.read_morph_pairs()[4, 0, 0] in (gaunt, belly)  # held again, on the new processor
+    s.set_morph_weight("gaunt", None)
+    s.set_morph_weight("belly_swell", None)
+    assert s.held_morphs() == {}

@@ -19,7 +19,8 @@ model):
   is 0, the defaults;
 - plus the agent's variation, fixed for the agent: lo + (hi - lo) * u, u a hash of (seed, character,
   the agent's number among its character's) in [0, 1), for each target given a range;
-- clamped to ±MAX_MORPH_WEIGHT.
+- clamped to ±MAX_MORPH_WEIGHT;
+- where the panel holds a target's weight (for one agent or all of the character's), that weight.
 The draw fetches only targets whose weight is at least ACTIVE_WEIGHT in size, at most MORPH_PAIRS of
 them an agent (the largest first, ties by target): the processor writes them as (target, weight) pairs
 into the texel before the agent's joint 0 in its palette row (across the three planes), a weight of 0
@@ -45,6 +46,7 @@ ACTIVE_WEIGHT = 1.0 / 1024.0
 # character); a crowd's zombies move a few targets each (a face in close-up may move more: its smaller
 # weights are then left out, the largest kept).
 MORPH_PAIRS = 6
+ALL_HELD, NOT_HELD = -1, -2  # held weights for every agent of a character, or for none (else one agent's number)
 
 
 class MorphError(ValueError):
@@ -143,9 +145,10 @@ def variation_offsets(bake: MorphBake, character_index: int, agents) -> np.ndarr
     return np.where(hi > lo, lo + (hi - lo) * u, lo)
 
 
-def reference_weights(bake: MorphBake, joint_bake, layers, character_index: int = 0, agents=None) -> np.ndarray:
+def reference_weights(bake: MorphBake, joint_bake, layers, character_index: int = 0, agents=None, held=None, held_agent: int = NOT_HELD) -> np.ndarray:
     """Float64 model of the processor's morph weights: (N, M) for `layers` (N, L, 4) of agents numbered
-    `agents` (default 0 .. N - 1) among their character's."""
+    `agents` (default 0 .. N - 1) among their character's; `held` (M,) the held weights (< 0: not held)
+    of agent `held_agent` (ALL_HELD: every agent; NOT_HELD: none)."""
     layers = np.asarray(layers, np.float64)
     n = layers.shape[0]
     agents = np.arange(n) if agents is None else np.asarray(agents, np.int64)
@@ -167,7 +170,12 @@ def reference_weights(bake: MorphBake, joint_bake, layers, character_index: int 
         sampled = tracks[first + i0] + (tracks[first + i1] - tracks[first + i0]) * u
         out += weight[:, l, None] * sampled
     blended = np.where(total[:, None] > 0.0, out / np.where(total > 0.0, total, 1.0)[:, None], tracks[0][None])
-    return np.clip(blended + variation_offsets(bake, character_index, agents), -MAX_MORPH_WEIGHT, MAX_MORPH_WEIGHT)
+    weights = np.clip(blended + variation_offsets(bake, character_index, agents), -MAX_MORPH_WEIGHT, MAX_MORPH_WEIGHT)
+    if held is not None and held_agent != NOT_HELD:
+        rows = np.ones(n, bool) if held_agent == ALL_HELD else agents == held_agent
+        held = np.asarray(held, np.float64)
+        weights[np.ix_(rows, held >= 0.0)] = held[held >= 0.0]
+    return weights
 
 
 def active_pairs(weights, limit: int = MORPH_PAIRS) -> np.ndarray:

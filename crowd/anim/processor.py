@@ -62,7 +62,7 @@ from .compress import PER_KEY
 from . import foot_lock as lock
 from ..gl import GLStage, gpu_bytes, has_compute, load_shader
 from ..settings import DEFAULTS, SETTINGS
-from .morph import ACTIVE_WEIGHT, MAX_MORPH_WEIGHT, MORPH_PAIRS
+from .morph import ACTIVE_WEIGHT, MAX_MORPH_WEIGHT, MORPH_PAIRS, NOT_HELD
 from .reference import CANCELLED_NORM, REST_THRESHOLD, aligned_sign
 
 MAX_JOINTS = 256  # one compute work group of 256 invocations holds at least one whole agent
@@ -392,6 +392,10 @@ class _Part:
         self.masks = masks
         self.legs = legs
         self.slots = 0 if bake.morphs is None else 1  # texels of morph pairs before an agent's joints
+        # Morph weights held from the panel: (M,) float32, -1 where not held, and whose (crowd.anim.morph.ALL_HELD,
+        # NOT_HELD, or an agent's number among the character's).
+        self.held = None if bake.morphs is None else np.full(bake.morphs.count, -1.0, np.float32)
+        self.held_agent = NOT_HELD
         self.program = None
         self.textures: dict = {}
         self.lock_state = self.lock_motion = None
@@ -899,6 +903,9 @@ class AnimationProcessor(GLStage):
             self._set(prog, "u_first_agent", block.first_agent)
             self._set(prog, "u_first_row", block.first_row)
             self._set(prog, "u_agents_per_row", block.agents_per_row)
+            if part.held is not None:
+                prog["u_morph_held"].write(part.held.tobytes())
+                self._set(prog, "u_morph_held_agent", part.held_agent)
             if part.legs is not None:
                 for name, data in part.leg_bytes.items():
                     prog[name].write(data)
@@ -937,6 +944,18 @@ class AnimationProcessor(GLStage):
         if part.lock_state is None:
             return np.zeros((0, 0 if part.legs is None else len(part.legs), 4), np.float32)
         return np.frombuffer(part.lock_state.read(), np.float32).reshape(block.count, len(part.legs), 4)
+
+    def hold_morphs(self, character: int, weights, agent: int) -> None:
+        """Hold morph weights of one character from the next run: `weights` (M,), a weight in [0, 1] per
+        target held, -1 where the clips and variation decide; `agent` its agent's number among the
+        character's, or crowd.anim.morph.ALL_HELD / NOT_HELD. A character without morph tracks: ProcessorError."""
+        part = self.parts[character]
+        if part.held is None:
+            raise ProcessorError(f"character {character} moves no morph target in this scene")
+        w = np.asarray(weights, np.float32)
+        if w.shape != part.held.shape or not np.all(np.isfinite(w)) or np.any(w > 1.0):
+            raise ProcessorError(f"held morph weights must be {len(part.held)} values of at most 1 (-1: not held), got {np.asarray(weights).tolist()}")
+        part.held, part.held_agent = np.where(w >= 0.0, w, -1.0).astype(np.float32), int(agent)
 
     def set_clip_loop(self, clip: int, loop: bool, character: int = 0) -> None:
         """Loop a clip of a character's bake (its phase wraps) or play it once (its phase clamps): that
