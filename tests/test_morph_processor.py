@@ -182,3 +182,28 @@ def test_held_weights_replace_the_clips_and_the_variation(gl_context, morph_char
     assert not np.any((got[..., 0] == 0) & (got[..., 1] != 0))  # t0 held at 0: never drawn
     if agent != ALL_HELD:
         assert np.any((pairs[:, :, 0] == 0) & (pairs[:, :, 1] != 0))  # the others keep their own t0
+
+
+def test_the_bake_error_is_found_by_search_and_reported(morph_character):
+    """The tracks' largest error against the source's CUBICSPLINE keys: what a dense scan finds, or more;
+    a coarse bake says so in its warnings, the default one stays below the bound."""
+    from crowd.anim.morph import ERROR_WARN, track_error
+
+    clips = morph_character.clips
+    coarse = bake(morph_character.skeleton, clips, 2.0)
+    coarse.morphs = bake_morphs(morph_character, clips, coarse)
+    error, clip, target, phase = coarse.morphs.error
+    # A dense scan of the same difference (the processor's lerp of the stored frames against the keys).
+    m = coarse.morphs
+    first, frames = m.clip_rows[0]
+    p = np.linspace(0.0, 1.0, 20001)
+    f = p * (frames - 1)
+    i0 = np.clip(np.floor(f), 0, frames - 2).astype(int)
+    track = m.tracks[first:first + frames].astype(np.float64)
+    baked = track[i0] + (track[i0 + 1] - track[i0]) * (f - i0)[:, None]
+    scan = np.max(np.abs(baked - sample_morph_weights(morph_character.morph_defaults, clips[0], p)))
+    assert error >= scan - 1e-9 and error > ERROR_WARN and clip == "wave"
+    assert any("morph weights baked at" in w for w in coarse.warnings)
+    fine = _baked(morph_character)
+    assert fine.morphs.error == track_error(fine.morphs, morph_character, clips, fine)
+    assert fine.morphs.error[0] < coarse.morphs.error[0]

@@ -29,6 +29,7 @@ ending the list.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,6 +47,7 @@ ACTIVE_WEIGHT = 1.0 / 1024.0
 # character); a crowd's zombies move a few targets each (a face in close-up may move more: its smaller
 # weights are then left out, the largest kept).
 MORPH_PAIRS = 6
+ERROR_WARN = 0.01  # a baked weight this far from the source's says so in the bake's warnings (1 % of a full shape)
 ALL_HELD, NOT_HELD = -1, -2  # held weights for every agent of a character, or for none (else one agent's number)
 
 
@@ -60,6 +62,7 @@ class MorphBake:
     clip_rows: np.ndarray  # int32 (C, 2): per baked clip, its first row and frame count ((0, 1): the defaults)
     variation: np.ndarray  # float32 (M, 2): per target the (lo, hi) range of the agents' offsets (0, 0: none)
     seed: int  # the variation's
+    error: tuple = (0.0, "", "", 0.0)  # track_error: (weight, clip, target, phase) of the largest bake error
 
     @property
     def count(self) -> int:
@@ -122,8 +125,14 @@ def bake_morphs(character: Character, clips, joint_bake, variation: dict | None 
     tracks = np.concatenate(rows)
     if not np.all(np.isfinite(tracks)):
         raise MorphError("baked morph weights hold NaN or Inf")
-    return MorphBake(tuple(character.morphs), np.clip(tracks, -MAX_MORPH_WEIGHT, MAX_MORPH_WEIGHT).astype(np.float32), clip_rows,
-                     ranges, int(seed) & 0xFFFFFFFF)
+    out = MorphBake(tuple(character.morphs), np.clip(tracks, -MAX_MORPH_WEIGHT, MAX_MORPH_WEIGHT).astype(np.float32), clip_rows,
+                    ranges, int(seed) & 0xFFFFFFFF)
+    out.error = track_error(out, character, clips, joint_bake)
+    if out.error[0] > ERROR_WARN:
+        error, clip, target, phase = out.error
+        joint_bake.warnings.append(f"morph weights baked at {joint_bake.fps} fps are off by up to {error:.3g} (clip {clip!r}, target "
+                                   f"{target!r}, phase {phase:.3f}), more than {ERROR_WARN:g}: bake at a higher rate, or at the source's")
+    return out
 
 
 def pcg_hash(values) -> np.ndarray:
@@ -190,3 +199,46 @@ def active_pairs(weights, limit: int = MORPH_PAIRS) -> np.ndarray:
     out[..., 0] = np.where(chosen, order, 0)
     out[..., 1] = np.where(chosen, np.take_along_axis(w, order, axis=1), 0.0)
     return out
+
+
+def track_error(bake: MorphBake, character: Character, clips, joint_bake, per_interval: int = 8) -> tuple[float, str, str, float]:
+    """(error, clip, target, phase): the largest difference between a baked weight track, lerped between
+    its frames as the processor does, and the clip's weights from the source keys (crowd.asset.pose), over
+    every clip with weight channels and every target it drives. Found by search: `per_interval` samples
+    in each frame interval, then a golden-section refinement around the worst of them (the difference is
+    smooth between the source's keys; a key inside an interval bends it, which the samples catch)."""
+    defaults = np.asarray(character.morph_defaults, np.float64)
+    worst = (0.0, "", "", 0.0)
+    for clip, info, (first, frames) in zip(clips, joint_bake.clips, bake.clip_rows):
+        if not clip.morph_channels or frames < 2:
+            continue
+        track = bake.tracks[first:first + frames].astype(np.float64)
+
+        def error(phase, target):
+            phase = np.atleast_1d(np.asarray(phase, np.float64))
+            f = phase * (frames - 1)
+            i0 = np.clip(np.floor(f), 0, frames - 2).astype(np.int64)
+            baked = track[i0, target] + (track[i0 + 1, target] - track[i0, target]) * (f - i0)
+            exact = sample_morph_weights(defaults, clip, np.where(phase >= 1.0, 1.0 - 1e-12, phase) if clip.loop else phase)[:, target]
+            return np.abs(baked - exact)
+
+        phases = np.linspace(0.0, 1.0, (frames - 1) * per_interval + 1)
+        for target in sorted({int(m) for ch in clip.morph_channels for m in ch.morphs}):
+            e = error(phases, target)
+            k = int(np.argmax(e))
+            lo, hi = phases[max(k - 1, 0)], phases[min(k + 1, len(phases) - 1)]
+            best_p, best_e = float(phases[k]), float(e[k])
+            ratio = (math.sqrt(5.0) - 1.0) / 2.0
+            for _ in range(40):  # golden section on the bracket around the worst sample
+                a, b = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
+                ea, eb = float(error(a, target)[0]), float(error(b, target)[0])
+                if ea > eb:
+                    hi = b
+                else:
+                    lo = a
+                for p_, e_ in ((a, ea), (b, eb)):
+                    if e_ > best_e:
+                        best_p, best_e = float(p_), e_
+            if best_e > worst[0]:
+                worst = (best_e, clip.name, bake.names[target], best_p)
+    return worst
