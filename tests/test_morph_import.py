@@ -364,3 +364,11 @@ def test_nearest_vertices_are_the_nearest():
     index, dist = nearest_vertices(src, pts)
     brute = np.linalg.norm(pts[:, None] - src[None], axis=2)
     assert np.array_equal(index, np.argmin(brute, axis=1)) and np.allclose(dist, brute.min(axis=1))
+
+
+def test_targets_of_a_rigid_mesh_on_a_joint_are_left_out_with_a_warning(tmp_path):
+    def hat(doc):
+        doc["nodes"].append({"name": "hat", "mesh": 0})  # the strip again, rigid, on the tip joint
+        doc["nodes"][3].setdefault("children", []).append(len(doc["nodes"]) - 1)
+    c = load_character(_rewrite(make_gltf(tmp_path, morph=True), hat), scale=1.0)
+    assert any("rigid mesh" in w and "2 morph targets left out" in w for w in c.warnings), c.warnings

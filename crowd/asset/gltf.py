@@ -1306,6 +1306,9 @@ def _rigid_parts(r: _Reader, mesh_index: int, materials: Materials, warn: list[s
         r.count_primitive(label)
         if _mode(r, prim, label) != 4 or _attr(r, prim, "POSITION", label) is None:
             continue
+        targets = r.list(prim, "targets", label)
+        if targets:  # a rigid mesh is drawn as it is at rest: its shapes cannot be given weights
+            warn.append(f"{label}: a rigid mesh (on a joint, or a prop); its {len(targets)} morph targets left out")
         pos = _positions(r, prim, label)
         idx = _indices(r, prim, pos.shape[0], label, warn)
         if not idx.size:
