@@ -523,7 +523,7 @@ def _merged(parts: list[SkinnedMesh], like: SkinnedMesh) -> SkinnedMesh:
 
 # ------------------------------------------------------------------------------------------------
 # Morph targets (issue 23): each a displacement field in bind space, applied to every piece and LOD
-# alike, so a piece's LODs share its shapes by construction (the shadow proxy has none). The clips key
+# alike (the shadow proxy too), so a piece's LODs share its shapes by construction. The clips key
 # "snarl" (below); the others are a body variation a scene gives each zombie (crowd.anim.morph).
 
 MORPH_TARGETS = ("snarl", "belly_swell", "chest_sunken", "gaunt")
@@ -601,7 +601,7 @@ def build_meshes(palette: Palette = ZOMBIE_PALETTE) -> list[SkinnedMesh]:
     proxy = _build_shadow_proxy(palette)
     proxy.lod = len(LOD_DIVISORS)
     proxy.name = f"{proxy.name}_lod{proxy.lod}"
-    return meshes + [proxy]
+    return meshes + [with_targets(proxy)]  # (its shadow swells with the belly too)
 
 
 # ------------------------------------------------------------------------------------------------
