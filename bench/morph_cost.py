@@ -100,7 +100,7 @@ def bench_morph(args) -> int:
                     for frame in range(args.frames + 1):
                         proc.upload(layers)
                         p_ms = gpu_ms(proc.run)
-                        view = renderer.prepare(camera, inst, proc.row_offset(0), processor=proc)
+                        view = renderer.prepare(camera, inst, proc.row_offset(0), palette=proc.layout)
                         fb.use()
                         fb.clear(0.1, 0.1, 0.1, 1.0, depth=1.0)
                         d_ms = gpu_ms(lambda: renderer.color_pass(fb, view, proc))

@@ -763,7 +763,7 @@ class CrowdPipeline(GLStage):
             half, centre = self.ai.half_extent, self.ai.origin
             top = 0.0 if self.town is None else self.town.height  # (the town's roofs cast shadows into the streets)
             self.renderer.crowd_box = (np.array([centre[0] - half, 0.0, centre[1] - half]), np.array([centre[0] + half, top, centre[1] + half]))
-            view = self.renderer.prepare(self.camera, instances, row_offset, cull_now=False, processor=self.processor)
+            view = self.renderer.prepare(self.camera, instances, row_offset, cull_now=False, palette=self.processor.layout)
             if self.renderer.gpu is not None and rows:
                 with t.gpu("cull"):
                     self.renderer.cull()

@@ -26,7 +26,6 @@ void main() {
     }
     memoryBarrierShared();
     barrier();
-    if (emits > 0) r.fields.w = morph_flag(r);  // (the lists' readers want no more of it: the draws read this)
     for (int e = 0; e < emits; ++e) {
         int d = draws[e];
         if (d >= 0) lists[u_record_base + list_start[d] + s_base[d] + slots[e]] = r;

@@ -46,24 +46,6 @@ uniform mat4 u_hiz_view_proj;
 uniform vec3 u_hiz_eye_delta;  // this frame's eye minus the pyramid's: positions relative to the pyramid's eye
 uniform ivec2 u_hiz_size;      // level 0, in texels
 uniform int u_hiz_levels;
-// Morph targets (crowd.draw.morph): in the records the lists receive, fields.w becomes 1 where the agent's
-// character has morph pairs before its joint 0 and its list of them is not empty (else 0), so the skinned
-// draw skips every morph load for an agent moving none. u_morph_characters: bit c for such a character;
-// u_morph_read 0: the palette is not at hand (every agent of those characters gets 1).
-uniform uint u_morph_characters;
-uniform int u_morph_read;
-uniform sampler2DArray u_palette0;
-uniform int u_palette_rows;
-
-uint morph_flag(Record r) {
-    uint character = r.fields.w >> 28;
-    if (((u_morph_characters >> character) & 1u) == 0u) return 0u;
-    if (u_morph_read == 0) return 1u;
-    int y = int(r.fields.x >> 12);
-    int layer = y / u_palette_rows;
-    ivec3 slot = ivec3(int(r.fields.x & 0xFFFu) - 1, y - layer * u_palette_rows, layer);
-    return texelFetch(u_palette0, slot, 0).y != 0.0 ? 1u : 0u;
-}
 
 const int MAX_DRAWS = 256;  // draws the shared counters hold (CrowdRenderer checks)
 const int MAX_EMITS = 16;   // draws one agent can be in: its common pieces and one piece per group

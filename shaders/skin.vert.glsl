@@ -43,11 +43,7 @@ in uvec4 in_packed;    // x: normal, snorm10 x3 | y: joints, 4 x u8 (by descendi
                        // z: weights 1-3 as unorm10 of 2w (weight 0 = 1 - the rest) | w: colour, RGBA8
 
 in vec4 i_position_scale;  // agent origin relative to the camera (float64 on the CPU, then float32), uniform scale
-#ifdef MORPH
-in uvec4 i_packed;         // as below, and w: 1 where the agent moves a morph target (crowd/draw/render.py, MORPH_INSTANCE_FORMAT)
-#else
 in uvec3 i_packed;         // x: palette texel code of joint 0 (palette.glsl) | y: tint, RGBA8 | z: cos, sin of the heading, snorm16 x2
-#endif
 
 uniform mat4 u_view_proj;  // camera-relative: the camera sits at the origin
 #include "palette.glsl"
@@ -106,7 +102,6 @@ void add_target(int block, vec2 pair, inout vec3 position, inout vec3 normal) {
 // buffers its load is nearly free beside the skinning's texture fetches, the pairs' fetch is not
 // (docs/BENCHMARKS.md, "Morph targets").
 void morph(ivec3 joint0, inout vec3 position, inout vec3 normal) {
-    if (i_packed.w == 0u) return;  // the agent moves no target: no load at all
     int block = morph_block(u_morph_vertex_base + gl_VertexID);
     if (block < 0) return;
     ivec3 slot = joint0 - ivec3(1, 0, 0);

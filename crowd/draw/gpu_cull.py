@@ -41,7 +41,6 @@ COMMAND_DTYPE = np.dtype([("count", "<u4"), ("instances", "<u4"), ("first_index"
 MAX_GROUPS = 7  # variation groups: 4 bits each in packed.w, below the character's 4 bits
 MAX_CAST = 16  # characters: crowd.frame.MAX_CAST
 CHARACTER_SHIFT = 28  # where packed.w keeps the agent's character
-PALETTE_UNIT = 8  # the texture unit the cull reads the palette's morph pairs from (crowd.draw.morph)
 MAX_CHOICES = 16
 MAX_LOD_STEPS = 4
 MAX_DRAWS = 256  # (piece, LOD) draws: the cull's shared counters (cull.comp.glsl)
@@ -247,13 +246,6 @@ class GpuCull(GLStage):
             if self.shadow_ring is not None:
                 self.shadow_ring.zero()
 
-    def set_morphs(self, characters, palette=None) -> None:
-        """Which characters' agents carry morph pairs before their joint 0 (a bool each), and the palette
-        (plane 0, its rows a layer) they are read from: each list record's fields.w says whether its agent
-        moves any target (1 for every agent of those characters where `palette` is None)."""
-        self.morph_mask = sum(1 << k for k, on in enumerate(characters) if on)
-        self.morph_palette = palette
-
     def run(self, planes: np.ndarray, margin: float, lod_start, culling: bool, occlusion=None) -> None:
         """Cull the uploaded agents into the colour pass's lists and commands (one dispatch), each against
         its character's bound, at most its character's LODs; `occlusion`: (the previous frame's
@@ -310,13 +302,6 @@ class GpuCull(GLStage):
         p["u_cascade"] = cascade
         p["u_list_base"] = cascade * self.draw_count
         p["u_record_base"] = cascade * self.records
-        mask, palette = getattr(self, "morph_mask", 0), getattr(self, "morph_palette", None)
-        p["u_morph_characters"] = mask
-        p["u_morph_read"] = int(mask != 0 and palette is not None)
-        if mask and palette is not None:
-            palette[0].use(PALETTE_UNIT)
-            p["u_palette0"] = PALETTE_UNIT
-            p["u_palette_rows"] = palette[1]
         self.agents_buffer.bind_to_storage_buffer(0)
         lists.bind_to_storage_buffer(1)
         commands.bind_to_storage_buffer(2)

@@ -64,10 +64,6 @@ WEIGHT_STEP = 1.0 / 2046.0  # a stored weight is within half of this of the floa
 # (4 bits a group, which only the GPU cull reads: the record is the GPU cull's agent record too).
 INSTANCE_DTYPE = RECORD_DTYPE
 INSTANCE_FORMAT = ("4f 3u 4x/i", "i_position_scale", "i_packed")
-# A piece drawn with morph targets reads the record's fourth word too: 1 where its agent moves a target
-# (the GPU cull reads the agent's pairs and writes it; the CPU path, which cannot, writes 1 for every
-# agent of a character whose targets move), so an agent moving none costs no morph load at all.
-MORPH_INSTANCE_FORMAT = ("4f 4u/i", "i_position_scale", "i_packed")
 CULL_PATHS = ("cpu", "gpu")
 DEFAULT_LOD_DISTANCES = DEFAULTS["lod_distances"]  # metres: LOD0 closer than the first, LOD1 to the second, LOD2 beyond
 
@@ -473,7 +469,7 @@ class CrowdRenderer(GLStage):
             prog = self._program(kind, skinned, "", morph)
             instances = self.gpu.shadow_lists if kind == "depth" else self.gpu.lists
             vbo, ibo = self._merged_buffers
-            content = [(vbo, *_read_by(prog, _LAYOUTS[""][1])), (instances, *_read_by(prog, MORPH_INSTANCE_FORMAT if morph else INSTANCE_FORMAT))]
+            content = [(vbo, *_read_by(prog, _LAYOUTS[""][1])), (instances, *_read_by(prog, INSTANCE_FORMAT))]
             self._merged_vaos[key] = self._own("programs", self.ctx.vertex_array(prog, content, index_buffer=ibo, index_element_size=4))
         return self._merged_vaos[key]
 
@@ -498,8 +494,7 @@ class CrowdRenderer(GLStage):
                 instances = self.gpu.shadow_lists if self.gpu is not None else draw.shadow_instances[cascade]
             else:
                 instances = draw.instances
-            layout = MORPH_INSTANCE_FORMAT if draw.morph and skinned is True else INSTANCE_FORMAT
-            content = [(draw.vbo, *_read_by(prog, _LAYOUTS[draw.layout][1])), (instances, *_read_by(prog, layout))]
+            content = [(draw.vbo, *_read_by(prog, _LAYOUTS[draw.layout][1])), (instances, *_read_by(prog, INSTANCE_FORMAT))]
             draw.vaos[key] = self._own("programs", self.ctx.vertex_array(prog, content, index_buffer=draw.ibo, index_element_size=4))
         return draw.vaos[key]
 
@@ -554,17 +549,14 @@ class CrowdRenderer(GLStage):
     def clear_color() -> tuple[float, float, float]:
         return tuple(c ** (1 / 2.2) for c in FOG_COLOR)
 
-    def prepare(self, camera: Camera, instances: Instances, row_offset=0, cull_now: bool = True, palette: PaletteLayout | None = None,
-                processor=None) -> "FrameView":
+    def prepare(self, camera: Camera, instances: Instances, row_offset=0, cull_now: bool = True, palette: PaletteLayout | None = None) -> "FrameView":
         """Cull, pick LODs, sort agents into draws and upload their records (the CPU path), or upload
         every agent's record and dispatch the GPU cull that does the rest (the GPU path). Returns what
         every later pass of this frame receives (the view and light matrices, and the visible set where
         the CPU knows it: None on the GPU path).
         `row_offset` (an int, or one per agent) is the first palette row of the ring slot each agent's
         palette is read from (see AnimationProcessor.row_offset); `palette` the processor's layout (None:
-        the one the processor makes for these characters and counts); `processor` (the one that wrote the
-        palette) lets the GPU cull read which agents move morph targets (without it, every agent of a
-        character whose targets move is drawn with their loads). With `cull_now` False the GPU path
+        the one the processor makes for these characters and counts). With `cull_now` False the GPU path
         uploads the records and leaves the dispatch to ``cull()``, so a caller can time the GPU's part alone."""
         camera.validate()
         instances.validate(self.groups)
@@ -574,10 +566,7 @@ class CrowdRenderer(GLStage):
         matrix = view_proj(camera)
         shadow = self.light_cascades(camera, instances) if self.shadows else None
         eye = np.asarray(camera.eye, np.float64)
-        palette = palette or (processor.layout if processor is not None else PaletteLayout.make([c.skeleton.joint_count for c in self.cast], counts))
-        if self.gpu is not None:
-            readable = processor is not None and any(self.morphs) and processor.planes  # (no palette: no agents)
-            self.gpu.set_morphs(self.morphs, (processor.planes[0], processor.layer_rows) if readable else None)
+        palette = palette or PaletteLayout.make([c.skeleton.joint_count for c in self.cast], counts)
         self.palette = palette  # the layout this frame's records address (tests and benchmarks read lists back by it)
         if tuple(p.slots > 0 for p in palette.parts) != self.morphs:
             raise RenderError(f"the palette holds morph pairs for characters {[p.slots > 0 for p in palette.parts]}, the draw reads them for "
@@ -696,9 +685,6 @@ class CrowdRenderer(GLStage):
         tint = instances.tint
         fields[:, 1] = tint.view("<u4")[:, 0] if tint.dtype == np.uint8 and tint.flags.c_contiguous else _rgba8(tint)
         write_heading(instances.yaw, fields[:, 2])
-        if self.gpu is None and any(self.morphs):  # the CPU path: the word the morph draws read (MORPH_INSTANCE_FORMAT)
-            fields[:, 3] = 1 if self._character_bits is None else np.asarray(self.morphs, np.uint32)[self._character_bits >> CHARACTER_SHIFT]
-            return records
         if self._character_bits is None:
             fields[:, 3] = 0
         else:
