@@ -11,8 +11,9 @@ uniform sampler2D u_morph_variation;  // (MORPH_COUNT, 1): lo, hi of the agents'
 uniform uint u_morph_seed;
 uniform uint u_character;             // the character's place in the cast (its agents' variation differs)
 // Weights held from the panel: a target's weight where it is >= 0 (-1: not held), for agent number
-// u_morph_held_agent among the character's, or every agent (-1), or none (-2).
-uniform float u_morph_held[MORPH_COUNT];
+// u_morph_held_agent among the character's, or every agent (-1), or none (-2). A texture, not a uniform
+// array: a character may have up to 1,024 targets, past what a compute shader's uniforms must hold.
+uniform sampler2D u_morph_held;  // (MORPH_COUNT, 1)
 uniform int u_morph_held_agent;
 
 // PCG's output permutation (crowd.anim.morph.pcg_hash).
@@ -76,7 +77,10 @@ void morph_pairs(int agent, int local, out vec2 pairs[MORPH_PAIRS]) {
             w = texelFetch(u_morph_tracks, ivec2(m, 0), 0).x;
         }
         w = clamp(w + morph_variation(local, m), -MAX_MORPH_WEIGHT, MAX_MORPH_WEIGHT);
-        if (held && u_morph_held[m] >= 0.0) w = u_morph_held[m];
+        if (held) {
+            float h = texelFetch(u_morph_held, ivec2(m, 0), 0).x;
+            if (h >= 0.0) w = h;
+        }
         if (abs(w) < ACTIVE_WEIGHT) continue;
         // Into the list kept sorted by size: the pair goes down the list, swapping places with each
         // smaller one (an earlier target stays ahead of an equal one). A loop of constant bounds, so

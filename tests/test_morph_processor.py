@@ -23,9 +23,10 @@ TARGETS = 9  # more than the MORPH_PAIRS an agent draws
 AGENTS = 300
 
 
-def _character(tmp_path):
-    """The test strip with TARGETS targets: clip "wave" drives targets 1.. (CUBICSPLINE keys, some
+def _character(tmp_path, targets=None):
+    """The test strip with TARGETS targets (or `targets`): clip "wave" drives targets 1.. (CUBICSPLINE keys, some
     negative), clip "still" (the same joints) none; target 0 has a default weight."""
+    TARGETS = targets or globals()["TARGETS"]  # noqa: N806
     c = load_character(make_gltf(tmp_path, morph=True), scale=1.0)
     rng = np.random.default_rng(3)
     mesh = dataclasses.replace(c.meshes[0], morph_targets=np.arange(TARGETS),
@@ -207,3 +208,24 @@ def test_the_bake_error_is_found_by_search_and_reported(morph_character):
     fine = _baked(morph_character)
     assert fine.morphs.error == track_error(fine.morphs, morph_character, clips, fine)
     assert fine.morphs.error[0] < coarse.morphs.error[0]
+
+
+@pytest.mark.parametrize("path", ["compute", "fragment"])
+def test_a_character_of_a_thousand_targets_runs_on_both_paths(gl_context, tmp_path, path):
+    """MAX_MORPHS targets: nothing per target lives in uniforms (a compute shader need hold only 512
+    components), so the processor compiles and writes the same pairs as its float64 model."""
+    from crowd.asset.model import MAX_MORPHS
+
+    if path == "compute" and not has_compute(gl_context):
+        pytest.skip("no GL 4.3")
+    character = _character(tmp_path, MAX_MORPHS)
+    baked = _baked(character, {"t0": (0.2, 0.6), "t999": (0.0, 1.0)})
+    layers = _layers(40, len(baked.clips))
+    held = np.full(MAX_MORPHS, -1.0)
+    held[1000] = 0.5
+    with AnimationProcessor(gl_context, baked, 4, path=path) as proc:
+        proc.resize(40)
+        proc.hold_morphs(0, held, 3)
+        proc.process(layers)
+        pairs = proc.read_morph_pairs()
+    _compare_pairs(pairs, active_pairs(reference_weights(baked.morphs, baked, layers, held=held, held_agent=3)))

@@ -396,6 +396,7 @@ class _Part:
         # NOT_HELD, or an agent's number among the character's).
         self.held = None if bake.morphs is None else np.full(bake.morphs.count, -1.0, np.float32)
         self.held_agent = NOT_HELD
+        self.held_written = None  # the held weights the texture holds
         self.program = None
         self.textures: dict = {}
         self.lock_state = self.lock_motion = None
@@ -515,6 +516,8 @@ class AnimationProcessor(GLStage):
             t["u_morph_tracks"] = self._texture("morphs", (morphs.count, morphs.tracks.shape[0]), 1, morphs.tracks, "f4")
             t["u_morph_clips"] = self._texture("morphs", (len(bake.clips), 1), 2, morphs.clip_rows.astype(np.int32), "i4")
             t["u_morph_variation"] = self._texture("morphs", (morphs.count, 1), 2, morphs.variation, "f4")
+            t["u_morph_held"] = self._texture("morphs", (morphs.count, 1), 1, part.held, "f4")
+            part.held_written = part.held
             defines.update(MORPHS=1, MORPH_COUNT=morphs.count, MORPH_PAIRS=MORPH_PAIRS, ACTIVE_WEIGHT=f"{ACTIVE_WEIGHT!r}",
                            MAX_MORPH_WEIGHT=f"{MAX_MORPH_WEIGHT!r}")
         if bake.scale is not None:
@@ -888,11 +891,12 @@ class AnimationProcessor(GLStage):
             for unit, name in enumerate(("u_anim", "u_parents", "u_clips")):
                 part.textures[name].use(unit)
             for unit, name in ((4, "u_anim_scale"), (5, "u_masks"), (6, "u_keys"), (7, "u_tracks"), (8, "u_morph_tracks"), (9, "u_morph_clips"),
-                               (10, "u_morph_variation")):
+                               (10, "u_morph_variation"), (11, "u_morph_held")):
                 if name in part.textures:
                     part.textures[name].use(unit)
             for name, unit in (("u_anim", 0), ("u_parents", 1), ("u_clips", 2), ("u_layers", 3), ("u_anim_scale", 4), ("u_masks", 5),
-                               ("u_keys", 6), ("u_tracks", 7), ("u_morph_tracks", 8), ("u_morph_clips", 9), ("u_morph_variation", 10)):
+                               ("u_keys", 6), ("u_tracks", 7), ("u_morph_tracks", 8), ("u_morph_clips", 9), ("u_morph_variation", 10),
+                               ("u_morph_held", 11)):
                 self._set(prog, name, unit)
             for name, value in part.uniforms.items():
                 self._set(prog, name, value)
@@ -904,7 +908,9 @@ class AnimationProcessor(GLStage):
             self._set(prog, "u_first_row", block.first_row)
             self._set(prog, "u_agents_per_row", block.agents_per_row)
             if part.held is not None:
-                prog["u_morph_held"].write(part.held.tobytes())
+                if part.held_written is not part.held:  # (hold_morphs makes a new array: written once a change)
+                    part.textures["u_morph_held"].write(part.held.tobytes())
+                    part.held_written = part.held
                 self._set(prog, "u_morph_held_agent", part.held_agent)
             if part.legs is not None:
                 for name, data in part.leg_bytes.items():
@@ -955,7 +961,9 @@ class AnimationProcessor(GLStage):
         w = np.asarray(weights, np.float32)
         if w.shape != part.held.shape or not np.all(np.isfinite(w)) or np.any(w > 1.0):
             raise ProcessorError(f"held morph weights must be {len(part.held)} values of at most 1 (-1: not held), got {np.asarray(weights).tolist()}")
-        part.held, part.held_agent = np.where(w >= 0.0, w, -1.0).astype(np.float32), int(agent)
+        held = np.where(w >= 0.0, w, -1.0).astype(np.float32)
+        if int(agent) != part.held_agent or not np.array_equal(held, part.held):  # (the texture is written when they change)
+            part.held, part.held_agent = held, int(agent)
 
     def set_clip_loop(self, clip: int, loop: bool, character: int = 0) -> None:
         """Loop a clip of a character's bake (its phase wraps) or play it once (its phase clamps): that
