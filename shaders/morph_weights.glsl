@@ -37,14 +37,7 @@ void morph_pairs(int agent, int local, out vec2 pairs[MORPH_PAIRS]) {
     int row0[LAYERS];
     int row1[LAYERS];
     float lerp_u[LAYERS];
-    int base_x = (agent % u_layer_agents_per_row) * LAYERS;
-    int y = agent / u_layer_agents_per_row;
-    float layer_sum = 0.0;
-    for (int l = 0; l < LAYERS; ++l) {
-        layer[l] = texelFetch(u_layers, ivec2(base_x + l, y), 0);
-        layer_sum += max(layer[l].z, 0.0);
-    }
-    float unit = power_of_two_below(layer_sum);
+    float unit = power_of_two_below(agent_layers(agent, layer));
     float total = 0.0;
     for (int l = 0; l < LAYERS; ++l) {
         weight[l] = max(layer[l].z, 0.0) * unit;  // no joint mask: a target is no joint

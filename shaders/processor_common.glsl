@@ -321,12 +321,8 @@ float power_of_two_below(float s) {
 // with a weight above 0 at this joint (the heaviest layer made the blend jump where the heaviest
 // changed); weighted sum, normalised. A joint whose masked weights add up to less than REST_THRESHOLD
 // times S, the sum of every layer's max(weight, 0), takes the rest pose.
-Affine blended_local(int agent, int joint) {
-    vec4 real[LAYERS];
-    vec4 second[LAYERS];  // dual parts (dq_lerp) or translations (qt_*)
-    float scale[LAYERS];
-    float weight[LAYERS];
-    vec4 layer[LAYERS];
+// An agent's layers (clip, phase, weight, mask) and S, the sum of their max(weight, 0).
+float agent_layers(int agent, out vec4 layer[LAYERS]) {
     int base_x = (agent % u_layer_agents_per_row) * LAYERS;
     int y = agent / u_layer_agents_per_row;
     float layer_sum = 0.0;
@@ -334,6 +330,16 @@ Affine blended_local(int agent, int joint) {
         layer[l] = texelFetch(u_layers, ivec2(base_x + l, y), 0);
         layer_sum += max(layer[l].z, 0.0);
     }
+    return layer_sum;
+}
+
+Affine blended_local(int agent, int joint) {
+    vec4 real[LAYERS];
+    vec4 second[LAYERS];  // dual parts (dq_lerp) or translations (qt_*)
+    float scale[LAYERS];
+    float weight[LAYERS];
+    vec4 layer[LAYERS];
+    float layer_sum = agent_layers(agent, layer);
     float unit = power_of_two_below(layer_sum);
     layer_sum *= unit;
     float total = 0.0;
