@@ -1016,6 +1016,19 @@ def _vertex_data(r: _Reader, prim: dict, key: str, label: str, v: int, types, co
     return data
 
 
+def _refuse_bad_values(r: _Reader, a: np.ndarray, what: str, item: str, limit: float | None = None,
+                       beyond: str = "lies beyond ±{limit:g}") -> None:
+    """Refuse, naming the first row (`item` i), a NaN or infinite value, or one beyond ±`limit` (then
+    `beyond` says how, given the value and the limit)."""
+    bad = ~np.isfinite(a)
+    if np.any(bad):
+        r.fail(f"{what}: {item} {_first(bad)} is NaN or infinite")
+    if limit is not None:
+        far = np.abs(a) > limit
+        if np.any(far):
+            r.fail(f"{what}: {item} {_first(far)} " + beyond.format(value=float(a[far][0]), limit=limit))
+
+
 def _positions(r: _Reader, prim: dict, label: str) -> np.ndarray:
     index = _attr(r, prim, "POSITION", label)
     acc = r.item("accessors", index)
@@ -1023,12 +1036,7 @@ def _positions(r: _Reader, prim: dict, label: str) -> np.ndarray:
         r.fail(f"accessor {index} ({label} POSITION) has no data (no bufferView: compressed by an extension?)")
     what = f"accessor {index} ({label} POSITION)"
     pos = r.accessor(index, f"{label} POSITION", ("VEC3",)).astype(np.float64)
-    bad = ~np.isfinite(pos)
-    if np.any(bad):
-        r.fail(f"{what}: vertex {_first(bad)} is NaN or infinite")
-    far = np.abs(pos) > MAX_COORDINATE
-    if np.any(far):
-        r.fail(f"{what}: vertex {_first(far)} lies beyond ±{MAX_COORDINATE:g}")
+    _refuse_bad_values(r, pos, what, "vertex", MAX_COORDINATE)
     return pos
 
 
@@ -1159,12 +1167,7 @@ def _target_deltas(r: _Reader, target, key: str, k: int, v: int, label: str) -> 
     d = r.accessor(index, f"{label} target {k} {key}", ("VEC3",), (5126, 5120, 5122)).astype(np.float64)
     if d.shape[0] != v:
         r.fail(f"{what} has {d.shape[0]} elements for {v} vertices")
-    bad = ~np.isfinite(d)
-    if np.any(bad):
-        r.fail(f"{what}: vertex {_first(bad)} is NaN or infinite")
-    far = np.abs(d) > MAX_COORDINATE
-    if np.any(far):
-        r.fail(f"{what}: vertex {_first(far)} moves beyond ±{MAX_COORDINATE:g}")
+    _refuse_bad_values(r, d, what, "vertex", MAX_COORDINATE, "moves beyond ±{limit:g}")
     return d
 
 
@@ -1538,12 +1541,7 @@ def _morph_channel(r: _Reader, anim: dict, ch: dict, node: int, morphs: _Morphs,
     want = (3 if interp == "CUBICSPLINE" else 1) * k * n
     if values.shape[0] != want:
         r.fail(f"{what}: {values.shape[0]} weights for {k} keys of {n} targets ({interp}: {want})")
-    bad = ~np.isfinite(values)
-    if np.any(bad):
-        r.fail(f"{what}: weight {_first(bad)} is NaN or infinite")
-    big = np.abs(values) > MAX_MORPH_WEIGHT
-    if np.any(big):
-        r.fail(f"{what}: weight {_first(big)} is {float(values[big][0]):.6g}, beyond ±{MAX_MORPH_WEIGHT:g}")
+    _refuse_bad_values(r, values, what, "weight", MAX_MORPH_WEIGHT, "is {value:.6g}, beyond ±{limit:g}")
     values = values.reshape((k, 3, n) if interp == "CUBICSPLINE" else (k, n))
     return MorphChannel(indices.copy(), interp, times, values)
 
@@ -1572,9 +1570,7 @@ def _new_morphs(channel: MorphChannel, kept: list[MorphChannel], where: str, war
 
 def _check_times(r: _Reader, times: np.ndarray, what: str) -> None:
     """glTF: key times are seconds, times[0] >= 0, strictly increasing."""
-    bad = ~np.isfinite(times)
-    if np.any(bad):
-        r.fail(f"{what}: key {_first(bad)} is NaN or infinite")
+    _refuse_bad_values(r, times, what, "key")
     if times[0] < 0.0:
         r.fail(f"{what}: key 0 is at {times[0]:.6g} s; glTF key times start at 0 or later")
     step = np.diff(times) <= 0.0
@@ -1585,9 +1581,7 @@ def _check_times(r: _Reader, times: np.ndarray, what: str) -> None:
 
 def _check_keys(r: _Reader, path: str, interp: str, times: np.ndarray, values: np.ndarray, what: str) -> None:
     """Key values (K, C), or (K, 3, C) for CUBICSPLINE, that the stages can draw."""
-    bad = ~np.isfinite(values)
-    if np.any(bad):
-        r.fail(f"{what}: key {_first(bad)} is NaN or infinite")
+    _refuse_bad_values(r, values, what, "key")
     keys = values[:, 1] if interp == "CUBICSPLINE" else values
     if path == "rotation":
         zero = np.linalg.norm(keys, axis=-1) < ZERO_QUATERNION
@@ -1607,10 +1601,7 @@ def _check_keys(r: _Reader, path: str, interp: str, times: np.ndarray, values: n
                 k = int(np.argmax(low))
                 r.fail(f"{what}: the spline between keys {k} and {k + 1} passes through the zero quaternion")
         return
-    limit = MAX_COORDINATE if path == "translation" else MAX_SCALE
-    far = np.abs(values) > limit
-    if np.any(far):
-        r.fail(f"{what}: key {_first(far)} lies beyond ±{limit:g}")
+    _refuse_bad_values(r, values, what, "key", MAX_COORDINATE if path == "translation" else MAX_SCALE)
 
 
 def _check_scale_chains(r: _Reader, skeleton: Skeleton, clips: list[Clip]) -> None:
