@@ -5,16 +5,15 @@ quantisation of the deltas, the weights and the heading."""
 
 from __future__ import annotations
 
-import moderngl
 import numpy as np
 import pytest
 
 from crowd.anim.morph import active_pairs, reference_weights
 from crowd.anim.processor import AnimationProcessor, reference_palette
 from crowd.draw.morph import NORMAL_RANGE, SNORM, pack_deltas, position_step, unpack_deltas
-from crowd.draw.render import INSTANCE_FORMAT, VERTEX_DTYPE, VERTEX_FORMAT, WEIGHT_STEP, Camera, CrowdRenderer, Instances, _read_by
-from crowd.gl import load_shader
+from crowd.draw.render import WEIGHT_STEP, Camera, CrowdRenderer, Instances
 from test_morph_processor import _baked, _character, _layers
+from test_render import capture
 
 AGENTS = 40
 
@@ -31,25 +30,11 @@ def test_packed_deltas_decode_within_half_a_step():
 
 def _capture(ctx, renderer, draw, proc):
     """v_world and v_normal of every vertex of every instance of one draw, through the MORPH program."""
-    defines = {"MORPH": 1, **({"MORPH_BUFFERS": 1} if renderer.morph_buffers else {})}
-    prog = ctx.program(vertex_shader=load_shader("skin.vert.glsl", defines), varyings=["v_world", "v_normal"])
-    for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
-        prog[name] = unit
-    proc.bind_palette(0, prog)
-    renderer.morph.bind(prog)
-    prog["u_morph_vertex_base"] = draw.morph_base
-    prog["u_view_proj"].write(np.eye(4, dtype=np.float32).tobytes())
-    vao = ctx.vertex_array(prog, [(draw.vbo, *_read_by(prog, VERTEX_FORMAT)), (draw.instances, *_read_by(prog, INSTANCE_FORMAT))])
-    vertices = draw.vbo.size // VERTEX_DTYPE.itemsize
-    out = ctx.buffer(reserve=vertices * draw.count * 6 * 4)
-    target = ctx.simple_framebuffer((1, 1))
-    target.use()
-    vao.transform(out, moderngl.POINTS, vertices=vertices, instances=draw.count)
-    target.release()
-    data = np.frombuffer(out.read(), np.float32).reshape(draw.count, vertices, 2, 3).astype(np.float64)
-    for obj in (out, vao, prog):
-        obj.release()
-    return data[:, :, 0], data[:, :, 1]
+    def morphs(prog):
+        renderer.morph.bind(prog)
+        prog["u_morph_vertex_base"] = draw.morph_base
+
+    return capture(ctx, draw, proc, {"MORPH": 1, **({"MORPH_BUFFERS": 1} if renderer.morph_buffers else {})}, setup=morphs)
 
 
 @pytest.mark.parametrize("path, buffers", [("compute", True), ("compute", False), ("fragment", False)])

@@ -42,14 +42,17 @@ def test_packed_weights_decode_to_the_float_weights(zombie):
         assert np.all(decoded >= 0.0)
 
 
-def _capture(ctx, draw, proc):
-    """v_world and v_normal of every vertex of every instance of one draw (instance-major)."""
-    prog = ctx.program(vertex_shader=load_shader("skin.vert.glsl"), varyings=["v_world", "v_normal"])
+def capture(ctx, draw, proc, defines=None, instance_format=INSTANCE_FORMAT, setup=None):
+    """v_world and v_normal of every vertex of every instance of one draw (instance-major), through
+    skin.vert.glsl with `defines`; `setup(program)` binds what those need."""
+    prog = ctx.program(vertex_shader=load_shader("skin.vert.glsl", defines), varyings=["v_world", "v_normal"])
     for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
         prog[name] = unit
     proc.bind_palette(0, prog)
+    if setup is not None:
+        setup(prog)
     prog["u_view_proj"].write(np.eye(4, dtype=np.float32).tobytes())
-    vao = ctx.vertex_array(prog, [(draw.vbo, *_read_by(prog, VERTEX_FORMAT)), (draw.instances, *_read_by(prog, INSTANCE_FORMAT))])
+    vao = ctx.vertex_array(prog, [(draw.vbo, *_read_by(prog, VERTEX_FORMAT)), (draw.instances, *_read_by(prog, instance_format))])
     vertices = draw.vbo.size // VERTEX_DTYPE.itemsize
     out = ctx.buffer(reserve=vertices * draw.count * 6 * 4)
     # A standalone context has no default framebuffer, and Mesa refuses even a rasteriser-discarded draw
@@ -93,7 +96,7 @@ def test_gpu_skinned_vertices_match_float64_skinning(gl_context, zombie):
             if not draw.count:
                 continue
             mesh = meshes[(draw.piece, draw.lod)]
-            world, normal = _capture(ctx, draw, proc)
+            world, normal = capture(ctx, draw, proc)
             texel = np.frombuffer(draw.instances.read(), np.uint32).reshape(draw.count, 8)[:, 4]
             agents = proc.layout.agents_at(texel & 0xFFF, texel >> 12)
             w = mesh.weights.astype(np.float64) / mesh.weights.sum(axis=1, keepdims=True)
