@@ -47,6 +47,7 @@ in uvec3 i_packed;         // x: palette texel code of joint 0 (palette.glsl) | 
 
 uniform mat4 u_view_proj;  // camera-relative: the camera sits at the origin
 #include "palette.glsl"
+#include "vertex_packing.glsl"
 
 #ifdef MORPH
 // The vertex table (per vertex: the first entry of its block of deltas, -1: no target moves it) and the
@@ -129,9 +130,6 @@ out vec3 v_normal;
 out vec4 v_color;
 #endif
 
-vec4 unpack_rgba8(uint v) {
-    return vec4((uvec4(v) >> uvec4(0u, 8u, 16u, 24u)) & 0xFFu) / 255.0;
-}
 
 void main() {
 #if defined(TEXTURED) && !defined(WIDE_UV)
@@ -139,8 +137,7 @@ void main() {
 #else
     vec3 position = in_position;
 #endif
-    // Sign extension of each 10-bit field: shift it to the top, then arithmetic shift back down.
-    vec3 bind_normal = vec3(ivec3(uvec3(in_packed.x) << uvec3(22u, 12u, 2u)) >> 22) / 511.0;
+    vec3 bind_normal = unpack_normal(in_packed.x);
 #ifdef UNSKINNED
     vec3 skinned = position;
     vec3 normal = bind_normal;
@@ -171,16 +168,12 @@ void main() {
     vec3 skinned = vec3(dot(r0, p), dot(r1, p), dot(r2, p));
     vec3 normal = vec3(dot(r0.xyz, bind_normal), dot(r1.xyz, bind_normal), dot(r2.xyz, bind_normal));
 #endif
-    // Heading about +Y: the character's +Z (its front) turns toward (sin, 0, cos).
-    vec2 cs = vec2(ivec2(uvec2(i_packed.z) << uvec2(16u, 0u)) >> 16) / 32767.0;
-    float c = cs.x;
-    float s = cs.y;
-    vec3 local = vec3(c * skinned.x + s * skinned.z, skinned.y, -s * skinned.x + c * skinned.z);
-    vec3 world = i_position_scale.xyz + i_position_scale.w * local;
+    vec2 heading = heading_cos_sin(i_packed.z);
+    vec3 world = i_position_scale.xyz + i_position_scale.w * turn_about_y(heading, skinned);
     gl_Position = u_view_proj * vec4(world, 1.0);
 #ifndef DEPTH_ONLY
     v_world = world;
-    v_normal = vec3(c * normal.x + s * normal.z, normal.y, -s * normal.x + c * normal.z);
+    v_normal = turn_about_y(heading, normal);
     v_color = unpack_rgba8(in_packed.w) * unpack_rgba8(i_packed.y);
 #endif
 #if defined(TEXTURED) && defined(WIDE_UV) && !defined(DEPTH_ONLY)

@@ -19,21 +19,15 @@ out vec3 v_normal;
 out vec4 v_color;
 #endif
 
-vec4 unpack_rgba8(uint v) {
-    return vec4((uvec4(v) >> uvec4(0u, 8u, 16u, 24u)) & 0xFFu) / 255.0;
-}
+#include "vertex_packing.glsl"
 
 void main() {
-    vec2 cs = vec2(ivec2(uvec2(i_fields.x) << uvec2(16u, 0u)) >> 16) / 32767.0;
-    float c = cs.x;
-    float s = cs.y;
-    vec3 p = in_position;
-    vec3 world = i_position + vec3(c * p.x + s * p.z, p.y, -s * p.x + c * p.z);
+    vec2 heading = heading_cos_sin(i_fields.x);
+    vec3 world = i_position + turn_about_y(heading, in_position);
     gl_Position = u_view_proj * vec4(world, 1.0);
 #ifndef DEPTH_ONLY
-    vec3 n = vec3(ivec3(uvec3(in_packed.x) << uvec3(22u, 12u, 2u)) >> 22) / 511.0;
     v_world = world;
-    v_normal = vec3(c * n.x + s * n.z, n.y, -s * n.x + c * n.z);
+    v_normal = turn_about_y(heading, unpack_normal(in_packed.x));
     v_color = unpack_rgba8(in_packed.y) * unpack_rgba8(i_fields.y);
 #endif
 }

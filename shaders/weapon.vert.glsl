@@ -17,6 +17,7 @@ in vec4 i_position_scale;  // the agent's origin relative to the camera, uniform
 in uint i_heading;         // cos, sin of the agent's heading, snorm16 x2 (its instance record's)
 
 uniform mat4 u_view_proj;
+#include "vertex_packing.glsl"
 
 #ifndef DEPTH_ONLY
 out vec3 v_world;
@@ -28,17 +29,14 @@ void main() {
     vec4 p = vec4(in_position, 1.0);
     vec3 model = vec3(dot(i_row0, p), dot(i_row1, p), dot(i_row2, p));
     // Heading about +Y, then scale and position: skin.vert.glsl's expressions for the body.
-    vec2 cs = vec2(ivec2(uvec2(i_heading) << uvec2(16u, 0u)) >> 16) / 32767.0;
-    float c = cs.x;
-    float s = cs.y;
-    vec3 local = vec3(c * model.x + s * model.z, model.y, -s * model.x + c * model.z);
-    vec3 world = i_position_scale.xyz + i_position_scale.w * local;
+    vec2 heading = heading_cos_sin(i_heading);
+    vec3 world = i_position_scale.xyz + i_position_scale.w * turn_about_y(heading, model);
     gl_Position = u_view_proj * vec4(world, 1.0);
 #ifndef DEPTH_ONLY
-    vec3 n = vec3(ivec3(uvec3(in_packed.x) << uvec3(22u, 12u, 2u)) >> 22) / 511.0;
+    vec3 n = unpack_normal(in_packed.x);
     vec3 normal = vec3(dot(i_row0.xyz, n), dot(i_row1.xyz, n), dot(i_row2.xyz, n));
     v_world = world;
-    v_normal = vec3(c * normal.x + s * normal.z, normal.y, -s * normal.x + c * normal.z);
-    v_color = vec4((uvec4(in_packed.y) >> uvec4(0u, 8u, 16u, 24u)) & 0xFFu) / 255.0;
+    v_normal = turn_about_y(heading, normal);
+    v_color = unpack_rgba8(in_packed.y);
 #endif
 }
