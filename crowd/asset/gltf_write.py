@@ -41,18 +41,21 @@ class _Blob:
         self.data = bytearray()
         self._dedupe: dict[bytes, int] = {}
 
+    def view(self, raw: bytes, target=None) -> int:
+        """A bufferView of `raw`, 4-byte aligned in the binary chunk."""
+        while len(self.data) % 4:
+            self.data.append(0)
+        self.gltf.bufferViews.append(g.BufferView(buffer=0, byteOffset=len(self.data), byteLength=len(raw), target=target))
+        self.data += raw
+        return len(self.gltf.bufferViews) - 1
+
     def accessor(self, array: np.ndarray, component: int, kind: str, target=None, normalized=False, minmax=False, dedupe=False) -> int:
         raw = np.ascontiguousarray(array).tobytes()
         key = raw + kind.encode() + bytes([component % 256])
         if dedupe and key in self._dedupe:
             return self._dedupe[key]
-        while len(self.data) % 4:
-            self.data.append(0)
-        view = g.BufferView(buffer=0, byteOffset=len(self.data), byteLength=len(raw), target=target)
-        self.data += raw
-        self.gltf.bufferViews.append(view)
         count = array.shape[0]
-        acc = g.Accessor(bufferView=len(self.gltf.bufferViews) - 1, componentType=component, count=count, type=kind,
+        acc = g.Accessor(bufferView=self.view(raw, target), componentType=component, count=count, type=kind,
                          normalized=True if normalized else None)
         if minmax:
             flat = array.reshape(count, -1)
@@ -64,7 +67,6 @@ class _Blob:
             self._dedupe[key] = index
         return index
 
-
     def sparse_accessor(self, array: np.ndarray, kind: str) -> int:
         """A float accessor of `array` (count, C) written as its rows that are not zero, over zeros (no
         bufferView); all zeros needs no sparse part at all."""
@@ -74,12 +76,10 @@ class _Blob:
                          min=[float(x) for x in array.min(axis=0)], max=[float(x) for x in array.max(axis=0)])
         if moved.size:
             wide = count > 65535
-            indices = self.accessor(moved.astype(np.uint32 if wide else np.uint16), UINT if wide else USHORT, "SCALAR")
-            values = self.accessor(np.ascontiguousarray(array[moved], np.float32), FLOAT, kind)
-            acc.sparse = g.Sparse(count=int(moved.size), indices=g.AccessorSparseIndices(
-                bufferView=self.gltf.accessors[indices].bufferView, componentType=UINT if wide else USHORT),
-                values=g.AccessorSparseValues(bufferView=self.gltf.accessors[values].bufferView))
-            del self.gltf.accessors[values], self.gltf.accessors[indices]  # (their views stay: the sparse part's)
+            indices = self.view(moved.astype(np.uint32 if wide else np.uint16).tobytes())
+            values = self.view(np.ascontiguousarray(array[moved], np.float32).tobytes())
+            acc.sparse = g.Sparse(count=int(moved.size), indices=g.AccessorSparseIndices(bufferView=indices, componentType=UINT if wide else USHORT),
+                                  values=g.AccessorSparseValues(bufferView=values))
         self.gltf.accessors.append(acc)
         return len(self.gltf.accessors) - 1
 
@@ -169,12 +169,7 @@ def _textures(blob: _Blob, character: Character) -> None:
     images: dict[int, int] = {}
     for tex in character.textures:
         if id(tex.pixels) not in images:
-            data = _png(tex.pixels)
-            while len(blob.data) % 4:
-                blob.data.append(0)
-            gl.bufferViews.append(g.BufferView(buffer=0, byteOffset=len(blob.data), byteLength=len(data)))
-            blob.data += data
-            gl.images.append(g.Image(name=tex.name, mimeType="image/png", bufferView=len(gl.bufferViews) - 1))
+            gl.images.append(g.Image(name=tex.name, mimeType="image/png", bufferView=blob.view(_png(tex.pixels))))
             images[id(tex.pixels)] = len(gl.images) - 1
         gl.samplers.append(g.Sampler(magFilter=tex.mag_filter, minFilter=tex.min_filter, wrapS=tex.wrap[0], wrapT=tex.wrap[1]))
         gl.textures.append(g.Texture(source=images[id(tex.pixels)], sampler=len(gl.samplers) - 1))
