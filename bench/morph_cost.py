@@ -3,11 +3,15 @@
 The built-in zombie's crowd on the benchmarks' grid, every agent at LOD0 (no culling, no shadows: the
 draw is geometry-bound, as in ``crowd-bench scale``), drawn through the cull path the demo takes there,
 in configurations built side by side and measured in alternation, round after round:
-- ``off``: no morph bake: the processor writes no pairs, the draw has no morph code;
+- ``off``: no morph bake: the processor writes no pairs, the draw has no morph code; ``off again``, the
+  same built a second time, shows what separates two identical configurations in this run (the noise
+  floor "nothing measurable" is judged against);
 - ``k active`` (k = 0, 1, 2, 4): every agent moves exactly k targets (a morph bake whose tracks are all
   0 and whose variation gives the first k targets a weight of 1 each), so the draw runs the morph code
   and fetches k deltas for each vertex a target moves (from storage buffers on GL 4.3, and ``4 in tex``
-  from textures, as a GL 3.3 context draws them).
+  from textures, as a GL 3.3 context draws them); with 0 active the GPU cull lists every agent in the
+  plain twins (crowd.draw.gpu_cull), and ``0 active, unrouted`` keeps them in the morph draws (the
+  cull not given the processor), as the CPU cull path does.
 Reported: the median GPU ms of the processor and of the colour pass per configuration, and the colour
 pass's cost against ``off``, per active target, and the share of the LOD0 vertices the targets move.
 """
@@ -35,6 +39,18 @@ def _morph_bake(character, joints, active: int):
                      variation, 0)
 
 
+def _check_routing(name: str, active, renderer) -> None:
+    """That each configuration draws what it says: its agents all in the morph draws where they move
+    targets (or are not routed), all in the plain twins where they move none."""
+    renderer.refresh_counts(wait=True)
+    morph = sum(d.count for d in renderer.draws if d.morph)
+    twins = sum(d.count for d in renderer.draws if d.twin_of is not None)
+    want_twins = active == 0 and not name.endswith("unrouted")
+    if active is not None and (bool(twins) != want_twins or bool(morph) == want_twins):
+        raise SystemExit(f"{name}: {morph} instances in the morph draws and {twins} in their plain twins; the configuration wants "
+                         f"{'the twins' if want_twins else 'the morph draws'}")
+
+
 def bench_morph(args) -> int:
     import moderngl
 
@@ -60,7 +76,7 @@ def bench_morph(args) -> int:
     compute = has_compute(ctx)
     spec = StageSpec(layers=4, processor_path="compute" if compute else "fragment", lod_distances=(1e9, 1e9, 1e9), shadows=False,
                      culling=False, cull="auto", foot_lock=False)
-    configs = {"off": None, **{f"{k} active": k for k in ACTIVE}}
+    configs = {"off": None, "off again": None, **{f"{k} active": k for k in ACTIVE}, "0 active, unrouted": 0}
     if compute:  # the deltas in textures, as a GL 3.3 context draws them, beside the storage buffers GL 4.3 uses
         configs["4 in tex"] = ACTIVE[-1]
     rng = np.random.default_rng(1)
@@ -100,10 +116,13 @@ def bench_morph(args) -> int:
                     for frame in range(args.frames + 1):
                         proc.upload(layers)
                         p_ms = gpu_ms(proc.run)
-                        view = renderer.prepare(camera, inst, proc.row_offset(0), palette=proc.layout)
+                        view = renderer.prepare(camera, inst, proc.row_offset(0), palette=proc.layout,
+                                                processor=None if name.endswith("unrouted") else proc)
                         fb.use()
                         fb.clear(0.1, 0.1, 0.1, 1.0, depth=1.0)
                         d_ms = gpu_ms(lambda: renderer.color_pass(fb, view, proc))
+                        if rnd == 0 and frame == 0:
+                            _check_routing(name, configs[name], renderer)
                         if frame:  # the first of each turn binds and compiles
                             samples[name]["proc"].append(p_ms)
                             samples[name]["draw"].append(d_ms)
@@ -113,7 +132,7 @@ def bench_morph(args) -> int:
             stages.release()
     rows = []
     base = float(np.median(samples["off"]["draw"]))
-    print(f"{'config':>10} {'proc ms':>9} {'draw ms':>9} {'draw / off':>11} {'ms per target':>14}")
+    print(f"{'config':>18} {'proc ms':>9} {'draw ms':>9} {'draw / off':>11} {'ms per target':>14}")
     for name, active in configs.items():
         p, d = float(np.median(samples[name]["proc"])), float(np.median(samples[name]["draw"]))
         row = {"config": name, "active": active, "processor_ms": round(p, 4), "draw_ms": round(d, 4), "draw_ratio": round(d / base, 4)}
@@ -122,7 +141,7 @@ def bench_morph(args) -> int:
             row["draw_ms_per_target"] = round((d - zero) / active, 4)
             row["storage"] = "textures" if name.endswith("in tex") or not compute else "buffers"
         rows.append(row)
-        print(f"{name:>10} {p:>9.3f} {d:>9.3f} {d / base:>11.3f} {row.get('draw_ms_per_target', float('nan')):>14.4f}")
+        print(f"{name:>18} {p:>9.3f} {d:>9.3f} {d / base:>11.3f} {row.get('draw_ms_per_target', float('nan')):>14.4f}")
     if args.json:
         from crowd.files import atomic_write_bytes
 

@@ -142,21 +142,29 @@ def describe(ctx: moderngl.Context) -> dict:
 
 
 def load_shader(name: str, defines: dict | None = None) -> str:
-    """Source of shaders/<name> with ``#include "file"`` lines expanded (one level is all we use) and
-    ``#define KEY VALUE`` lines inserted after ``#version``: features a scene does not use are compiled
-    out rather than branched around."""
-    text = _read_shader(name)
-    lines = []
-    for line in text.splitlines():
-        stripped = line.strip()
-        if stripped.startswith("#include"):
-            lines.append(_read_shader(stripped.split('"')[1]))
-        else:
-            lines.append(line)
+    """Source of shaders/<name> with ``#include "file"`` lines expanded (an included file may include
+    others; each file once, so a cycle or a second include of a file adds nothing) and ``#define KEY
+    VALUE`` lines inserted after ``#version``: features a scene does not use are compiled out rather
+    than branched around."""
+    lines = _expand(name, set())
     if not lines or not lines[0].startswith("#version"):
         raise GLUnavailable(f"shader {name} must start with #version")
     extra = [f"#define {key} {value}" for key, value in (defines or {}).items()]
     return "\n".join(lines[:1] + extra + lines[1:]) + "\n"
+
+
+def _expand(name: str, seen: set) -> list[str]:
+    seen.add(name)
+    lines = []
+    for line in _read_shader(name).splitlines():
+        stripped = line.strip()
+        if stripped.startswith("#include"):
+            included = stripped.split('"')[1]
+            if included not in seen:
+                lines += _expand(included, seen)
+        else:
+            lines.append(line)
+    return lines
 
 
 def _read_shader(name: str) -> str:

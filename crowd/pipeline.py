@@ -766,7 +766,7 @@ class CrowdPipeline(GLStage):
             view = self.renderer.prepare(self.camera, instances, row_offset, cull_now=False, palette=self.processor.layout)
             if self.renderer.gpu is not None and rows:
                 with t.gpu("cull"):
-                    self.renderer.cull()
+                    self.renderer.cull(self.processor)
         self._run("cull_lod")
         if self.town is not None:
             with t.cpu("town_cull"):

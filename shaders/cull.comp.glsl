@@ -22,7 +22,19 @@ void main() {
     uint slots[MAX_EMITS];
     int emits = count_in_group(r, draws, slots);
     for (uint d = local; d < uint(u_draws); d += gl_WorkGroupSize.x) {
-        s_base[d] = s_count[d] > 0u ? atomicAdd(commands[(uint(u_list_base) + d) * 5u + 1u], s_count[d]) : 0u;
+        uint count = s_count[d];
+        uint command = (uint(u_list_base) + d) * 5u;
+        if (count == 0u) {
+            s_base[d] = 0u;
+        } else if (route[d] == FILLS_DOWN) {
+            // A plain twin fills its morph draw's list from the end: its baseInstance, which starts at
+            // the list's end, moves down by what each work group writes (the two never overlap, as
+            // each agent is in one of them). s_base is relative to the list's start, as for the others.
+            atomicAdd(commands[command + 1u], count);
+            s_base[d] = atomicAdd(commands[command + 4u], 0u - count) - count - (u_record_base + list_start[d]);
+        } else {
+            s_base[d] = atomicAdd(commands[command + 1u], count);
+        }
     }
     memoryBarrierShared();
     barrier();

@@ -16,6 +16,10 @@ layout(std430, binding = 3) readonly buffer DrawOf { int draw_of[]; };    // [lo
 layout(std430, binding = 4) buffer Visible { uint visible[]; };
 // Where each draw's list starts: the draws before it hold as many records as their characters have agents.
 layout(std430, binding = 6) readonly buffer ListStart { uint list_start[]; };
+// Morph routing (crowd/draw/gpu_cull.py): per draw, the plain twin of a draw with morph targets (>= 0),
+// FILLS_DOWN for a twin (it shares its morph draw's list, filled from the end), or -1.
+layout(std430, binding = 7) readonly buffer Route { int route[]; };
+const int FILLS_DOWN = -2;
 
 const int MAX_CAST = 16;    // characters (crowd.frame.MAX_CAST): 4 bits of fields.w
 const int MAX_GROUPS = 7;   // variation groups: 4 bits each below the character's
@@ -46,6 +50,10 @@ uniform mat4 u_hiz_view_proj;
 uniform vec3 u_hiz_eye_delta;  // this frame's eye minus the pyramid's: positions relative to the pyramid's eye
 uniform ivec2 u_hiz_size;      // level 0, in texels
 uniform int u_hiz_levels;
+// Characters (bit c) whose agents moving no morph target go to their pieces' plain twins: the first
+// (target, weight) pair the processor wrote before the agent's joint 0 has weight 0.
+uniform uint u_routing;
+#include "palette.glsl"
 
 const int MAX_DRAWS = 256;  // draws the shared counters hold (CrowdRenderer checks)
 const int MAX_EMITS = 16;   // draws one agent can be in: its common pieces and one piece per group
@@ -79,6 +87,18 @@ bool occluded(vec3 center, float radius) {
     return nearest > farthest;
 }
 
+// An agent of a routed character whose weights move nothing is drawn by the plain program, as if the
+// scene had no morphs: the morph program costs 2 to 5 % even where it fetches nothing
+// (docs/BENCHMARKS.md, "Morph targets").
+bool moves_no_target(Record r, int character) {
+    if (((u_routing >> uint(character)) & 1u) == 0u) return false;
+    return texelFetch(u_palette0, palette_texel(r.fields.x) - ivec3(1, 0, 0), 0).y == 0.0;
+}
+
+int routed(int d, bool still) {
+    return still && d >= 0 && route[d] >= 0 ? route[d] : d;
+}
+
 // Agent i's record and the draws it is in (-1 where its LOD has no mesh for a slot): `emits` of them,
 // none when it is culled. Writes its visibility for the weapons as a side effect (u_write_visible).
 int agent_draws(uint i, out Record r, out int draws[MAX_EMITS]) {
@@ -100,10 +120,11 @@ int agent_draws(uint i, out Record r, out int draws[MAX_EMITS]) {
         for (int k = 0; k < u_lod_steps; ++k) lod += int(dist >= u_lod_start[k]);
         lod = min(lod + u_lod_bias, u_lod_count[character] - 1);
         int base = lod * u_slots;
-        for (int s = 0; s < u_common[character]; ++s) draws[emits++] = draw_of[base + u_common_first[character] + s];
+        bool still = moves_no_target(r, character);
+        for (int s = 0; s < u_common[character]; ++s) draws[emits++] = routed(draw_of[base + u_common_first[character] + s], still);
         for (int g = 0; g < u_groups; ++g) {
             int first = u_group_slot[character * MAX_GROUPS + g];
-            if (first >= 0) draws[emits++] = draw_of[base + first + int((r.fields.w >> uint(4 * g)) & 15u)];
+            if (first >= 0) draws[emits++] = routed(draw_of[base + first + int((r.fields.w >> uint(4 * g)) & 15u)], still);
         }
     }
     if (u_write_visible == 1) visible[i] = inside ? uint(lod + 1) : 0u;

@@ -100,8 +100,7 @@ def _gpu_lists(renderer, buffer, counts, cascade: int | None = None) -> list[set
     from crowd.draw.render import INSTANCE_DTYPE
 
     records = np.frombuffer(buffer.read(), INSTANCE_DTYPE)
-    starts = [renderer.gpu.list_of(k, cascade)[0] for k in range(len(counts))]
-    return [_listed_agents(renderer, k, records[s: s + int(c)]) for k, (s, c) in enumerate(zip(starts, counts))]
+    return [_listed_agents(renderer, k, records[renderer.gpu.drawn_records(k, int(c), cascade)]) for k, c in enumerate(counts)]
 
 
 def _prepared_on_both_paths(stages, camera, seed: int, agents: int):

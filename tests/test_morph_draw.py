@@ -150,3 +150,59 @@ def test_the_pipeline_draws_morphs_only_where_the_scene_moves_them(gl_context, c
             _frames(p, target, 1 / 30, 6)
             cpu = _frames(p, target, 0.0, 3)
         assert np.count_nonzero(np.abs(cpu - swollen).max(axis=2) > 24) <= 10
+
+
+def test_agents_moving_no_target_are_drawn_by_the_plain_twins(gl_context, tmp_path):
+    """The GPU cull reads each agent's first morph pair: an agent whose weights move nothing is listed in
+    the plain twin of each morph draw (the same geometry, no morph code), the others in the morph draws,
+    in the colour and the shadow lists alike; the picture is the one every agent in the morph draws gives."""
+    from crowd.anim.processor import CLIP, WEIGHT
+    from crowd.gl import Offscreen, has_compute
+
+    if not has_compute(gl_context):
+        pytest.skip("no GL 4.3 here")
+    ctx = gl_context
+    character = _character(tmp_path)
+    character = character.__class__(**{**character.__dict__, "morph_defaults": np.zeros(len(character.morphs))})
+    baked = _baked(character)
+    still_clip = [c.name for c in baked.clips].index("still")
+    layers = _layers(AGENTS, len(baked.clips))
+    layers[: AGENTS // 2, :, CLIP] = still_clip  # half the crowd plays only the clip that keys no weight
+    layers[AGENTS // 2:, 0, CLIP] = 1 - still_clip
+    layers[AGENTS // 2:, 0, WEIGHT] = 1.0
+    pairs = active_pairs(reference_weights(baked.morphs, baked, layers))
+    still = set(np.flatnonzero(pairs[:, 0, 1] == 0).tolist())
+    assert 0 < len(still) < AGENTS
+    rng = np.random.default_rng(4)
+    positions = np.column_stack([rng.uniform(-6, 6, AGENTS), np.zeros(AGENTS), rng.uniform(-6, 6, AGENTS)])
+    instances = Instances(positions, rng.uniform(-np.pi, np.pi, AGENTS).astype(np.float32), np.ones(AGENTS, np.float32),
+                          np.full((AGENTS, 4), 200, np.uint8))
+    camera = Camera(eye=np.array([0.0, 8.0, 20.0]), target=np.zeros(3), aspect=16 / 9)
+    pictures = {}
+    with AnimationProcessor(ctx, baked, 4) as proc, Offscreen(ctx, (320, 180)) as target, \
+            CrowdRenderer(ctx, character, lod_distances=(1e6, 2e6, 3e6), shadows=True, culling=False, cull_path="gpu", morphs=[True]) as renderer:
+        proc.resize(AGENTS)
+        proc.process(layers)
+        morph, twin = renderer.draws[1], renderer.draws[0]
+        assert morph.morph and twin.twin_of is morph and not twin.morph
+        # GL forbids a sampler2D and a sampler2DArray on one unit; NVIDIA then fetched zeros, routing every agent.
+        cull = renderer.gpu.program
+        assert cull["u_hiz"].value != cull["u_palette0"].value
+        for routed in (True, False):
+            view = renderer.prepare(camera, instances, palette=proc.layout, processor=proc if routed else None)
+            renderer.refresh_counts(wait=True)
+            for buffer, cascade in [(renderer.gpu.lists, None), *((renderer.gpu.shadow_lists, k) for k in range(len(twin.shadow_counts)))]:
+                records = np.frombuffer(buffer.read(), np.uint32).reshape(-1, 8)
+                listed = []
+                for d, draw in enumerate((twin, morph)):
+                    count = draw.count if cascade is None else draw.shadow_counts[cascade]
+                    texel = records[renderer.gpu.drawn_records(d, count, cascade), 4]
+                    listed.append(set(proc.layout.agents_at(texel & 0xFFF, texel >> 12).tolist()))
+                want = (still, set(range(AGENTS)) - still) if routed else (set(), set(range(AGENTS)))
+                assert tuple(listed) == want, (routed, cascade)
+            target.framebuffer.use()
+            target.framebuffer.clear(0.1, 0.1, 0.1, 1.0, depth=1.0)
+            renderer.shadow_pass(view, proc)
+            renderer.color_pass(target.framebuffer, view, proc)
+            pictures[routed] = target.image().astype(int)
+    assert np.count_nonzero(pictures[True] != pictures[False]) <= 8 and np.count_nonzero(np.abs(pictures[True] - 26) > 4) > 500

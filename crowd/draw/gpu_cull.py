@@ -21,6 +21,12 @@ add per (agent, piece) places a record with no second pass; the commands' baseIn
 draw at its list. The price is memory: each character's draws x its agents x 32 bytes (12 draws of the
 zombie at 1,000,000 agents: 384 MB), which ``gpu_bytes`` reports.
 
+Morph twins: a draw of a piece with morph targets may have a plain twin, the same geometry drawn by the
+program without morph code. With ``run(..., palette=processor)``, an agent whose weights move no target
+(the first pair the processor wrote before its joint 0 has weight 0) is listed in the twins instead,
+so it costs what it would in a scene without morphs. A twin has no list of its own: it fills its morph
+draw's list from the end (its baseInstance counts down), so twins cost no memory per agent.
+
 Several characters: each agent's record carries its character (bits 28-31 of its variation field), and
 the cull looks up that character's bound, LOD count, pieces and variation groups.
 """
@@ -34,6 +40,7 @@ import moderngl
 import numpy as np
 
 from ..gl import Fence, GLObjects, GLStage, load_shader
+from .occlusion import HIZ_UNIT
 
 GROUP_SIZE = 256
 RECORD_DTYPE = np.dtype([("position_scale", "<f4", 4), ("packed", "<u4", 4)])
@@ -46,6 +53,8 @@ MAX_LOD_STEPS = 4
 MAX_DRAWS = 256  # (piece, LOD) draws: the cull's shared counters (cull.comp.glsl)
 MAX_EMITS = 16  # draws one agent is in: its common pieces and one piece per variation group
 COUNT_RING = 3
+FILLS_DOWN = -2  # cull_common.glsl's route entry of a plain twin
+ROUTE_UNIT = 0  # the cull reads the palette's first plane here
 
 
 # glMemoryBarrier bits: what reads the shaders' writes (lists as vertex attributes, commands as
@@ -120,7 +129,7 @@ class GpuCull(GLStage):
     def __init__(self, ctx: moderngl.Context, draws: list[tuple], characters: list[CullCharacter], group_choices: list[int],
                  with_visible: bool, shadow_cascades: int = 0):
         """`draws`: per draw (LOD, slot, index count, first index, base vertex in the buffers it is drawn
-        from, character). `characters`: the cast's, in its order (CullCharacter: which slots are whose).
+        from, character[, the index of the morph draw it is the plain twin of, -1 for none]). `characters`: the cast's, in its order (CullCharacter: which slots are whose).
         `group_choices`: the largest choice count of each variation group, over the cast."""
         self._objects = GLObjects()
         self.ctx = ctx
@@ -143,11 +152,26 @@ class GpuCull(GLStage):
         self.groups = len(group_choices)
         self.slots = max(max(d[1] for d in draws) + 1, 1)
         lods = max(d[0] for d in draws) + 1
+        twin_of = np.array([d[6] if len(d) > 6 else -1 for d in draws], np.int64)
+        self.twin_of = twin_of
         table = np.full(lods * self.slots, -1, np.int32)
+        route = np.full(self.draw_count, -1, np.int32)  # cull_common.glsl's route: twin, FILLS_DOWN or -1
         for k, (lod, slot, *_) in enumerate(draws):
-            table[lod * self.slots + slot] = k
+            if twin_of[k] >= 0:
+                if draws[twin_of[k]][:6] != tuple(draws[k][:6]) or twin_of[twin_of[k]] >= 0:
+                    raise GpuCullError(f"draw {k} is not a copy of the draw {twin_of[k]} it is said to be the plain twin of")
+                route[twin_of[k]], route[k] = k, FILLS_DOWN
+            else:
+                table[lod * self.slots + slot] = k
+        # Characters whose agents are routed: those with a twin (the cull reads their morph pairs).
+        self.routed_characters = sum(1 << int(self.draw_character[d]) for d in np.flatnonzero(twin_of >= 0))
         self.program = self._objects.add(ctx.compute_shader(load_shader("cull.comp.glsl")))
+        # Each sampler on a unit of its own from the start: the pyramid's sampler2D left on unit 0 beside
+        # the palette's sampler2DArray there is an error GL need not report (the fetch then reads zeros).
+        self.program["u_hiz"] = HIZ_UNIT
+        self.program["u_palette0"] = ROUTE_UNIT
         self.draw_of = self._objects.add(ctx.buffer(table.tobytes()))
+        self.route = self._objects.add(ctx.buffer(route.tobytes()))
         self.list_start = self._objects.add(ctx.buffer(reserve=self.draw_count * 4))
         self.commands = self._objects.add(ctx.buffer(reserve=self.draw_count * COMMAND_DTYPE.itemsize))
         self.ring = CountRing(ctx, self._objects, self.draw_count)
@@ -193,6 +217,7 @@ class GpuCull(GLStage):
             raise GpuCullError(f"agent counts for {len(cast)} characters, the cull draws {len(self.characters)}")
         agents = sum(cast)
         capacity = np.asarray(cast, np.int64)[self.draw_character]  # each draw's list holds its character's agents
+        capacity[self.twin_of >= 0] = 0  # a twin writes into its morph draw's list
         records = int(capacity.sum())
         need = records * RECORD_DTYPE.itemsize * max(self.cascades, 1)  # the largest list buffer
         if need > self.max_block:
@@ -203,6 +228,8 @@ class GpuCull(GLStage):
         self.ctx.error  # clear any earlier error, so the check below sees this allocation's
         self.cast, self.records = cast, records
         self.starts = np.concatenate([[0], np.cumsum(capacity)[:-1]]).astype(np.int64)
+        twins = np.flatnonzero(self.twin_of >= 0)
+        self.starts[twins] = self.starts[self.twin_of[twins]]
         self.list_start.write(self.starts.astype(np.uint32).tobytes())
         self.agents_buffer.orphan(max(agents, 1) * RECORD_DTYPE.itemsize)
         self.lists.orphan(max(records, 1) * RECORD_DTYPE.itemsize)
@@ -217,9 +244,18 @@ class GpuCull(GLStage):
                                f"and records for {agents:,} agents")
 
     def list_of(self, d: int, cascade: int | None = None) -> tuple[int, int]:
-        """(first record, capacity) of draw d's colour list, or of its list in a shadow cascade."""
+        """(first record, capacity) of draw d's colour list, or of its list in a shadow cascade (a plain
+        twin's: its morph draw's, which it shares)."""
         capacity = self.cast[self.draw_character[d]] if self.cast is not None else 0
         return int(self.starts[d]) + (0 if cascade is None else cascade * self.records), int(capacity)
+
+    def drawn_records(self, d: int, count: int, cascade: int | None = None) -> slice:
+        """Where the `count` records draw d drew lie in its list buffer: from the list's start, or for a
+        plain twin at its end."""
+        first, capacity = self.list_of(d, cascade)
+        if self.twin_of[d] >= 0:
+            return slice(first + capacity - count, first + capacity)
+        return slice(first, first + count)
 
     # -- per frame
 
@@ -234,10 +270,14 @@ class GpuCull(GLStage):
         commands["first_index"] = self.first_index
         commands["base_vertex"] = self.base_vertex
         commands["base_instance"] = self.starts
+        twins = self.twin_of >= 0
+        if self.cast is not None and twins.any():  # a twin counts down from its shared list's end
+            ends = self.starts[twins] + np.asarray(self.cast, np.int64)[self.draw_character[twins]]
+            commands["base_instance"][twins] = ends.astype(np.uint32)
         self.commands.write(commands.tobytes())
         if self.shadow_commands is not None:
             shadow = np.tile(commands, self.cascades)
-            shadow["base_instance"] = np.tile(self.starts, self.cascades) + np.repeat(np.arange(self.cascades, dtype=np.int64) * self.records, self.draw_count)
+            shadow["base_instance"] = np.tile(commands["base_instance"].astype(np.int64), self.cascades) + np.repeat(np.arange(self.cascades, dtype=np.int64) * self.records, self.draw_count)
             self.shadow_commands.write(shadow.tobytes())
         if n:
             self.agents_buffer.write(records)  # the array itself (contiguous): no copy of 32 bytes an agent
@@ -246,17 +286,28 @@ class GpuCull(GLStage):
             if self.shadow_ring is not None:
                 self.shadow_ring.zero()
 
-    def run(self, planes: np.ndarray, margin: float, lod_start, culling: bool, occlusion=None) -> None:
+    def run(self, planes: np.ndarray, margin: float, lod_start, culling: bool, occlusion=None, palette=None) -> None:
         """Cull the uploaded agents into the colour pass's lists and commands (one dispatch), each against
         its character's bound, at most its character's LODs; `occlusion`: (the previous frame's
-        DepthPyramid, this frame's eye) to test them against too."""
+        DepthPyramid, this frame's eye) to test them against too. `palette`: the processor whose newest
+        palette the draws read (bind_palette), so agents moving no morph target go to the plain twins
+        (None: every agent of a morph piece to its morph draw)."""
+        self._route(palette)
         self._dispatch(self.lists, self.commands, self.ring, planes, margin, lod_start, culling, 0, self.visible, 1, occlusion=occlusion)
 
-    def run_shadow(self, planes: np.ndarray, lod_start, culling: bool, reach=None) -> None:
+    def _route(self, palette) -> None:
+        mask = self.routed_characters if palette is not None else 0
+        self.program["u_routing"] = mask
+        if mask:
+            palette.bind_palette(ROUTE_UNIT, self.program)
+
+    def run_shadow(self, planes: np.ndarray, lod_start, culling: bool, reach=None, palette=None) -> None:
         """Cull the uploaded agents against each cascade's box (`planes` (cascades, 6, 4)) into that
         cascade's shadow lists, one LOD coarser; each agent in cascade k's box gets bit 16 + k of its
         visibility (after ``run``, which clears it): the weapons' shadow pass keeps their weapons.
-        `reach` (cascades,): metres from the eye past which an agent casts nothing into that cascade."""
+        `reach` (cascades,): metres from the eye past which an agent casts nothing into that cascade.
+        `palette`: as for ``run``."""
+        self._route(palette)
         for k, cascade_planes in enumerate(planes):
             self._dispatch(self.shadow_lists, self.shadow_commands, None, cascade_planes, 0.0, lod_start, culling, 1,
                            self.visible, 2, cascade=k, reach=np.inf if reach is None else float(reach[k]))
@@ -307,6 +358,7 @@ class GpuCull(GLStage):
         commands.bind_to_storage_buffer(2)
         self.draw_of.bind_to_storage_buffer(3)
         self.list_start.bind_to_storage_buffer(6)
+        self.route.bind_to_storage_buffer(7)
         if visible is not None:
             visible.bind_to_storage_buffer(4)
         p.run(group_x=(n + GROUP_SIZE - 1) // GROUP_SIZE)

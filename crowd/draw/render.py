@@ -17,12 +17,16 @@ Contract: ``CrowdRenderer.prepare(camera, instances, row_offset) -> FrameView``,
   map nor the shadow lists exist.
 - With occlusion on (the gpu path), the colour cull also drops agents hidden in the previous frame's
   depth pyramid (crowd/draw/occlusion.py), which ``capture_depth`` builds after the colour passes.
+- Morph targets: a piece whose character's targets the scene moves is drawn by the MORPH program. On
+  the gpu path each such draw has a plain twin, and the cull (given the processor: ``prepare(...,
+  processor=)``) lists there the agents whose weights move nothing, so they cost what they would
+  without morphs; the cpu path draws every agent of a morph piece with the MORPH program.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import moderngl
 import numpy as np
@@ -246,6 +250,7 @@ class _Draw:
     character: int = 0  # whose piece it is: the cast's index
     morph: bool = False  # drawn with its morph targets (crowd.draw.morph)
     morph_base: int = 0  # the morph vertex table's index of its gl_VertexID 0
+    twin_of: "_Draw | None" = None  # the GPU path's plain twin of this morph draw (crowd.draw.gpu_cull)
 
 
 class CrowdRenderer(GLStage):
@@ -342,6 +347,16 @@ class CrowdRenderer(GLStage):
             self.morph = self._own("morphs", MorphDeltas(ctx, morph_meshes, self.morph_buffers))
             for draw, base in zip([d for d in self.draws if d.morph], self.morph.bases):  # the table's order is the draws'
                 draw.morph_base = base - draw.base_vertex  # shared: gl_VertexID counts from the buffer's start
+        if cull_path == "gpu" and morph_meshes:
+            # Each morph draw's plain twin: the same geometry drawn by the program without morph code, for
+            # the agents whose weights move nothing (the GPU cull routes them), so that they cost what
+            # they would without morphs. The merged twins join the plain multi-draw.
+            twin = lambda d: replace(d, morph=False, twin_of=d, vaos={})  # noqa: E731
+            merged_twins = [twin(d) for d in self.draws[:self.merged] if d.morph]
+            self.draws[self.merged_plain:self.merged_plain] = merged_twins
+            self.draws += [twin(d) for d in self.draws[self.merged + len(merged_twins):] if d.morph]
+            self.merged += len(merged_twins)
+            self.merged_plain += len(merged_twins)
         self._merged_vaos: dict = {}
         for draw in self.draws if shadows else ():
             draw.shadow_counts = [0] * CASCADES
@@ -372,7 +387,9 @@ class CrowdRenderer(GLStage):
                 characters.append(CullCharacter(first, len(common), tuple(group_slots), self.lod_counts[k], tuple(float(x) for x in self.bounds[k])))
             choices = [max(len(g.get(name, ())) for g in self.groups) for name in self.group_names]
             try:
-                self.gpu = self._own("cull", GpuCull(ctx, [(d.lod, slot[d.character, d.piece], d.triangles * 3, d.first_index, d.base_vertex, d.character)
+                index = {id(d): i for i, d in enumerate(self.draws)}
+                self.gpu = self._own("cull", GpuCull(ctx, [(d.lod, slot[d.character, d.piece], d.triangles * 3, d.first_index, d.base_vertex, d.character,
+                                                            -1 if d.twin_of is None else index[id(d.twin_of)])
                                                            for d in self.draws], characters, choices, weapons_visibility, CASCADES if shadows else 0))
             except GpuCullError as exc:
                 raise RenderError(f"{exc} (the cpu cull path has no such limit)") from None
@@ -549,7 +566,8 @@ class CrowdRenderer(GLStage):
     def clear_color() -> tuple[float, float, float]:
         return tuple(c ** (1 / 2.2) for c in FOG_COLOR)
 
-    def prepare(self, camera: Camera, instances: Instances, row_offset=0, cull_now: bool = True, palette: PaletteLayout | None = None) -> "FrameView":
+    def prepare(self, camera: Camera, instances: Instances, row_offset=0, cull_now: bool = True, palette: PaletteLayout | None = None,
+                processor=None) -> "FrameView":
         """Cull, pick LODs, sort agents into draws and upload their records (the CPU path), or upload
         every agent's record and dispatch the GPU cull that does the rest (the GPU path). Returns what
         every later pass of this frame receives (the view and light matrices, and the visible set where
@@ -557,7 +575,9 @@ class CrowdRenderer(GLStage):
         `row_offset` (an int, or one per agent) is the first palette row of the ring slot each agent's
         palette is read from (see AnimationProcessor.row_offset); `palette` the processor's layout (None:
         the one the processor makes for these characters and counts). With `cull_now` False the GPU path
-        uploads the records and leaves the dispatch to ``cull()``, so a caller can time the GPU's part alone."""
+        uploads the records and leaves the dispatch to ``cull()``, so a caller can time the GPU's part alone.
+        `processor`: the one whose palette the passes read, run for this frame already; on the GPU path
+        its morph pairs send agents moving no target to the plain twins (None: to the morph draws)."""
         camera.validate()
         instances.validate(self.groups)
         counts = instances.counts()
@@ -581,7 +601,7 @@ class CrowdRenderer(GLStage):
             self.refresh_counts()  # the newest frame the GPU has finished (none queued for 0 agents: 0)
             self._pending = (frustum_planes(matrix), None if shadow is None else (np.stack([frustum_planes(m) for m in shadow.view_proj]), shadow.reach_m), eye)
             if cull_now:
-                self.cull()
+                self.cull(processor)
             return FrameView(camera, matrix, shadow, None)
         n = len(instances)
         kind = self._kinds(counts)
@@ -695,16 +715,16 @@ class CrowdRenderer(GLStage):
                 fields[:, 3] |= v.astype(np.uint32) << np.uint32(4 * g)
         return records
 
-    def cull(self) -> bool:
+    def cull(self, processor=None) -> bool:
         """The GPU path's cull dispatch for what `prepare(cull_now=False)` uploaded; False when there
-        is nothing to do (the CPU path, or already done)."""
+        is nothing to do (the CPU path, or already done). `processor`: as for ``prepare``."""
         pending, self._pending = getattr(self, "_pending", None), None
         if self.gpu is None or pending is None:
             return False
         planes, light_planes, eye = pending  # the view's planes, (each cascade's planes, reach), the eye
-        self.gpu.run(planes, 0.0, self.lod_distances, self.culling, occlusion=None if self.pyramid is None else (self.pyramid, eye))
+        self.gpu.run(planes, 0.0, self.lod_distances, self.culling, occlusion=None if self.pyramid is None else (self.pyramid, eye), palette=processor)
         if light_planes is not None:
-            self.gpu.run_shadow(light_planes[0], self.lod_distances, self.culling, light_planes[1])
+            self.gpu.run_shadow(light_planes[0], self.lod_distances, self.culling, light_planes[1], palette=processor)
         return True
 
     def refresh_counts(self, wait: bool = False) -> None:
