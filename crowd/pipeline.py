@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -68,6 +69,10 @@ FOOT_SKATE_SAMPLE = 32  # agents whose feet are read back for the stats' foot_sk
 TOWN_CIRCLE_M = 9.0  # the headless player's circle in a town: round the crossing, clear of the buildings at its corners
 
 
+# Agents from which "auto" draws the far ones as impostors: fewer fit the frame as meshes (docs/BENCHMARKS.md,
+# "Impostors").
+IMPOSTOR_AGENTS = 20_000
+
 class PipelineError(ValueError):
     """Bad pipeline configuration; the message is one line."""
 
@@ -109,6 +114,8 @@ class PipelineConfig:
     cull: str = DEFAULTS["cull"]  # "auto", "gpu" or "cpu": where culling, LOD and the instance lists are made
     foot_lock: bool = DEFAULTS["foot_lock"]  # planted feet held by the processor (the compute path; crowd.anim.foot_lock)
     morphs: bool = DEFAULTS["morphs"]  # morph targets drawn where the scene moves them (crowd.anim.morph, crowd.draw.morph)
+    impostors: str = DEFAULTS["impostors"]  # "auto", "on" or "off": far agents drawn as impostors (crowd.draw.impostors)
+    impostor_distance: float = DEFAULTS["impostor_distance"]  # metres from the camera
     characters: tuple = ()  # CharacterSpec per character of a mixed crowd; () is one character: model, roles, model_scale above
     # The player drawn as the built-in survivor (crowd.sim.player), after the crowd. Off here, on in scenes (the
     # settings' default): a PipelineConfig is the crowd the library draws, a scene is the game the demo plays.
@@ -137,9 +144,10 @@ class CastMember:
     motion: Motion | None = None
     clip_speed: dict = field(default_factory=dict)  # clip name → playback speed (time scale), where not 1
     player: bool = False  # the survivor the player plays, not one of the crowd
+    impostor: object = None  # its ImpostorAtlas (crowd.draw.impostors) where the scene draws its far agents as impostors
 
     def part(self) -> CastPart:
-        return CastPart(self.character, self.bake, self.masks, self.legs)
+        return CastPart(self.character, self.bake, self.masks, self.legs, self.impostor)
 
     @property
     def name(self) -> str:
@@ -220,6 +228,8 @@ class CrowdPipeline(GLStage):
         self.layers = np.empty((config.agents, LAYERS, 4), np.float32)  # this frame's layers, as processed
         started.update(1)
         started.set_description("starting the crowd: the GPU stages")
+        self.impostor_notes: list[str] = []  # one line each: what making the atlases said (a rebuilt cache)
+        self._make_impostors()
         # Leave out what the scene does not need: no weapons, no socket, or nobody armed → no read-back
         # stage, no gather pass, no weapon meshes, and one palette instead of a ring.
         self.stages = Stages.build(ctx, self._parts(), self._spec(self._armed(config)), self.counts)
@@ -351,7 +361,78 @@ class CrowdPipeline(GLStage):
         c = self.config
         return StageSpec(layers=LAYERS, processor_path=c.processor_path, interpolation=c.interpolation, lod_distances=c.lod_distances,
                          shadows=c.shadows, culling=c.culling, occlusion=c.occlusion, armed=self.readback is not None if armed is None else armed,
-                         readback_latency=self.latency, cull=c.cull, foot_lock=c.foot_lock, town=c.town)
+                         readback_latency=self.latency, cull=c.cull, foot_lock=c.foot_lock, town=c.town,
+                         impostor_distance=c.impostor_distance)
+
+    # -- impostors (crowd.draw.impostors): only where the scene needs them
+
+    def impostors_needed(self) -> bool:
+        """Whether the crowd's far agents are drawn as impostors: setting "on", or "auto" with at least
+        IMPOSTOR_AGENTS agents (fewer fit as meshes) spread wide enough that the camera framing them all
+        has some past the impostor distance."""
+        mode = SETTINGS["impostors"].check(self.config.impostors, PipelineError)
+        if mode != "auto":
+            return mode == "on"
+        if self.ai.n < IMPOSTOR_AGENTS:
+            return False
+        half = self.ai.half_extent
+        reach = half * 1.5 + 2.5 + half * math.sqrt(2.0)  # overview_camera's distance, then the farthest corner
+        return reach >= self.config.impostor_distance
+
+    def _make_impostors(self) -> bool:
+        """Each crowd character's atlas made (from the cache where it holds one) or dropped, as the scene
+        needs; True where that changed anything (the processor and renderer must then be built again)."""
+        from .draw.impostor_bake import load_atlas
+
+        want = self.impostors_needed()
+        changed = False
+        for member in self.cast[:self.crowd_cast]:
+            if not want:
+                changed |= member.impostor is not None
+                member.impostor = None
+                continue
+            if member.impostor is not None and member.impostor.clip_names == tuple(c.name for c in member.bake.clips) \
+                    and getattr(member.impostor, "bake", None) is member.bake:
+                continue
+            atlas = load_atlas(self.ctx, member.character, member.bake)
+            atlas.bake = member.bake  # the bake it shows: a new bake needs a new atlas
+            for note in atlas.notes:
+                self.impostor_notes.append(f"{member.character.name}: {note}")
+                print(f"{member.character.name}: {note}", file=sys.stderr)
+            member.impostor = atlas
+            changed = True
+        return changed
+
+    def _refresh_impostors(self) -> None:
+        """After a change that may change what needs impostors: atlases made or dropped, and the processor
+        (which writes the keys) and the renderer (which draws them) built again where they did."""
+        if not self._make_impostors():
+            return
+        parts, spec = self._parts(), self._spec()
+        processor = build_processor(self.ctx, parts, spec, self.counts)
+        try:
+            renderer = build_renderer(self.ctx, parts, spec)
+        except BaseException:
+            processor.release()
+            raise
+        self.stages.replace("processor", processor)
+        self.stages.replace("renderer", renderer)
+        self._lock_ground = None
+        self.sync.reset()
+        if self.readback is not None:
+            self.readback.reset()
+
+    def set_impostors(self, mode: str) -> None:
+        """Impostors "auto", "on" or "off", live."""
+        mode = SETTINGS["impostors"].check(mode, PipelineError)
+        self.config = dataclasses.replace(self.config, impostors=mode)
+        self._refresh_impostors()
+
+    def set_impostor_distance(self, metres: float) -> None:
+        metres = SETTINGS["impostor_distance"].check(metres, PipelineError)
+        self.config = dataclasses.replace(self.config, impostor_distance=metres)
+        self.renderer.set_impostor_distance(metres)
+        self._refresh_impostors()
 
     # -- run-time settings: the panel and the command line both come through these
 
@@ -453,7 +534,7 @@ class CrowdPipeline(GLStage):
                 old = next((c for c in member.bake.clips if c.name == clip.name), None)
                 if old is not None:
                     bake.clips[i] = dataclasses.replace(clip, loop=old.loop)
-        parts = [CastPart(m.character, bake, m.masks, bake_legs(m.character.skeleton, bake)) for m, bake in zip(self.cast, bakes)]
+        parts = [CastPart(m.character, bake, m.masks, bake_legs(m.character.skeleton, bake), m.impostor) for m, bake in zip(self.cast, bakes)]
         spec = dataclasses.replace(self._spec(), interpolation=interpolation)
         processor = build_processor(self.ctx, parts, spec, self.counts)
         renderer = None
@@ -480,6 +561,7 @@ class CrowdPipeline(GLStage):
             self.ai.set_motion(member.motion, k)
         if self.survivor is not None:
             self.survivor.motion = self._survivor_motion()
+        self._refresh_impostors()  # an atlas shows its bake's clips: a new bake, a new atlas
 
     def set_morphs(self, on: bool) -> None:
         """Morph targets drawn (the cast baked again with its weight tracks, the processor writing pairs,
@@ -597,6 +679,7 @@ class CrowdPipeline(GLStage):
         if any(b != a for b, a, _ in moves[1:]) and self.readback is not None:
             self.readback.reset()  # the sockets queued were gathered for agents that have moved
         self.config = dataclasses.replace(self.config, agents=agents)
+        self._refresh_impostors()
 
     def set_seed(self, seed: int) -> None:
         """A new crowd from another seed (same count, settings and clips); every agent starts anew."""
@@ -735,7 +818,9 @@ class CrowdPipeline(GLStage):
             with t.gpu("process"):
                 self.processor.run()
             self._run("process")
-            if any(part.slots for part in self.processor.layout.parts):
+            if any(part.key for part in self.processor.layout.parts):
+                self._run("impostors")  # (the keys in the process pass; the quads in the shadow and draw passes)
+            if any(part.morph for part in self.processor.layout.parts):
                 self._run("morph_weights")  # (in the process pass; the draws add the deltas: gpu_bytes' "morphs")
             self.sync.processed(f, fresh=self.processor.runs == 1)  # a new palette: the frames kept before it are gone
         weapon_of_agent = self._weapon_of_agent()

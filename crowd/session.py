@@ -354,6 +354,13 @@ class CrowdSession(GLStage):
     def set_morphs(self, on: bool) -> None:
         self.pipeline.set_morphs(SETTINGS["morphs"].check(on, SessionError))
 
+    def set_impostors(self, mode: str) -> None:
+        """Far agents drawn as impostors: "auto", "on" or "off" (the atlas made or dropped), live."""
+        self.pipeline.set_impostors(SETTINGS["impostors"].check(mode, SessionError))
+
+    def set_impostor_distance(self, metres: float) -> None:
+        self.pipeline.set_impostor_distance(SETTINGS["impostor_distance"].check(metres, SessionError))
+
     def set_shadows(self, on: bool) -> None:
         self.pipeline.set_shadows(SETTINGS["shadows"].check(on, SessionError))
 
@@ -385,7 +392,7 @@ class CrowdSession(GLStage):
             "shadows": self.set_shadows, "culling": self.set_culling, "occlusion": self.set_occlusion, "weapons": self.set_weapons,
             "lod_distances": lambda v: self.set_lod_distances(*SETTINGS["lod_distances"].check(v, SessionError)),
             "readback_latency": self.set_readback_latency, "cull": self.set_cull_path, "foot_lock": self.set_foot_lock,
-            "morphs": self.set_morphs,
+            "morphs": self.set_morphs, "impostors": self.set_impostors, "impostor_distance": self.set_impostor_distance,
         }
         if name in ("model_scale", "survivor", "town"):  # what the cast and its world are made of: set when the crowd is built
             SETTINGS[name].check(value, SessionError)
@@ -554,7 +561,8 @@ class CrowdSession(GLStage):
             compression_bound_mm=p.bake.bound_mm, interpolation=p.processor.interpolation, ai=p.ai.config,
             weapons=p.config.weapons, readback_latency=p.latency, shadows=p.renderer.shadows, culling=p.renderer.culling, occlusion=p.config.occlusion,
             lod_distances=tuple(p.renderer.lod_distances), processor=p.config.processor_path, cull=p.config.cull, foot_lock=p.config.foot_lock,
-            survivor=p.survivor is not None, town=p.town is not None,
+            survivor=p.survivor is not None, town=p.town is not None, morphs=p.config.morphs, impostors=p.config.impostors,
+            impostor_distance=p.config.impostor_distance,
             camera=CameraSetting(tuple(float(v) for v in cam.eye), tuple(float(v) for v in cam.target), float(cam.fov_y)))
 
     def save(self, path) -> Path | None:

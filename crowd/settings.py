@@ -221,6 +221,12 @@ _ALL = (
             "occlusion culling against the previous frame's depth pyramid (the gpu cull path; docs/BENCHMARKS.md says where it pays)"),
     Setting("lod_distances", "features", "ascending", (14.0, 40.0, 90.0), "metres from the camera where LOD1, LOD2 and LOD3 start",
             label="LOD distances", low=0, open_low=True, slider=(1, 500)),
+    Setting("impostors", "features", "choice", "auto",
+            "agents past impostor_distance drawn as animated impostors, one quad each, from an atlas baked at start and cached "
+            "(crowd/draw/impostors.py); auto: where the crowd is large enough to need them (docs/BENCHMARKS.md says where)",
+            choices=("auto", "on", "off")),
+    Setting("impostor_distance", "features", "float", 60.0, "metres from the camera past which agents are drawn as impostors",
+            label="impostor distance", low=0, open_low=True, slider=(5, 500)),
     Setting("town", "features", "bool", True,
             "streets to fight in: a built-in town of blocks, buildings, parked cars and barriers, repeating over the world; "
             "the crowd steers around it (off: the empty plane the benchmarks measure on)"),

@@ -38,6 +38,7 @@ class CastPart:
     bake: AnimationBake
     masks: object = None  # joint masks (masks, joints) or None
     legs: object = None  # crowd.anim.foot_lock.Legs, or None
+    impostor: object = None  # crowd.draw.impostors.ImpostorAtlas where its far agents are drawn as impostors
 
 
 def as_cast(cast) -> list[CastPart]:
@@ -63,6 +64,7 @@ class StageSpec:
     foot_lock: bool = DEFAULTS["foot_lock"]
     town: bool = False  # the built-in town is drawn (the town stage exists)
     readback_latency: int = DEFAULTS["readback_latency"]
+    impostor_distance: float = DEFAULTS["impostor_distance"]  # metres, for the characters with an atlas
 
     @property
     def history(self) -> int:
@@ -77,7 +79,8 @@ def build_processor(ctx: moderngl.Context, cast, spec: StageSpec, agents=0) -> A
     # The foot lock runs where it can: on the compute path, for characters with legs.
     legs = [part.legs if spec.foot_lock and path == "compute" else None for part in cast]
     processor = AnimationProcessor(ctx, [part.bake for part in cast], spec.layers, masks=[part.masks for part in cast], path=path,
-                                   history=spec.history, interpolation=spec.interpolation, legs=legs)
+                                   history=spec.history, interpolation=spec.interpolation, legs=legs,
+                                   impostor_keys=[part.impostor is not None for part in cast])
     try:
         processor.resize(agents)
     except BaseException:
@@ -92,7 +95,8 @@ def build_renderer(ctx: moderngl.Context, cast, spec: StageSpec) -> CrowdRendere
     cast = as_cast(cast)
     return CrowdRenderer(ctx, [part.character for part in cast], lod_distances=spec.lod_distances, shadows=spec.shadows,
                          culling=spec.culling, cull_path=cull_path(ctx, spec.cull), weapons_visibility=spec.armed, occlusion=spec.occlusion,
-                         town=spec.town, morphs=[part.bake.morphs is not None for part in cast])
+                         town=spec.town, morphs=[part.bake.morphs is not None for part in cast],
+                         impostors=[part.impostor for part in cast], impostor_distance=spec.impostor_distance)
 
 
 def cull_path(ctx: moderngl.Context, asked: str) -> str:

@@ -29,7 +29,8 @@ uniform float u_margin;     // metres added to each radius (agents just outside 
 uniform float u_reach;      // a shadow cascade's: agents whose sphere starts farther from the eye cast nothing into it
 uniform float u_lod_start[4];
 uniform int u_lod_steps;    // LOD distances in use
-uniform int u_lod_count[MAX_CAST];  // per character
+uniform int u_lod_count[MAX_CAST];  // per character: its mesh LODs
+uniform float u_impostor_start[MAX_CAST];  // per character: metres from which its agents are its impostor, LOD u_lod_count (crowd/draw/impostors.py)
 uniform int u_culling;
 uniform uint u_agents;
 uniform int u_slots;        // slots per LOD in draw_of
@@ -118,7 +119,7 @@ int agent_draws(uint i, out Record r, out int draws[MAX_EMITS]) {
     if (inside) {
         float dist = length(center);
         for (int k = 0; k < u_lod_steps; ++k) lod += int(dist >= u_lod_start[k]);
-        lod = min(lod + u_lod_bias, u_lod_count[character] - 1);
+        lod = dist >= u_impostor_start[character] ? u_lod_count[character] : min(lod + u_lod_bias, u_lod_count[character] - 1);
         int base = lod * u_slots;
         bool still = moves_no_target(r, character);
         for (int s = 0; s < u_common[character]; ++s) draws[emits++] = routed(draw_of[base + u_common_first[character] + s], still);

@@ -1,10 +1,11 @@
 #version 430
 // Animation processor, compute path (GL 4.3): one invocation per (agent, texel of its palette row): a
 // work group holds 256 / u_stride whole agents of one character (a dispatch per character of the cast,
-// over its agents). An agent's row is MORPH_SLOTS texels of morph pairs (0 or 1), then its joints. Each
-// joint's invocation blends its joint's local transform once into shared memory, then walks its chain
-// to the root through shared memory and writes its skinning matrix; a morph slot's invocation works out
-// the agent's morph pairs (morph_weights.glsl).
+// over its agents). An agent's row is ROW_SLOTS texels (its impostor key where IMPOSTOR_KEY, then its
+// morph pairs where MORPHS), then its joints. Each joint's invocation blends its joint's local transform
+// once into shared memory, then walks its chain to the root through shared memory and writes its
+// skinning matrix; a slot's invocation writes the agent's key (impostor_key) or works out its morph
+// pairs (morph_weights.glsl).
 #include "processor_common.glsl"
 #ifdef MORPHS
 #include "morph_weights.glsl"
@@ -17,7 +18,7 @@ layout(rgba32f, binding = 2) uniform writeonly image2DArray u_palette2;
 uniform int u_agents_per_group;
 uniform int u_row_offset;    // first palette row (counted across layers) of this character's block in the ring slot this run writes
 uniform int u_palette_rows;  // texture rows per layer
-uniform int u_stride;        // texels an agent: MORPH_SLOTS, then u_joints
+uniform int u_stride;        // texels an agent: ROW_SLOTS, then u_joints
 
 shared vec4 s_local0[256];
 shared vec4 s_local1[256];
@@ -30,7 +31,7 @@ void main() {
     int t = int(gl_LocalInvocationIndex);
     int slot = t / u_stride;
     int texel_in_row = t - slot * u_stride;
-    int joint = texel_in_row - MORPH_SLOTS;  // < 0: a morph slot
+    int joint = texel_in_row - ROW_SLOTS;  // < 0: a slot
     int group = int(gl_WorkGroupID.y * gl_NumWorkGroups.x + gl_WorkGroupID.x);
     int local = group * u_agents_per_group + slot;  // among this character's agents
     int agent = u_first_agent + local;
@@ -42,7 +43,7 @@ void main() {
         s_local2[t] = m.r2;
     }
     barrier();
-    int base = slot * u_stride + MORPH_SLOTS;  // the agent's joint 0 in shared memory
+    int base = slot * u_stride + ROW_SLOTS;  // the agent's joint 0 in shared memory
 #ifdef FOOT_LOCK
     // The first leg's ankle invocation locks the agent's feet, leg after leg: it rewrites their locals,
     // which every invocation of the agent reads after the barrier (reached by all, working or not).
@@ -56,6 +57,12 @@ void main() {
     int layer = y / u_palette_rows;
     ivec3 texel = ivec3((local % u_agents_per_row) * u_stride + texel_in_row, y - layer * u_palette_rows, layer);
     if (joint < 0) {
+#ifdef IMPOSTOR_KEY
+        if (joint == -ROW_SLOTS) {
+            imageStore(u_palette0, texel, impostor_key(agent));
+            return;
+        }
+#endif
 #ifdef MORPHS
         vec2 pairs[MORPH_PAIRS];
         morph_pairs(agent, local, pairs);

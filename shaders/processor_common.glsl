@@ -333,6 +333,25 @@ float agent_layers(int agent, out vec4 layer[LAYERS]) {
     return layer_sum;
 }
 
+#ifdef IMPOSTOR_KEY
+// What an agent's impostor shows (crowd/draw/impostors.py): the clip and phase of its heaviest layer,
+// the first of equals (an impostor shows one clip: its atlas holds each clip's frames, not their blends);
+// (-1, 0) where no layer weighs anything (the rest pose).
+vec4 impostor_key(int agent) {
+    vec4 layer[LAYERS];
+    agent_layers(agent, layer);
+    vec4 key = vec4(-1.0, 0.0, 0.0, 0.0);
+    float heaviest = 0.0;
+    for (int l = 0; l < LAYERS; ++l) {
+        if (layer[l].z > heaviest) {
+            heaviest = layer[l].z;
+            key.xy = layer[l].xy;
+        }
+    }
+    return key;
+}
+#endif
+
 Affine blended_local(int agent, int joint) {
     vec4 real[LAYERS];
     vec4 second[LAYERS];  // dual parts (dq_lerp) or translations (qt_*)

@@ -11,7 +11,14 @@ uniform sampler2DArray u_albedo;  // linear RGBA16F; wrap and filter from the pi
 uniform float u_layer;
 uniform vec2 u_uv_mirror;         // 1 where the wrap is MIRRORED_REPEAT (the sampler itself repeats)
 #endif
-out vec4 o_color;
+layout(location = 0) out vec4 o_color;
+#ifdef IMPOSTOR_BAKE
+// The impostor atlas's cells (crowd/draw/impostors.py): the albedo before lighting and tint, then the
+// model-space normal (octahedral) and the depth toward the camera as 16 bits in two channels.
+#include "octahedral.glsl"
+in float v_bake_depth;
+layout(location = 1) out vec4 o_normal_depth;
+#endif
 void main() {
     vec3 n = normalize(v_normal);
     if (!gl_FrontFacing) n = -n;
@@ -22,5 +29,11 @@ void main() {
     vec2 folded = mix(v_uv, 1.0 - abs(mod(v_uv, 2.0) - 1.0), u_uv_mirror);
     albedo *= textureGrad(u_albedo, vec3(folded, u_layer), dFdx(v_uv), dFdy(v_uv)).rgb;
 #endif
+#ifdef IMPOSTOR_BAKE
+    o_color = vec4(albedo, 1.0);
+    float depth = floor(clamp(v_bake_depth * 0.5 + 0.5, 0.0, 1.0) * 65535.0 + 0.5);
+    o_normal_depth = vec4(oct_encode(n) * 0.5 + 0.5, floor(depth / 256.0) / 255.0, mod(depth, 256.0) / 255.0);
+#else
     o_color = vec4(shade(albedo, v_world, n), 1.0);
+#endif
 }

@@ -19,6 +19,8 @@
 // attributes; a third attribute for the coordinate made the H200's draw of a textured crowd 43 %
 // slower, docs/BENCHMARKS.md "Textures"), WIDE_UV (with TEXTURED: float coordinates as a third
 // attribute, for the rare piece whose coordinates span more than unorm16 can hold to a texel), and
+// IMPOSTOR_BAKE (crowd/draw/impostors.py: instance t, a clip's frame at the origin, drawn into its cell of
+// the atlas from the view u_bake_*; the cell's box is u_bake_boxes' texel t), and
 // MORPH (a piece with morph targets the scene moves: the agent's (target, weight) pairs, which the
 // processor wrote into the texel before its joint 0, add each target's deltas to the bind-space
 // position and normal before skinning; crowd/draw/morph.py has the textures' layout).
@@ -129,6 +131,29 @@ out vec3 v_world;      // camera-relative
 out vec3 v_normal;
 out vec4 v_color;
 #endif
+#ifdef IMPOSTOR_BAKE
+uniform sampler2D u_bake_boxes;  // (frames, 1): the frame's clip's box: half width, bottom, height, depth half-range
+uniform vec3 u_bake_right;       // the view's axes, model space
+uniform vec3 u_bake_up;
+uniform vec3 u_bake_toward;      // toward the (orthographic) camera
+uniform int u_bake_column;       // the view's column of cells
+uniform int u_bake_columns;
+uniform int u_bake_first;        // the first frame of the atlas layer drawn
+uniform int u_bake_rows;         // frames (rows of cells) a layer holds
+out float v_bake_depth;          // toward the camera, in units of the box's depth half-range
+
+// Frame t (this instance) into its cell of the layer drawn; frames of other layers off screen.
+vec4 bake_position(vec3 p) {
+    int row = gl_InstanceID - u_bake_first;
+    vec4 box = texelFetch(u_bake_boxes, ivec2(gl_InstanceID, 0), 0);
+    vec3 q = vec3(dot(p, u_bake_right), dot(p, u_bake_up), dot(p, u_bake_toward));
+    vec2 cell = vec2(0.5 + 0.5 * q.x / box.x, (q.y - box.y) / box.z);
+    v_bake_depth = q.z / box.w;
+    if (row < 0 || row >= u_bake_rows) return vec4(2.0, 2.0, 2.0, 1.0);
+    vec2 atlas = (vec2(float(u_bake_column), float(row)) + cell) / vec2(float(u_bake_columns), float(u_bake_rows));
+    return vec4(atlas * 2.0 - 1.0, -v_bake_depth, 1.0);
+}
+#endif
 
 
 void main() {
@@ -170,7 +195,11 @@ void main() {
 #endif
     vec2 heading = heading_cos_sin(i_packed.z);
     vec3 world = i_position_scale.xyz + i_position_scale.w * turn_about_y(heading, skinned);
+#ifdef IMPOSTOR_BAKE
+    gl_Position = bake_position(world);
+#else
     gl_Position = u_view_proj * vec4(world, 1.0);
+#endif
 #ifndef DEPTH_ONLY
     v_world = world;
     v_normal = turn_about_y(heading, normal);

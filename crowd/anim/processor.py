@@ -298,8 +298,9 @@ def palette_joint_positions(palette_rows: np.ndarray, inverse_bind: np.ndarray) 
 @dataclass(frozen=True)
 class PalettePart:
     """One character's block of a palette ring slot: its agents (first_agent .. first_agent + count - 1),
-    agents_per_row of them side by side in a texture row, each `width` texels wide (`slots` texels of
-    morph targets to draw (crowd.anim.morph), then its `joints`), from row first_row."""
+    agents_per_row of them side by side in a texture row, each `width` texels wide (`slots` texels before
+    its `joints`: its impostor key where impostors are drawn (crowd.draw.impostors), then its morph pairs
+    where `morph` (crowd.anim.morph)), from row first_row."""
 
     first_agent: int
     count: int
@@ -307,6 +308,12 @@ class PalettePart:
     agents_per_row: int
     first_row: int
     slots: int = 0
+    morph: bool = False  # the texel before joint 0 holds the agent's morph pairs
+
+    @property
+    def key(self) -> bool:
+        """Whether the agent's first texel holds its impostor key (the clip and phase its impostor shows)."""
+        return self.slots > int(self.morph)
 
     @property
     def rows(self) -> int:
@@ -327,11 +334,14 @@ class PaletteLayout:
     parts: tuple[PalettePart, ...]
 
     @staticmethod
-    def make(joint_counts, counts, slots=None) -> "PaletteLayout":
-        """`slots`: each character's morph texels an agent (None: none)."""
+    def make(joint_counts, counts, slots=None, morphs=None) -> "PaletteLayout":
+        """`slots`: each character's texels before an agent's joints (None: none); `morphs`: whether the
+        last of them holds morph pairs (None: wherever there is a slot)."""
         parts, agent, row = [], 0, 0
-        for joints, count, s in zip(joint_counts, counts, slots or [0] * len(joint_counts)):
-            part = PalettePart(agent, int(count), int(joints), max(1, MAX_TEXTURE_WIDTH // (int(joints) + int(s))), row, int(s))
+        slots = slots or [0] * len(joint_counts)
+        morphs = morphs if morphs is not None else [s > 0 for s in slots]
+        for joints, count, s, m in zip(joint_counts, counts, slots, morphs):
+            part = PalettePart(agent, int(count), int(joints), max(1, MAX_TEXTURE_WIDTH // (int(joints) + int(s))), row, int(s), bool(m))
             parts.append(part)
             agent += part.count
             row += part.rows
@@ -387,11 +397,13 @@ class PaletteLayout:
 class _Part:
     """One character's share of the processor: its bake's textures, program and foot-lock state."""
 
-    def __init__(self, bake: AnimationBake, masks, legs):
+    def __init__(self, bake: AnimationBake, masks, legs, key: bool = False):
         self.bake = bake
         self.masks = masks
         self.legs = legs
-        self.slots = 0 if bake.morphs is None else 1  # texels of morph pairs before an agent's joints
+        self.key = bool(key)  # an impostor key texel first (crowd.draw.impostors)
+        self.morph = bake.morphs is not None  # a texel of morph pairs before an agent's joints
+        self.slots = int(self.key) + int(self.morph)
         # Morph weights held from the panel: (M,) float32, -1 where not held, and whose (crowd.anim.morph.ALL_HELD,
         # NOT_HELD, or an agent's number among the character's).
         self.held = None if bake.morphs is None else np.full(bake.morphs.count, -1.0, np.float32)
@@ -413,9 +425,10 @@ class AnimationProcessor(GLStage):
     palette (``layout``)."""
 
     def __init__(self, ctx: moderngl.Context, bakes, layer_count: int = MAX_LAYERS, masks=None, path: str = "auto",
-                 history: int = 1, interpolation: str = DEFAULT_INTERPOLATION, legs=None):
+                 history: int = 1, interpolation: str = DEFAULT_INTERPOLATION, legs=None, impostor_keys=None):
         """`bakes`: one AnimationBake, or one per character of the cast; `masks` and `legs` likewise (one
-        value for one bake, a sequence of them for several)."""
+        value for one bake, a sequence of them for several). `impostor_keys`: per character, whether its
+        agents' rows start with the key their impostors are drawn by (None: no character's do)."""
         self._own: dict[str, list] = {"animation": [], "palette": [], "layers": [], "processor_quad": [], "foot_lock": [], "morphs": []}
         self.parts: list[_Part] = []
         self._programs: dict[str, moderngl.Program] = {}
@@ -457,8 +470,11 @@ class AnimationProcessor(GLStage):
         self.layers_texture = None
         self.planes: tuple = ()
         self._framebuffer = None
-        for bake, m, l in zip(bakes, masks, legs):
-            part = _Part(bake, validate_masks(m, bake.joint_count), l)
+        keys = list(impostor_keys) if impostor_keys is not None else [False] * len(bakes)
+        if len(keys) != len(bakes):
+            raise ProcessorError(f"impostor keys for {len(keys)} characters, the processor has {len(bakes)} bakes")
+        for bake, m, l, key in zip(bakes, masks, legs, keys):
+            part = _Part(bake, validate_masks(m, bake.joint_count), l, key)
             self.parts.append(part)
             self._make_part(part)
         self.layout = self._layout([0] * len(self.parts))
@@ -508,7 +524,9 @@ class AnimationProcessor(GLStage):
         if part.masks is not None:
             t["u_masks"] = self._texture("animation", (jc, part.masks.shape[0]), 1, part.masks, "f4")
         defines = {"LAYERS": self.layer_count, "REST_THRESHOLD": f"{REST_THRESHOLD:.1e}", "CANCELLED_NORM": f"{CANCELLED_NORM:.1e}",
-                   "MAX_JOINTS": MAX_JOINTS, "MORPH_SLOTS": part.slots}
+                   "MAX_JOINTS": MAX_JOINTS, "ROW_SLOTS": part.slots}
+        if part.key:
+            defines["IMPOSTOR_KEY"] = 1
         morphs = bake.morphs
         if morphs is not None:  # the morph weight tracks (crowd.anim.morph): only where the scene moves a target
             if len(morphs.clip_rows) != len(bake.clips):
@@ -606,7 +624,7 @@ class AnimationProcessor(GLStage):
 
     def _layout(self, counts) -> PaletteLayout:
         """The palette's layout for `counts` agents per character (each with its morph slots, if any)."""
-        return PaletteLayout.make([p.bake.joint_count for p in self.parts], counts, [p.slots for p in self.parts])
+        return PaletteLayout.make([p.bake.joint_count for p in self.parts], counts, [p.slots for p in self.parts], [p.morph for p in self.parts])
 
     def _counts(self, agents) -> tuple[int, ...]:
         """Agent counts per character from a count (one character) or a sequence of them, checked."""
@@ -1008,13 +1026,24 @@ class AnimationProcessor(GLStage):
         """(N, MORPH_PAIRS, 2) float32 (target, weight) pairs of one character's agents, from the palette
         written `age` runs ago (synchronous: tests only); (N, 0, 2) for a character without morphs."""
         block = self.layout.parts[character]
-        if not block.slots or not block.count:
+        if not block.morph or not block.count:
             return np.zeros((block.count, 0, 2), np.float32)
         first = self.row_offset(age) if self.runs else 0
         rows, k, w = block.rows, block.agents_per_row, block.width
         y0 = first + block.first_row
-        texels = [plane[y0:y0 + rows, :k * w].reshape(rows * k, w, 4)[:block.count, 0] for plane in self._read_planes()]
+        texels = [plane[y0:y0 + rows, :k * w].reshape(rows * k, w, 4)[:block.count, block.slots - 1] for plane in self._read_planes()]
         return np.concatenate(texels, axis=1).reshape(block.count, MORPH_PAIRS, 2)
+
+    def read_impostor_keys(self, character: int = 0, age: int = 0) -> np.ndarray:
+        """(N, 4) float32 impostor keys of one character's agents (clip, phase of the heaviest layer, 0, 0),
+        from the palette written `age` runs ago (synchronous: tests only); (N, 0) without keys."""
+        block = self.layout.parts[character]
+        if not block.key or not block.count:
+            return np.zeros((block.count, 0), np.float32)
+        first = self.row_offset(age) if self.runs else 0
+        rows, k, w = block.rows, block.agents_per_row, block.width
+        y0 = first + block.first_row
+        return self._read_planes()[0][y0:y0 + rows, :k * w].reshape(rows * k, w, 4)[:block.count, 0].copy()
 
     def _read_planes(self) -> list[np.ndarray]:
         """The three planes, every palette of the history, as (palette rows, width, 4) float32 (synchronous)."""

@@ -69,13 +69,15 @@ class GpuCullError(ValueError):
 class CullCharacter(NamedTuple):
     """What the cull knows of one character of the cast: the slots of the pieces all its agents wear
     (common_first .. common_first + common - 1), the first slot of each variation group's choices (-1
-    where it has no such group), its LOD count, and its bind pose's sphere (x, y, z, radius)."""
+    where it has no such group), its mesh LOD count, its bind pose's sphere (x, y, z, radius), and the
+    distance from which its agents are drawn as impostors (LOD lod_count: crowd.draw.impostors; inf: never)."""
 
     common_first: int
     common: int
     group_slots: tuple
     lod_count: int
     bound: tuple
+    impostor_start: float = float("inf")
 
 
 class CountRing:
@@ -338,6 +340,9 @@ class GpuCull(GLStage):
         per_character[:, : len(self.characters)] = np.array([(c.lod_count, c.common_first, c.common) for c in self.characters]).T
         for row, name in enumerate(("u_lod_count", "u_common_first", "u_common")):
             p[name].write(per_character[row].tobytes())
+        impostor_start = np.full(MAX_CAST, 3.0e38, np.float32)  # float32's largest: "never"
+        impostor_start[: len(self.characters)] = [min(c.impostor_start, 3.0e38) for c in self.characters]
+        p["u_impostor_start"].write(impostor_start.tobytes())
         p["u_culling"] = int(bool(culling))
         p["u_agents"] = n
         p["u_slots"] = self.slots

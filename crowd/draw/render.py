@@ -41,6 +41,7 @@ from ..asset.town import TILE
 from ..anim.processor import PaletteLayout, texel_code
 from ..asset.vertex_cache import best_triangle_order
 from .gpu_cull import CHARACTER_SHIFT, MAX_CAST, MAX_GROUPS, RECORD_DTYPE, CullCharacter, GpuCull, GpuCullError
+from .impostors import ImpostorTextures
 from .materials import TEXTURE_UNIT, MaterialTextures
 from .morph import MorphDeltas
 from .occlusion import DepthPyramid
@@ -61,7 +62,8 @@ TEXTURED_VERTEX_FORMAT = ("4u 4u", "in_position", "in_packed")
 WIDE_UV_VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("packed", "<u4", 4), ("uv", "<f4", 2)])
 WIDE_UV_VERTEX_FORMAT = ("3f 4u 2f", "in_position", "in_packed", "in_uv")
 _LAYOUTS = {"": (VERTEX_DTYPE, VERTEX_FORMAT), "packed": (TEXTURED_VERTEX_DTYPE, TEXTURED_VERTEX_FORMAT),
-            "wide": (WIDE_UV_VERTEX_DTYPE, WIDE_UV_VERTEX_FORMAT)}
+            "wide": (WIDE_UV_VERTEX_DTYPE, WIDE_UV_VERTEX_FORMAT), "impostor": (None, ("2f", "in_corner"))}
+IMPOSTOR_PIECE = "impostor"  # the piece name of a character's impostor draw (crowd.draw.impostors)
 WEIGHT_STEP = 1.0 / 2046.0  # a stored weight is within half of this of the float weight
 # Per-instance record, 32 bytes: position relative to the camera and scale; palette texel of the agent's
 # joint 0 (its texel code, anim.processor.texel_code), tint RGBA8, cos and sin of the heading as snorm16, and the variation choices
@@ -69,6 +71,7 @@ WEIGHT_STEP = 1.0 / 2046.0  # a stored weight is within half of this of the floa
 INSTANCE_DTYPE = RECORD_DTYPE
 INSTANCE_FORMAT = ("4f 3u 4x/i", "i_position_scale", "i_packed")
 CULL_PATHS = ("cpu", "gpu")
+BAKE_BOXES_UNIT = 4  # the impostor bake's per-frame boxes (the palette takes 0-2, the shadow map 3)
 DEFAULT_LOD_DISTANCES = DEFAULTS["lod_distances"]  # metres: LOD0 closer than the first, LOD1 to the second, LOD2 beyond
 
 
@@ -258,16 +261,19 @@ class CrowdRenderer(GLStage):
 
     def __init__(self, ctx: moderngl.Context, characters, pieces: tuple[str, ...] | None = None, lod_distances=DEFAULT_LOD_DISTANCES,
                  shadows: bool = True, shadow_size: int = 2048, culling: bool = True, cull_path: str = "cpu",
-                 weapons_visibility: bool = False, occlusion: bool = False, town: bool = False, morphs=None, morph_buffers: bool | None = None):
+                 weapons_visibility: bool = False, occlusion: bool = False, town: bool = False, morphs=None, morph_buffers: bool | None = None,
+                 impostors=None, impostor_distance: float = math.inf):
         """`characters`: one Character, or the cast's, in its order (its agents come in that order,
         crowd.frame). `cull_path`: "cpu" or "gpu" (a GL 4.3 context; see the module docstring); with
         `weapons_visibility` the GPU cull also writes each agent's visibility, for the weapons; with
         `occlusion` (the gpu path) it also drops agents hidden in the previous frame's depth. `morphs`: per
         character, whether the scene moves its morph targets (its bake has morph tracks: the processor then
         writes its agents' pairs); its pieces with targets are drawn with them, their deltas in storage
-        buffers (`morph_buffers`; None: where the context has GL 4.3) or textures."""
+        buffers (`morph_buffers`; None: where the context has GL 4.3) or textures. `impostors`: per character,
+        its ImpostorAtlas (crowd.draw.impostors) or None; an agent of a character with one is drawn as its
+        impostor from `impostor_distance` metres on (its last LOD; its processor row starts with its key)."""
         self._objects: dict[str, list] = {"meshes": [], "instances": [], "programs": [], "shadow_map": [], "ground": [], "textures": [], "cull": [],
-                                          "occlusion": [], "morphs": []}
+                                          "occlusion": [], "morphs": [], "impostors": []}
         self.pyramid: DepthPyramid | None = None
         self._programs: dict[tuple, moderngl.Program] = {}
         self.draws: list[_Draw] = []
@@ -293,8 +299,16 @@ class CrowdRenderer(GLStage):
         for c, meshes in zip(cast, per_character):
             if not meshes:
                 raise RenderError(f"character {c.name!r} has no skinned mesh to draw")
-        self.lod_counts = [max(m.lod for m in meshes) + 1 for meshes in per_character]
-        self.lod_count = max(self.lod_counts)
+        self.lod_counts = [max(m.lod for m in meshes) + 1 for meshes in per_character]  # mesh LODs
+        atlases = list(impostors) if impostors is not None else [None] * len(cast)
+        if len(atlases) != len(cast):
+            raise RenderError(f"impostors must give an atlas or None for each of the {len(cast)} characters, got {len(atlases)}")
+        self.impostor_distance = float(impostor_distance)
+        if not self.impostor_distance > 0.0:
+            raise RenderError(f"the impostor distance must be a positive number of metres, got {impostor_distance}")
+        # Each character with an atlas draws its agents past the impostor distance as its LOD lod_counts[k].
+        self.impostor_lods = [self.lod_counts[k] if a is not None else -1 for k, a in enumerate(atlases)]
+        self.lod_count = max(max(self.lod_counts), max(self.impostor_lods) + 1)
         # Variation groups, per character (group -> its pieces, in order), and every group any has, in
         # the order met: an agent's choice in group g is 4 bits at 4 g of its record.
         self.groups: list[dict[str, list[str]]] = []
@@ -307,7 +321,8 @@ class CrowdRenderer(GLStage):
         self.group_names = list(dict.fromkeys(g for groups in self.groups for g in groups))
         if len(self.group_names) > MAX_GROUPS:
             raise RenderError(f"the cast has {len(self.group_names)} variation groups; at most {MAX_GROUPS} are drawn")
-        self._piece_group = [{m.piece: m.group for m in meshes} for meshes in per_character]
+        self._piece_group = [{m.piece: m.group for m in meshes} | ({IMPOSTOR_PIECE: ""} if atlases[k] is not None else {})
+                             for k, meshes in enumerate(per_character)]
         # Each character's textures follow the ones before it in one list, so a draw's index is unique.
         texture_first = np.concatenate([[0], np.cumsum([len(c.textures) for c in cast])]).astype(int).tolist()
         # Untextured pieces first: on the GPU path they are one multi-draw per pass (below), or two: those
@@ -357,6 +372,18 @@ class CrowdRenderer(GLStage):
             self.draws += [twin(d) for d in self.draws[self.merged + len(merged_twins):] if d.morph]
             self.merged += len(merged_twins)
             self.merged_plain += len(merged_twins)
+        # One quad draw per character with an atlas, after every mesh draw (so the cull's first common
+        # piece stays a mesh); its textures and the quad are the "impostors" group's.
+        self.impostors: list = [None] * len(cast)
+        if any(a is not None for a in atlases):
+            quad = self._own("impostors", ctx.buffer(np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32).tobytes()))
+            quad_indices = self._own("impostors", ctx.buffer(np.array([0, 1, 2, 0, 2, 3], np.uint32).tobytes()))
+            for k, atlas in enumerate(atlases):
+                if atlas is None:
+                    continue
+                self.impostors[k] = self._own("impostors", ImpostorTextures(ctx, atlas))
+                inst = self._own("instances", ctx.buffer(reserve=INSTANCE_DTYPE.itemsize)) if cull_path == "cpu" else None
+                self.draws.append(_Draw(IMPOSTOR_PIECE, self.impostor_lods[k], 2, quad, quad_indices, inst, -1, "impostor", character=k))
         self._merged_vaos: dict = {}
         for draw in self.draws if shadows else ():
             draw.shadow_counts = [0] * CASCADES
@@ -384,7 +411,8 @@ class CrowdRenderer(GLStage):
                     group_slots.append(len(slot) if group in groups else -1)
                     for piece in groups.get(group, ()):
                         slot[k, piece] = len(slot)
-                characters.append(CullCharacter(first, len(common), tuple(group_slots), self.lod_counts[k], tuple(float(x) for x in self.bounds[k])))
+                characters.append(CullCharacter(first, len(common), tuple(group_slots), self.lod_counts[k], tuple(float(x) for x in self.bounds[k]),
+                                                self.impostor_distance if self.impostor_lods[k] >= 0 else math.inf))
             choices = [max(len(g.get(name, ())) for g in self.groups) for name in self.group_names]
             try:
                 index = {id(d): i for i, d in enumerate(self.draws)}
@@ -405,6 +433,8 @@ class CrowdRenderer(GLStage):
                     first = [i for i, d in at if slot[k, d.piece] == characters[k].common_first and not self._piece_group[k][d.piece]]
                     group = next(iter(groups), None)
                     self._counting_draws += first or [i for i, d in at if group is not None and self._piece_group[k][d.piece] == group]
+                if self.impostor_lods[k] >= 0:
+                    self._counting_draws += [i for i, d in enumerate(self.draws) if d.character == k and d.piece == IMPOSTOR_PIECE]
         self.shadows = shadows
         self.shadow_size = int(shadow_size)
         self.shadow_map = None
@@ -450,6 +480,13 @@ class CrowdRenderer(GLStage):
                 from ..asset.town import SIDEWALK, STREET
 
                 prog["u_tile"], prog["u_street"], prog["u_sidewalk"] = TILE, STREET, SIDEWALK
+        elif layout == "impostor":
+            vdefs = {"DEPTH_ONLY": 1} if kind == "depth" else {}
+            prog = self.ctx.program(vertex_shader=load_shader("impostor.vert.glsl", vdefs),
+                                    fragment_shader=load_shader("impostor.frag.glsl", {**defines, **vdefs}))
+            for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
+                if name in prog:
+                    prog[name] = unit
         else:
             vdefs = {} if skinned else {"UNSKINNED": 1}
             if kind == "depth":
@@ -458,6 +495,9 @@ class CrowdRenderer(GLStage):
             else:
                 if layout:
                     defines["TEXTURED"] = 1
+                if kind == "bake":  # an impostor atlas's cells (crowd.draw.impostors): unlit, no shadows
+                    defines = {k: v for k, v in defines.items() if k not in ("SHADOWS", "CASCADES")}
+                    defines["IMPOSTOR_BAKE"] = vdefs["IMPOSTOR_BAKE"] = 1
                 frag = load_shader("skin.frag.glsl", defines)
             if layout:
                 vdefs["TEXTURED"] = 1
@@ -522,6 +562,15 @@ class CrowdRenderer(GLStage):
     def _draw_program(self, draw: _Draw, kind: str, skinned: bool) -> moderngl.Program:
         return self._program(kind, skinned, draw.layout, draw.morph and skinned is True)
 
+    def set_impostor_distance(self, metres: float) -> None:
+        """Draw impostors from `metres` on (both cull paths read it each frame)."""
+        if not float(metres) > 0.0:
+            raise RenderError(f"the impostor distance must be a positive number of metres, got {metres}")
+        self.impostor_distance = float(metres)
+        if self.gpu is not None:
+            self.gpu.characters = [c._replace(impostor_start=self.impostor_distance if self.impostor_lods[k] >= 0 else math.inf)
+                                   for k, c in enumerate(self.gpu.characters)]
+
     def set_occlusion(self, on: bool) -> None:
         """Keep (or drop) the depth pyramid occlusion culling tests against; the cpu path has none."""
         if on and self.gpu is not None and self.pyramid is None:
@@ -546,6 +595,7 @@ class CrowdRenderer(GLStage):
         if self.pyramid is not None:
             out["occlusion"] = self.pyramid.gpu_bytes()
         out["morphs"] = 0 if self.morph is None else self.morph.nbytes
+        out["impostors"] = gpu_bytes(self._objects["impostors"]) + sum(t.gpu_bytes() for t in self.impostors if t is not None)
         return out
 
     def release(self) -> None:
@@ -588,8 +638,8 @@ class CrowdRenderer(GLStage):
         eye = np.asarray(camera.eye, np.float64)
         palette = palette or PaletteLayout.make([c.skeleton.joint_count for c in self.cast], counts)
         self.palette = palette  # the layout this frame's records address (tests and benchmarks read lists back by it)
-        if tuple(p.slots > 0 for p in palette.parts) != self.morphs:
-            raise RenderError(f"the palette holds morph pairs for characters {[p.slots > 0 for p in palette.parts]}, the draw reads them for "
+        if tuple(p.morph for p in palette.parts) != self.morphs:
+            raise RenderError(f"the palette holds morph pairs for characters {[p.morph for p in palette.parts]}, the draw reads them for "
                               f"{list(self.morphs)}: build both from the same bakes")
         # Shadows come from lists of their own, culled against the sun's volume (an agent outside the
         # view still shadows into it) one LOD coarser: the colour lists need no margin.
@@ -614,6 +664,9 @@ class CrowdRenderer(GLStage):
         dist = np.linalg.norm(centers, axis=1)
         top = self.lod_counts[0] - 1 if kind is None else np.asarray(self.lod_counts)[kind] - 1
         lod = np.minimum(np.searchsorted(np.asarray(self.lod_distances), dist, side="right"), top)
+        impostor_lod = np.asarray(self.impostor_lods)[0 if kind is None else kind]
+        as_impostor = (dist >= self.impostor_distance) & (impostor_lod >= 0)
+        lod = np.where(as_impostor, impostor_lod, lod)
         shown = np.flatnonzero(visible).astype(np.uint32)
         records = self._all_records(instances, eye, row_offset, palette)  # once, for the colour and the shadow lists
         drawn = self._upload_lists(instances, records, shown, lod[shown], kind, "instances")
@@ -627,7 +680,7 @@ class CrowdRenderer(GLStage):
         if self.shadows:
             lit = np.stack([sphere_visible(frustum_planes(m), centers, radii) & (dist - radii <= reach) if self.culling and n else np.ones(n, bool)
                             for m, reach in zip(shadow.view_proj, shadow.reach_m)])
-            shadow_lod = np.minimum(lod + 1, top)
+            shadow_lod = np.where(as_impostor, impostor_lod, np.minimum(lod + 1, top))
             for k, in_cascade in enumerate(lit):
                 casting = np.flatnonzero(in_cascade).astype(np.uint32)
                 drawn = self._upload_lists(instances, records, casting, shadow_lod[casting], kind, "shadow_instances", k)
@@ -802,8 +855,12 @@ class CrowdRenderer(GLStage):
                 if layout == "" and self.merged:
                     self._render_merged("depth", True, k, morph)
                     continue
+                if layout == "impostor":
+                    prog["u_toward_light"] = tuple(float(x) for x in self.sun_dir)
                 for index, draw in enumerate(self.draws):
                     if (draw.layout, draw.morph) == (layout, morph):
+                        if layout == "impostor":
+                            self.impostors[draw.character].bind(prog, self.palette.parts[draw.character].slots)
                         self._render(index, draw, "depth", True, k)
         return True
 
@@ -836,13 +893,44 @@ class CrowdRenderer(GLStage):
                     continue
                 for index, draw in enumerate(self.draws):
                     if (draw.layout, draw.morph and skinned is True) == (layout, morph) and (draw.count or self.gpu is not None):
-                        if layout:
+                        if layout == "impostor":
+                            if skinned is not True:  # the benchmark's unskinned ceiling binds no palette, so no keys
+                                continue
+                            self.impostors[draw.character].bind(prog, self.palette.parts[draw.character].slots)
+                        elif layout:
                             self.materials.bind(draw.texture, prog)
                         if layout == "packed":
                             prog["u_uv_box"] = draw.uv_box
                         self._render(index, draw, "color", skinned)
         finally:
             if self.materials is not None:  # a sampler object left on its unit would override what binds there next
+                self.materials.unbind()
+
+    def bake_pass(self, framebuffer, processor, boxes: moderngl.Texture, uniforms: dict) -> None:
+        """The impostor bake's draw of one view (crowd.draw.impostors.bake_atlas): every prepared agent
+        (the CPU path's lists, in agent order: instance t is frame t) into its cell, through the
+        IMPOSTOR_BAKE programs; `boxes` the per-frame box texture, `uniforms` the view's."""
+        framebuffer.use()
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
+        boxes.use(BAKE_BOXES_UNIT)
+        try:
+            for layout, _ in self._variants():
+                prog = self._program("bake", True, layout)
+                processor.bind_palette(0, prog)
+                prog["u_bake_boxes"] = BAKE_BOXES_UNIT
+                for name, value in uniforms.items():
+                    if name in prog:
+                        prog[name] = tuple(float(x) for x in value) if isinstance(value, np.ndarray) else value
+                for index, draw in enumerate(self.draws):
+                    if draw.layout == layout and draw.count:
+                        if layout:
+                            self.materials.bind(draw.texture, prog)
+                        if layout == "packed":
+                            prog["u_uv_box"] = draw.uv_box
+                        self._render(index, draw, "bake", True)
+        finally:
+            if self.materials is not None:
                 self.materials.unbind()
 
     def ground_pass(self, framebuffer, view: "FrameView") -> None:

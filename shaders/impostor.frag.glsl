@@ -1,0 +1,62 @@
+#version 330 core
+// Impostors (impostor.vert.glsl): the four atlas cells blended (two views by two frames), weighted by
+// their coverage; a texel less than half covered is left out. The colour pass lights the atlas's albedo
+// and normal as skin.frag.glsl lights a mesh (the same sun, sky, shadows and fog, the agent's tint), and
+// writes the depth the atlas holds, so impostors and meshes intersect; the shadow pass (DEPTH_ONLY) keeps
+// the coverage only.
+uniform sampler2DArray u_atlas_albedo;        // RGBA8: albedo, coverage
+uniform sampler2DArray u_atlas_normal_depth;  // RGBA8: octahedral normal, depth (16 bits in two channels)
+uniform int u_columns;  // cells across a layer: views x elevations
+uniform int u_rows;     // frames a layer holds
+flat in ivec4 v_cells;
+flat in vec2 v_blend;
+in vec2 v_corner;
+#ifndef DEPTH_ONLY
+#include "lighting.glsl"
+#include "octahedral.glsl"
+#include "vertex_packing.glsl"
+uniform mat4 u_view_proj;
+in vec3 v_world;
+flat in vec3 v_toward;
+flat in float v_depth_range;
+flat in vec2 v_heading;
+flat in vec4 v_tint;
+out vec4 o_color;
+#endif
+
+vec3 cell_coord(int cell) {
+    int frame = cell / u_columns;
+    int column = cell - frame * u_columns;
+    int layer = frame / u_rows;
+    int row = frame - layer * u_rows;
+    return vec3((vec2(float(column), float(row)) + v_corner) / vec2(float(u_columns), float(u_rows)), float(layer));
+}
+
+// The bake cleared every texel no triangle covers to 0, so a filtered texel is already weighted by its
+// coverage (the depth's two channels decode linearly): sums over the cells, divided by the coverage.
+void main() {
+    vec4 w = vec4((1.0 - v_blend.x) * (1.0 - v_blend.y), v_blend.x * (1.0 - v_blend.y), (1.0 - v_blend.x) * v_blend.y, v_blend.x * v_blend.y);
+    vec4 albedo = vec4(0.0);
+#ifndef DEPTH_ONLY
+    vec2 oct = vec2(0.0);
+    float depth = 0.0;
+#endif
+    for (int k = 0; k < 4; ++k) {
+        if (w[k] <= 0.0) continue;
+        vec3 at = cell_coord(v_cells[k]);
+        albedo += w[k] * texture(u_atlas_albedo, at);
+#ifndef DEPTH_ONLY
+        vec4 nd = texture(u_atlas_normal_depth, at);
+        oct += w[k] * nd.xy;
+        depth += w[k] * (nd.z * (255.0 * 256.0) + nd.w * 255.0) / 65535.0;
+#endif
+    }
+    if (albedo.a < 0.5) discard;
+#ifndef DEPTH_ONLY
+    vec3 n = turn_about_y(v_heading, oct_decode(oct / albedo.a * 2.0 - 1.0));
+    vec3 world = v_world + v_toward * ((depth / albedo.a * 2.0 - 1.0) * v_depth_range);
+    vec4 clip = u_view_proj * vec4(world, 1.0);
+    gl_FragDepth = clamp(clip.z / clip.w * 0.5 + 0.5, 0.0, 1.0);
+    o_color = vec4(shade(albedo.rgb / albedo.a * v_tint.rgb, world, n), 1.0);
+#endif
+}
