@@ -13,6 +13,7 @@
   (one finish per frame), with the pass medians, against agent count; ``--panel`` adds the panel and
   HUD drawn into the frame, side by side.
 - ``morph``: the processor's and the skinned draw's GPU ms with morph targets off and 0 to 4 active (bench/morph_cost.py).
+- ``impostor``: the impostor atlas's error against the mesh, its bytes and bake time, over a grid of atlas settings (bench/impostor_quality.py).
 - ``soak``: the default scene for many frames: resident memory, live GL objects and faults (bench/soak.py).
 - ``readback``: the weapons' socket gather and GPU→CPU transfer against the number of armed agents,
   the CPU's wait on it, and the weapon-to-hand error with the body drawn in step with the read-back
@@ -393,6 +394,13 @@ def bench_vertex_cache(args) -> int:
     return 0
 
 
+def bench_impostor(args) -> int:
+    """The impostor atlas's quality against its bytes (bench/impostor_quality.py)."""
+    from .impostor_quality import bench_impostor as run
+
+    return run(args)
+
+
 def bench_morph(args) -> int:
     """What morph targets cost the processor and the skinned draw (bench/morph_cost.py)."""
     from .morph_cost import bench_morph as run
@@ -553,6 +561,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=10, help="timed frames per configuration and round (the median of all is reported)")
     p.add_argument("--json", type=Path, help="write the results as JSON to this file")
     p.set_defaults(run=bench_morph)
+    p = sub.add_parser("impostor", help="impostor atlas: error against the mesh at the switch distance, bytes and bake time, over a grid of settings")
+    p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
+    p.add_argument("--distance", type=float, default=60.0, help="metres: the switch distance the impostor is compared at")
+    p.add_argument("--quick", action="store_true", help="the default settings only")
+    p.add_argument("--json", type=Path, help="write the results as JSON to this file")
+    p.set_defaults(run=bench_impostor)
     p = sub.add_parser("ai", help="CPU ms per crowd-AI step against agent count")
     p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
     p.add_argument("--agents", default="200,1000,10000,100000", help='comma-separated agent counts')

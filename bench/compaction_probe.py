@@ -26,7 +26,7 @@ from crowd.gl import load_shader
 def _lists(renderer) -> list[set]:
     """The agents in each draw's colour list."""
     cull = renderer.gpu
-    counts = np.frombuffer(cull.commands.read(), np.uint32).reshape(-1, 5)[:, 1]
+    counts = np.frombuffer(cull.commands.read(size=cull.draw_count * 20), np.uint32).reshape(-1, 5)[:, 1]
     records = np.frombuffer(cull.lists.read(), INSTANCE_DTYPE)
     out = []
     for d, c in enumerate(counts):

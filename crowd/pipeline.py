@@ -116,6 +116,7 @@ class PipelineConfig:
     morphs: bool = DEFAULTS["morphs"]  # morph targets drawn where the scene moves them (crowd.anim.morph, crowd.draw.morph)
     impostors: str = DEFAULTS["impostors"]  # "auto", "on" or "off": far agents drawn as impostors (crowd.draw.impostors)
     impostor_distance: float = DEFAULTS["impostor_distance"]  # metres from the camera
+    lod_fade: float = DEFAULTS["lod_fade"]  # metres past each LOD switch over which the two LODs cross-fade
     characters: tuple = ()  # CharacterSpec per character of a mixed crowd; () is one character: model, roles, model_scale above
     # The player drawn as the built-in survivor (crowd.sim.player), after the crowd. Off here, on in scenes (the
     # settings' default): a PipelineConfig is the crowd the library draws, a scene is the game the demo plays.
@@ -362,7 +363,7 @@ class CrowdPipeline(GLStage):
         return StageSpec(layers=LAYERS, processor_path=c.processor_path, interpolation=c.interpolation, lod_distances=c.lod_distances,
                          shadows=c.shadows, culling=c.culling, occlusion=c.occlusion, armed=self.readback is not None if armed is None else armed,
                          readback_latency=self.latency, cull=c.cull, foot_lock=c.foot_lock, town=c.town,
-                         impostor_distance=c.impostor_distance)
+                         impostor_distance=c.impostor_distance, lod_fade=c.lod_fade)
 
     # -- impostors (crowd.draw.impostors): only where the scene needs them
 
@@ -421,6 +422,12 @@ class CrowdPipeline(GLStage):
         self.sync.reset()
         if self.readback is not None:
             self.readback.reset()
+
+    def set_lod_fade(self, metres: float) -> None:
+        """Cross-fade each LOD switch over `metres` (0: switch at once), live."""
+        metres = SETTINGS["lod_fade"].check(metres, PipelineError)
+        self.renderer.set_lod_fade(metres)
+        self.config = dataclasses.replace(self.config, lod_fade=metres)
 
     def set_impostors(self, mode: str) -> None:
         """Impostors "auto", "on" or "off", live."""
@@ -827,6 +834,7 @@ class CrowdPipeline(GLStage):
         if self.readback is not None and rows:
             armed = np.flatnonzero(weapon_of_agent >= 0)
             armed = armed[(armed >= self.ai.n) | self.ai.armed()[np.minimum(armed, max(self.ai.n - 1, 0))]] if self.ai.n else armed
+            armed = self._drawn_as_meshes(armed, instances)  # an impostor's weapon is not placed
             # The sample of the foot-skate measure is the first character's agents (its feet, its block).
             feet, foot_joints = self.foot_skate.entries(self.ai.cast[0], self.ai.steady)
             agents = np.concatenate([armed, feet])
@@ -903,6 +911,22 @@ class CrowdPipeline(GLStage):
         return self.last
 
     # -- the survivor
+
+    def _drawn_as_meshes(self, agents: np.ndarray, instances: Instances) -> np.ndarray:
+        """Those of `agents` that may be drawn as meshes this frame: all but the agents of characters with
+        impostors past the impostor distance and its fade band (with a bounding radius to spare, as the cull
+        measures from the sphere's centre), whose weapons are not placed: the CPU's work on weapons then
+        grows with the agents drawn as meshes, not with the crowd."""
+        impostor_lods = np.asarray(self.renderer.impostor_lods)
+        if not len(agents) or np.all(impostor_lods < 0):
+            return agents
+        kind = np.full(len(agents), len(self.cast) - 1 if self.survivor is not None else 0, np.int64)
+        crowd = agents < self.ai.n
+        kind[crowd] = self.ai.kind[agents[crowd]]
+        reach = self.renderer.impostor_distance + self.renderer.lod_fade + float(self.renderer.bounds[:, 3].max()) * 2.0
+        rel = instances.position[agents] - np.asarray(self.camera.eye, np.float64)[None]
+        far = np.einsum("ij,ij->i", rel, rel) > reach * reach
+        return agents[~(far & (impostor_lods[kind] >= 0))]
 
     def _weapon_of_agent(self) -> np.ndarray:
         """Each drawn agent's weapon (-1: none): the crowd's, then the survivor's (its character's first)."""

@@ -102,6 +102,7 @@ class Scene:
     foot_lock: bool = DEFAULTS["foot_lock"]
     morphs: bool = DEFAULTS["morphs"]
     impostors: str = DEFAULTS["impostors"]
+    lod_fade: float = DEFAULTS["lod_fade"]
     impostor_distance: float = DEFAULTS["impostor_distance"]
     survivor: bool = DEFAULTS["survivor"]
     town: bool = DEFAULTS["town"]
@@ -177,7 +178,7 @@ class Scene:
                               precision=self.precision, compression_bound_mm=self.compression_bound_mm, interpolation=self.interpolation, processor_path=self.processor, shadows=self.shadows, culling=self.culling,
                               occlusion=self.occlusion, lod_distances=tuple(self.lod_distances), ai=self.ai, weapons=self.weapons,
                               readback_latency=self.readback_latency, cull=self.cull, foot_lock=self.foot_lock, morphs=self.morphs,
-                              impostors=self.impostors, impostor_distance=self.impostor_distance, survivor=self.survivor, town=self.town)
+                              impostors=self.impostors, impostor_distance=self.impostor_distance, lod_fade=self.lod_fade, survivor=self.survivor, town=self.town)
 
 
 # The keys of each table: the settings of its group, and the few structured keys only scenes have.

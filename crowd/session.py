@@ -358,6 +358,9 @@ class CrowdSession(GLStage):
         """Far agents drawn as impostors: "auto", "on" or "off" (the atlas made or dropped), live."""
         self.pipeline.set_impostors(SETTINGS["impostors"].check(mode, SessionError))
 
+    def set_lod_fade(self, metres: float) -> None:
+        self.pipeline.set_lod_fade(SETTINGS["lod_fade"].check(metres, SessionError))
+
     def set_impostor_distance(self, metres: float) -> None:
         self.pipeline.set_impostor_distance(SETTINGS["impostor_distance"].check(metres, SessionError))
 
@@ -393,6 +396,7 @@ class CrowdSession(GLStage):
             "lod_distances": lambda v: self.set_lod_distances(*SETTINGS["lod_distances"].check(v, SessionError)),
             "readback_latency": self.set_readback_latency, "cull": self.set_cull_path, "foot_lock": self.set_foot_lock,
             "morphs": self.set_morphs, "impostors": self.set_impostors, "impostor_distance": self.set_impostor_distance,
+            "lod_fade": self.set_lod_fade,
         }
         if name in ("model_scale", "survivor", "town"):  # what the cast and its world are made of: set when the crowd is built
             SETTINGS[name].check(value, SessionError)
@@ -562,7 +566,7 @@ class CrowdSession(GLStage):
             weapons=p.config.weapons, readback_latency=p.latency, shadows=p.renderer.shadows, culling=p.renderer.culling, occlusion=p.config.occlusion,
             lod_distances=tuple(p.renderer.lod_distances), processor=p.config.processor_path, cull=p.config.cull, foot_lock=p.config.foot_lock,
             survivor=p.survivor is not None, town=p.town is not None, morphs=p.config.morphs, impostors=p.config.impostors,
-            impostor_distance=p.config.impostor_distance,
+            impostor_distance=p.config.impostor_distance, lod_fade=p.config.lod_fade,
             camera=CameraSetting(tuple(float(v) for v in cam.eye), tuple(float(v) for v in cam.target), float(cam.fov_y)))
 
     def save(self, path) -> Path | None:

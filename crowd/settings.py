@@ -221,6 +221,9 @@ _ALL = (
             "occlusion culling against the previous frame's depth pyramid (the gpu cull path; docs/BENCHMARKS.md says where it pays)"),
     Setting("lod_distances", "features", "ascending", (14.0, 40.0, 90.0), "metres from the camera where LOD1, LOD2 and LOD3 start",
             label="LOD distances", low=0, open_low=True, slider=(1, 500)),
+    Setting("lod_fade", "features", "float", 2.0,
+            "metres past each LOD switch (the impostors' too) over which the two LODs cross-fade, dithered, so no switch pops "
+            "(0: they switch at once)", label="LOD fade", low=0, high=100, slider=(0, 10)),
     Setting("impostors", "features", "choice", "auto",
             "agents past impostor_distance drawn as animated impostors, one quad each, from an atlas baked at start and cached "
             "(crowd/draw/impostors.py); auto: where the crowd is large enough to need them (docs/BENCHMARKS.md says where)",

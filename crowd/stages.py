@@ -65,6 +65,7 @@ class StageSpec:
     town: bool = False  # the built-in town is drawn (the town stage exists)
     readback_latency: int = DEFAULTS["readback_latency"]
     impostor_distance: float = DEFAULTS["impostor_distance"]  # metres, for the characters with an atlas
+    lod_fade: float = DEFAULTS["lod_fade"]  # metres past each LOD switch over which the LODs cross-fade
 
     @property
     def history(self) -> int:
@@ -96,7 +97,7 @@ def build_renderer(ctx: moderngl.Context, cast, spec: StageSpec) -> CrowdRendere
     return CrowdRenderer(ctx, [part.character for part in cast], lod_distances=spec.lod_distances, shadows=spec.shadows,
                          culling=spec.culling, cull_path=cull_path(ctx, spec.cull), weapons_visibility=spec.armed, occlusion=spec.occlusion,
                          town=spec.town, morphs=[part.bake.morphs is not None for part in cast],
-                         impostors=[part.impostor for part in cast], impostor_distance=spec.impostor_distance)
+                         impostors=[part.impostor for part in cast], impostor_distance=spec.impostor_distance, lod_fade=spec.lod_fade)
 
 
 def cull_path(ctx: moderngl.Context, asked: str) -> str:

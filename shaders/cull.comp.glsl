@@ -14,13 +14,19 @@ layout(local_size_x = 256) in;
 // each work group counts its agents per draw in shared memory, reserves its range of each list with
 // one global atomic per draw it touches, and then writes its records into the ranges.
 shared uint s_base[MAX_DRAWS];
+const int LOD_SLOTS = 8;  // crowd/draw/gpu_cull.py's: per character, the agents kept at each LOD, after the commands
+shared uint s_agents[MAX_CAST * LOD_SLOTS];
+uniform int u_count_agents;  // the colour run counts them
+uniform int u_count_base;    // their first word in the commands buffer
 
 void main() {
     uint local = gl_LocalInvocationIndex;
+    for (uint c = local; c < uint(MAX_CAST * LOD_SLOTS); c += gl_WorkGroupSize.x) s_agents[c] = 0u;
     Record r;
     int draws[MAX_EMITS];
     uint slots[MAX_EMITS];
-    int emits = count_in_group(r, draws, slots);
+    int emits = count_in_group(r, draws, slots);  // (its barriers order the clearing above before the counting below)
+    if (u_count_agents != 0 && emits > 0) atomicAdd(s_agents[g_character * LOD_SLOTS + g_lod], 1u);
     for (uint d = local; d < uint(u_draws); d += gl_WorkGroupSize.x) {
         uint count = s_count[d];
         uint command = (uint(u_list_base) + d) * 5u;
@@ -38,8 +44,15 @@ void main() {
     }
     memoryBarrierShared();
     barrier();
+    for (uint c = local; c < uint(MAX_CAST * LOD_SLOTS); c += gl_WorkGroupSize.x) {
+        if (s_agents[c] > 0u) atomicAdd(commands[uint(u_count_base) + c], s_agents[c]);
+    }
     for (int e = 0; e < emits; ++e) {
         int d = draws[e];
-        if (d >= 0) lists[u_record_base + list_start[d] + s_base[d] + slots[e]] = r;
+        if (d >= 0) {
+            Record copy = r;
+            copy.fields.y = (r.fields.y & 0x00FFFFFFu) | (g_fade[e] << 24);
+            lists[u_record_base + list_start[d] + s_base[d] + slots[e]] = copy;
+        }
     }
 }

@@ -30,6 +30,7 @@ uniform float u_reach;      // a shadow cascade's: agents whose sphere starts fa
 uniform float u_lod_start[4];
 uniform int u_lod_steps;    // LOD distances in use
 uniform int u_lod_count[MAX_CAST];  // per character: its mesh LODs
+uniform float u_lod_fade;   // metres past each LOD switch over which the two LODs cross-fade (0: none; lod_fade.glsl)
 uniform float u_impostor_start[MAX_CAST];  // per character: metres from which its agents are its impostor, LOD u_lod_count (crowd/draw/impostors.py)
 uniform int u_culling;
 uniform uint u_agents;
@@ -100,8 +101,16 @@ int routed(int d, bool still) {
     return still && d >= 0 && route[d] >= 0 ? route[d] : d;
 }
 
+// Per emitted draw of this invocation's agent: the fade code its copy of the record carries in its
+// tint's alpha byte (lod_fade.glsl: 255, none).
+uint g_fade[MAX_EMITS];
+int g_character;  // this invocation's agent's character, and the LOD it is drawn at (the coarser across a fade)
+int g_lod;
+
 // Agent i's record and the draws it is in (-1 where its LOD has no mesh for a slot): `emits` of them,
-// none when it is culled. Writes its visibility for the weapons as a side effect (u_write_visible).
+// none when it is culled; within u_lod_fade of a LOD switch (not in a shadow run) the pieces of both
+// LODs, with g_fade saying each copy's side and progress. Writes its visibility for the weapons as a
+// side effect (u_write_visible).
 int agent_draws(uint i, out Record r, out int draws[MAX_EMITS]) {
     int emits = 0;
     r = agents[i];
@@ -119,13 +128,31 @@ int agent_draws(uint i, out Record r, out int draws[MAX_EMITS]) {
     if (inside) {
         float dist = length(center);
         for (int k = 0; k < u_lod_steps; ++k) lod += int(dist >= u_lod_start[k]);
-        lod = dist >= u_impostor_start[character] ? u_lod_count[character] : min(lod + u_lod_bias, u_lod_count[character] - 1);
-        int base = lod * u_slots;
+        int mesh_lod = min(lod + u_lod_bias, u_lod_count[character] - 1);
+        bool impostor = dist >= u_impostor_start[character];
+        // The switch just behind the agent, and the LOD it switched from: within u_lod_fade of it, both.
+        float boundary = impostor ? u_impostor_start[character] : (lod > 0 ? u_lod_start[lod - 1] : -1.0);
+        int finer = impostor ? mesh_lod : min(lod - 1, u_lod_count[character] - 1);
+        lod = impostor ? u_lod_count[character] : mesh_lod;
+        bool fading = u_lod_fade > 0.0 && u_lod_bias == 0 && boundary >= 0.0 && dist < boundary + u_lod_fade && finer != lod;
+        uint through = fading ? uint(clamp((dist - boundary) / u_lod_fade, 0.0, 1.0) * 127.0 + 0.5) : 0u;
+        g_character = character;
+        g_lod = lod;
         bool still = moves_no_target(r, character);
-        for (int s = 0; s < u_common[character]; ++s) draws[emits++] = routed(draw_of[base + u_common_first[character] + s], still);
-        for (int g = 0; g < u_groups; ++g) {
-            int first = u_group_slot[character * MAX_GROUPS + g];
-            if (first >= 0) draws[emits++] = routed(draw_of[base + first + int((r.fields.w >> uint(4 * g)) & 15u)], still);
+        for (int side = fading ? 0 : 1; side < 2; ++side) {
+            int base = (side == 0 ? finer : lod) * u_slots;
+            uint code = fading ? (uint(side) << 7) | through : 255u;
+            for (int s = 0; s < u_common[character]; ++s) {
+                g_fade[emits] = code;
+                draws[emits++] = routed(draw_of[base + u_common_first[character] + s], still);
+            }
+            for (int g = 0; g < u_groups; ++g) {
+                int first = u_group_slot[character * MAX_GROUPS + g];
+                if (first >= 0) {
+                    g_fade[emits] = code;
+                    draws[emits++] = routed(draw_of[base + first + int((r.fields.w >> uint(4 * g)) & 15u)], still);
+                }
+            }
         }
     }
     if (u_write_visible == 1) visible[i] = inside ? uint(lod + 1) : 0u;

@@ -21,6 +21,8 @@ flat in vec3 v_toward;
 flat in float v_depth_range;
 flat in vec2 v_heading;
 flat in vec4 v_tint;
+flat in uint v_fade;
+#include "lod_fade.glsl"
 out vec4 o_color;
 #endif
 
@@ -35,6 +37,9 @@ vec3 cell_coord(int cell) {
 // The bake cleared every texel no triangle covers to 0, so a filtered texel is already weighted by its
 // coverage (the depth's two channels decode linearly): sums over the cells, divided by the coverage.
 void main() {
+#ifndef DEPTH_ONLY
+    if (faded_out(v_fade, gl_FragCoord.xy)) discard;
+#endif
     vec4 w = vec4((1.0 - v_blend.x) * (1.0 - v_blend.y), v_blend.x * (1.0 - v_blend.y), (1.0 - v_blend.x) * v_blend.y, v_blend.x * v_blend.y);
     vec4 albedo = vec4(0.0);
 #ifndef DEPTH_ONLY

@@ -30,6 +30,7 @@ flat out vec3 v_toward;     // toward the camera
 flat out float v_depth_range;  // metres the atlas's depth spans either side of the quad
 flat out vec2 v_heading;
 flat out vec4 v_tint;
+flat out uint v_fade;       // lod_fade.glsl's code
 #endif
 
 void main() {
@@ -86,5 +87,6 @@ void main() {
     v_depth_range = box.w;
     v_heading = heading;
     v_tint = unpack_rgba8(i_packed.y);
+    v_fade = i_packed.y >> 24;
 #endif
 }

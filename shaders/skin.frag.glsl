@@ -12,6 +12,10 @@ uniform float u_layer;
 uniform vec2 u_uv_mirror;         // 1 where the wrap is MIRRORED_REPEAT (the sampler itself repeats)
 #endif
 layout(location = 0) out vec4 o_color;
+#ifdef LOD_FADE
+#include "lod_fade.glsl"
+flat in uint v_fade;
+#endif
 #ifdef IMPOSTOR_BAKE
 // The impostor atlas's cells (crowd/draw/impostors.py): the albedo before lighting and tint, then the
 // model-space normal (octahedral) and the depth toward the camera as 16 bits in two channels.
@@ -20,6 +24,9 @@ in float v_bake_depth;
 layout(location = 1) out vec4 o_normal_depth;
 #endif
 void main() {
+#ifdef LOD_FADE
+    if (faded_out(v_fade, gl_FragCoord.xy)) discard;
+#endif
     vec3 n = normalize(v_normal);
     if (!gl_FrontFacing) n = -n;
     vec3 albedo = v_color.rgb;

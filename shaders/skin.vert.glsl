@@ -130,6 +130,9 @@ void morph(ivec3 joint0, inout vec3 position, inout vec3 normal) {
 out vec3 v_world;      // camera-relative
 out vec3 v_normal;
 out vec4 v_color;
+#ifdef LOD_FADE
+flat out uint v_fade;  // lod_fade.glsl's code, from the tint's alpha byte
+#endif
 #endif
 #ifdef IMPOSTOR_BAKE
 uniform sampler2D u_bake_boxes;  // (frames, 1): the frame's clip's box: half width, bottom, height, depth half-range
@@ -204,6 +207,9 @@ void main() {
     v_world = world;
     v_normal = turn_about_y(heading, normal);
     v_color = unpack_rgba8(in_packed.w) * unpack_rgba8(i_packed.y);
+#ifdef LOD_FADE
+    v_fade = i_packed.y >> 24;
+#endif
 #endif
 #if defined(TEXTURED) && defined(WIDE_UV) && !defined(DEPTH_ONLY)
     v_uv = in_uv;

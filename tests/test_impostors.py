@@ -189,3 +189,54 @@ def test_only_scenes_that_need_impostors_allocate_them(gl_context):
             p.set_impostors("off")
             assert p.renderer.gpu_bytes()["impostors"] == 0 and all(m.impostor is None for m in p.cast)
             p.frame(target.framebuffer, 1 / 30)
+
+
+@pytest.mark.parametrize("path", ["cpu", "gpu"])
+def test_lod_switches_cross_fade_without_a_pop(gl_context, zombie, atlas, path):
+    """One agent 30 m away while the switch distance sweeps past it in steps of 1/16 of the band: as its
+    impostor (from LOD1) and as LOD2 (from LOD1). With a 2 m band no frame may change more pixels than
+    its share of the band allows (each step moves 1/16 of the pixels that differ between the two LODs,
+    twice that for the dither's unevenness, and a few); with no band the switch changes them all in one
+    frame, which the same bound catches."""
+    from crowd.gl import Offscreen, has_compute
+
+    if path == "gpu" and not has_compute(gl_context):
+        pytest.skip("no GL 4.3 here")
+    character, baked = zombie
+    layers = empty_layers(1, 4)
+    layers[0, 0, [CLIP, PHASE, WEIGHT, MASK]] = (1, 0.3, 1.0, -1.0)
+    inst = Instances(np.zeros((1, 3)), np.array([0.4], np.float32), np.ones(1, np.float32), np.full((1, 4), 255, np.uint8),
+                     {"head": np.zeros(1, np.int64)})
+    distance, band, steps = 30.0, 2.0, 16
+    fov = 2.0 * math.degrees(math.atan(160 / 1080 * math.tan(math.radians(Camera.fov_y) / 2.0)))
+    camera = Camera(eye=np.array([0.0, 1.0, distance]), target=np.array([0.0, 0.9, 0.0]), aspect=1.0, fov_y=fov)
+    worst = {}
+    with AnimationProcessor(gl_context, baked, 4, impostor_keys=[True]) as proc, Offscreen(gl_context, (160, 160)) as target:
+        proc.resize(1)
+        proc.process(layers)
+        for fade in (band, 0.0):
+            for switch in ("impostor", "lod2"):
+                with CrowdRenderer(gl_context, character, shadows=False, culling=False, cull_path=path, impostors=[atlas],
+                                   impostor_distance=1e6, lod_distances=(14.0, 1e5, 2e5), lod_fade=fade) as renderer:
+                    frames = []
+                    for k in range(-2, steps + 3):  # the switch from just past the agent to a band short of it
+                        at = distance + 0.01 - band * k / steps
+                        if switch == "impostor":
+                            renderer.set_impostor_distance(at)
+                        else:
+                            renderer.lod_distances = (14.0, at, 2e5)
+                        view = renderer.prepare(camera, inst, palette=proc.layout, processor=proc)
+                        fb = target.framebuffer
+                        fb.use()
+                        fb.clear(0.0, 0.0, 0.0, 1.0, depth=1.0)
+                        renderer.color_pass(fb, view, proc)
+                        frames.append(target.image().astype(np.int32))
+                differ = np.count_nonzero(np.abs(frames[0] - frames[-1]).max(axis=2) > 8)
+                changes = [np.count_nonzero(np.abs(a - b).max(axis=2) > 8) for a, b in zip(frames, frames[1:])]
+                worst[fade, switch] = (max(changes), differ)
+    print(worst)
+    for switch in ("impostor", "lod2"):
+        step_max, differ = worst[band, switch]
+        assert differ > 40, (switch, differ)  # the two LODs do differ here
+        assert step_max <= 2.0 * differ / steps + 6, (switch, step_max, differ)
+        assert worst[0.0, switch][0] > 2.0 * differ / steps + 6  # the bound would catch a pop

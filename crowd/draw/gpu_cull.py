@@ -53,6 +53,7 @@ MAX_LOD_STEPS = 4
 MAX_DRAWS = 256  # (piece, LOD) draws: the cull's shared counters (cull.comp.glsl)
 MAX_EMITS = 16  # draws one agent is in: its common pieces and one piece per variation group
 COUNT_RING = 3
+LOD_SLOTS = 8  # per character, the colour cull's agents counted per LOD (mesh LODs and the impostor), after the commands
 FILLS_DOWN = -2  # cull_common.glsl's route entry of a plain twin
 ROUTE_UNIT = 0  # the cull reads the palette's first plane here
 
@@ -85,9 +86,12 @@ class CountRing:
     commands are copied into one of 3 small buffers behind a fence and read once the fence has
     signalled, so they trail the frame by a frame or two. Used by the body and the weapon culls."""
 
-    def __init__(self, ctx: moderngl.Context, objects: GLObjects, commands: int):
+    def __init__(self, ctx: moderngl.Context, objects: GLObjects, commands: int, extra: int = 0):
+        """`extra`: uint32 words after the commands that come back too (``latest_extra``)."""
         self.ctx = ctx
-        self._ring = [objects.add(ctx.buffer(reserve=commands * COMMAND_DTYPE.itemsize)) for _ in range(COUNT_RING)]
+        self._commands = commands
+        self._ring = [objects.add(ctx.buffer(reserve=commands * COMMAND_DTYPE.itemsize + extra * 4)) for _ in range(COUNT_RING)]
+        self.latest_extra = np.zeros(extra, np.uint32)
         self._pending: deque = deque()  # (ring slot, fence) not yet read, oldest first
         self._next = 0
         self.latest = np.zeros(commands, np.uint32)
@@ -104,6 +108,7 @@ class CountRing:
         """Nothing to draw from now on (no agents): the counts are 0 at once."""
         self.drop()
         self.latest = np.zeros_like(self.latest)
+        self.latest_extra = np.zeros_like(self.latest_extra)
 
     def read(self, wait: bool = False) -> np.ndarray:
         """The newest counts the GPU has finished (every queued frame's with `wait`)."""
@@ -115,7 +120,10 @@ class CountRing:
                 fence.wait()
             self._pending.popleft()
             fence.release()
-            self.latest = np.frombuffer(self._ring[slot].read(), COMMAND_DTYPE)["instances"].copy()
+            data = self._ring[slot].read()
+            size = self._commands * COMMAND_DTYPE.itemsize
+            self.latest = np.frombuffer(data[:size], COMMAND_DTYPE)["instances"].copy()
+            self.latest_extra = np.frombuffer(data[size:], np.uint32).copy()
         return self.latest
 
     def drop(self) -> None:
@@ -141,8 +149,10 @@ class GpuCull(GLStage):
             raise GpuCullError(f"the GPU cull takes up to {MAX_GROUPS} variation groups of up to {MAX_CHOICES} pieces, "
                                f"this cast has {len(group_choices)} groups of {', '.join(map(str, group_choices))}")
         worn = max(c.common + sum(1 for g in c.group_slots if g >= 0) for c in characters)
-        if worn > MAX_EMITS:
-            raise GpuCullError(f"an agent wears {worn} pieces, more than the {MAX_EMITS} the GPU cull lists")
+        if any(c.lod_count + 1 > LOD_SLOTS for c in characters):
+            raise GpuCullError(f"the GPU cull counts up to {LOD_SLOTS - 1} mesh LODs a character")
+        if 2 * worn > MAX_EMITS:  # an agent in a LOD fade is listed at two LODs
+            raise GpuCullError(f"an agent wears {worn} pieces, more than the {MAX_EMITS // 2} the GPU cull lists (twice, across a LOD fade)")
         if len(draws) > MAX_DRAWS:
             raise GpuCullError(f"{len(draws)} (piece, LOD) draws, more than the {MAX_DRAWS} the GPU cull counts")
         self.draw_count = len(draws)
@@ -175,8 +185,10 @@ class GpuCull(GLStage):
         self.draw_of = self._objects.add(ctx.buffer(table.tobytes()))
         self.route = self._objects.add(ctx.buffer(route.tobytes()))
         self.list_start = self._objects.add(ctx.buffer(reserve=self.draw_count * 4))
-        self.commands = self._objects.add(ctx.buffer(reserve=self.draw_count * COMMAND_DTYPE.itemsize))
-        self.ring = CountRing(ctx, self._objects, self.draw_count)
+        # The commands, then per (character, LOD) the colour cull's agents (each once, at the LOD it is
+        # drawn at: an agent in a fade is in two LODs' lists but counts at the coarser).
+        self.commands = self._objects.add(ctx.buffer(reserve=self.draw_count * COMMAND_DTYPE.itemsize + len(characters) * LOD_SLOTS * 4))
+        self.ring = CountRing(ctx, self._objects, self.draw_count, len(characters) * LOD_SLOTS)
         self.max_block = int(ctx.info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE", 1 << 27))
         self.max_groups = int(ctx.info.get("GL_MAX_COMPUTE_WORK_GROUP_COUNT", (65535,))[0])
         # Made once and re-sized in place (orphan keeps the GL name), so the vertex arrays built on
@@ -187,6 +199,7 @@ class GpuCull(GLStage):
         self.records = 0  # the colour lists' records: every draw's capacity
         self.agents_buffer = self._objects.add(ctx.buffer(reserve=RECORD_DTYPE.itemsize))
         self.lists = self._objects.add(ctx.buffer(reserve=RECORD_DTYPE.itemsize))
+        self.lod_fade = 0.0  # metres past each LOD switch over which an agent is listed at both LODs (lod_fade.glsl)
         self.cascades = shadow_cascades  # cascade k's lists and commands follow cascade k - 1's
         self.shadow_lists = self.shadow_commands = self.shadow_ring = None
         if shadow_cascades:
@@ -276,7 +289,7 @@ class GpuCull(GLStage):
         if self.cast is not None and twins.any():  # a twin counts down from its shared list's end
             ends = self.starts[twins] + np.asarray(self.cast, np.int64)[self.draw_character[twins]]
             commands["base_instance"][twins] = ends.astype(np.uint32)
-        self.commands.write(commands.tobytes())
+        self.commands.write(commands.tobytes() + bytes(len(self.characters) * LOD_SLOTS * 4))
         if self.shadow_commands is not None:
             shadow = np.tile(commands, self.cascades)
             shadow["base_instance"] = np.tile(commands["base_instance"].astype(np.int64), self.cascades) + np.repeat(np.arange(self.cascades, dtype=np.int64) * self.records, self.draw_count)
@@ -344,6 +357,9 @@ class GpuCull(GLStage):
         impostor_start[: len(self.characters)] = [min(c.impostor_start, 3.0e38) for c in self.characters]
         p["u_impostor_start"].write(impostor_start.tobytes())
         p["u_culling"] = int(bool(culling))
+        p["u_lod_fade"] = float(self.lod_fade)
+        p["u_count_agents"] = int(mode == 1)
+        p["u_count_base"] = self.draw_count * 5
         p["u_agents"] = n
         p["u_slots"] = self.slots
         p["u_groups"] = self.groups
@@ -376,6 +392,11 @@ class GpuCull(GLStage):
         """(draws,) instance counts of the newest frame the GPU has finished (every queued one with
         `wait`); never waits otherwise."""
         return self.ring.read(wait)
+
+    def agent_counts(self) -> np.ndarray:
+        """(characters, LOD_SLOTS) agents the colour cull kept, per character and the LOD each was drawn at
+        (its coarser across a fade), of the frame ``counts`` last read."""
+        return self.ring.latest_extra.reshape(len(self.characters), LOD_SLOTS)
 
     def shadow_counts(self, wait: bool = False) -> np.ndarray:
         """As ``counts``, for the shadow lists: (cascades, draws) (none without shadows)."""

@@ -262,7 +262,7 @@ class CrowdRenderer(GLStage):
     def __init__(self, ctx: moderngl.Context, characters, pieces: tuple[str, ...] | None = None, lod_distances=DEFAULT_LOD_DISTANCES,
                  shadows: bool = True, shadow_size: int = 2048, culling: bool = True, cull_path: str = "cpu",
                  weapons_visibility: bool = False, occlusion: bool = False, town: bool = False, morphs=None, morph_buffers: bool | None = None,
-                 impostors=None, impostor_distance: float = math.inf):
+                 impostors=None, impostor_distance: float = math.inf, lod_fade: float = 0.0):
         """`characters`: one Character, or the cast's, in its order (its agents come in that order,
         crowd.frame). `cull_path`: "cpu" or "gpu" (a GL 4.3 context; see the module docstring); with
         `weapons_visibility` the GPU cull also writes each agent's visibility, for the weapons; with
@@ -271,7 +271,9 @@ class CrowdRenderer(GLStage):
         writes its agents' pairs); its pieces with targets are drawn with them, their deltas in storage
         buffers (`morph_buffers`; None: where the context has GL 4.3) or textures. `impostors`: per character,
         its ImpostorAtlas (crowd.draw.impostors) or None; an agent of a character with one is drawn as its
-        impostor from `impostor_distance` metres on (its last LOD; its processor row starts with its key)."""
+        impostor from `impostor_distance` metres on (its last LOD; its processor row starts with its key).
+        `lod_fade`: metres past each LOD switch (the impostor's too) over which an agent is drawn at both
+        LODs, cross-faded by a dither (shaders/lod_fade.glsl); 0, none."""
         self._objects: dict[str, list] = {"meshes": [], "instances": [], "programs": [], "shadow_map": [], "ground": [], "textures": [], "cull": [],
                                           "occlusion": [], "morphs": [], "impostors": []}
         self.pyramid: DepthPyramid | None = None
@@ -304,6 +306,7 @@ class CrowdRenderer(GLStage):
         if len(atlases) != len(cast):
             raise RenderError(f"impostors must give an atlas or None for each of the {len(cast)} characters, got {len(atlases)}")
         self.impostor_distance = float(impostor_distance)
+        self.lod_fade = self._checked_fade(lod_fade)
         if not self.impostor_distance > 0.0:
             raise RenderError(f"the impostor distance must be a positive number of metres, got {impostor_distance}")
         # Each character with an atlas draws its agents past the impostor distance as its LOD lod_counts[k].
@@ -421,20 +424,9 @@ class CrowdRenderer(GLStage):
                                                            for d in self.draws], characters, choices, weapons_visibility, CASCADES if shadows else 0))
             except GpuCullError as exc:
                 raise RenderError(f"{exc} (the cpu cull path has no such limit)") from None
+            self.gpu.lod_fade = self.lod_fade
             for draw in self.draws:  # every draw reads its list out of the one list buffer (baseInstance)
                 draw.instances = self.gpu.lists
-            # The draws that count each visible agent once, per LOD: its character's first common piece
-            # where that LOD has it, else the choices of its first variation group (a LOD may merge the
-            # pieces into one mesh per choice, as the built-in zombie's LOD3 does).
-            self._counting_draws = []
-            for k, groups in enumerate(self.groups):
-                for lod in range(self.lod_counts[k]):
-                    at = [(i, d) for i, d in enumerate(self.draws) if d.lod == lod and d.character == k]
-                    first = [i for i, d in at if slot[k, d.piece] == characters[k].common_first and not self._piece_group[k][d.piece]]
-                    group = next(iter(groups), None)
-                    self._counting_draws += first or [i for i, d in at if group is not None and self._piece_group[k][d.piece] == group]
-                if self.impostor_lods[k] >= 0:
-                    self._counting_draws += [i for i, d in enumerate(self.draws) if d.character == k and d.piece == IMPOSTOR_PIECE]
         self.shadows = shadows
         self.shadow_size = int(shadow_size)
         self.shadow_map = None
@@ -472,6 +464,8 @@ class CrowdRenderer(GLStage):
         defines = {}
         if self.shadows:
             defines.update(SHADOWS=1, CASCADES=CASCADES)
+        if self.lod_fade > 0.0 and kind == "color":
+            defines["LOD_FADE"] = 1
         if kind == "ground":
             if self.town:
                 defines["TOWN"] = 1
@@ -489,6 +483,8 @@ class CrowdRenderer(GLStage):
                     prog[name] = unit
         else:
             vdefs = {} if skinned else {"UNSKINNED": 1}
+            if "LOD_FADE" in defines:
+                vdefs["LOD_FADE"] = 1
             if kind == "depth":
                 vdefs["DEPTH_ONLY"] = 1
                 frag = load_shader("depth.frag.glsl")
@@ -561,6 +557,33 @@ class CrowdRenderer(GLStage):
 
     def _draw_program(self, draw: _Draw, kind: str, skinned: bool) -> moderngl.Program:
         return self._program(kind, skinned, draw.layout, draw.morph and skinned is True)
+
+    @staticmethod
+    def _checked_fade(metres) -> float:
+        try:
+            value = float(metres)
+        except (TypeError, ValueError):
+            raise RenderError(f"the LOD fade must be a number of metres, got {metres!r}") from None
+        if not 0.0 <= value < 1e6:
+            raise RenderError(f"the LOD fade must be 0 to 1e6 metres, got {metres}")
+        return value
+
+    def set_lod_fade(self, metres: float) -> None:
+        """Cross-fade each LOD switch over `metres` (0: switch at once). The colour programs compile the
+        fade's dither only while there is one (a discard costs the depth test its early pass), so
+        switching it on or off builds them again."""
+        metres = self._checked_fade(metres)
+        if (metres > 0.0) != (self.lod_fade > 0.0):  # the colour programs and their vertex arrays go
+            stale = [self._programs.pop(key) for key in [k for k in self._programs if k[0] == "color"]]
+            stale += [self._merged_vaos.pop(key) for key in [k for k in self._merged_vaos if k[0] == "color"]]
+            for draw in self.draws:
+                stale += [draw.vaos.pop(key) for key in [k for k in draw.vaos if k[0] == "color"]]
+            self._objects["programs"] = [o for o in self._objects["programs"] if all(o is not s for s in stale)]
+            for obj in reversed(stale):
+                obj.release()
+        self.lod_fade = metres
+        if self.gpu is not None:
+            self.gpu.lod_fade = metres
 
     def set_impostor_distance(self, metres: float) -> None:
         """Draw impostors from `metres` on (both cull paths read it each frame)."""
@@ -669,7 +692,8 @@ class CrowdRenderer(GLStage):
         lod = np.where(as_impostor, impostor_lod, lod)
         shown = np.flatnonzero(visible).astype(np.uint32)
         records = self._all_records(instances, eye, row_offset, palette)  # once, for the colour and the shadow lists
-        drawn = self._upload_lists(instances, records, shown, lod[shown], kind, "instances")
+        listed, listed_lod, listed_records = self._fade_entries(shown, lod, dist, as_impostor, top, records)
+        drawn = self._upload_lists(instances, records, listed, listed_lod, kind, "instances", records=listed_records)
         self.last = {"triangles": int(sum(c * d.triangles for c, d in zip(drawn, self.draws))), "instances": int(sum(drawn)),
                      "visible": len(shown), "draws": sum(1 for c in drawn if c),
                      "lod_counts": np.bincount(lod[shown], minlength=self.lod_count).tolist(), "shadow_instances": 0,
@@ -689,6 +713,32 @@ class CrowdRenderer(GLStage):
                 self.last["shadow_instances"] += int(sum(drawn))
         return FrameView(camera, matrix, shadow, visible, lit, lod)
 
+    def _fade_entries(self, shown, lod, dist, as_impostor, top, records):
+        """The CPU path's colour list entries: each shown agent at its LOD, and those within lod_fade of
+        the switch behind them again at the finer LOD, each record's tint alpha carrying its fade code
+        (shaders/lod_fade.glsl; 255 for none), as the GPU cull lists them."""
+        entries = records[shown].copy()
+        tint = entries["packed"][:, 1]
+        tint |= np.uint32(0xFF000000)
+        if not self.lod_fade or not len(shown):
+            return shown, lod[shown], entries
+        d = dist[shown]
+        raw = np.searchsorted(np.asarray(self.lod_distances), d, side="right")  # LOD starts passed
+        impostor = as_impostor[shown]
+        starts = np.asarray(self.lod_distances, np.float64)
+        boundary = np.where(impostor, self.impostor_distance, np.where(raw > 0, starts[np.maximum(raw - 1, 0)], -1.0))
+        top_shown = np.broadcast_to(top, dist.shape)[shown]
+        finer = np.where(impostor, np.minimum(raw, top_shown), np.minimum(raw - 1, top_shown))
+        fading = (boundary >= 0.0) & (d < boundary + self.lod_fade) & (finer != lod[shown])
+        # float32, as the GPU cull works it out
+        through = np.clip((d.astype(np.float32) - boundary.astype(np.float32)) / np.float32(self.lod_fade), 0.0, 1.0)
+        code = (through * 127.0 + 0.5).astype(np.uint32)
+        tint[fading] = (tint[fading] & np.uint32(0x00FFFFFF)) | ((np.uint32(128) | code[fading]) << np.uint32(24))
+        near = entries[fading].copy()
+        near["packed"][:, 1] = (near["packed"][:, 1] & np.uint32(0x00FFFFFF)) | (code[fading] << np.uint32(24))
+        return (np.concatenate([shown, shown[fading]]), np.concatenate([lod[shown], finer[fading]]),
+                np.concatenate([entries, near]))
+
     def _kinds(self, counts: tuple[int, ...]) -> np.ndarray | None:
         """Each agent's character (uint8 (N,)) for a cast of these counts, kept while they stay; None for one character."""
         if len(self.cast) == 1:
@@ -699,13 +749,14 @@ class CrowdRenderer(GLStage):
         return self._kind
 
     def _upload_lists(self, instances: Instances, all_records: np.ndarray, shown: np.ndarray, lod: np.ndarray, kind: np.ndarray | None,
-                      buffer: str, cascade: int = 0) -> list[int]:
+                      buffer: str, cascade: int = 0, records: np.ndarray | None = None) -> list[int]:
         """The CPU path's lists: the records of agents `shown` at LODs `lod` (of characters `kind`, None:
         the one), sorted once per variation group so that each draw's instances are one contiguous slice
         (a boolean mask per draw cost 12 passes over the crowd), written into each draw's `buffer`
         ("instances", or "shadow_instances" of that `cascade`). `all_records`: every agent's record
-        (``_all_records``). Returns each draw's count."""
-        records = all_records[shown]
+        (``_all_records``), or `records`: one per entry of `shown` (an agent may be listed twice, across a
+        LOD fade). Returns each draw's count."""
+        records = all_records[shown] if records is None else records
         lods = self.lod_count
         character = 0 if kind is None else kind[shown].astype(np.int64)
         slices = {}  # group ("" for pieces every agent wears) → (records sorted by draw key, start offsets per key)
@@ -786,11 +837,9 @@ class CrowdRenderer(GLStage):
         if self.gpu is None:
             return
         counts = self.gpu.counts(wait).astype(np.int64)
-        lod_counts = [0] * self.lod_count
-        cast_visible = [0] * len(self.cast)
-        for k in self._counting_draws:
-            lod_counts[self.draws[k].lod] += int(counts[k])
-            cast_visible[self.draws[k].character] += int(counts[k])
+        agents = self.gpu.agent_counts().astype(np.int64)  # (characters, LOD slots): each kept agent once
+        lod_counts = [int(x) for x in agents.sum(axis=0)[: self.lod_count]]
+        cast_visible = [int(x) for x in agents.sum(axis=1)]
         for draw, c in zip(self.draws, counts):
             draw.count = int(c)
         shadow = self.gpu.shadow_counts(wait).astype(np.int64)  # (cascades, draws)

@@ -55,6 +55,10 @@ void main() {
     }
     for (int e = 0; e < emits; ++e) {
         int d = draws[e];
-        if (d >= 0) lists[u_record_base + list_start[d] + group_counts[group * uint(u_draws) + uint(d)] + slots[e]] = r;
+        if (d >= 0) {
+            Record copy = r;
+            copy.fields.y = (r.fields.y & 0x00FFFFFFu) | (g_fade[e] << 24);
+            lists[u_record_base + list_start[d] + group_counts[group * uint(u_draws) + uint(d)] + slots[e]] = copy;
+        }
     }
 }

@@ -1,0 +1,140 @@
+"""crowd-bench impostor: the impostor atlas's error against the atlas's bytes and bake time (issue 24, point 4).
+
+For each atlas setting of a grid (views around the up axis, elevations, cell size), the built-in zombie's
+scene clips are baked (timed), and one agent is drawn at the switch distance as the mesh the renderer
+draws there and as its impostor, alone, at the demo's pixel density (1080 rows over its field of view,
+a 320 x 320 crop), for every clip, at a phase between baked frames, at headings between baked views
+and at two camera elevations. Per (clip, heading, elevation) cell: the silhouette IoU, the mean colour
+difference over the pixels both cover (0-255), and the median depth difference (metres). Reported per
+setting: the atlas's MB and bake seconds, and the worst and mean of each measure; the defaults are chosen
+from this trade-off as `crowd-bench error` chose the bake's.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+GRID_VIEWS = (8, 12, 16)
+GRID_ELEVATIONS = ((15.0,), (10.0, 40.0))
+GRID_CELLS = ((32, 64), (40, 80), (48, 96))
+HEADINGS = 6  # per clip: spread over the circle, each between two baked views of any grid setting
+CAMERA_ELEVATIONS = (12.0, 35.0)
+
+
+def render_one_agent(ctx, character, baked, atlas, distance: float, clip: int, phase: float, yaw: float, elevation_deg: float = 12.0,
+                     size: int = 320):
+    """(colour (size, size, 3) float64, covered (size, size) bool, depth in metres) of one agent `distance`
+    metres away, as the mesh (`atlas` None) or its impostor, at the demo's pixel density."""
+    from crowd.anim.processor import AnimationProcessor
+    from crowd.draw.render import Camera, CrowdRenderer, Instances
+    from crowd.frame import CLIP, MASK, PHASE, WEIGHT, empty_layers
+    from crowd.gl import Offscreen
+
+    layers = empty_layers(1, 4)
+    layers[0, 0, [CLIP, PHASE, WEIGHT, MASK]] = (clip, phase, 1.0, -1.0)
+    groups = {m.group for m in character.meshes if m.group}
+    inst = Instances(np.zeros((1, 3)), np.array([yaw], np.float32), np.ones(1, np.float32), np.full((1, 4), 255, np.uint8),
+                     {g: np.zeros(1, np.int64) for g in groups})
+    e = math.radians(elevation_deg)
+    eye = np.array([0.0, 0.9 + distance * math.sin(e), distance * math.cos(e)])
+    fov = 2.0 * math.degrees(math.atan(size / 1080 * math.tan(math.radians(Camera.fov_y) / 2.0)))
+    camera = Camera(eye=eye, target=np.array([0.0, 0.9, 0.0]), aspect=1.0, fov_y=fov, near=distance * 0.5, far=distance * 2.0)
+    with AnimationProcessor(ctx, baked, 4, impostor_keys=[atlas is not None]) as proc, Offscreen(ctx, (size, size)) as target, \
+            CrowdRenderer(ctx, character, shadows=False, culling=False, cull_path="cpu", impostors=[atlas],
+                          impostor_distance=distance * 0.9) as renderer:
+        proc.resize(1)
+        proc.process(layers)
+        view = renderer.prepare(camera, inst, palette=proc.layout)
+        fb = target.framebuffer
+        fb.use()
+        fb.clear(0.0, 0.0, 0.0, 1.0, depth=1.0)
+        renderer.color_pass(fb, view, proc)
+        color = target.image().astype(np.float64)
+        depth = np.frombuffer(fb.read(attachment=-1, components=1, dtype="f4"), np.float32).reshape(size, size)[::-1].astype(np.float64)
+    n, f = camera.near, camera.far
+    metres = 2.0 * n * f / (f + n - (depth * 2.0 - 1.0) * (f - n))
+    return color, depth < 1.0, metres
+
+
+def compare(mesh, impostor) -> dict:
+    """IoU, mean colour difference over the pixels both cover, median depth difference there."""
+    (mc, mcov, md), (ic, icov, idep) = mesh, impostor
+    both = mcov & icov
+    union = np.count_nonzero(mcov | icov)
+    return {"iou": np.count_nonzero(both) / union if union else 1.0,
+            "colour": float(np.abs(mc[both] - ic[both]).mean()) if both.any() else 255.0,
+            "depth_m": float(np.median(np.abs(md[both] - idep[both]))) if both.any() else math.inf,
+            "mesh_pixels": int(np.count_nonzero(mcov))}
+
+
+def measure(ctx, character, baked, settings, distance: float) -> dict:
+    from crowd.draw.impostor_bake import bake_atlas
+
+    t = time.perf_counter()
+    atlas = bake_atlas(ctx, character, baked, settings)
+    ctx.finish()
+    bake_s = time.perf_counter() - t
+    cells = []
+    for clip in range(len(baked.clips)):
+        n = int(atlas.clips[clip, 0, 1])
+        phase = (0.5 / n) if atlas.clips[clip, 0, 2] else 0.5 / max(n - 1, 1)  # halfway between two baked frames
+        for k, elevation in itertools.product(range(HEADINGS), CAMERA_ELEVATIONS):
+            yaw = 2.0 * math.pi * (k + 0.37) / HEADINGS  # between baked views for every view count of the grid
+            mesh = render_one_agent(ctx, character, baked, None, distance, clip, phase, yaw, elevation)
+            imp = render_one_agent(ctx, character, baked, atlas, distance, clip, phase, yaw, elevation)
+            cells.append({"clip": baked.clips[clip].name, "yaw": round(yaw, 4), "elevation": elevation, **compare(mesh, imp)})
+    worst_iou = min(cells, key=lambda c: c["iou"])
+    worst_colour = max(cells, key=lambda c: c["colour"])
+    return {"views": settings.views, "elevations": list(settings.elevations), "cell": list(settings.cell), "rate": settings.rate,
+            "atlas_mb": round(atlas.nbytes / 1e6, 2), "bake_s": round(bake_s, 3),
+            "iou_min": round(worst_iou["iou"], 4), "iou_mean": round(float(np.mean([c["iou"] for c in cells])), 4),
+            "colour_max": round(worst_colour["colour"], 2), "colour_mean": round(float(np.mean([c["colour"] for c in cells])), 2),
+            "depth_m_median": round(float(np.median([c["depth_m"] for c in cells])), 4),
+            "worst_iou_cell": worst_iou, "worst_colour_cell": worst_colour}
+
+
+def bench_impostor(args) -> int:
+    import moderngl
+
+    from crowd.anim.bake import bake
+    from crowd.anim.roles import clips_used, match_roles
+    from crowd.asset.gltf import load_character
+    from crowd.draw.impostors import ImpostorSettings
+    from crowd.gl import describe, headless_context
+    from crowd.progress import steps
+
+    from .common import device_cpu
+
+    ctx = headless_context()
+    info = describe(ctx)
+    character = load_character(args.model) if args.model else load_character()
+    roles, _ = match_roles(character.clips)
+    baked = bake(character.skeleton, [character.clip(c) for c in clips_used(roles)])
+    grid = [ImpostorSettings(v, e, c) for v, e, c in itertools.product(GRID_VIEWS, GRID_ELEVATIONS, GRID_CELLS)]
+    if args.quick:
+        grid = [ImpostorSettings()]
+    print(f"{info['gl_renderer']} | {info['gl_version']} | {character.name}, {len(baked.clips)} clips | at {args.distance:g} m, "
+          f"{len(baked.clips) * HEADINGS * len(CAMERA_ELEVATIONS)} (clip, heading, elevation) cells a setting")
+    print(f"{'views':>5} {'elevations':>12} {'cell':>7} {'MB':>7} {'bake s':>7} {'IoU min':>8} {'IoU mean':>9} {'colour max':>11} "
+          f"{'colour mean':>12} {'depth m':>8}")
+    rows = []
+    for settings in steps(grid, desc="impostor", unit="setting"):
+        row = measure(ctx, character, baked, settings, args.distance)
+        rows.append(row)
+        print(f"{row['views']:>5} {','.join(f'{e:g}' for e in row['elevations']):>12} {'x'.join(map(str, row['cell'])):>7} "
+              f"{row['atlas_mb']:>7.1f} {row['bake_s']:>7.2f} {row['iou_min']:>8.3f} {row['iou_mean']:>9.3f} {row['colour_max']:>11.1f} "
+              f"{row['colour_mean']:>12.1f} {row['depth_m_median']:>8.3f}")
+    if args.json:
+        from crowd.files import atomic_write_bytes
+
+        device = f"{info['gl_renderer']}, {info['gl_version']}; {device_cpu()}; moderngl {moderngl.__version__}"
+        atomic_write_bytes(Path(args.json), json.dumps({"device": device, "distance_m": args.distance, "rows": rows,
+                                                        "date": time.strftime("%Y-%m-%d")}, indent=1).encode())
+    ctx.release()
+    return 0
