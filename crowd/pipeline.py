@@ -42,6 +42,7 @@ from .anim.morph import NOT_HELD, MorphError, bake_morphs
 from .anim.roles import clips_used, match_roles
 from .asset.gltf import load_character
 from .asset.model import Character, cast_weapons
+from .draw.impostors import HELD_GROUP
 from .draw.readback import RING, SocketRead, SocketReadback
 from .draw.render import CrowdRenderer, FrameView, view_proj
 from .draw.sync import PaletteSync
@@ -937,7 +938,7 @@ class CrowdPipeline(GLStage):
 
     def instances(self) -> Instances:
         """What the renderer draws this frame: the crowd's instances, and the survivor's after them."""
-        instances = self.ai.instances()
+        instances = self._held(self.ai.instances())
         if self.survivor is None:
             return instances
         s = self.survivor
@@ -950,6 +951,18 @@ class CrowdPipeline(GLStage):
             variant["head"] = np.zeros(n + 1, np.int32)
         return Instances(position, np.append(instances.yaw, np.float32(s.yaw)), np.append(instances.scale, np.float32(1.0)),
                          np.concatenate([instances.tint, np.full((1, 4), 255, np.uint8)]), variant, self.counts)
+
+    def _held(self, instances: Instances) -> Instances:
+        """The crowd's instances with, where impostors hold weapons (crowd.draw.impostors.HELD_GROUP), each
+        agent's choice there: 0 unarmed, else 1 + its weapon among its character's props."""
+        if HELD_GROUP not in self.renderer.group_names:
+            return instances
+        first, _ = cast_weapons([m.character for m in self.cast])
+        weapon = self.ai.weapon.astype(np.int64)
+        held = np.zeros(len(weapon), np.int32)
+        armed = (weapon >= 0) & self.ai.armed()
+        held[armed] = weapon[armed] - np.asarray(first, np.int64)[self.ai.kind[armed]] + 1
+        return dataclasses.replace(instances, variant={**instances.variant, HELD_GROUP: held})
 
     def _survivor_events(self, landed: bool, steps_before: int) -> int:
         """After the crowd's step: the blows the zombies landed on the survivor, its own blow where its

@@ -208,3 +208,28 @@ def test_lod_switches_cross_fade_without_a_pop(gl_context, zombie, atlas, path):
         assert differ > 40, (switch, differ)  # the two LODs do differ here
         assert step_max <= 2.0 * differ / steps + 6, (switch, step_max, differ)
         assert worst[0.0, switch][0] > 2.0 * differ / steps + 6  # the bound would catch a pop
+
+
+@pytest.mark.parametrize("path", ["cpu", "gpu"])
+def test_impostors_hold_their_weapons_without_a_read_back(gl_context, path):
+    """Every agent past the impostor distance: no socket is gathered for a zombie and no weapon placed
+    on the CPU, yet each armed one's impostor holds its own weapon (a held piece on the socket joint,
+    drawn from its palette row), and an unarmed one none."""
+    from crowd.gl import Offscreen, has_compute
+    from crowd.pipeline import CrowdPipeline, PipelineConfig
+    from crowd.draw.impostors import HELD_GROUP
+
+    if path == "gpu" and not has_compute(gl_context):
+        pytest.skip("no GL 4.3 here")
+    config = PipelineConfig(agents=80, seed=4, impostors="on", impostor_distance=1.0, lod_fade=0.0, cull=path, culling=False)
+    with Offscreen(gl_context, (160, 90)) as target, CrowdPipeline(gl_context, config) as p:
+        for _ in range(4):
+            p.frame(target.framebuffer, 1 / 30)
+        p.renderer.refresh_counts(wait=True)
+        held = {d.piece: d.count for d in p.renderer.draws if d.piece.startswith(HELD_GROUP + ":")}
+        weapon = p.ai.weapon[p.ai.armed()]
+        names = list(p.character.props)
+        assert sorted(held) == sorted(f"{HELD_GROUP}:{n}" for n in names)
+        assert [held[f"{HELD_GROUP}:{n}"] for n in names] == [int(np.count_nonzero(weapon == k)) for k in range(len(names))]
+        assert sum(held.values()) > 10
+        assert p.weapons.last["drawn"] == 0 and all(v == 0 for v in p._socket_entries.values())

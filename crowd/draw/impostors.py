@@ -18,7 +18,10 @@ What is baked, and what is not (issue 24 asks to say):
 - variation pieces: each group's first choice (the built-in zombie: head_a); the agent's tint is applied
   when drawn, as for its meshes. The other heads are not in the atlas; the error this costs is measured.
 - morph targets: not baked (the pose only);
-- weapons: not baked yet (an armed agent past the impostor distance shows no weapon);
+- weapons: not baked (each would be a variant of the whole atlas: over the 64 MB budget). An impostor holds
+  its weapon as a mesh instead: each prop's coarsest mesh skinned to the socket joint alone, a piece of
+  the impostor's LOD chosen per agent (``held_pieces``, group HELD_GROUP), placed by the skinned draw from
+  the agent's palette row with no read-back, so the CPU places weapons only for agents drawn as meshes;
 - actions (attack, hit, death): baked like locomotion; an impostor shows its heaviest layer's clip.
 
 **The cache**: a file per (model bytes, bake, settings) under the user's cache folder (``cache_dir``),
@@ -196,6 +199,40 @@ def clip_boxes(points: np.ndarray, frame_clip: np.ndarray, clips: int, settings:
         grow = height * (ch / (ch - 2.0) - 1.0)
         boxes[c] = (half, lo - grow / 2.0, height + grow, depth * 1.01)
     return boxes
+
+
+# -- weapons held by impostors
+
+HELD_GROUP = "held"  # the variation group of an impostor's weapon: choice 0 holds nothing, choice w + 1 the character's prop w
+HELD_NONE = "held:none"  # choice 0's piece, which no LOD has
+
+
+def held_pieces(character: Character, lod: int) -> list:
+    """An impostor's weapons, as pieces of its character skinned to the socket joint alone (weight 1):
+    each prop's coarsest mesh, placed at bind as the weapon stage places it (socket at bind times the
+    inverse grip), at LOD `lod` in the group HELD_GROUP. The skinned draw then places them from the agent's
+    own palette row, with no read-back: the CPU places weapons only for agents drawn as meshes."""
+    from ..asset.model import SkinnedMesh
+
+    if not character.armed:
+        return []
+    joint = int(next(iter(character.sockets.values())))
+    socket_bind = np.linalg.inv(np.asarray(character.skeleton.inverse_bind, np.float64))[joint]
+    pieces = []
+    for name, prop in character.props.items():
+        mesh = prop.lods[-1]
+        m = socket_bind @ np.linalg.inv(np.asarray(prop.grip, np.float64))
+        positions = (np.c_[mesh.positions.astype(np.float64), np.ones(len(mesh.positions))] @ m.T)[:, :3]
+        normals = mesh.normals.astype(np.float64) @ np.linalg.inv(m[:3, :3])  # the inverse transpose, applied on the right
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+        v = len(positions)
+        joints = np.zeros((v, 4), np.uint16)
+        joints[:, 0] = joint
+        weights = np.zeros((v, 4), np.float32)
+        weights[:, 0] = 1.0
+        pieces.append(SkinnedMesh(f"{name} (held)", f"{HELD_GROUP}:{name}", lod, positions.astype(np.float32), normals.astype(np.float32), joints,
+                                  weights, mesh.indices, mesh.colors, mesh.base_color, HELD_GROUP, mesh.texture, mesh.uvs))
+    return pieces
 
 
 # -- the cache

@@ -41,7 +41,7 @@ from ..asset.town import TILE
 from ..anim.processor import PaletteLayout, texel_code
 from ..asset.vertex_cache import best_triangle_order
 from .gpu_cull import CHARACTER_SHIFT, MAX_CAST, MAX_GROUPS, RECORD_DTYPE, CullCharacter, GpuCull, GpuCullError
-from .impostors import ImpostorTextures
+from .impostors import HELD_GROUP, HELD_NONE, ImpostorTextures, held_pieces
 from .materials import TEXTURE_UNIT, MaterialTextures
 from .morph import MorphDeltas
 from .occlusion import DepthPyramid
@@ -312,11 +312,18 @@ class CrowdRenderer(GLStage):
         # Each character with an atlas draws its agents past the impostor distance as its LOD lod_counts[k].
         self.impostor_lods = [self.lod_counts[k] if a is not None else -1 for k, a in enumerate(atlases)]
         self.lod_count = max(max(self.lod_counts), max(self.impostor_lods) + 1)
+        # An armed character's impostors hold its weapons: meshes on the socket joint at the impostor's LOD,
+        # chosen per agent in the group HELD_GROUP (crowd.draw.impostors.held_pieces).
+        for k, c in enumerate(cast):
+            if self.impostor_lods[k] >= 0:
+                per_character[k] = per_character[k] + held_pieces(c, self.impostor_lods[k])
         # Variation groups, per character (group -> its pieces, in order), and every group any has, in
         # the order met: an agent's choice in group g is 4 bits at 4 g of its record.
         self.groups: list[dict[str, list[str]]] = []
         for meshes in per_character:
             groups: dict[str, list[str]] = {}
+            if any(m.group == HELD_GROUP for m in meshes):
+                groups[HELD_GROUP] = [HELD_NONE]  # choice 0: no weapon
             for m in meshes:
                 if m.group and m.piece not in groups.setdefault(m.group, []):
                     groups[m.group].append(m.piece)
@@ -325,6 +332,7 @@ class CrowdRenderer(GLStage):
         if len(self.group_names) > MAX_GROUPS:
             raise RenderError(f"the cast has {len(self.group_names)} variation groups; at most {MAX_GROUPS} are drawn")
         self._piece_group = [{m.piece: m.group for m in meshes} | ({IMPOSTOR_PIECE: ""} if atlases[k] is not None else {})
+                             | ({HELD_NONE: HELD_GROUP} if HELD_GROUP in self.groups[k] else {})
                              for k, meshes in enumerate(per_character)]
         # Each character's textures follow the ones before it in one list, so a draw's index is unique.
         texture_first = np.concatenate([[0], np.cumsum([len(c.textures) for c in cast])]).astype(int).tolist()
