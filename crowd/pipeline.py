@@ -874,8 +874,11 @@ class CrowdPipeline(GLStage):
                 agent_frames = AgentFrames(instances.position, instances.yaw, instances.scale, self.camera.eye)
                 gpu = self.renderer.gpu
                 fallen = ~self.ai.alive() if survivor is None else np.append(~self.ai.alive(), False)
-                self.weapons.attach(self.sync.synced(read, rows), agent_frames, weapon_of_agent, view.visible,
-                                    None if gpu is None else (gpu.visible, gpu.agents_buffer), view.casting, view.lod, fallen=fallen)
+                # (An agent drawn as its impostor alone holds its weapon in its impostor: none placed for it.)
+                shown, casting = (view.visible, view.casting) if view.held is None or view.visible is None else \
+                    (view.visible & ~view.held, None if view.casting is None else view.casting & ~view.held[None])
+                self.weapons.attach(self.sync.synced(read, rows), agent_frames, weapon_of_agent, shown,
+                                    None if gpu is None else (gpu.visible, gpu.agents_buffer), casting, view.lod, fallen=fallen)
             self._run("attach")
         self.last = FrameState(f, view, read, row_offset, agent_frames)
         framebuffer.use()

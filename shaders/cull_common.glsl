@@ -125,6 +125,7 @@ int agent_draws(uint i, out Record r, out int draws[MAX_EMITS]) {
         if (inside && u_occlusion != 0) inside = !occluded(center, radius);
     }
     int lod = 0;
+    bool held = false;  // drawn as its impostor alone, which holds its weapon itself (crowd/draw/impostors.py)
     if (inside) {
         float dist = length(center);
         for (int k = 0; k < u_lod_steps; ++k) lod += int(dist >= u_lod_start[k]);
@@ -135,6 +136,7 @@ int agent_draws(uint i, out Record r, out int draws[MAX_EMITS]) {
         int finer = impostor ? mesh_lod : min(lod - 1, u_lod_count[character] - 1);
         lod = impostor ? u_lod_count[character] : mesh_lod;
         bool fading = u_lod_fade > 0.0 && u_lod_bias == 0 && boundary >= 0.0 && dist < boundary + u_lod_fade && finer != lod;
+        held = impostor && !fading;
         uint through = fading ? uint(clamp((dist - boundary) / u_lod_fade, 0.0, 1.0) * 127.0 + 0.5) : 0u;
         g_character = character;
         g_lod = lod;
@@ -155,8 +157,9 @@ int agent_draws(uint i, out Record r, out int draws[MAX_EMITS]) {
             }
         }
     }
-    if (u_write_visible == 1) visible[i] = inside ? uint(lod + 1) : 0u;
-    else if (u_write_visible == 2 && inside) atomicOr(visible[i], (0x10000u << uint(u_cascade)) | (uint(lod) << 20));
+    // The weapons' cull reads this: an agent whose impostor holds its weapon has none placed.
+    if (u_write_visible == 1) visible[i] = inside && !held ? uint(lod + 1) : 0u;
+    else if (u_write_visible == 2 && inside && !held) atomicOr(visible[i], (0x10000u << uint(u_cascade)) | (uint(lod) << 20));
     return emits;
 }
 

@@ -233,3 +233,12 @@ def test_impostors_hold_their_weapons_without_a_read_back(gl_context, path):
         assert [held[f"{HELD_GROUP}:{n}"] for n in names] == [int(np.count_nonzero(weapon == k)) for k in range(len(names))]
         assert sum(held.values()) > 10
         assert p.weapons.last["drawn"] == 0 and all(v == 0 for v in p._socket_entries.values())
+        # The switch inside the crowd: an agent's weapon is placed or held, never both.
+        p.camera = p.overview_camera(16 / 9)
+        p.set_impostor_distance(float(np.median(np.linalg.norm(p.instances().position - p.camera.eye, axis=1))))
+        for _ in range(5):
+            p.frame(target.framebuffer, 1 / 30)
+        p.renderer.refresh_counts(wait=True)
+        held = sum(d.count for d in p.renderer.draws if d.piece.startswith(HELD_GROUP + ":"))
+        placed = p.weapons.last["drawn"]
+        assert held > 0 and placed > 0 and held + placed <= int(np.count_nonzero(p.ai.armed())), (held, placed)

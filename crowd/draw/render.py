@@ -98,6 +98,7 @@ class FrameView:
     visible: np.ndarray | None  # bool (N,): agents that survived culling (None on the GPU cull path)
     casting: np.ndarray | None = None  # bool (cascades, N): agents in each cascade's volume, whose shadows it draws (CPU path, shadows on)
     lod: np.ndarray | None = None  # int (N,): each agent's colour LOD (CPU path; its weapon's LOD follows it)
+    held: np.ndarray | None = None  # bool (N,): drawn as its impostor alone, which holds its weapon (CPU path)
 
 
 def frustum_planes(view_proj: np.ndarray) -> np.ndarray:
@@ -719,7 +720,7 @@ class CrowdRenderer(GLStage):
                 for draw, c in zip(self.draws, drawn):
                     draw.shadow_counts[k] = c
                 self.last["shadow_instances"] += int(sum(drawn))
-        return FrameView(camera, matrix, shadow, visible, lit, lod)
+        return FrameView(camera, matrix, shadow, visible, lit, lod, as_impostor if self.lod_fade == 0.0 else as_impostor & (dist >= self.impostor_distance + self.lod_fade))
 
     def _fade_entries(self, shown, lod, dist, as_impostor, top, records):
         """The CPU path's colour list entries: each shown agent at its LOD, and those within lod_fade of
