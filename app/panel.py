@@ -25,6 +25,7 @@ from crowd.stats import weapon_stats
 AGENTS, TIME_SCALE, CROSSFADE = SETTINGS["agents"], SETTINGS["time_scale"], SETTINGS["crossfade"]
 CLIP_SPEED, WEIGHT, BAKE_FPS = SETTINGS["clip_speed"], SETTINGS["layer_weight"], SETTINGS["bake_fps"]
 LOD, LATENCY = SETTINGS["lod_distances"], SETTINGS["readback_latency"]
+LOD_FADE, IMPOSTOR_DISTANCE, IMPOSTOR_MODES = SETTINGS["lod_fade"], SETTINGS["impostor_distance"], SETTINGS["impostors"].choices
 PRECISIONS, INTERPOLATIONS = SETTINGS["precision"].choices, SETTINGS["interpolation"].choices
 BOUND, MORPH_WEIGHT = SETTINGS["compression_bound_mm"], SETTINGS["morph_weight"]
 CULL_PATHS = SETTINGS["cull"].choices
@@ -37,7 +38,8 @@ LAYER_NAMES = ("idle", "walk", "run", "action")
 PANEL_WIDTH_SHARE, PANEL_WIDTH_MIN, PANEL_WIDTH_MAX, MARGIN = 0.3, 360.0, 560.0, 10.0
 # The labels drawn right of sliders and combos (the longest decides how wide they are).
 LABELS = ("agents", "agents (any)", "time scale", "seed", "cross-fade (s)", "character", "speed", "precision", "bound (mm)",
-          "interpolation", "LOD distances (m)", "cull path", "read-back lag", "bake fps") + LAYER_NAMES
+          "interpolation", "LOD distances (m)", "LOD fade (m)", "impostors", "impostor distance (m)", "cull path", "read-back lag",
+          "bake fps") + LAYER_NAMES
 SECTIONS = ("Frame", "Crowd", "Clips", "Layer weights", "Morph targets", "Bake and rendering", "Selected agent", "Keys")
 OPEN_AT_START = ("Frame", "Crowd")  # with these open the panel fits a 720-pixel window; the others fold
 KEYS = ("W/A/S/D: run (strafe with A and D)", "right click: run there", "space: swing", "C: follow or orbit camera",
@@ -74,6 +76,7 @@ class Panel:
         "agents": "set_agent_count", "seed": "set_seed", "crossfade": "set_crossfade", "time_scale": "set_time_scale",
         "pause": "set_paused", "step": "step_once", "clip_speed": "set_clip_speed", "clip_loop": "set_clip_loop",
         "play": "play", "weight": "set_weight", "rebake": "start_rebake", "measure_error": "measure_error", "lod": "set_lod_distances", "culling": "set_culling", "occlusion": "set_occlusion",
+        "lod_fade": "set_lod_fade", "impostors": "set_impostors", "impostor_distance": "set_impostor_distance",
         "shadows": "set_shadows", "weapons": "set_weapons", "latency": "set_readback_latency", "cull": "set_cull_path",
         "foot_lock": "set_foot_lock", "morph": "set_morph_weight", "morphs": "set_morphs",
     }
@@ -316,6 +319,17 @@ class Panel:
         changed, distances = imgui.drag_float3("LOD distances (m)", list(p.renderer.lod_distances), 0.5, *LOD.slider)
         if changed:
             self.apply("lod", *map(float, np.maximum.accumulate(distances)))  # dragging one past the next pushes the next along
+        changed, fade = imgui.slider_float("LOD fade (m)", float(p.config.lod_fade), *LOD_FADE.slider, "%.1f")
+        if changed:
+            self.apply("lod_fade", float(fade))
+        changed, index = imgui.combo("impostors", IMPOSTOR_MODES.index(p.config.impostors), list(IMPOSTOR_MODES))
+        if changed:
+            self.apply("impostors", IMPOSTOR_MODES[index])
+        changed, metres = imgui.drag_float("impostor distance (m)", float(p.config.impostor_distance), 0.5, *IMPOSTOR_DISTANCE.slider, "%.1f")
+        if changed:
+            self.apply("impostor_distance", max(float(metres), IMPOSTOR_DISTANCE.slider[0]))
+        atlas_mb = p.renderer.gpu_bytes()["impostors"] / 1e6
+        imgui.text_wrapped(f"impostor atlases {atlas_mb:.1f} MB" if atlas_mb else "no impostors (meshes only)")
         changed, on = imgui.checkbox("culling", p.renderer.culling)
         if changed:
             self.apply("culling", on)
