@@ -242,3 +242,38 @@ def test_impostors_hold_their_weapons_without_a_read_back(gl_context, path):
         held = sum(d.count for d in p.renderer.draws if d.piece.startswith(HELD_GROUP + ":"))
         placed = p.weapons.last["drawn"]
         assert held > 0 and placed > 0 and held + placed <= int(np.count_nonzero(p.ai.armed())), (held, placed)
+
+
+def test_both_processor_paths_write_the_heaviest_layers_key(gl_context, zombie):
+    """The key texel (first of each agent's row): the clip and phase of its heaviest layer, the first of
+    equals, (-1, 0) when no layer weighs anything; the joints' matrices the same with and without it."""
+    from crowd.gl import has_compute
+
+    character, baked = zombie
+    rng = np.random.default_rng(0)
+    n = 50
+    layers = empty_layers(n, 4)
+    layers[..., CLIP] = rng.integers(0, len(baked.clips), (n, 4))
+    layers[..., PHASE] = rng.uniform(0.0, 1.0, (n, 4))
+    layers[..., WEIGHT] = rng.uniform(0.0, 1.0, (n, 4))
+    layers[..., MASK] = -1.0
+    layers[0, :, WEIGHT] = 0.0  # the rest pose
+    layers[1, :, WEIGHT] = 0.5  # all equal: the first
+    heaviest = np.argmax(layers[..., WEIGHT], axis=1)
+    want = np.c_[layers[np.arange(n), heaviest, CLIP], layers[np.arange(n), heaviest, PHASE]]
+    want[0] = (-1.0, 0.0)
+    paths = ["fragment"] + (["compute"] if has_compute(gl_context) else [])
+    for path in paths:
+        palettes = []
+        for keys in (True, False):
+            with AnimationProcessor(gl_context, baked, 4, path=path, impostor_keys=[keys]) as proc:
+                proc.resize(n)
+                proc.process(layers)
+                palettes.append(proc.read_palette())
+                if keys:
+                    got = proc.read_impostor_keys()
+                    assert proc.layout.parts[0].key and got.shape == (n, 4)
+                    assert np.array_equal(got[:, :2], want.astype(np.float32)), path
+                else:
+                    assert proc.read_impostor_keys().shape == (n, 0)
+        assert np.array_equal(palettes[0], palettes[1]), path
