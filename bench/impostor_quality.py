@@ -46,6 +46,11 @@ class OneAgent:
             self.renderers = {kind: self._objects.add(CrowdRenderer(ctx, character, shadows=False, culling=False, cull_path="cpu",
                                                                     impostors=[a], impostor_distance=distance * 0.9))
                               for kind, a in (("mesh", None), ("impostor", atlas))}
+            # The mesh one LOD finer than the renderer draws at this distance: what a mesh LOD switch changes.
+            finer = [d if d < distance else 1e5 * (k + 1) for k, d in enumerate(self.renderers["mesh"].lod_distances)]
+            finer[max(k for k, d in enumerate(self.renderers["mesh"].lod_distances) if d < distance)] = 1e4
+            self.renderers["finer mesh"] = self._objects.add(CrowdRenderer(ctx, character, lod_distances=tuple(sorted(finer)), shadows=False,
+                                                                           culling=False, cull_path="cpu"))
         except BaseException:
             self._objects.release()
             raise
@@ -107,7 +112,7 @@ def measure(ctx, character, baked, settings, distance: float) -> dict:
     atlas = bake_atlas(ctx, character, baked, settings)
     ctx.finish()
     bake_s = time.perf_counter() - t
-    cells, others = [], []
+    cells, others, references = [], [], []
     choices = min((sum(1 for m in character.meshes if m.lod == 0 and m.group == g) for g in {m.group for m in character.meshes if m.group}),
                   default=1)
     with OneAgent(ctx, character, baked, atlas, distance) as scene:
@@ -118,6 +123,7 @@ def measure(ctx, character, baked, settings, distance: float) -> dict:
                 yaw = 2.0 * math.pi * (k + 0.37) / HEADINGS  # between baked views for every view count of the grid
                 mesh, imp = (scene.draw(kind, clip, phase, yaw, elevation) for kind in ("mesh", "impostor"))
                 cells.append({"clip": baked.clips[clip].name, "yaw": round(yaw, 4), "elevation": elevation, **compare(mesh, imp)})
+                references.append(compare(mesh, scene.draw("finer mesh", clip, phase, yaw, elevation)))
                 if choices > 1:  # an agent wearing another head: its impostor still shows the first's
                     other = scene.draw("mesh", clip, phase, yaw, elevation, choice=1)
                     others.append(compare(other, imp))
@@ -129,6 +135,10 @@ def measure(ctx, character, baked, settings, distance: float) -> dict:
             "colour_max": round(worst_colour["colour"], 2), "colour_mean": round(float(np.mean([c["colour"] for c in cells])), 2),
             "depth_m_median": round(float(np.median([c["depth_m"] for c in cells])), 4),
             "worst_iou_cell": worst_iou, "worst_colour_cell": worst_colour,
+            # The same cells' mesh against the mesh one LOD finer: what a mesh LOD switch already changes there.
+            "mesh_lod_switch": {"iou_mean": round(float(np.mean([c["iou"] for c in references])), 4),
+                                "iou_min": round(float(np.min([c["iou"] for c in references])), 4),
+                                "colour_mean": round(float(np.mean([c["colour"] for c in references])), 2)},
             # The same cells for an agent wearing each group's second choice, against the atlas of the first.
             "other_choice": None if not others else {"iou_mean": round(float(np.mean([c["iou"] for c in others])), 4),
                                                      "colour_mean": round(float(np.mean([c["colour"] for c in others])), 2)}}
@@ -165,6 +175,9 @@ def bench_impostor(args) -> int:
         print(f"{row['views']:>5} {','.join(f'{e:g}' for e in row['elevations']):>12} {'x'.join(map(str, row['cell'])):>7} "
               f"{row['rate']:>4g} {row['atlas_mb']:>7.1f} {row['bake_s']:>7.2f} {row['iou_min']:>8.3f} {row['iou_mean']:>9.3f} {row['colour_max']:>11.1f} "
               f"{row['colour_mean']:>12.1f} {row['depth_m_median']:>8.3f}")
+        ref = row["mesh_lod_switch"]
+        print(f"{'':>5} for scale, the mesh against the mesh one LOD finer, same cells: IoU min {ref['iou_min']:.3f}, "
+              f"mean {ref['iou_mean']:.3f}, colour mean {ref['colour_mean']:.1f}")
         if row["other_choice"]:
             print(f"{'':>5} an agent wearing the second choice of each variation group: IoU mean {row['other_choice']['iou_mean']:.3f}, "
                   f"colour mean {row['other_choice']['colour_mean']:.1f}")
