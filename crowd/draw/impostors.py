@@ -59,10 +59,11 @@ class ImpostorSettings:
     """What the atlas is baked at. The defaults come from `crowd-bench impostor` (docs/BENCHMARKS.md)."""
 
     # crowd-bench impostor (docs/BENCHMARKS.md, "Impostors"): the cell size hardly mattered at the switch
-    # distance; a second elevation did most, then views. These fit the demo's zombie and brute in 57 MB.
-    views: int = 8  # around the up axis
+    # distance (a 48-pixel-tall cell is about the agent's height on a 1080-row screen at 60 m); a second
+    # elevation did most, then views. These fit the demo's zombie and brute in 48 MB.
+    views: int = 12  # around the up axis
     elevations: tuple = (10.0, 40.0)  # degrees above the horizon, ascending
-    cell: tuple = (32, 64)  # pixels, width and height
+    cell: tuple = (24, 48)  # pixels, width and height
     rate: float = 10.0  # frames per second of clip
 
     def validate(self) -> "ImpostorSettings":
