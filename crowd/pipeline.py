@@ -381,23 +381,22 @@ class CrowdPipeline(GLStage):
         reach = half * 1.5 + 2.5 + half * math.sqrt(2.0)  # overview_camera's distance, then the farthest corner
         return reach >= self.config.impostor_distance
 
-    def _make_impostors(self) -> bool:
-        """Each crowd character's atlas made (from the cache where it holds one) or dropped, as the scene
-        needs; True where that changed anything (the processor and renderer must then be built again)."""
+    def _make_impostors(self, bakes=None) -> bool:
+        """Each crowd character's atlas made for its bake (or `bakes`, one per character of the cast, about
+        to be used), from the cache where it holds one, or dropped, as the scene needs; True where that
+        changed anything (the processor and renderer must then be built again)."""
         from .draw.impostor_bake import load_atlas
 
         want = self.impostors_needed()
         changed = False
-        for member in self.cast[:self.crowd_cast]:
+        for member, bake in zip(self.cast[:self.crowd_cast], bakes or [m.bake for m in self.cast]):
             if not want:
                 changed |= member.impostor is not None
                 member.impostor = None
                 continue
-            if member.impostor is not None and member.impostor.clip_names == tuple(c.name for c in member.bake.clips) \
-                    and getattr(member.impostor, "bake", None) is member.bake:
+            if member.impostor is not None and member.impostor.bake is bake:
                 continue
-            atlas = load_atlas(self.ctx, member.character, member.bake)
-            atlas.bake = member.bake  # the bake it shows: a new bake needs a new atlas
+            atlas = load_atlas(self.ctx, member.character, bake)
             for note in atlas.notes:
                 self.impostor_notes.append(f"{member.character.name}: {note}")
                 print(f"{member.character.name}: {note}", file=sys.stderr)
@@ -408,17 +407,24 @@ class CrowdPipeline(GLStage):
     def _refresh_impostors(self) -> None:
         """After a change that may change what needs impostors: atlases made or dropped, and the processor
         (which writes the keys) and the renderer (which draws them) built again where they did."""
-        if not self._make_impostors():
-            return
-        parts, spec = self._parts(), self._spec()
+        if self._make_impostors():
+            self._rebuild(self._parts(), self._spec(), renderer=True)
+
+    def _rebuild(self, parts: list[CastPart], spec: StageSpec, renderer: bool) -> None:
+        """A new processor for `parts` (and a new renderer, with `renderer`), each built before the old one
+        goes, so a build that fails keeps the running stages; the palettes and read-backs kept against the
+        old processor are dropped."""
         processor = build_processor(self.ctx, parts, spec, self.counts)
-        try:
-            renderer = build_renderer(self.ctx, parts, spec)
-        except BaseException:
-            processor.release()
-            raise
+        new_renderer = None
+        if renderer:
+            try:
+                new_renderer = build_renderer(self.ctx, parts, spec)
+            except BaseException:
+                processor.release()
+                raise
         self.stages.replace("processor", processor)
-        self.stages.replace("renderer", renderer)
+        if new_renderer is not None:
+            self.stages.replace("renderer", new_renderer)
         self._lock_ground = None
         self.sync.reset()
         if self.readback is not None:
@@ -542,34 +548,21 @@ class CrowdPipeline(GLStage):
                 old = next((c for c in member.bake.clips if c.name == clip.name), None)
                 if old is not None:
                     bake.clips[i] = dataclasses.replace(clip, loop=old.loop)
+        impostors_changed = self._make_impostors(bakes)  # an atlas shows its bake's clips: a new bake, a new atlas
         parts = [CastPart(m.character, bake, m.masks, bake_legs(m.character.skeleton, bake), m.impostor) for m, bake in zip(self.cast, bakes)]
-        spec = dataclasses.replace(self._spec(), interpolation=interpolation)
-        processor = build_processor(self.ctx, parts, spec, self.counts)
-        renderer = None
-        if tuple(b.morphs is not None for b in bakes) != self.renderer.morphs:  # the draw reads the pairs the processor writes
-            try:
-                renderer = build_renderer(self.ctx, parts, spec)
-            except BaseException:
-                processor.release()
-                raise
-        self.stages.replace("processor", processor)
-        if renderer is not None:
-            self.stages.replace("renderer", renderer)
+        # The draw reads the morph pairs and impostor keys the processor writes: it follows where they change.
+        morphs_changed = tuple(b.morphs is not None for b in bakes) != self.renderer.morphs
+        self._rebuild(parts, dataclasses.replace(self._spec(), interpolation=interpolation), renderer=morphs_changed or impostors_changed)
         for member, part in zip(self.cast, parts):
             member.bake, member.legs = part.bake, part.legs
-        self._lock_ground = None
         bake = bakes[0]
         self.config = dataclasses.replace(self.config, bake_fps=bake.fps, precision=bake.precision, interpolation=interpolation,
                                           compression_bound_mm=bake.bound_mm)
-        self.sync.reset()
-        if self.readback is not None:
-            self.readback.reset()
         for k, member in enumerate(self.cast[:self.crowd_cast]):
             member.motion = self._motion(k)
             self.ai.set_motion(member.motion, k)
         if self.survivor is not None:
             self.survivor.motion = self._survivor_motion()
-        self._refresh_impostors()  # an atlas shows its bake's clips: a new bake, a new atlas
 
     def set_morphs(self, on: bool) -> None:
         """Morph targets drawn (the cast baked again with its weight tracks, the processor writing pairs,

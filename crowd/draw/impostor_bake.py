@@ -97,12 +97,14 @@ def load_atlas(ctx: moderngl.Context, character: Character, bake: AnimationBake,
         try:
             atlas = read_atlas(path)
             if atlas.settings == settings and atlas.clip_names == tuple(c.name for c in bake.clips):
+                atlas.bake = bake
                 return atlas
             notes.append(f"impostor cache {path} was made for other settings: rebuilt")
         except ImpostorError as exc:
             notes.append(f"impostor cache rebuilt: {exc}")
     atlas = bake_atlas(ctx, character, bake, settings)
     atlas.notes = notes
+    atlas.bake = bake
     if path is not None:
         try:
             save_atlas(path, atlas)

@@ -94,6 +94,7 @@ class ImpostorAtlas:
     normal_depth: np.ndarray  # the same shape: octahedral normal, depth high and low bytes
     rows: int  # frames a layer holds
     notes: list = field(default_factory=list)  # one line each: what loading it said (a rebuilt cache)
+    bake: object = field(default=None, repr=False, compare=False)  # the AnimationBake it shows (load_atlas): a new bake needs a new atlas
 
     @property
     def frames(self) -> int:

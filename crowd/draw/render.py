@@ -487,9 +487,6 @@ class CrowdRenderer(GLStage):
             vdefs = {"DEPTH_ONLY": 1} if kind == "depth" else {}
             prog = self.ctx.program(vertex_shader=load_shader("impostor.vert.glsl", vdefs),
                                     fragment_shader=load_shader("impostor.frag.glsl", {**defines, **vdefs}))
-            for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
-                if name in prog:
-                    prog[name] = unit
         else:
             vdefs = {} if skinned else {"UNSKINNED": 1}
             if "LOD_FADE" in defines:
@@ -513,9 +510,9 @@ class CrowdRenderer(GLStage):
                 if self.morph_buffers:
                     vdefs["MORPH_BUFFERS"] = 1
             prog = self.ctx.program(vertex_shader=load_shader("skin.vert.glsl", vdefs), fragment_shader=frag)
-            for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
-                if name in prog:
-                    prog[name] = unit
+        for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
+            if name in prog:
+                prog[name] = unit
         if "u_shadow_map" in prog:
             prog["u_shadow_map"] = 3
         if "u_albedo" in prog:
@@ -695,13 +692,14 @@ class CrowdRenderer(GLStage):
         visible = sphere_visible(frustum_planes(matrix), centers, radii) if self.culling and n else np.ones(n, bool)
         dist = np.linalg.norm(centers, axis=1)
         top = self.lod_counts[0] - 1 if kind is None else np.asarray(self.lod_counts)[kind] - 1
-        lod = np.minimum(np.searchsorted(np.asarray(self.lod_distances), dist, side="right"), top)
+        passed = np.searchsorted(np.asarray(self.lod_distances), dist, side="right")  # LOD starts passed
+        lod = np.minimum(passed, top)
         impostor_lod = np.asarray(self.impostor_lods)[0 if kind is None else kind]
         as_impostor = (dist >= self.impostor_distance) & (impostor_lod >= 0)
         lod = np.where(as_impostor, impostor_lod, lod)
         shown = np.flatnonzero(visible).astype(np.uint32)
         records = self._all_records(instances, eye, row_offset, palette)  # once, for the colour and the shadow lists
-        listed, listed_lod, listed_records = self._fade_entries(shown, lod, dist, as_impostor, top, records)
+        listed, listed_lod, listed_records = self._fade_entries(shown, lod, passed, dist, as_impostor, top, records)
         drawn = self._upload_lists(instances, records, listed, listed_lod, kind, "instances", records=listed_records)
         self.last = {"triangles": int(sum(c * d.triangles for c, d in zip(drawn, self.draws))), "instances": int(sum(drawn)),
                      "visible": len(shown), "draws": sum(1 for c in drawn if c),
@@ -720,9 +718,10 @@ class CrowdRenderer(GLStage):
                 for draw, c in zip(self.draws, drawn):
                     draw.shadow_counts[k] = c
                 self.last["shadow_instances"] += int(sum(drawn))
-        return FrameView(camera, matrix, shadow, visible, lit, lod, as_impostor if self.lod_fade == 0.0 else as_impostor & (dist >= self.impostor_distance + self.lod_fade))
+        # Held: an impostor past its fade band (its impostor alone is drawn, holding the weapon).
+        return FrameView(camera, matrix, shadow, visible, lit, lod, as_impostor & (dist >= self.impostor_distance + self.lod_fade))
 
-    def _fade_entries(self, shown, lod, dist, as_impostor, top, records):
+    def _fade_entries(self, shown, lod, passed, dist, as_impostor, top, records):
         """The CPU path's colour list entries: each shown agent at its LOD, and those within lod_fade of
         the switch behind them again at the finer LOD, each record's tint alpha carrying its fade code
         (shaders/lod_fade.glsl; 255 for none), as the GPU cull lists them."""
@@ -732,7 +731,7 @@ class CrowdRenderer(GLStage):
         if not self.lod_fade or not len(shown):
             return shown, lod[shown], entries
         d = dist[shown]
-        raw = np.searchsorted(np.asarray(self.lod_distances), d, side="right")  # LOD starts passed
+        raw = passed[shown]
         impostor = as_impostor[shown]
         starts = np.asarray(self.lod_distances, np.float64)
         boundary = np.where(impostor, self.impostor_distance, np.where(raw > 0, starts[np.maximum(raw - 1, 0)], -1.0))
@@ -918,7 +917,7 @@ class CrowdRenderer(GLStage):
                 for index, draw in enumerate(self.draws):
                     if (draw.layout, draw.morph) == (layout, morph):
                         if layout == "impostor":
-                            self.impostors[draw.character].bind(prog, self.palette.parts[draw.character].slots)
+                            self._bind_piece(draw, prog)
                         self._render(index, draw, "depth", True, k)
         return True
 
@@ -951,18 +950,24 @@ class CrowdRenderer(GLStage):
                     continue
                 for index, draw in enumerate(self.draws):
                     if (draw.layout, draw.morph and skinned is True) == (layout, morph) and (draw.count or self.gpu is not None):
-                        if layout == "impostor":
-                            if skinned is not True:  # the benchmark's unskinned ceiling binds no palette, so no keys
-                                continue
-                            self.impostors[draw.character].bind(prog, self.palette.parts[draw.character].slots)
-                        elif layout:
-                            self.materials.bind(draw.texture, prog)
-                        if layout == "packed":
-                            prog["u_uv_box"] = draw.uv_box
+                        if layout == "impostor" and skinned is not True:  # the unskinned ceiling binds no palette, so no keys
+                            continue
+                        self._bind_piece(draw, prog)
                         self._render(index, draw, "color", skinned)
         finally:
             if self.materials is not None:  # a sampler object left on its unit would override what binds there next
                 self.materials.unbind()
+
+    def _bind_piece(self, draw: _Draw, prog: moderngl.Program) -> None:
+        """What one draw's program reads besides the palette and its lists: an impostor's atlas and key
+        offset, or a textured piece's texture layer (and coordinate box where packed)."""
+        if draw.layout == "impostor":
+            self.impostors[draw.character].bind(prog, self.palette.parts[draw.character].slots)
+            return
+        if draw.layout:
+            self.materials.bind(draw.texture, prog)
+        if draw.layout == "packed":
+            prog["u_uv_box"] = draw.uv_box
 
     def bake_pass(self, framebuffer, processor, boxes: moderngl.Texture, uniforms: dict) -> None:
         """The impostor bake's draw of one view (crowd.draw.impostors.bake_atlas): every prepared agent
@@ -982,10 +987,7 @@ class CrowdRenderer(GLStage):
                         prog[name] = tuple(float(x) for x in value) if isinstance(value, np.ndarray) else value
                 for index, draw in enumerate(self.draws):
                     if draw.layout == layout and draw.count:
-                        if layout:
-                            self.materials.bind(draw.texture, prog)
-                        if layout == "packed":
-                            prog["u_uv_box"] = draw.uv_box
+                        self._bind_piece(draw, prog)
                         self._render(index, draw, "bake", True)
         finally:
             if self.materials is not None:
