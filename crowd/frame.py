@@ -30,6 +30,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .spans import min_max, over_spans
+
 CLIP, PHASE, WEIGHT, MASK = range(4)  # the columns of one layer
 LAYER_COLUMNS = ("clip", "phase", "weight", "mask")
 MAX_LAYERS = 4
@@ -149,34 +151,52 @@ def _within_contract(a: np.ndarray, clip_count: int, mask_count: int) -> bool:
         return False
     if lo[:, CLIP].min() < 0 or hi[:, CLIP].max() >= clip_count or lo[:, MASK].min() < -1 or hi[:, MASK].max() >= mask_count:
         return False
-    floor = None
+    uneven = []
     for layer in range(a.shape[1]):
         for c in (CLIP, MASK):
             if lo[layer, c] == hi[layer, c]:
                 if lo[layer, c] != np.floor(lo[layer, c]):
                     return False
                 continue
-            column = a[:, layer, c]
-            floor = np.empty(len(column), np.float32) if floor is None else floor
-            np.floor(column, out=floor)  # (finite now: equal to its floor exactly when whole)
+            uneven.append((layer, c))
+    if not uneven:
+        return True
+
+    def whole(first: int, last: int) -> bool:  # (finite now: a value is equal to its floor exactly when whole)
+        floor = np.empty(last - first, np.float32)
+        for layer, c in uneven:
+            column = a[first:last, layer, c]
+            np.floor(column, out=floor)
             if not np.array_equal(floor, column):
                 return False
-    return True
+        return True
+
+    return all(over_spans(whole, len(a)))
 
 
 def _column_extremes(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each (layer, column)'s minimum and maximum, (L, 4) each, over C-contiguous float32 layers (N, L, 4).
-    A column-wise reduction of an (M, 4) array runs a 4-wide inner loop (10 ms for 100,000 agents'
-    layers); rows of about 1024 values (whole agents) reduce at memory speed, and their partial
-    results fold into the L x 4 after."""
+    """Each (layer, column)'s minimum and maximum, (L, 4) each, over C-contiguous float32 layers (N, L, 4),
+    from spans of agents side by side (crowd.spans)."""
+    parts = over_spans(lambda first, last: _span_extremes(a[first:last]), len(a))
+    lo = np.min([p[0] for p in parts], axis=0)
+    hi = np.max([p[1] for p in parts], axis=0)
+    return lo.reshape(a.shape[1:]), hi.reshape(a.shape[1:])
+
+
+def _span_extremes(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """As ``_column_extremes``, flat (L * 4,), for one span. A column-wise reduction of an (M, 4) array runs
+    a 4-wide inner loop (10 ms for 100,000 agents' layers); rows of about 1024 values (whole agents)
+    reduce at memory speed, and their partial results fold into the L x 4 after."""
     width = a.shape[1] * a.shape[2]
+    if not len(a):
+        return np.full(width, np.inf, np.float32), np.full(width, -np.inf, np.float32)
     flat = a.reshape(-1)
     row = 1024 // width * width
     split = flat.size // row * row
     chunks = [c for c in (flat[:split].reshape(-1, row), flat[split:].reshape(-1, width)) if len(c)]
     lo = np.min([c.min(axis=0).reshape(-1, width).min(axis=0) for c in chunks], axis=0)
     hi = np.max([c.max(axis=0).reshape(-1, width).max(axis=0) for c in chunks], axis=0)
-    return lo.reshape(a.shape[1:]), hi.reshape(a.shape[1:])
+    return lo, hi
 
 
 def validate_masks(masks, joint_count: int) -> np.ndarray | None:
@@ -290,7 +310,7 @@ class Instances:
             raise FrameError(f"instances of {len(counts)} characters drawn by a cast of {len(per_character)}")
         # Finite exactly when the minimum and maximum are (NaN propagates through both): reductions
         # without the boolean temporaries of np.isfinite, a frame's largest check after the layers'.
-        extremes = [(float(np.min(a)), float(np.max(a))) if n else (0.0, 1.0) for a in (self.position, self.yaw, self.scale)]
+        extremes = [min_max(a) if n else (0.0, 1.0) for a in (self.position, self.yaw, self.scale)]
         if not all(math.isfinite(lo) and math.isfinite(hi) for lo, hi in extremes):
             raise FrameError("instance positions, headings and scales must be finite")
         if n and (extremes[2][0] <= 0 or extremes[2][1] > 100):
@@ -304,7 +324,8 @@ class Instances:
             for k, character_groups in enumerate(per_character):
                 part = v[firsts[k]:firsts[k + 1]]
                 choices = len(character_groups.get(group, ())) or 1  # a character without the group: 0 only
-                if part.size and (part.min() < 0 or part.max() >= choices):
+                low, high = min_max(part)
+                if part.size and (low < 0 or high >= choices):
                     raise FrameError(f"variant of group {group!r} must be indices below {choices}"
                                      + (f" for character {k}" if len(per_character) > 1 else ""))
         return self

@@ -62,6 +62,7 @@ from .compress import PER_KEY
 from . import foot_lock as lock
 from ..gl import GLStage, gpu_bytes, has_compute, load_shader
 from ..settings import DEFAULTS, SETTINGS
+from ..spans import min_max, over_spans
 from .morph import ACTIVE_WEIGHT, MAX_MORPH_WEIGHT, MORPH_PAIRS, NOT_HELD
 from .reference import CANCELLED_NORM, REST_THRESHOLD, aligned_sign
 
@@ -140,11 +141,17 @@ def check_motion(motion, agents: int) -> np.ndarray:
     if m.shape != (agents, 4):
         raise ProcessorError(f"agent motion must be ({agents}, 4) (ground step x, z, front x, z times scale), got {np.shape(motion)}")
     # Two reductions where every value is fine (min and max carry NaN and infinities); the row is found only for the message.
-    if m.size and not (np.isfinite(m.min()) and np.isfinite(m.max())):
+    if m.size and not all(math.isfinite(v) for v in min_max(m)):
         bad = int(np.flatnonzero(~np.all(np.isfinite(m), axis=1))[0])
         raise ProcessorError(f"agent motion of agent {bad} is not finite: {m[bad].tolist()}")
-    front = m[:, 2] * m[:, 2] + m[:, 3] * m[:, 3]
-    if front.size and not front.min() > 1e-24:
+
+    def shortest(lo: int, hi: int) -> float:  # the shortest front's squared length in a span (crowd.spans)
+        front = m[lo:hi, 2] * m[lo:hi, 2]
+        front += m[lo:hi, 3] * m[lo:hi, 3]
+        return float(front.min()) if hi > lo else math.inf
+
+    if len(m) and not min(over_spans(shortest, len(m))) > 1e-24:
+        front = m[:, 2] * m[:, 2] + m[:, 3] * m[:, 3]
         bad = int(np.flatnonzero(~(front > 1e-24))[0])
         raise ProcessorError(f"agent {bad} has front {m[bad, 2:].tolist()} times its scale; the foot lock needs one of length > 0")
     return m
@@ -468,6 +475,7 @@ class AnimationProcessor(GLStage):
         self.layer_rows = 1  # texture rows per layer of the planes
         self.slot_layers = 1  # layers one ring slot spans
         self.layers_texture = None
+        self._layer_unpack = None  # (the layer rows' pixel-unpack buffer, made with the texture)
         self.planes: tuple = ()
         self._framebuffer = None
         keys = list(impostor_keys) if impostor_keys is not None else [False] * len(bakes)
@@ -712,6 +720,11 @@ class AnimationProcessor(GLStage):
             self.planes = tuple(self._array("palette", (width, layer_rows, layers)) for _ in range(3))
             zeros = np.zeros((layer_rows_needed, self.layer_agents_per_row * self.layer_count, 4), np.float32)  # weight 0 (the rest pose) until an upload
             self.layers_texture = self._texture("layers", (self.layer_agents_per_row * self.layer_count, layer_rows_needed), 4, zeros, "f4")
+            # The layers' whole rows go through a pixel-unpack buffer: a buffer write ran at about 14 GB/s on
+            # the H200 host where a texture write from the array ran at 2.6 (docs/BENCHMARKS.md, "The CPU side
+            # of the frame"), and the texture copy then runs on the GPU, in order after the last frame's pass.
+            self._layer_unpack = self.ctx.buffer(reserve=zeros.nbytes)
+            self._own["layers"].append(self._layer_unpack)
             # A layered framebuffer over the planes: it clears every layer at once (texels no run wrote
             # read as 0, not as whatever the memory held), and the fragment path renders through it.
             fb = self.ctx.framebuffer(color_attachments=list(self.planes))
@@ -780,6 +793,7 @@ class AnimationProcessor(GLStage):
         self._release_group("palette")
         self._release_group("layers")
         self.planes, self.layers_texture, self._framebuffer = (), None, None
+        self._layer_unpack = None
 
     def _array(self, group, size):
         tex = self.ctx.texture_array(size, 4, dtype="f4")
@@ -883,7 +897,11 @@ class AnimationProcessor(GLStage):
             done = head
         full = (n - done) // per_row
         if full:
-            self.layers_texture.write(a[done:done + full * per_row], viewport=(0, (first + done) // per_row, per_row * k, full))
+            rows = a[done:done + full * per_row]
+            unpack = self._layer_unpack
+            unpack.orphan(unpack.size)  # fresh storage: the copy still queued from the last frame keeps its own
+            unpack.write(rows)
+            self.layers_texture.write(unpack, viewport=(0, (first + done) // per_row, per_row * k, full))
             done += full * per_row
         if done < n:
             self.layers_texture.write(np.ascontiguousarray(a[done:]), viewport=(0, (first + done) // per_row, (n - done) * k, 1))

@@ -35,6 +35,7 @@ from pyglm import glm
 from ..frame import Camera, Instances
 from ..gl import GLStage, gpu_bytes, has_compute, load_shader
 from ..settings import DEFAULTS, SETTINGS
+from ..spans import over_spans
 from ..lighting import FOG_COLOR, LIGHTING, SUN_DIR
 from ..asset.model import PACKED_UV_SPAN, Character, SkinnedMesh
 from ..asset.town import TILE
@@ -807,24 +808,31 @@ class CrowdRenderer(GLStage):
         if len(self._scratch) != n:
             raise RenderError(f"{n} instances, but the palette holds {palette.agents} agents")
         records, fields = self._scratch, self._scratch["packed"]
-        # The subtraction in float64 (agents far from the origin), rounded once into the record; a column
-        # at a time, which is 3 times as fast as numpy's (N, 3) into strided (N, 3) broadcast.
         position = records["position_scale"]
-        for c in range(3):
-            np.subtract(instances.position[:, c], eye[c], out=position[:, c], casting="unsafe")
-        records["position_scale"][:, 3] = instances.scale
-        np.add(self._texel_base, texel_code(0, row_offset), out=fields[:, 0], casting="unsafe")
         tint = instances.tint
-        fields[:, 1] = tint.view("<u4")[:, 0] if tint.dtype == np.uint8 and tint.flags.c_contiguous else _rgba8(tint)
-        write_heading(instances.yaw, fields[:, 2])
-        if self._character_bits is None:
-            fields[:, 3] = 0
-        else:
-            fields[:, 3] = self._character_bits
-        for g, group in enumerate(self.group_names):
-            v = instances.variant.get(group)
-            if v is not None:
-                fields[:, 3] |= v.astype(np.uint32) << np.uint32(4 * g)
+        packed_tint = tint.dtype == np.uint8 and tint.flags.c_contiguous
+        variants = [(g, instances.variant.get(group)) for g, group in enumerate(self.group_names)]
+        row_code = texel_code(0, row_offset)
+
+        def pack(lo: int, hi: int) -> None:  # agents lo..hi, beside the other spans (crowd.spans)
+            # The subtraction in float64 (agents far from the origin), rounded once into the record; a column
+            # at a time, which is 3 times as fast as numpy's (N, 3) into strided (N, 3) broadcast.
+            for c in range(3):
+                np.subtract(instances.position[lo:hi, c], eye[c], out=position[lo:hi, c], casting="unsafe")
+            position[lo:hi, 3] = instances.scale[lo:hi]
+            np.add(self._texel_base[lo:hi], row_code if row_code.ndim == 0 else row_code[lo:hi], out=fields[lo:hi, 0], casting="unsafe")
+            fields[lo:hi, 1] = tint[lo:hi].view("<u4")[:, 0] if packed_tint else _rgba8(tint[lo:hi])
+            write_heading(instances.yaw[lo:hi], fields[lo:hi, 2])
+            bits = fields[lo:hi, 3]
+            if self._character_bits is None:
+                bits[:] = 0
+            else:
+                bits[:] = self._character_bits[lo:hi]
+            for g, v in variants:
+                if v is not None:
+                    bits |= v[lo:hi].astype(np.uint32) << np.uint32(4 * g)
+
+        over_spans(pack, n)
         return records
 
     def cull(self, processor=None) -> bool:

@@ -54,6 +54,7 @@ from ..asset.pose import global_matrices, sample_clip
 from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, FrameError, Instances, cast_counts, cast_firsts, cast_moves, empty_layers
 from ..search import golden_section_max
 from ..settings import SETTINGS, group
+from ..spans import over_spans
 from .agent_pool import PARAMS, AgentPool, PoolError, SharedArrays, available_cores
 
 LAYERS = MAX_LAYERS
@@ -1685,20 +1686,43 @@ class CrowdAI:
     def layers(self) -> np.ndarray:
         return self.write_layers(np.empty((self.n, LAYERS, 4), np.float32))
 
-    def instances(self) -> Instances:
+    def instances(self, extra: int = 0) -> Instances:
         """The render's input: positions, headings, scales, tints, variants (fresh arrays, kept by the
-        frame; the headings' arctangents are shared out to the workers, the rest is copies)."""
-        pos = np.zeros((self.n, 3))
-        pos[:, 0] = self.x
-        pos[:, 2] = self.z
-        variant = {"head": self.head} if any(m.head_count for m in self.motions) else {}
+        frame; the headings' arctangents are shared out to the workers, the rest is copies, over spans of
+        agents side by side: crowd.spans). With `extra` > 0 every array has that many rows after the
+        crowd's, zero, for the caller to fill (the survivor's), so nothing is copied twice to append
+        them; with none, the scales and tints are the AI's own arrays."""
+        n, rows = self.n, self.n + int(extra)
+        pos = np.empty((rows, 3))
+        yaw = np.empty(rows, np.float32)
         ranges = self._ready_ranges() if self.n else 1
-        if ranges == 1:
-            yaw = self.yaw.astype(np.float32)
-        else:
+        if ranges > 1:
             self._phase(HEADINGS, ranges)
-            yaw = self._yaw_out.copy()
-        return Instances(pos, yaw, self.scale, self.tint, variant, None if len(self.cast) == 1 else self.cast)
+        heads = any(m.head_count for m in self.motions)
+        scale, tint = (self.scale, self.tint) if not extra else (np.empty(rows, np.float32), np.empty((rows, 4), np.uint8))
+        head = self.head if not extra or not heads else np.empty(rows, self.head.dtype)
+
+        def fill(lo: int, hi: int) -> None:
+            pos[lo:hi, 0] = self.x[lo:hi]
+            pos[lo:hi, 1] = 0.0
+            pos[lo:hi, 2] = self.z[lo:hi]
+            if ranges > 1:
+                yaw[lo:hi] = self._yaw_out[lo:hi]
+            else:
+                np.arctan2(self.hx[lo:hi], self.hz[lo:hi], out=yaw[lo:hi], casting="same_kind")
+            if extra:
+                scale[lo:hi] = self.scale[lo:hi]
+                tint[lo:hi] = self.tint[lo:hi]
+                if heads:
+                    head[lo:hi] = self.head[lo:hi]
+
+        over_spans(fill, n)
+        if extra:
+            pos[n:], yaw[n:], scale[n:], tint[n:] = 0.0, 0.0, 0.0, 0
+            if heads:
+                head[n:] = 0
+        variant = {"head": head} if heads else {}
+        return Instances(pos, yaw, scale, tint, variant, None if len(self.cast) == 1 else self.cast)
 
     def check(self) -> list[str]:
         """Invariants every step must keep; empty when all hold (tests, and the stats' `ai_faults`)."""
