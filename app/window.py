@@ -34,6 +34,8 @@ mglw = import_moderngl_window()
 
 
 class CrowdWindow(mglw.WindowConfig):
+    # 3.3 core, forward-compatible: macOS answers with its 4.1 core, Linux drivers with their newest core
+    # version; what the frame then uses follows the context (crowd.gl.has_compute) and the "gl" setting.
     gl_version = (3, 3)
     title = "crowd: zombie horde"
     window_size = (1280, 720)

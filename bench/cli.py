@@ -442,6 +442,29 @@ def bench_soak(args) -> int:
     return 0 if not result["faults"] else 1
 
 
+def bench_fragment(args) -> int:
+    """The fragment processor (GL 3.3 / 4.1) against the compute one, its two passes apart, and the floor of
+    any fragment pass over the palette's texels (bench/fragment_probe.py)."""
+    from crowd.gl import describe, headless_context
+
+    from .fragment_probe import measure
+
+    ctx = headless_context()
+    info = describe(ctx)
+    print(f"{info['gl_renderer']} | {info['gl_version']} | 4 layers | GPU ms, median of {args.repeats} runs")
+    print(f"{'agents':>8} {'compute':>8} {'fragment':>9} {'locals':>7} {'compose':>8} {'floor 3':>8} {'floor 1':>8} {'frag/comp':>10}")
+    rows = measure(ctx, [int(x) for x in args.agents.split(",")], args.repeats)
+    for r in rows:
+        ratio = r["fragment_ms"] / r["compute_ms"] if r.get("compute_ms") else float("nan")
+        print(f"{r['agents']:>8} {r.get('compute_ms', float('nan')):>8.3f} {r['fragment_ms']:>9.3f} {r['locals_ms']:>7.3f} {r['compose_ms']:>8.3f} "
+              f"{r['floor_3_targets_ms']:>8.3f} {r['floor_1_target_ms']:>8.3f} {ratio:>10.1f}")
+    if args.json:
+        from crowd.files import atomic_write_bytes
+
+        atomic_write_bytes(Path(args.json), json.dumps({"device": f"{info['gl_renderer']}, {info['gl_version']}", "rows": rows}, indent=1).encode())
+    return 0
+
+
 def bench_compaction(args) -> int:
     """The GPU cull's list compaction by shared-memory atomics (the runtime's) and by a prefix sum."""
     from crowd.gl import describe, has_compute, headless_context
@@ -615,6 +638,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene", type=Path, help="a scene file (default: the default scene, the game as shipped)")
     p.add_argument("--json", type=Path, help="write the samples and figures here")
     p.set_defaults(run=bench_soak)
+    p = sub.add_parser("fragment", help="the fragment processor (GL 3.3 / 4.1) against the compute one: its two passes and the fill floor, GPU ms")
+    p.add_argument("--agents", default="16384,65536,131072", help='comma-separated agent counts')
+    p.add_argument("--repeats", type=int, default=20, help='timed runs of each pass (the median is reported)')
+    p.add_argument("--json", type=Path, help='write the results as JSON to this file')
+    p.set_defaults(run=bench_fragment)
     p = sub.add_parser("compaction", help="the GPU cull's lists compacted by atomics and by a prefix sum: same lists, GPU ms")
     p.add_argument("--agents", default="10000,100000,1000000", help='comma-separated agent counts')
     p.add_argument("--repeats", type=int, default=40, help='timed runs per agent count (the median is reported)')

@@ -76,10 +76,20 @@ class GLUnavailable(RuntimeError):
     """No usable OpenGL context could be made; the message says why in one line."""
 
 
-def has_compute(ctx) -> bool:
-    """Whether the context runs compute shaders and storage buffers (GL 4.3): the compute processor
-    and the GPU cull need them; GL 3.3 contexts take the fragment processor and the CPU cull."""
-    return ctx.version_code >= 430
+GL_LIMITS = {"auto": None, "4.1": 410}  # the "gl" setting's choices: the highest GL version whose features the stages use
+
+
+def feature_level(ctx, limit: int | None = None) -> int:
+    """The GL version whose features the stages built on `ctx` use: the context's own, or `limit` where that
+    is lower (the "gl" setting: the path a macOS 4.1 core context takes, forced on a context with more)."""
+    return ctx.version_code if limit is None else min(ctx.version_code, int(limit))
+
+
+def has_compute(ctx, limit: int | None = None) -> bool:
+    """Whether the stages may use compute shaders, storage buffers and image load/store (GL 4.3): the
+    compute processor, the GPU cull and the morph deltas' buffers need them; below it (macOS's 4.1, GL 3.3)
+    they take the fragment processor, the CPU cull and textures. `limit`: as for ``feature_level``."""
+    return feature_level(ctx, limit) >= 430
 
 
 def has_display() -> bool:

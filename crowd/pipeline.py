@@ -48,7 +48,7 @@ from .draw.render import CrowdRenderer, FrameView, view_proj
 from .draw.sync import PaletteSync
 from .draw.weapons import AgentFrames, WeaponRenderer
 from .frame import Camera, FrameError, Instances, LayerOverrides, cast_counts, cast_firsts
-from .gl import GLStage
+from .gl import GL_LIMITS, GLStage
 from .lighting import LIGHTING
 from .progress import bar
 from .settings import DEFAULTS, SETTINGS
@@ -114,6 +114,7 @@ class PipelineConfig:
     weapons: bool = DEFAULTS["weapons"]  # armed agents carry weapons (AIConfig.armed_share says how many)
     readback_latency: int = DEFAULTS["readback_latency"]  # frames between gathering a socket and the CPU reading it
     cull: str = DEFAULTS["cull"]  # "auto", "gpu" or "cpu": where culling, LOD and the instance lists are made
+    gl: str = DEFAULTS["gl"]  # "auto" or "4.1": the GL features the stages may use (crowd.gl.feature_level)
     foot_lock: bool = DEFAULTS["foot_lock"]  # planted feet held by the processor (the compute path; crowd.anim.foot_lock)
     morphs: bool = DEFAULTS["morphs"]  # morph targets drawn where the scene moves them (crowd.anim.morph, crowd.draw.morph)
     impostors: str = DEFAULTS["impostors"]  # "auto", "on" or "off": far agents drawn as impostors (crowd.draw.impostors)
@@ -175,6 +176,7 @@ class CrowdPipeline(GLStage):
         self.ai: CrowdAI | None = None  # likewise: its worker processes start with a big enough crowd's first step
         self.timer = PassTimer(ctx)
         SETTINGS["agents"].check(config.agents, PipelineError)
+        SETTINGS["gl"].check(config.gl, PipelineError)
         self.ctx = ctx
         self.config = config
         with bar(4, "starting the crowd: the character", "step") as started:  # on a terminal only (crowd.progress)
@@ -365,7 +367,7 @@ class CrowdPipeline(GLStage):
         return StageSpec(layers=LAYERS, processor_path=c.processor_path, interpolation=c.interpolation, lod_distances=c.lod_distances,
                          shadows=c.shadows, culling=c.culling, occlusion=c.occlusion, armed=self.readback is not None if armed is None else armed,
                          readback_latency=self.latency, cull=c.cull, foot_lock=c.foot_lock, town=c.town,
-                         impostor_distance=c.impostor_distance, lod_fade=c.lod_fade)
+                         impostor_distance=c.impostor_distance, lod_fade=c.lod_fade, gl_limit=GL_LIMITS[c.gl])
 
     # -- impostors (crowd.draw.impostors): only where the scene needs them
 
@@ -397,7 +399,7 @@ class CrowdPipeline(GLStage):
                 continue
             if member.impostor is not None and member.impostor.bake is bake:
                 continue
-            atlas = load_atlas(self.ctx, member.character, bake)
+            atlas = load_atlas(self.ctx, member.character, bake, gl_limit=GL_LIMITS[self.config.gl])
             for note in atlas.notes:
                 self.impostor_notes.append(f"{member.character.name}: {note}")
                 print(f"{member.character.name}: {note}", file=sys.stderr)

@@ -398,7 +398,7 @@ class CrowdSession(GLStage):
             "morphs": self.set_morphs, "impostors": self.set_impostors, "impostor_distance": self.set_impostor_distance,
             "lod_fade": self.set_lod_fade,
         }
-        if name in ("model_scale", "survivor", "town"):  # what the cast and its world are made of: set when the crowd is built
+        if name in ("model_scale", "survivor", "town", "gl"):  # what the cast, its world and its GL paths are: set when the crowd is built
             SETTINGS[name].check(value, SessionError)
             raise SessionError(f"{SETTINGS[name].words} is applied when the crowd is built: save the scene and run it again")
         if name in AI_SETTINGS:
@@ -564,7 +564,7 @@ class CrowdSession(GLStage):
             self.scene, characters=tuple(characters), agents=p.agents, seed=p.config.seed, bake_fps=p.bake.fps, precision=p.bake.precision,
             compression_bound_mm=p.bake.bound_mm, interpolation=p.processor.interpolation, ai=p.ai.config,
             weapons=p.config.weapons, readback_latency=p.latency, shadows=p.renderer.shadows, culling=p.renderer.culling, occlusion=p.config.occlusion,
-            lod_distances=tuple(p.renderer.lod_distances), processor=p.config.processor_path, cull=p.config.cull, foot_lock=p.config.foot_lock,
+            lod_distances=tuple(p.renderer.lod_distances), processor=p.config.processor_path, cull=p.config.cull, gl=p.config.gl, foot_lock=p.config.foot_lock,
             survivor=p.survivor is not None, town=p.town is not None, morphs=p.config.morphs, impostors=p.config.impostors,
             impostor_distance=p.config.impostor_distance, lod_fade=p.config.lod_fade,
             camera=CameraSetting(tuple(float(v) for v in cam.eye), tuple(float(v) for v in cam.target), float(cam.fov_y)))

@@ -244,6 +244,10 @@ _ALL = (
             "blends, and solves the leg to it (two-bone IK; the compute path only; docs/ACCURACY.md)"),
     Setting("processor", "features", "choice", "auto", "animation processor path: compute where GL 4.3 exists, else fragment",
             label="processor path", choices=("auto", "compute", "fragment")),
+    Setting("gl", "features", "choice", "auto",
+            "the GL features the frame may use: auto (all the context has) or 4.1 (what macOS offers: no compute shaders, "
+            "storage buffers or image load/store, so the fragment processor, the CPU cull, morph deltas in textures, no foot "
+            "lock or occlusion culling), forced on a context that has more", label="GL feature level", choices=("auto", "4.1")),
     Setting("cull", "features", "choice", "auto",
             "where culling, LOD picking and the per-draw instance lists are made: gpu (a compute pass and indirect draws, "
             "GL 4.3) or cpu (numpy); auto: gpu where GL 4.3 exists", label="cull path", choices=("auto", "gpu", "cpu")),

@@ -24,7 +24,7 @@ from .draw.readback import SocketReadback
 from .draw.render import CrowdRenderer, RenderError
 from .draw.town import TownRenderer
 from .draw.weapons import WeaponRenderer
-from .gl import has_compute
+from .gl import GL_LIMITS, has_compute
 from .frame import MAX_LAYERS
 from .settings import DEFAULTS
 
@@ -66,6 +66,7 @@ class StageSpec:
     readback_latency: int = DEFAULTS["readback_latency"]
     impostor_distance: float = DEFAULTS["impostor_distance"]  # metres, for the characters with an atlas
     lod_fade: float = DEFAULTS["lod_fade"]  # metres past each LOD switch over which the LODs cross-fade
+    gl_limit: int | None = GL_LIMITS[DEFAULTS["gl"]]  # the highest GL version whose features the stages use (None: the context's)
 
     @property
     def history(self) -> int:
@@ -76,7 +77,7 @@ class StageSpec:
 def build_processor(ctx: moderngl.Context, cast, spec: StageSpec, agents=0) -> AnimationProcessor:
     """`agents`: a count for a one-character cast, else one per character."""
     cast = as_cast(cast)
-    path = resolve_path(ctx, spec.processor_path)
+    path = resolve_path(ctx, spec.processor_path, spec.gl_limit)
     # The foot lock runs where it can: on the compute path, for characters with legs.
     legs = [part.legs if spec.foot_lock and path == "compute" else None for part in cast]
     processor = AnimationProcessor(ctx, [part.bake for part in cast], spec.layers, masks=[part.masks for part in cast], path=path,
@@ -95,16 +96,19 @@ def build_renderer(ctx: moderngl.Context, cast, spec: StageSpec) -> CrowdRendere
     writes its agents' pairs: the two must agree, and both follow the bake)."""
     cast = as_cast(cast)
     return CrowdRenderer(ctx, [part.character for part in cast], lod_distances=spec.lod_distances, shadows=spec.shadows,
-                         culling=spec.culling, cull_path=cull_path(ctx, spec.cull), weapons_visibility=spec.armed, occlusion=spec.occlusion,
+                         culling=spec.culling, cull_path=cull_path(ctx, spec.cull, spec.gl_limit), weapons_visibility=spec.armed, occlusion=spec.occlusion,
+                         morph_buffers=has_compute(ctx, spec.gl_limit),
                          town=spec.town, morphs=[part.bake.morphs is not None for part in cast],
                          impostors=[part.impostor for part in cast], impostor_distance=spec.impostor_distance, lod_fade=spec.lod_fade)
 
 
-def cull_path(ctx: moderngl.Context, asked: str) -> str:
-    """"gpu" or "cpu" for `asked` ("auto": gpu where the context runs compute shaders)."""
-    compute = has_compute(ctx)
+def cull_path(ctx: moderngl.Context, asked: str, limit: int | None = None) -> str:
+    """"gpu" or "cpu" for `asked` ("auto": gpu where the context runs compute shaders and `limit`, the "gl"
+    setting's, lets the stages use them)."""
+    compute = has_compute(ctx, limit)
     if asked == "gpu" and not compute:
-        raise RenderError(f"the gpu cull path needs GL 4.3 compute shaders; this context is GL {ctx.version_code}")
+        raise RenderError(f"the gpu cull path needs GL 4.3 compute shaders; this context is GL {ctx.version_code}"
+                          + ("" if limit is None or limit >= ctx.version_code else f", used as GL {limit // 100}.{limit % 100 // 10} (--gl)"))
     return asked if asked != "auto" else ("gpu" if compute else "cpu")
 
 
@@ -119,7 +123,7 @@ def build_town(ctx: moderngl.Context, spec: StageSpec) -> TownRenderer | None:
 
 
 def build_weapons(ctx: moderngl.Context, cast, spec: StageSpec) -> WeaponRenderer | None:
-    return WeaponRenderer(ctx, [part.character for part in as_cast(cast)], spec.shadows, gpu_cull=cull_path(ctx, spec.cull) == "gpu") if spec.armed else None
+    return WeaponRenderer(ctx, [part.character for part in as_cast(cast)], spec.shadows, gpu_cull=cull_path(ctx, spec.cull, spec.gl_limit) == "gpu") if spec.armed else None
 
 
 @dataclass

@@ -13,7 +13,7 @@ import moderngl
 import numpy as np
 
 from .files import atomic_write_bytes
-from .gl import describe
+from .gl import GL_LIMITS, describe, feature_level
 
 
 def percentiles(values) -> dict:
@@ -60,6 +60,7 @@ def pipeline_stats(pipeline) -> dict:
     return {
         "agents": p.agents,
         "processor_path": p.processor.path,
+        "gl_features": feature_level(p.ctx, GL_LIMITS[p.config.gl]),  # the GL version whose features the stages use (the "gl" setting)
         "layers": p.processor.layer_count,
         "bake": {"fps": p.bake.fps, "precision": p.bake.precision, "interpolation": p.processor.interpolation,
                  "clips": [c.name for c in p.bake.clips],

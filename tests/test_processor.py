@@ -411,3 +411,18 @@ def test_corrected_nlerp_tracks_slerp():
     d = np.linspace(0.0, 1.0, 11)  # the keys themselves, and the middle, are where nlerp already is exact
     assert np.all(corrected_weight(0.0, d) == 0.0) and np.all(corrected_weight(1.0, d) == 1.0)
     assert np.allclose(corrected_weight(0.5, d), 0.5)
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_only_the_fragment_path_keeps_a_scratch_of_locals(gl_context, zombie_bake, path):
+    """The fragment path's locals pass writes into a scratch of one ring slot's shape (a third of a
+    history-3 palette); the compute path blends into shared memory and keeps none; no agents, no scratch."""
+    with AnimationProcessor(gl_context, zombie_bake, 2, path=path, history=3) as proc:
+        proc.resize(1000)
+        proc.process(random_layers(np.random.default_rng(2), 1000, 2, len(zombie_bake.clips)))
+        memory = proc.gpu_bytes()
+        assert memory["locals"] == (memory["palette"] // 3 if path == "fragment" else 0)
+        proc.resize(0)
+        assert proc.gpu_bytes()["locals"] == 0 and proc.gpu_bytes()["palette"] == 0
+        proc.resize(10)
+        assert (proc.gpu_bytes()["locals"] > 0) == (path == "fragment")

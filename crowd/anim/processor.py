@@ -42,8 +42,9 @@ foot lock: a processor built with ``legs`` (crowd.anim.foot_lock) holds each pla
   ``upload`` then also takes each agent's motion (N, 4: ground step x, z since the last run, and front x,
   z times its scale) and the frame's simulated seconds. Compute path only.
 
-Paths: "compute" (GL 4.3, one dispatch) and "fragment" (GL 3.3, one draw); "auto" takes compute where
-the context has GL 4.3. Both run the same GLSL (shaders/processor_common.glsl).
+Paths: "compute" (GL 4.3, one dispatch) and "fragment" (GL 3.3, two draws: every joint's blended local
+into a scratch of one ring slot's shape, then each joint's chain composed from it); "auto" takes compute
+where the context has GL 4.3. Both run the same GLSL (shaders/processor_common.glsl).
 """
 
 from __future__ import annotations
@@ -66,6 +67,7 @@ from ..spans import min_max, over_spans
 from .morph import ACTIVE_WEIGHT, MAX_MORPH_WEIGHT, MORPH_PAIRS, NOT_HELD
 from .reference import CANCELLED_NORM, REST_THRESHOLD, aligned_sign
 
+LOCALS_UNITS = (12, 13, 14)  # the fragment path's scratch of blended locals, read by its compose pass
 MAX_JOINTS = 256  # one compute work group of 256 invocations holds at least one whole agent
 GROUP_SIZE = 256
 # How one layer turns its two (or four) neighbouring baked keys into a local transform, and how layers
@@ -127,9 +129,14 @@ def texel_code(x, y) -> np.ndarray:
     return np.asarray(x, np.uint32) | (np.asarray(y, np.uint32) << np.uint32(TEXEL_ROW_SHIFT))
 
 
-def resolve_path(ctx: moderngl.Context, path: str) -> str:
-    """The processor path "auto" takes on this context: compute where it has GL 4.3, else fragment."""
-    return ("compute" if has_compute(ctx) else "fragment") if path == "auto" else path
+def resolve_path(ctx: moderngl.Context, path: str, limit: int | None = None) -> str:
+    """The processor path "auto" takes on this context: compute where it has GL 4.3 and `limit` (the "gl"
+    setting's: crowd.gl.feature_level) lets the stages use it, else fragment. "compute" where they may not: ProcessorError."""
+    compute = has_compute(ctx, limit)
+    if path == "compute" and not compute:
+        raise ProcessorError(f"the compute path needs GL 4.3, this context has {ctx.version_code}"
+                             + ("" if limit is None or limit >= ctx.version_code else f", used as GL {limit // 100}.{limit % 100 // 10} (--gl)"))
+    return ("compute" if compute else "fragment") if path == "auto" else path
 
 
 def check_motion(motion, agents: int) -> np.ndarray:
@@ -420,6 +427,7 @@ class _Part:
         self.textures: dict = {}
         self.lock_state = self.lock_motion = None
         self.quad = self.quad_vao = None
+        self.locals_program = self.locals_vao = None  # the fragment path's first draw (LOCALS_PASS) and its quads
         self.quad_vertices = 0
 
 
@@ -436,7 +444,7 @@ class AnimationProcessor(GLStage):
         """`bakes`: one AnimationBake, or one per character of the cast; `masks` and `legs` likewise (one
         value for one bake, a sequence of them for several). `impostor_keys`: per character, whether its
         agents' rows start with the key their impostors are drawn by (None: no character's do)."""
-        self._own: dict[str, list] = {"animation": [], "palette": [], "layers": [], "processor_quad": [], "foot_lock": [], "morphs": []}
+        self._own: dict[str, list] = {"animation": [], "palette": [], "layers": [], "locals": [], "processor_quad": [], "foot_lock": [], "morphs": []}
         self.parts: list[_Part] = []
         self._programs: dict[str, moderngl.Program] = {}
         single = isinstance(bakes, AnimationBake)
@@ -476,6 +484,7 @@ class AnimationProcessor(GLStage):
         self.slot_layers = 1  # layers one ring slot spans
         self.layers_texture = None
         self._layer_unpack = None  # (the layer rows' pixel-unpack buffer, made with the texture)
+        self._locals, self._locals_framebuffer = (), None  # (the fragment path's scratch of blended locals)
         self.planes: tuple = ()
         self._framebuffer = None
         keys = list(impostor_keys) if impostor_keys is not None else [False] * len(bakes)
@@ -571,10 +580,13 @@ class AnimationProcessor(GLStage):
             if source not in self._programs:
                 self._programs[source] = self.ctx.compute_shader(source)
         else:
-            source = load_shader("processor.frag.glsl", defines)
-            if source not in self._programs:
-                self._programs[source] = self.ctx.program(vertex_shader=load_shader("processor.vert.glsl"),
-                                                          geometry_shader=load_shader("processor.geom.glsl"), fragment_shader=source)
+            for pass_defines in ({**defines, "LOCALS_PASS": 1}, defines):
+                source = load_shader("processor.frag.glsl", pass_defines)
+                if source not in self._programs:
+                    self._programs[source] = self.ctx.program(vertex_shader=load_shader("processor.vert.glsl"),
+                                                              geometry_shader=load_shader("processor.geom.glsl"), fragment_shader=source)
+                if "LOCALS_PASS" in pass_defines:
+                    part.locals_program = self._programs[source]
         part.program = self._programs[source]
         stride = part.slots + jc
         if stride > GROUP_SIZE:
@@ -714,6 +726,8 @@ class AnimationProcessor(GLStage):
             return  # no agents: no palette, no layer texture, no pass
         layer_rows_needed = math.ceil(agents / self.layer_agents_per_row)
         need = 3 * width * layer_rows * layers * 16 + self.layer_agents_per_row * self.layer_count * layer_rows_needed * 16
+        if self.path == "fragment":
+            need += 3 * width * layer_rows * slot_layers * 16  # (the locals pass's scratch)
         self.ctx.error  # clear an earlier error, so the check below sees these allocations'
         failure = None
         try:
@@ -729,6 +743,10 @@ class AnimationProcessor(GLStage):
             # read as 0, not as whatever the memory held), and the fragment path renders through it.
             fb = self.ctx.framebuffer(color_attachments=list(self.planes))
             self._own["palette"].append(fb)
+            if self.path == "fragment":  # the locals pass's scratch: one ring slot's shape (processor.frag.glsl)
+                self._locals = tuple(self._array("locals", (width, layer_rows, slot_layers)) for _ in range(3))
+                self._locals_framebuffer = self.ctx.framebuffer(color_attachments=list(self._locals))
+                self._own["locals"].append(self._locals_framebuffer)
         except moderngl.Error as exc:
             failure = f"the palette for {agents:,} agents ({need:,} bytes) could not be made: {exc}"
         if failure is None and self.ctx.error == "GL_OUT_OF_MEMORY":
@@ -792,8 +810,10 @@ class AnimationProcessor(GLStage):
         """Release the palette planes, their framebuffer and the layer texture (the bakes' textures stay)."""
         self._release_group("palette")
         self._release_group("layers")
+        self._release_group("locals")
         self.planes, self.layers_texture, self._framebuffer = (), None, None
         self._layer_unpack = None
+        self._locals, self._locals_framebuffer = (), None
 
     def _array(self, group, size):
         tex = self.ctx.texture_array(size, 4, dtype="f4")
@@ -826,12 +846,13 @@ class AnimationProcessor(GLStage):
             data = np.asarray(verts, dtype=np.float32).tobytes()
             if part.quad is None or part.quad.size < max(len(data), 1):
                 if part.quad is not None:
-                    for obj in (part.quad_vao, part.quad):
+                    for obj in (part.quad_vao, part.locals_vao, part.quad):
                         self._own["processor_quad"].remove(obj)
                         obj.release()
                 part.quad = self.ctx.buffer(reserve=max(len(data), 18 * 4))
                 part.quad_vao = self.ctx.vertex_array(part.program, [(part.quad, "3f", "in_position")])
-                self._own["processor_quad"] += [part.quad_vao, part.quad]
+                part.locals_vao = self.ctx.vertex_array(part.locals_program, [(part.quad, "3f", "in_position")])
+                self._own["processor_quad"] += [part.quad_vao, part.locals_vao, part.quad]
             if verts:
                 part.quad.write(data)
 
@@ -907,7 +928,8 @@ class AnimationProcessor(GLStage):
             self.layers_texture.write(np.ascontiguousarray(a[done:]), viewport=(0, (first + done) // per_row, (n - done) * k, 1))
 
     def run(self) -> bool:
-        """Write every agent's palette row: one dispatch or one draw per character with agents. Returns
+        """Write every agent's palette row: one dispatch per character with agents (the fragment path: two
+        draws, its locals pass and its compose pass, processor.frag.glsl). Returns
         False when nothing ran."""
         if self.agents == 0:
             return False
@@ -916,51 +938,24 @@ class AnimationProcessor(GLStage):
         if self.path == "compute":
             for unit, plane in enumerate(self.planes):
                 plane.bind_to_image(unit, read=False, write=True)
+            for part, block in zip(self.parts, self.layout.parts):
+                if block.count:
+                    self._draw_part(part, block, slot, part.program)
         else:
+            self.ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND | moderngl.CULL_FACE)
+            # First every joint's blended local into the scratch, then the chains composed into the slot.
+            self._locals_framebuffer.viewport = (0, 0, self.layout.width, self.layer_rows)
+            self._locals_framebuffer.use()
+            for part, block in zip(self.parts, self.layout.parts):
+                if block.count:
+                    self._draw_part(part, block, slot, part.locals_program)
             self._framebuffer.viewport = (0, 0, self.layout.width, self.layer_rows)
             self._framebuffer.use()
-            self.ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND | moderngl.CULL_FACE)
-        for part, block in zip(self.parts, self.layout.parts):
-            if not block.count:
-                continue
-            prog = part.program
-            for unit, name in enumerate(("u_anim", "u_parents", "u_clips")):
-                part.textures[name].use(unit)
-            for unit, name in ((4, "u_anim_scale"), (5, "u_masks"), (6, "u_keys"), (7, "u_tracks"), (8, "u_morph_tracks"), (9, "u_morph_clips"),
-                               (10, "u_morph_variation"), (11, "u_morph_held")):
-                if name in part.textures:
-                    part.textures[name].use(unit)
-            for name, unit in (("u_anim", 0), ("u_parents", 1), ("u_clips", 2), ("u_layers", 3), ("u_anim_scale", 4), ("u_masks", 5),
-                               ("u_keys", 6), ("u_tracks", 7), ("u_morph_tracks", 8), ("u_morph_clips", 9), ("u_morph_variation", 10),
-                               ("u_morph_held", 11)):
-                self._set(prog, name, unit)
-            for name, value in part.uniforms.items():
-                self._set(prog, name, value)
-            self._set(prog, "u_row_offset", slot * self.slot_rows() + block.first_row)
-            self._set(prog, "u_first_layer", slot * self.slot_layers)
-            self._set(prog, "u_palette_rows", self.layer_rows)
-            self._set(prog, "u_agents", block.count)
-            self._set(prog, "u_first_agent", block.first_agent)
-            self._set(prog, "u_first_row", block.first_row)
-            self._set(prog, "u_agents_per_row", block.agents_per_row)
-            if part.held is not None:
-                if part.held_written is not part.held:  # (hold_morphs makes a new array: written once a change)
-                    part.textures["u_morph_held"].write(part.held.tobytes())
-                    part.held_written = part.held
-                self._set(prog, "u_morph_held_agent", part.held_agent)
-            if part.legs is not None:
-                for name, data in part.leg_bytes.items():
-                    prog[name].write(data)
-                part.lock_state.bind_to_storage_buffer(0)
-                part.lock_motion.bind_to_storage_buffer(1)
-                self._set(prog, "u_lock_decay", math.exp(-self._lock_dt / lock.RELEASE_S))
-                self._set(prog, "u_step_advance", self._lock_dt / lock.STEP_S)
-            if self.path == "compute":
-                groups = math.ceil(block.count / (GROUP_SIZE // block.width))
-                gx = min(groups, 32768)
-                prog.run(gx, math.ceil(groups / gx), 1)
-            else:
-                part.quad_vao.render(moderngl.TRIANGLES, vertices=part.quad_vertices)
+            for unit, plane in zip(LOCALS_UNITS, self._locals):
+                plane.use(unit)
+            for part, block in zip(self.parts, self.layout.parts):
+                if block.count:
+                    self._draw_part(part, block, slot, part.program)
         if self.path == "compute":
             # Later passes read the palette through texelFetch (and the readback through pack buffers).
             # The foot lock's next run reads the state this one wrote.
@@ -968,6 +963,48 @@ class AnimationProcessor(GLStage):
                                     | moderngl.SHADER_STORAGE_BARRIER_BIT)
         self.runs += 1
         return True
+
+    def _draw_part(self, part: _Part, block, slot: int, prog) -> None:
+        """One character's dispatch (compute) or draw (fragment: `prog` is its locals pass or its compose
+        pass) over its block of the ring slot `slot`."""
+        for unit, name in enumerate(("u_anim", "u_parents", "u_clips")):
+            part.textures[name].use(unit)
+        for unit, name in ((4, "u_anim_scale"), (5, "u_masks"), (6, "u_keys"), (7, "u_tracks"), (8, "u_morph_tracks"), (9, "u_morph_clips"),
+                           (10, "u_morph_variation"), (11, "u_morph_held")):
+            if name in part.textures:
+                part.textures[name].use(unit)
+        for name, unit in (("u_anim", 0), ("u_parents", 1), ("u_clips", 2), ("u_layers", 3), ("u_anim_scale", 4), ("u_masks", 5),
+                           ("u_keys", 6), ("u_tracks", 7), ("u_morph_tracks", 8), ("u_morph_clips", 9), ("u_morph_variation", 10),
+                           ("u_morph_held", 11), *zip(("u_locals0", "u_locals1", "u_locals2"), LOCALS_UNITS)):
+            self._set(prog, name, unit)
+        for name, value in part.uniforms.items():
+            self._set(prog, name, value)
+        self._set(prog, "u_row_offset", slot * self.slot_rows() + block.first_row)
+        # (The locals pass writes the scratch, one slot deep: its layers count from 0.)
+        self._set(prog, "u_first_layer", 0 if prog is part.locals_program else slot * self.slot_layers)
+        self._set(prog, "u_palette_rows", self.layer_rows)
+        self._set(prog, "u_agents", block.count)
+        self._set(prog, "u_first_agent", block.first_agent)
+        self._set(prog, "u_first_row", block.first_row)
+        self._set(prog, "u_agents_per_row", block.agents_per_row)
+        if part.held is not None:
+            if part.held_written is not part.held:  # (hold_morphs makes a new array: written once a change)
+                part.textures["u_morph_held"].write(part.held.tobytes())
+                part.held_written = part.held
+            self._set(prog, "u_morph_held_agent", part.held_agent)
+        if part.legs is not None:
+            for name, data in part.leg_bytes.items():
+                prog[name].write(data)
+            part.lock_state.bind_to_storage_buffer(0)
+            part.lock_motion.bind_to_storage_buffer(1)
+            self._set(prog, "u_lock_decay", math.exp(-self._lock_dt / lock.RELEASE_S))
+            self._set(prog, "u_step_advance", self._lock_dt / lock.STEP_S)
+        if self.path == "compute":
+            groups = math.ceil(block.count / (GROUP_SIZE // block.width))
+            gx = min(groups, 32768)
+            prog.run(gx, math.ceil(groups / gx), 1)
+        else:
+            (part.locals_vao if prog is part.locals_program else part.quad_vao).render(moderngl.TRIANGLES, vertices=part.quad_vertices)
 
     def process(self, layers, motion=None, dt: float = 0.0) -> bool:
         self.upload(layers, motion, dt)
@@ -1092,7 +1129,7 @@ class AnimationProcessor(GLStage):
             self._release_group(group)
         self.planes, self.layers_texture, self._framebuffer = (), None, None
         for part in self.parts:
-            part.lock_state = part.lock_motion = part.quad = part.quad_vao = None
+            part.lock_state = part.lock_motion = part.quad = part.quad_vao = part.locals_vao = None
         for program in self._programs.values():
             program.release()
         self._programs = {}

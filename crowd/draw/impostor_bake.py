@@ -12,17 +12,19 @@ import moderngl
 import numpy as np
 
 from ..anim.bake import AnimationBake
-from ..anim.processor import AnimationProcessor, reference_palette
+from ..anim.processor import AnimationProcessor, reference_palette, resolve_path
 from ..asset.model import Character
 from ..frame import CLIP, MASK, PHASE, WEIGHT, Camera, Instances, empty_layers
-from ..gl import GLObjects
+from ..gl import GLObjects, has_compute
 from .impostors import (ImpostorAtlas, ImpostorError, ImpostorSettings, atlas_key, cache_dir, clip_boxes, clip_frames, read_atlas,
                         save_atlas, skinned_points, view_axes)
 from .render import CrowdRenderer
 
 
-def bake_atlas(ctx: moderngl.Context, character: Character, bake: AnimationBake, settings: ImpostorSettings | None = None) -> ImpostorAtlas:
-    """Render the atlas of `character` playing `bake`'s clips (see the module docstring)."""
+def bake_atlas(ctx: moderngl.Context, character: Character, bake: AnimationBake, settings: ImpostorSettings | None = None,
+               gl_limit: int | None = None) -> ImpostorAtlas:
+    """Render the atlas of `character` playing `bake`'s clips (see the module docstring), with the GL
+    features `gl_limit` allows (crowd.gl.feature_level: the "gl" setting's)."""
     settings = (settings or ImpostorSettings()).validate()
     per_clip = clip_frames(bake, settings.rate)
     frames = sum(n for n, _, _ in per_clip)
@@ -49,9 +51,9 @@ def bake_atlas(ctx: moderngl.Context, character: Character, bake: AnimationBake,
     normal_depth = np.zeros_like(albedo)
     objects = GLObjects()
     try:
-        proc = objects.add(AnimationProcessor(ctx, plain, 1))
+        proc = objects.add(AnimationProcessor(ctx, plain, 1, path=resolve_path(ctx, "auto", gl_limit)))
         renderer = objects.add(CrowdRenderer(ctx, character, lod_distances=(1e9, 2e9, 3e9), shadows=False, culling=False, cull_path="cpu",
-                                             morphs=[False]))
+                                             morphs=[False], morph_buffers=has_compute(ctx, gl_limit)))
         proc.resize(frames)
         proc.process(layers)
         choices = {group: np.zeros(frames, np.int64) for group in renderer.group_names}
@@ -87,8 +89,9 @@ def bake_atlas(ctx: moderngl.Context, character: Character, bake: AnimationBake,
 
 
 def load_atlas(ctx: moderngl.Context, character: Character, bake: AnimationBake, settings: ImpostorSettings | None = None,
-               cache: bool = True) -> ImpostorAtlas:
-    """The character's atlas from the cache, or baked (and cached); a cache file that does not read or
+               cache: bool = True, gl_limit: int | None = None) -> ImpostorAtlas:
+    """The character's atlas from the cache, or baked (and cached; `gl_limit` as for ``bake_atlas``: the
+    paths agree to float32's noise, so the cache does not tell them apart); a cache file that does not read or
     check is rebuilt, and the atlas's ``notes`` say so in one line."""
     settings = (settings or ImpostorSettings()).validate()
     notes = []
@@ -102,7 +105,7 @@ def load_atlas(ctx: moderngl.Context, character: Character, bake: AnimationBake,
             notes.append(f"impostor cache {path} was made for other settings: rebuilt")
         except ImpostorError as exc:
             notes.append(f"impostor cache rebuilt: {exc}")
-    atlas = bake_atlas(ctx, character, bake, settings)
+    atlas = bake_atlas(ctx, character, bake, settings, gl_limit)
     atlas.notes = notes
     atlas.bake = bake
     if path is not None:

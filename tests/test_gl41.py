@@ -1,0 +1,103 @@
+"""The path without compute shaders (issue 25): the "gl" setting at 4.1 makes the whole frame take the
+path a macOS 4.1 core context takes, on a context that has more (llvmpipe's 4.5 here), and that path
+draws what the compute path draws."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import moderngl
+import numpy as np
+import pytest
+
+from crowd.gl import GL_LIMITS, feature_level, has_compute
+from crowd.pipeline import CrowdPipeline, PipelineConfig, PipelineError
+from crowd.scene import Scene
+from crowd.session import CrowdSession, SessionError
+from crowd.smoke import run_headless
+
+SIZE = (320, 180)
+
+
+@pytest.fixture
+def compute_context(gl_context):
+    if not has_compute(gl_context):
+        pytest.skip("this context has no compute shaders: every run is the path without them already")
+    return gl_context
+
+
+def test_the_limit_is_a_ceiling():
+    class Ctx:
+        version_code = 450
+
+    assert feature_level(Ctx()) == 450 and has_compute(Ctx())
+    assert feature_level(Ctx(), GL_LIMITS["4.1"]) == 410 and not has_compute(Ctx(), GL_LIMITS["4.1"])
+    Ctx.version_code = 330
+    assert feature_level(Ctx(), GL_LIMITS["4.1"]) == 330  # (a ceiling, never a promotion)
+
+
+@pytest.fixture
+def no_compute_features(monkeypatch):
+    """Every way into compute shaders, storage buffers and image load/store fails loudly while set."""
+
+    def refused(*args, **kwargs):
+        raise AssertionError("a GL 4.3 feature was used on the 4.1 path")
+
+    monkeypatch.setattr(moderngl.Context, "compute_shader", refused)
+    monkeypatch.setattr(moderngl.Context, "memory_barrier", refused)
+    monkeypatch.setattr(moderngl.Buffer, "bind_to_storage_buffer", refused)
+    monkeypatch.setattr(moderngl.Texture, "bind_to_image", refused)
+    monkeypatch.setattr(moderngl.TextureArray, "bind_to_image", refused)
+
+
+def test_the_41_path_uses_no_compute_storage_buffer_or_image_store(compute_context, no_compute_features, tmp_path, monkeypatch):
+    """The whole frame at 4.1 (weapons and their read-back ring, shadows, morph targets, impostors baked and
+    drawn) runs with every GL 4.3 entry point refused, and allocates nothing for the compute path's state."""
+    monkeypatch.setenv("CROWD_CACHE_DIR", str(tmp_path))
+    config = PipelineConfig(agents=60, seed=4, gl="4.1", impostors="on", impostor_distance=12.0)
+    stats = run_headless(config, 6, SIZE, ctx=compute_context)
+    assert stats["gl_features"] == 410 and stats["processor_path"] == "fragment"
+    assert all(stats["gpu_bytes"].get(k, 0) == 0 for k in ("cull", "foot_lock", "occlusion"))
+    assert {"process", "draw", "shadow", "impostors"} <= set(stats["passes_run"]) and "cull" not in stats["passes_run"]
+    assert stats["nan_count"] == 0
+
+
+def test_the_41_path_draws_the_compute_paths_picture(compute_context):
+    """The same crowd on both paths, the foot lock off (it runs on the compute path only): the pictures
+    agree to a level of rounding, the weapons included (placed from the read-back ring on both)."""
+    images = {}
+    for gl in ("auto", "4.1"):
+        stats = run_headless(PipelineConfig(agents=80, seed=6, gl=gl, foot_lock=False), 6, SIZE, ctx=compute_context)
+        assert stats["gl_features"] == (compute_context.version_code if gl == "auto" else 410)
+        images[gl] = stats["_image"].astype(int)
+    assert np.max(np.abs(images["auto"] - images["4.1"])) <= 1
+
+
+def test_the_41_path_refuses_what_needs_compute_in_one_line(compute_context):
+    with pytest.raises(Exception, match=r"the compute path needs GL 4.3, this context has \d+, used as GL 4.1 \(--gl\)"):
+        CrowdPipeline(compute_context, PipelineConfig(agents=4, gl="4.1", processor_path="compute"))
+    with pytest.raises(Exception, match=r"the gpu cull path needs GL 4.3 compute shaders; this context is GL \d+, used as GL 4.1 \(--gl\)"):
+        CrowdPipeline(compute_context, PipelineConfig(agents=4, gl="4.1", cull="gpu"))
+    with pytest.raises(PipelineError, match="GL feature level"):
+        CrowdPipeline(compute_context, PipelineConfig(agents=4, gl="3.0"))
+
+
+def test_a_running_crowd_keeps_its_gl_level_and_saves_it(compute_context):
+    session = CrowdSession(compute_context, dataclasses.replace(Scene(agents=4, shadows=False, town=False), gl="4.1"), SIZE[0] / SIZE[1])
+    try:
+        with pytest.raises(SessionError, match="applied when the crowd is built"):
+            session.apply_setting("gl", "auto")
+        assert session.to_scene().gl == "4.1" and session.pipeline.processor.path == "fragment"
+        with pytest.raises(SessionError, match="used as GL 4.1"):
+            session.set_processor_path("compute")
+    finally:
+        session.release()
+
+
+def test_crowd_bench_fragment_times_both_draws_and_the_floor(gl_context):
+    from bench.fragment_probe import measure
+
+    (row,) = measure(gl_context, [64], repeats=1)
+    assert row["agents"] == 64 and row["texels"] == 64 * 23
+    assert all(row[k] >= 0.0 for k in ("fragment_ms", "locals_ms", "compose_ms", "floor_3_targets_ms", "floor_1_target_ms"))
+    assert ("compute_ms" in row) == has_compute(gl_context)
