@@ -39,6 +39,16 @@ def gl_context():
     ctx.release()
 
 
+@pytest.fixture
+def compute_context(gl_context):
+    """The session's context where it runs compute shaders (GL 4.3); the test skips elsewhere."""
+    from crowd.gl import has_compute
+
+    if not has_compute(gl_context):
+        pytest.skip("this test needs GL 4.3 compute shaders")
+    return gl_context
+
+
 # -- GL objects alive (the leak tests count them): the soak's census
 
 from bench.soak import gl_census  # noqa: E402,F401

@@ -19,13 +19,6 @@ from crowd.smoke import run_headless
 SIZE = (320, 180)
 
 
-@pytest.fixture
-def compute_context(gl_context):
-    if not has_compute(gl_context):
-        pytest.skip("this context has no compute shaders: every run is the path without them already")
-    return gl_context
-
-
 def test_the_limit_is_a_ceiling():
     class Ctx:
         version_code = 450

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from crowd.frame import Camera
-from crowd.gl import Offscreen, has_compute
+from crowd.gl import Offscreen
 from crowd.pipeline import CrowdPipeline, PipelineConfig
 from crowd.sim.ai import AIConfig
 
@@ -13,10 +13,8 @@ SIZE = (320, 180)
 
 
 @pytest.fixture
-def compute(gl_context):
-    if not has_compute(gl_context):
-        pytest.skip("occlusion culling runs on the gpu cull path (GL 4.3)")
-    return gl_context
+def compute(compute_context):  # occlusion culling runs on the gpu cull path (GL 4.3)
+    return compute_context
 
 
 def _run(ctx, occlusion: bool, frames: int = 4, dt: float = 0.0, camera=None, **config):
