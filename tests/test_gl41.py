@@ -31,7 +31,7 @@ def test_the_limit_is_a_ceiling():
 
 @pytest.fixture
 def no_compute_features(monkeypatch):
-    """Every way into compute shaders, storage buffers and image load/store fails loudly while set."""
+    """Every way into compute shaders, storage buffers, image load/store and multi-draw-indirect fails loudly while set."""
 
     def refused(*args, **kwargs):
         raise AssertionError("a GL 4.3 feature was used on the 4.1 path")
@@ -41,6 +41,8 @@ def no_compute_features(monkeypatch):
     monkeypatch.setattr(moderngl.Buffer, "bind_to_storage_buffer", refused)
     monkeypatch.setattr(moderngl.Texture, "bind_to_image", refused)
     monkeypatch.setattr(moderngl.TextureArray, "bind_to_image", refused)
+    # (moderngl's indirect draws are glMultiDraw*Indirect, GL 4.3, which a 4.1 context does not have)
+    monkeypatch.setattr(moderngl.VertexArray, "render_indirect", refused)
 
 
 def test_the_41_path_uses_no_compute_storage_buffer_or_image_store(compute_context, no_compute_features, tmp_path, monkeypatch):
