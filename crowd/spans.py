@@ -9,13 +9,15 @@ no processes. A span is at least `MIN_SPAN` agents: below that a thread's hand-o
 microseconds) costs more than the slice's work, so a small crowd runs in the calling thread exactly
 as before.
 
-Each caller writes disjoint slices of its own output arrays, so no span waits for another.
+Each caller writes disjoint slices of its own output arrays, so no span waits for another. A span's
+work must not call ``over_spans`` itself: the pool's threads would wait on each other.
 """
 
 from __future__ import annotations
 
 import atexit
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, TypeVar
 
@@ -26,6 +28,7 @@ MAX_THREADS = 8  # the passes are memory-bound: more threads than this stopped p
 
 T = TypeVar("T")
 _pool: ThreadPoolExecutor | None = None
+_pool_made = threading.Lock()
 
 
 def thread_count() -> int:
@@ -53,9 +56,10 @@ def over_spans(work: Callable[[int, int], T], n: int, min_span: int | None = Non
     if len(parts) == 1:
         return [work(*parts[0])]
     global _pool
-    if _pool is None:
-        _pool = ThreadPoolExecutor(max_workers=thread_count(), thread_name_prefix="crowd-span")
-        atexit.register(_pool.shutdown, wait=False)
+    with _pool_made:
+        if _pool is None:
+            _pool = ThreadPoolExecutor(max_workers=thread_count(), thread_name_prefix="crowd-span")
+            atexit.register(_pool.shutdown, wait=False)
     futures = [_pool.submit(work, lo, hi) for lo, hi in parts]
     errors = [f.exception() for f in futures]  # (waits for each)
     for error in errors:

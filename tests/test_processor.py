@@ -426,3 +426,27 @@ def test_only_the_fragment_path_keeps_a_scratch_of_locals(gl_context, zombie_bak
         assert proc.gpu_bytes()["locals"] == 0 and proc.gpu_bytes()["palette"] == 0
         proc.resize(10)
         assert (proc.gpu_bytes()["locals"] > 0) == (path == "fragment")
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_a_resize_that_keeps_the_palette_rows_but_not_the_layer_rows_gets_every_agent_right(gl_context, zombie, zombie_bake, path):
+    """The palette holds fewer agents a row than the layer texture (2,048 a row): a resize can keep the
+    palette's rows and still need another layer row. The layer texture then grows with it (it did not:
+    the last agents' layers went nowhere, GL_INVALID_VALUE, and their palette rows were stale)."""
+    rng = np.random.default_rng(8)
+    with AnimationProcessor(gl_context, zombie_bake, 2, path=path) as proc:
+        proc.resize(1)
+        per_row, per_layer_row = proc.layout.parts[0].agents_per_row, proc.layer_agents_per_row
+        small = next(a for a in range(per_layer_row, 0, -1) if -(-a // per_row) == -(-(per_layer_row + 1) // per_row))
+        proc.resize(small)
+        proc.process(random_layers(rng, small, 2, len(zombie_bake.clips)))
+        rows = proc.layout.rows
+        big = per_layer_row + 1
+        proc.resize(big)
+        assert proc.layout.rows == rows  # (the case: the palette kept, the layers one row more)
+        layers = random_layers(rng, big, 2, len(zombie_bake.clips))
+        gl_context.error  # (reading it clears what came before: moderngl rebinding a framebuffer an earlier test released)
+        proc.process(layers)
+        assert gl_context.error == "GL_NO_ERROR"
+        gpu = proc.read_palette()
+    assert joint_error(zombie.skeleton.inverse_bind, gpu, reference_palette(zombie_bake, layers)) <= ZOMBIE_TOL_M

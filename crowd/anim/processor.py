@@ -463,9 +463,7 @@ class AnimationProcessor(GLStage):
                 raise ProcessorError(f"the processor handles 1 to {MAX_JOINTS} joints, this skeleton has {jc}")
             if np.any(bake.parents >= np.arange(jc)):
                 raise ProcessorError("the hierarchy must list parents before their children")
-        path = resolve_path(ctx, path)
-        if path == "compute" and not has_compute(ctx):
-            raise ProcessorError(f"the compute path needs GL 4.3, this context has {ctx.version_code}")
+        path = resolve_path(ctx, path)  # (refuses "compute" without GL 4.3)
         # The foot lock (crowd.anim.foot_lock): legs given and found, on the compute path, whose shared
         # memory holds an agent's locals between the blend and the composition.
         legs = [l if l is not None and len(l) else None for l in legs]
@@ -666,6 +664,8 @@ class AnimationProcessor(GLStage):
             new = self._layout(counts)
             if new.rows == old.rows and self.planes and new.agents and all(a.first_row == b.first_row for a, b in zip(old.parts, new.parts)):
                 self.layout, self.agents = new, new.agents  # the same texture rows: the agents kept keep their palette history
+                if self.layers_texture.height != math.ceil(new.agents / self.layer_agents_per_row):
+                    self._make_layers(new.agents)  # (the layers' own rows may still differ: 2,048 agents a row)
                 self._update_quads()
                 return
             self._allocate(counts, keep=True)
@@ -725,20 +725,15 @@ class AnimationProcessor(GLStage):
         if agents == 0:
             return  # no agents: no palette, no layer texture, no pass
         layer_rows_needed = math.ceil(agents / self.layer_agents_per_row)
-        need = 3 * width * layer_rows * layers * 16 + self.layer_agents_per_row * self.layer_count * layer_rows_needed * 16
+        # (the layer texture and its pixel-unpack buffer, the same size)
+        need = 3 * width * layer_rows * layers * 16 + 2 * self.layer_agents_per_row * self.layer_count * layer_rows_needed * 16
         if self.path == "fragment":
             need += 3 * width * layer_rows * slot_layers * 16  # (the locals pass's scratch)
         self.ctx.error  # clear an earlier error, so the check below sees these allocations'
         failure = None
         try:
             self.planes = tuple(self._array("palette", (width, layer_rows, layers)) for _ in range(3))
-            zeros = np.zeros((layer_rows_needed, self.layer_agents_per_row * self.layer_count, 4), np.float32)  # weight 0 (the rest pose) until an upload
-            self.layers_texture = self._texture("layers", (self.layer_agents_per_row * self.layer_count, layer_rows_needed), 4, zeros, "f4")
-            # The layers' whole rows go through a pixel-unpack buffer: a buffer write ran at about 14 GB/s on
-            # the H200 host where a texture write from the array ran at 2.6 (docs/BENCHMARKS.md, "The CPU side
-            # of the frame"), and the texture copy then runs on the GPU, in order after the last frame's pass.
-            self._layer_unpack = self.ctx.buffer(reserve=zeros.nbytes)
-            self._own["layers"].append(self._layer_unpack)
+            self._make_layers(agents)
             # A layered framebuffer over the planes: it clears every layer at once (texels no run wrote
             # read as 0, not as whatever the memory held), and the fragment path renders through it.
             fb = self.ctx.framebuffer(color_attachments=list(self.planes))
@@ -805,6 +800,20 @@ class AnimationProcessor(GLStage):
         finally:
             staging.release()
             whole.release()
+
+    def _make_layers(self, agents: int) -> None:
+        """The layer texture for `agents` agents (weight 0, the rest pose, until an upload) and its
+        pixel-unpack buffer, in place of the ones before. The layers' whole rows go through that buffer:
+        a buffer write ran at about 14 GB/s on the H200 host where a texture write from the array ran at
+        2.6 (docs/BENCHMARKS.md, "The CPU side of the frame"), and the texture copy then runs on the GPU,
+        in order after the last frame's pass."""
+        self._release_group("layers")
+        self.layers_texture = self._layer_unpack = None
+        rows = math.ceil(agents / self.layer_agents_per_row)
+        zeros = np.zeros((rows, self.layer_agents_per_row * self.layer_count, 4), np.float32)
+        self.layers_texture = self._texture("layers", (self.layer_agents_per_row * self.layer_count, rows), 4, zeros, "f4")
+        self._layer_unpack = self.ctx.buffer(reserve=zeros.nbytes)
+        self._own["layers"].append(self._layer_unpack)
 
     def _drop_palette(self) -> None:
         """Release the palette planes, their framebuffer and the layer texture (the bakes' textures stay)."""
@@ -1128,6 +1137,7 @@ class AnimationProcessor(GLStage):
         for group in list(self._own):
             self._release_group(group)
         self.planes, self.layers_texture, self._framebuffer = (), None, None
+        self._layer_unpack, self._locals, self._locals_framebuffer = None, (), None
         for part in self.parts:
             part.lock_state = part.lock_motion = part.quad = part.quad_vao = part.locals_vao = None
         for program in self._programs.values():
