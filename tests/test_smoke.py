@@ -21,9 +21,9 @@ from conftest import ROOT, shared
 SIZE = (320, 180)
 
 
-@pytest.mark.parametrize("cull", ["cpu", "gpu"])
-def test_smoke_frame_shows_zombies_where_they_stand(gl_context, cull):
-    pipeline = CrowdPipeline(gl_context, PipelineConfig(agents=40, seed=3, cull=cull))
+@pytest.mark.parametrize("cull, gl", [("cpu", "auto"), ("gpu", "auto"), ("auto", "4.1")])
+def test_smoke_frame_shows_zombies_where_they_stand(gl_context, cull, gl):
+    pipeline = CrowdPipeline(gl_context, PipelineConfig(agents=40, seed=3, cull=cull, gl=gl))
     target = Offscreen(gl_context, SIZE)
     fb = target.framebuffer
     try:

@@ -69,12 +69,13 @@ def drawn_agents(p: CrowdPipeline) -> set:
     return set(p.weapons.drawn[0].tolist())
 
 
-@pytest.mark.parametrize("cull", ["cpu", "gpu"])
-def test_weapon_stays_in_the_hand_for_100_frames_while_clips_change(harness, cull):
+@pytest.mark.parametrize("cull, gl", [("cpu", "auto"), ("gpu", "auto"), ("auto", "4.1")])
+def test_weapon_stays_in_the_hand_for_100_frames_while_clips_change(harness, cull, gl):
     """Every armed agent, every frame: grip point on the socket within 0.1 mm in the frame as drawn,
     while the AI switches clips and, every seventh frame, random clips and phases are forced on a
-    third of the crowd. Drawing the body from the newest palette instead would be far off."""
-    h = harness(shadows=True, cull=cull)
+    third of the crowd. Drawing the body from the newest palette instead would be far off. On both
+    cull paths, and on the path without compute (`gl` 4.1: the fragment processor, the CPU cull)."""
+    h = harness(shadows=True, cull=cull, gl=gl)
     p = h.pipeline
     rng = np.random.default_rng(2)
     write = p.ai.write_layers
