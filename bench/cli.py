@@ -588,6 +588,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
     p.add_argument("--distance", type=float, default=60.0, help="metres: the switch distance the impostor is compared at")
     p.add_argument("--quick", action="store_true", help="the default settings only")
+    p.add_argument("--far", action="store_true", help="also far impostors (120 to 300 m) against the supersampled mesh, sampled plainly and through mip levels")
     p.add_argument("--json", type=Path, help="write the results as JSON to this file")
     p.set_defaults(run=bench_impostor)
     p = sub.add_parser("ai", help="CPU ms per crowd-AI step against agent count")

@@ -33,12 +33,12 @@ class OneAgent:
     square crop), as the mesh or as its impostor: the processor and the two renderers made once, so a
     sweep draws many poses, headings and views without compiling anything again."""
 
-    def __init__(self, ctx, character, baked, atlas, distance: float, size: int = 320):
+    def __init__(self, ctx, character, baked, atlas, distance: float, size: int = 320, rows: int = 1080):
         from crowd.anim.processor import AnimationProcessor
         from crowd.draw.render import CrowdRenderer
         from crowd.gl import GLObjects, Offscreen
 
-        self.ctx, self.character, self.distance, self.size = ctx, character, distance, size
+        self.ctx, self.character, self.distance, self.size, self.rows = ctx, character, distance, size, rows
         self._objects = GLObjects()
         try:
             self.proc = self._objects.add(AnimationProcessor(ctx, baked, 4, impostor_keys=[True]))
@@ -70,7 +70,7 @@ class OneAgent:
                          {g: np.full(1, choice, np.int64) for g in groups})
         e, d, size = math.radians(elevation_deg), self.distance, self.size
         eye = np.array([0.0, 0.9 + d * math.sin(e), d * math.cos(e)])
-        fov = 2.0 * math.degrees(math.atan(size / 1080 * math.tan(math.radians(Camera.fov_y) / 2.0)))
+        fov = 2.0 * math.degrees(math.atan(size / self.rows * math.tan(math.radians(Camera.fov_y) / 2.0)))
         camera = Camera(eye=eye, target=np.array([0.0, 0.9, 0.0]), aspect=1.0, fov_y=fov, near=d * 0.5, far=d * 2.0)
         renderer = self.renderers[kind]
         view = renderer.prepare(camera, inst, palette=self.proc.layout)
@@ -92,6 +92,49 @@ class OneAgent:
 
     def __exit__(self, *exc):
         self.release()
+
+
+def far_aliasing(ctx, character, baked, atlas, distances=(120.0, 200.0, 300.0), frames: int = 32, size: int = 40,
+                 supersample: int = 8) -> list[dict]:
+    """Far impostors against the truth, sampling the atlas plainly (as the runtime does) and through two
+    mip levels built here (cells of a side divisible by 4 stay on whole texels; the atlas is premultiplied by
+    coverage and the depth's two channels decode linearly, so both textures average): one agent walking (the atlas's first looping clip, a baked frame and a
+    third a step, so a step lands between baked frames) at each distance at the demo's pixel density, a
+    `size`-pixel crop, against the mesh drawn at `supersample` times the density and box-filtered down
+    (its anti-aliased truth). Per distance and filter: the mean colour error over the crop (0-255, the
+    background black on both), and the flicker: the mean of |impostor's change between frames - the
+    truth's change|, the shimmer that is not the walk."""
+    import moderngl
+
+    loop = next((c for c in range(len(baked.clips)) if atlas.clips[c, 0, 2]), 0)
+    steps = int(atlas.clips[loop, 0, 1])
+    rows = []
+    for distance in distances:
+        with OneAgent(ctx, character, baked, atlas, distance, size) as low, \
+                OneAgent(ctx, character, baked, atlas, distance, size * supersample, 1080 * supersample) as high:
+            textures = [tex for t in low.renderers["impostor"].impostors if t is not None for tex in (t.albedo, t.normal_depth)]
+            if any(c % 4 for c in atlas.settings.cell):
+                raise ValueError(f"cells of {atlas.settings.cell} pixels do not stay whole through two mip levels")
+            for tex in textures:
+                tex.build_mipmaps(0, 2)
+            truth, drawn = [], {"mipmapped": [], "linear": []}
+            for f in range(frames):
+                phase = (f * 4.0 / 3.0 / steps) % 1.0
+                colour, _, _ = high.draw("mesh", loop, phase, 0.3)
+                truth.append(colour.reshape(size, supersample, size, supersample, 3).mean(axis=(1, 3)))
+                for mode, minify in (("mipmapped", moderngl.LINEAR_MIPMAP_LINEAR), ("linear", moderngl.LINEAR)):
+                    for tex in textures:
+                        tex.filter = (minify, moderngl.LINEAR)
+                    drawn[mode].append(low.draw("impostor", loop, phase, 0.3)[0])
+        truth = np.stack(truth)
+        covered = max(int(np.count_nonzero(truth.max(axis=-1) > 0.0)), 1)  # (pixels the truth touches, all frames)
+        row = {"distance_m": distance, "agent_pixels_tall": round(1.8 / (2.0 * distance * math.tan(math.radians(22.5))) * 1080, 1)}
+        for mode, images in drawn.items():
+            images = np.stack(images)
+            row[f"{mode}_error"] = round(float(np.abs(images - truth).sum() / 3.0 / covered), 3)
+            row[f"{mode}_flicker"] = round(float(np.abs(np.diff(images, axis=0) - np.diff(truth, axis=0)).sum() / 3.0 / covered), 3)
+        rows.append(row)
+    return rows
 
 
 def compare(mesh, impostor) -> dict:
@@ -181,11 +224,21 @@ def bench_impostor(args) -> int:
         if row["other_choice"]:
             print(f"{'':>5} an agent wearing the second choice of each variation group: IoU mean {row['other_choice']['iou_mean']:.3f}, "
                   f"colour mean {row['other_choice']['colour_mean']:.1f}")
+    far = []
+    if args.far:  # the default atlas only
+        from crowd.draw.impostor_bake import bake_atlas
+
+        far = far_aliasing(ctx, character, baked, bake_atlas(ctx, character, baked))
+        print("far impostors, a walking agent against the mesh at 8x the density box-filtered (per pixel the truth covers, 0-255):")
+        print(f"{'m':>5} {'px tall':>8} {'error, plain':>13} {'error, 2 mips':>14} {'flicker, plain':>15} {'flicker, 2 mips':>16}")
+        for r in far:
+            print(f"{r['distance_m']:>5g} {r['agent_pixels_tall']:>8.1f} {r['linear_error']:>13.2f} {r['mipmapped_error']:>14.2f} "
+                  f"{r['linear_flicker']:>15.2f} {r['mipmapped_flicker']:>16.2f}")
     if args.json:
         from crowd.files import atomic_write_bytes
 
         device = f"{info['gl_renderer']}, {info['gl_version']}; {device_cpu()}; moderngl {moderngl.__version__}"
-        atomic_write_bytes(Path(args.json), json.dumps({"device": device, "distance_m": args.distance, "rows": rows,
+        atomic_write_bytes(Path(args.json), json.dumps({"device": device, "distance_m": args.distance, "rows": rows, "far": far,
                                                         "date": time.strftime("%Y-%m-%d")}, indent=1).encode())
     ctx.release()
     return 0

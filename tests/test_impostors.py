@@ -278,3 +278,13 @@ def test_both_processor_paths_write_the_heaviest_layers_key(gl_context, zombie):
                 else:
                     assert proc.read_impostor_keys().shape == (n, 0)
         assert np.array_equal(palettes[0], palettes[1]), path
+
+
+def test_far_impostors_are_measured_against_the_supersampled_mesh(gl_context, zombie, atlas):
+    """crowd-bench impostor --far: the error and the flicker per pixel the truth covers, both ways of sampling."""
+    from bench.impostor_quality import far_aliasing
+
+    (row,) = far_aliasing(gl_context, *zombie, atlas, distances=(150.0,), frames=4, size=24, supersample=4)
+    assert row["agent_pixels_tall"] == pytest.approx(15.6, abs=0.1)
+    for key in ("mipmapped_error", "linear_error", "mipmapped_flicker", "linear_flicker"):
+        assert 0.0 < row[key] < 128.0  # (measured, and within the 0-255 scale's lower half)
