@@ -85,6 +85,11 @@ def feature_level(ctx, limit: int | None = None) -> int:
     return ctx.version_code if limit is None else min(ctx.version_code, int(limit))
 
 
+def limit_note(ctx, limit: int | None) -> str:
+    """What a refusal adds where `limit` lowers the context's version (", used as GL 4.1 (--gl)"), else ""."""
+    return "" if limit is None or limit >= ctx.version_code else f", used as GL {limit // 100}.{limit % 100 // 10} (--gl)"
+
+
 def has_compute(ctx, limit: int | None = None) -> bool:
     """Whether the stages may use compute shaders, storage buffers and image load/store (GL 4.3): the
     compute processor, the GPU cull and the morph deltas' buffers need them; below it (macOS's 4.1, GL 3.3)

@@ -24,7 +24,7 @@ from .draw.readback import SocketReadback
 from .draw.render import CrowdRenderer, RenderError
 from .draw.town import TownRenderer
 from .draw.weapons import WeaponRenderer
-from .gl import GL_LIMITS, has_compute
+from .gl import GL_LIMITS, has_compute, limit_note
 from .frame import MAX_LAYERS
 from .settings import DEFAULTS
 
@@ -107,8 +107,7 @@ def cull_path(ctx: moderngl.Context, asked: str, limit: int | None = None) -> st
     setting's, lets the stages use them)."""
     compute = has_compute(ctx, limit)
     if asked == "gpu" and not compute:
-        raise RenderError(f"the gpu cull path needs GL 4.3 compute shaders; this context is GL {ctx.version_code}"
-                          + ("" if limit is None or limit >= ctx.version_code else f", used as GL {limit // 100}.{limit % 100 // 10} (--gl)"))
+        raise RenderError(f"the gpu cull path needs GL 4.3 compute shaders; this context is GL {ctx.version_code}{limit_note(ctx, limit)}")
     return asked if asked != "auto" else ("gpu" if compute else "cpu")
 
 

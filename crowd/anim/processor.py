@@ -61,7 +61,7 @@ from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, FrameError, validate_
 from .bake import AnimationBake
 from .compress import PER_KEY
 from . import foot_lock as lock
-from ..gl import GLStage, gpu_bytes, has_compute, load_shader
+from ..gl import GLStage, gpu_bytes, has_compute, limit_note, load_shader
 from ..settings import DEFAULTS, SETTINGS
 from ..spans import min_max, over_spans
 from .morph import ACTIVE_WEIGHT, MAX_MORPH_WEIGHT, MORPH_PAIRS, NOT_HELD
@@ -134,8 +134,7 @@ def resolve_path(ctx: moderngl.Context, path: str, limit: int | None = None) -> 
     setting's: crowd.gl.feature_level) lets the stages use it, else fragment. "compute" where they may not: ProcessorError."""
     compute = has_compute(ctx, limit)
     if path == "compute" and not compute:
-        raise ProcessorError(f"the compute path needs GL 4.3, this context has {ctx.version_code}"
-                             + ("" if limit is None or limit >= ctx.version_code else f", used as GL {limit // 100}.{limit % 100 // 10} (--gl)"))
+        raise ProcessorError(f"the compute path needs GL 4.3, this context has {ctx.version_code}{limit_note(ctx, limit)}")
     return ("compute" if compute else "fragment") if path == "auto" else path
 
 
