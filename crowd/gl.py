@@ -192,10 +192,15 @@ def _read_shader(name: str) -> str:
 
 def current_context_function(name: str, prototype):
     """A GL entry point of the context current on this thread, through ctypes: eglGetProcAddress for
-    EGL contexts (headless), glXGetProcAddressARB for GLX windows. For the few calls moderngl lacks
-    (fences) and for contexts it does not own (the Panda3D peer's glFinish)."""
+    EGL contexts (headless), glXGetProcAddressARB for GLX windows, the OpenGL framework's own symbols on
+    macOS (whose 4.1 core exports every entry point it has), wglGetProcAddress (or opengl32's own, for
+    GL 1.1's) on Windows. For the few calls moderngl lacks (fences, the transform-feedback cull's) and for
+    contexts it does not own (the Panda3D peer's glFinish)."""
     import ctypes
+    import sys
 
+    if sys.platform in ("darwin", "win32"):
+        return _system_gl_function(name, prototype)
     loader = None
     try:
         egl = ctypes.CDLL("libEGL.so.1")
@@ -222,6 +227,31 @@ def current_context_function(name: str, prototype):
     if not address:
         raise GLUnavailable(f"the GL context has no {name}")
     return prototype(address)
+
+
+def _system_gl_function(name: str, prototype):
+    """``current_context_function`` on macOS and Windows (not run by CI, which has neither)."""
+    import ctypes
+    import sys
+
+    try:
+        if sys.platform == "darwin":
+            framework = ctypes.CDLL("/System/Library/Frameworks/OpenGL.framework/OpenGL")
+            framework.CGLGetCurrentContext.restype = ctypes.c_void_p
+            if not framework.CGLGetCurrentContext():
+                raise GLUnavailable(f"no GL context is current on this thread to call {name} on")
+            return prototype((name, framework))
+        opengl32 = ctypes.WinDLL("opengl32")
+        opengl32.wglGetCurrentContext.restype = ctypes.c_void_p
+        if not opengl32.wglGetCurrentContext():
+            raise GLUnavailable(f"no GL context is current on this thread to call {name} on")
+        opengl32.wglGetProcAddress.restype = ctypes.c_void_p
+        opengl32.wglGetProcAddress.argtypes = [ctypes.c_char_p]
+        address = opengl32.wglGetProcAddress(name.encode())
+        # (wglGetProcAddress answers only past GL 1.1, and some drivers say 1, 2, 3 or -1 for "no")
+        return prototype(address) if address and address not in (1, 2, 3, ctypes.c_void_p(-1).value) else prototype((name, opengl32))
+    except (OSError, AttributeError) as exc:
+        raise GLUnavailable(f"the GL context has no {name}: {exc}") from exc
 
 
 def flush_function():

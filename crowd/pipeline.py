@@ -516,8 +516,9 @@ class CrowdPipeline(GLStage):
                 raise
             self.stages.replace("readback", readback)
             self.stages.replace("weapons", weapons)
-            if self.renderer.gpu is not None:
-                self.renderer.gpu.set_visibility(spec.armed)  # the weapons' GPU cull reads it
+            for cull in (self.renderer.gpu, self.renderer.feedback):
+                if cull is not None:
+                    cull.set_visibility(spec.armed)  # the weapons' GPU cull reads it
             if not spec.armed:
                 self.last.read = None
             self._set_palette_history(spec.history)
@@ -856,7 +857,7 @@ class CrowdPipeline(GLStage):
             top = 0.0 if self.town is None else self.town.height  # (the town's roofs cast shadows into the streets)
             self.renderer.crowd_box = (np.array([centre[0] - half, 0.0, centre[1] - half]), np.array([centre[0] + half, top, centre[1] + half]))
             view = self.renderer.prepare(self.camera, instances, row_offset, cull_now=False, palette=self.processor.layout)
-            if self.renderer.gpu is not None and rows:
+            if self.renderer.culls_on_gpu and rows:
                 with t.gpu("cull"):
                     self.renderer.cull(self.processor)
         self._run("cull_lod")
@@ -864,7 +865,7 @@ class CrowdPipeline(GLStage):
             with t.cpu("town_cull"):
                 self.town.prepare(view)
             self._run("town_cull")
-        if self.renderer.gpu is not None and rows:
+        if self.renderer.culls_on_gpu and rows:
             self._run("cull")
         agent_frames = None
         if self.weapons is not None:
@@ -875,8 +876,10 @@ class CrowdPipeline(GLStage):
                 # (An agent drawn as its impostor alone holds its weapon in its impostor: none placed for it.)
                 shown, casting = (view.visible, view.casting) if view.held is None or view.visible is None else \
                     (view.visible & ~view.held, None if view.casting is None else view.casting & ~view.held[None])
-                self.weapons.attach(self.sync.synced(read, rows), agent_frames, weapon_of_agent, shown,
-                                    None if gpu is None else (gpu.visible, gpu.agents_buffer), casting, view.lod, fallen=fallen)
+                # (the GPU paths' visibility: the compute cull's buffers, or the feedback cull's texture)
+                visibility = (gpu.visible, gpu.agents_buffer) if gpu is not None else \
+                    self.renderer.feedback.visible if self.renderer.feedback is not None else None
+                self.weapons.attach(self.sync.synced(read, rows), agent_frames, weapon_of_agent, shown, visibility, casting, view.lod, fallen=fallen)
             self._run("attach")
         self.last = FrameState(f, view, read, row_offset, agent_frames)
         framebuffer.use()

@@ -246,11 +246,13 @@ _ALL = (
             label="processor path", choices=("auto", "compute", "fragment")),
     Setting("gl", "features", "choice", "auto",
             "the GL features the frame may use: auto (all the context has) or 4.1 (what macOS offers: no compute shaders, "
-            "storage buffers or image load/store, so the fragment processor, the CPU cull, morph deltas in textures, no foot "
+            "storage buffers or image load/store, so the fragment processor, the transform-feedback cull, morph deltas in textures, no foot "
             "lock or occlusion culling), forced on a context that has more", label="GL feature level", choices=("auto", "4.1")),
     Setting("cull", "features", "choice", "auto",
             "where culling, LOD picking and the per-draw instance lists are made: gpu (a compute pass and indirect draws, "
-            "GL 4.3) or cpu (numpy); auto: gpu where GL 4.3 exists", label="cull path", choices=("auto", "gpu", "cpu")),
+            "GL 4.3), feedback (a transform-feedback pass per list and indirect draws, GL 4.0: macOS) or cpu (numpy); "
+            "auto: gpu where GL 4.3 exists, else feedback where GL 4.0 does, else cpu", label="cull path",
+            choices=("auto", "gpu", "feedback", "cpu")),
     # the crowd's behaviour (crowd.sim.ai.AIConfig)
     _ai("substep", 1 / 60, "seconds, the longest simulation substep", low=0, open_low=True),
     _ai("max_dt", 0.25, "seconds: a longer frame is simulated as this long (the game slows, it does not explode)", low=0, high=10, open_low=True),

@@ -24,7 +24,7 @@ from .draw.readback import SocketReadback
 from .draw.render import CrowdRenderer, RenderError
 from .draw.town import TownRenderer
 from .draw.weapons import WeaponRenderer
-from .gl import GL_LIMITS, has_compute, limit_note
+from .gl import GL_LIMITS, feature_level, has_compute, limit_note
 from .frame import MAX_LAYERS
 from .settings import DEFAULTS
 
@@ -103,12 +103,15 @@ def build_renderer(ctx: moderngl.Context, cast, spec: StageSpec) -> CrowdRendere
 
 
 def cull_path(ctx: moderngl.Context, asked: str, limit: int | None = None) -> str:
-    """"gpu" or "cpu" for `asked` ("auto": gpu where the context runs compute shaders and `limit`, the "gl"
-    setting's, lets the stages use them)."""
+    """"gpu", "feedback" or "cpu" for `asked` ("auto": gpu where the context runs compute shaders and `limit`,
+    the "gl" setting's, lets the stages use them; else feedback where GL 4.0's indirect draws exist)."""
     compute = has_compute(ctx, limit)
     if asked == "gpu" and not compute:
         raise RenderError(f"the gpu cull path needs GL 4.3 compute shaders; this context is GL {ctx.version_code}{limit_note(ctx, limit)}")
-    return asked if asked != "auto" else ("gpu" if compute else "cpu")
+    feedback = feature_level(ctx, limit) >= 400
+    if asked == "feedback" and not feedback:
+        raise RenderError(f"the feedback cull path needs GL 4.0 indirect draws; this context is GL {ctx.version_code}{limit_note(ctx, limit)}")
+    return asked if asked != "auto" else ("gpu" if compute else "feedback" if feedback else "cpu")
 
 
 def build_readback(ctx: moderngl.Context, processor: AnimationProcessor, spec: StageSpec) -> SocketReadback | None:
@@ -122,7 +125,10 @@ def build_town(ctx: moderngl.Context, spec: StageSpec) -> TownRenderer | None:
 
 
 def build_weapons(ctx: moderngl.Context, cast, spec: StageSpec) -> WeaponRenderer | None:
-    return WeaponRenderer(ctx, [part.character for part in as_cast(cast)], spec.shadows, gpu_cull=cull_path(ctx, spec.cull, spec.gl_limit) == "gpu") if spec.armed else None
+    if not spec.armed:
+        return None
+    path = cull_path(ctx, spec.cull, spec.gl_limit)  # culled where the bodies are
+    return WeaponRenderer(ctx, [part.character for part in as_cast(cast)], spec.shadows, gpu_cull=path == "gpu", feedback_cull=path == "feedback")
 
 
 @dataclass

@@ -60,6 +60,7 @@ def pipeline_stats(pipeline) -> dict:
     return {
         "agents": p.agents,
         "processor_path": p.processor.path,
+        "cull_path": p.renderer.cull_path,  # gpu (compute), feedback (transform feedback: GL 4.0 to 4.2) or cpu
         "gl_features": feature_level(p.ctx, GL_LIMITS[p.config.gl]),  # the GL version whose features the stages use (the "gl" setting)
         "layers": p.processor.layer_count,
         "bake": {"fps": p.bake.fps, "precision": p.bake.precision, "interpolation": p.processor.interpolation,

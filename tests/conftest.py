@@ -1,5 +1,6 @@
 from pathlib import Path
 
+import moderngl
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -47,6 +48,37 @@ def compute_context(gl_context):
     if not has_compute(gl_context):
         pytest.skip("this test needs GL 4.3 compute shaders")
     return gl_context
+
+
+@pytest.fixture
+def no_compute_features(monkeypatch):
+    """Every way into compute shaders, storage buffers, image load/store and multi-draw-indirect fails loudly while set."""
+
+    def refused(*args, **kwargs):
+        raise AssertionError("a GL 4.3 feature was used on the 4.1 path")
+
+    monkeypatch.setattr(moderngl.Context, "compute_shader", refused)
+    monkeypatch.setattr(moderngl.Context, "memory_barrier", refused)
+    monkeypatch.setattr(moderngl.Buffer, "bind_to_storage_buffer", refused)
+    monkeypatch.setattr(moderngl.Texture, "bind_to_image", refused)
+    monkeypatch.setattr(moderngl.TextureArray, "bind_to_image", refused)
+    # (moderngl's indirect draws are glMultiDraw*Indirect, GL 4.3, which a 4.1 context does not have)
+    monkeypatch.setattr(moderngl.VertexArray, "render_indirect", refused)
+    # The entry points the transform-feedback cull loads through ctypes: GL 4.1 core's only.
+    import crowd.draw.feedback_cull as feedback
+    from crowd import gl
+
+    core_41 = {"glUseProgram", "glBindVertexArray", "glBindBufferBase", "glBeginTransformFeedback", "glEndTransformFeedback",
+               "glDrawArrays", "glBindBuffer", "glDrawElementsIndirect", "glGenTransformFeedbacks", "glDeleteTransformFeedbacks",
+               "glBindTransformFeedback", "glDrawTransformFeedbackStream"}
+
+    def loaded(name, prototype):
+        if name not in core_41:
+            raise AssertionError(f"{name} is not GL 4.1 core")
+        return gl.current_context_function(name, prototype)
+
+    monkeypatch.setattr(feedback, "current_context_function", loaded)
+    monkeypatch.setattr(feedback, "_api", None)  # loaded again, through the check
 
 
 # -- GL objects alive (the leak tests count them): the soak's census

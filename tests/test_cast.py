@@ -168,17 +168,21 @@ def test_gpu_and_cpu_culls_put_each_character_in_its_own_draws(gl_context, cast)
     instances = _mixed_instances(counts, rng)
     camera = Camera(eye=np.array([0.0, 20.0, 45.0]), target=np.zeros(3), aspect=16 / 9)
     drawn = {}
-    for path in ("cpu", "gpu"):
+    for path in ("cpu", "gpu", "feedback"):
         with CrowdRenderer(gl_context, characters, lod_distances=(14, 40, 90), shadows=True, cull_path=path) as r:
             r.prepare(camera, instances)
             lists = []
-            if path == "gpu":
+            if path != "cpu":
                 r.refresh_counts(wait=True)
+            if path == "gpu":
                 records = np.frombuffer(r.gpu.lists.read(), INSTANCE_DTYPE)
             for d, draw in enumerate(r.draws):
                 if path == "gpu":
                     assert r.gpu.list_of(d)[1] == counts[draw.character]
                     chosen = records[r.gpu.drawn_records(d, draw.count)]
+                elif path == "feedback":  # (a list of its own per (character, LOD, choice), as long as its character's agents)
+                    assert r.feedback.list_buffer(d).size == counts[draw.character] * INSTANCE_DTYPE.itemsize
+                    chosen = np.frombuffer(r.feedback.list_buffer(d).read(), INSTANCE_DTYPE)[:draw.count]
                 else:
                     chosen = np.frombuffer(draw.instances.read(), INSTANCE_DTYPE)[:draw.count] if draw.count else np.zeros(0, INSTANCE_DTYPE)
                 agents = r.palette.agents_at(chosen["packed"][:, 0] & 0xFFF, chosen["packed"][:, 0] >> 12)
@@ -186,8 +190,10 @@ def test_gpu_and_cpu_culls_put_each_character_in_its_own_draws(gl_context, cast)
                 assert np.all((agents >= block[0]) & (agents < block[1])), (path, draw.piece)  # only its own character's agents
                 lists.append((draw.character, draw.piece, draw.lod, frozenset(agents.tolist())))
             drawn[path] = (lists, dict(r.last))
-    assert drawn["cpu"][0] == drawn["gpu"][0]
-    assert drawn["cpu"][1]["cast_visible"] == drawn["gpu"][1]["cast_visible"] and sum(drawn["cpu"][1]["cast_visible"]) > 0
+    for path in ("gpu", "feedback"):
+        assert drawn["cpu"][0] == drawn[path][0]
+        assert drawn["cpu"][1]["cast_visible"] == drawn[path][1]["cast_visible"] and sum(drawn["cpu"][1]["cast_visible"]) > 0
+        assert drawn["cpu"][1]["lod_counts"] == drawn[path][1]["lod_counts"]
 
 
 # -- a mixed scene of three characters
@@ -200,7 +206,7 @@ def _tinted(pipeline, colors):
         pipeline.ai.tint[first[k]:first[k + 1], :3] = color
 
 
-@pytest.mark.parametrize("cull", ["gpu", "cpu"])
+@pytest.mark.parametrize("cull", ["gpu", "cpu", "feedback"])
 def test_a_mixed_scene_of_three_draws_each_at_its_share(gl_context, chain_file, cull):
     """Zombies, brutes and the chain at 5 : 3 : 2: all three are drawn, each at its share within 2 % of
     the crowd, in its own colour, with finite palettes; zombies and brutes hold their own weapons."""

@@ -186,14 +186,14 @@ def test_switching_the_cull_path_live_leaks_nothing(gl_context):
         session = CrowdSession(gl_context, Scene(agents=60))
         try:
             for path, weapons, occlusion in (("cpu", True, True), ("gpu", False, True), ("gpu", True, False), ("cpu", False, False),
-                                             ("auto", True, True), ("auto", True, False)):
+                                             ("feedback", True, True), ("feedback", False, False), ("auto", True, True), ("auto", True, False)):
                 session.set_cull_path(path)
                 session.set_weapons(weapons)
                 session.set_occlusion(occlusion)
                 session.frame(target.framebuffer, 1 / 30)
                 session.frame(target.framebuffer, 1 / 30)
                 renderer = session.pipeline.renderer
-                assert (renderer.gpu is not None) == (path != "cpu")
+                assert (renderer.gpu is not None) == (path in ("gpu", "auto")) and (renderer.feedback is not None) == (path == "feedback")
                 assert (renderer.pyramid is not None) == (occlusion and renderer.gpu is not None)
                 assert session.to_scene().cull == path and session.to_scene().occlusion == occlusion
             with pytest.raises(SessionError, match="cull"):
@@ -340,6 +340,21 @@ def test_shadow_lists_exist_only_with_shadows(gl_context, shadows):
                 assert all(bool(d.shadow_instances) == shadows for d in r.draws)
 
 
+def cascade_slack(renderer, camera, instances):
+    """float64, per shadow cascade: (cascade, the agents' distances from the eye, each agent's margin inside
+    the cascade's box and its reach (negative: outside)). The first character's bound for every agent."""
+    eye = np.asarray(camera.eye, np.float64)
+    scale = instances.scale.astype(np.float64)
+    centers = instances.position - eye + renderer.bounds[0, :3] * scale[:, None]
+    radii = renderer.bounds[0, 3] * scale
+    dist = np.linalg.norm(centers, axis=1)
+    shadow = renderer.light_cascades(camera, instances)
+    for cascade, (matrix, reach) in enumerate(zip(shadow.view_proj, shadow.reach_m)):
+        light = frustum_planes(matrix)
+        # Inside the cascade's box, and near enough to the eye to shadow what it covers.
+        yield cascade, dist, np.minimum(np.min(centers @ light[:, :3].T + light[:, 3] + radii[:, None], axis=1), float(reach) - (dist - radii))
+
+
 def test_shadow_lists_are_each_cascades_agents_one_lod_coarser(stages):
     """Per cascade and draw, the GPU's shadow list holds the CPU path's (agents away from the
     boundaries) and no agent outside the cascade's box; each agent casts its shadow from one LOD
@@ -347,19 +362,10 @@ def test_shadow_lists_are_each_cascades_agents_one_lod_coarser(stages):
     camera = Camera(eye=np.array([0.0, 12.0, 30.0]), target=np.zeros(3), aspect=16 / 9)
     cpu, gpu, instances = _prepared_on_both_paths(stages, camera, seed=5, agents=4000)
     counts = gpu.gpu.shadow_counts(wait=True)
-    eye = np.asarray(camera.eye, np.float64)
-    scale = instances.scale.astype(np.float64)
-    centers = instances.position - eye + gpu.bounds[0, :3] * scale[:, None]
-    radii = gpu.bounds[0, 3] * scale
-    dist = np.linalg.norm(centers, axis=1)
-    colour_lod = np.minimum(np.searchsorted(np.asarray(LOD_DISTANCES), dist, side="right"), gpu.lod_count - 1)
     per_cascade = []
-    shadow = gpu.light_cascades(camera, instances)
-    for cascade, (matrix, reach) in enumerate(zip(shadow.view_proj, shadow.reach_m)):
+    for cascade, dist, slack in cascade_slack(gpu, camera, instances):
+        colour_lod = np.minimum(np.searchsorted(np.asarray(LOD_DISTANCES), dist, side="right"), gpu.lod_count - 1)
         shadow_lists = _gpu_lists(gpu, gpu.gpu.shadow_lists, counts[cascade], cascade=cascade)
-        light = frustum_planes(matrix)
-        # Inside the cascade's box, and near enough to the eye to shadow what it covers.
-        slack = np.minimum(np.min(centers @ light[:, :3].T + light[:, 3] + radii[:, None], axis=1), float(reach) - (dist - radii))
         doubtful = _doubtful(slack, dist)
         casting = 0
         for k, (c, g, on_gpu) in enumerate(zip(cpu.draws, gpu.draws, shadow_lists)):

@@ -74,7 +74,7 @@ def test_weapon_stays_in_the_hand_for_100_frames_while_clips_change(harness, cul
     """Every armed agent, every frame: grip point on the socket within 0.1 mm in the frame as drawn,
     while the AI switches clips and, every seventh frame, random clips and phases are forced on a
     third of the crowd. Drawing the body from the newest palette instead would be far off. On both
-    cull paths, and on the path without compute (`gl` 4.1: the fragment processor, the CPU cull)."""
+    cull paths, and on the path without compute (`gl` 4.1: the fragment processor, the transform-feedback cull)."""
     h = harness(shadows=True, cull=cull, gl=gl)
     p = h.pipeline
     rng = np.random.default_rng(2)

@@ -6,9 +6,11 @@ Contract: ``CrowdRenderer.prepare(camera, instances, row_offset) -> FrameView``,
 - The processor must have written this frame's palette; every pass here only reads it.
 - One instanced draw per (mesh piece, LOD) with agents in it: visible agents are sorted into draws by
   the LOD their distance picks and the pieces they wear. Two cull paths behind this one interface:
-  "cpu", a vectorised sphere-frustum test and a sort in numpy (any GL 3.3 context), and "gpu" (GL 4.3,
+  "cpu", a vectorised sphere-frustum test and a sort in numpy (any GL 3.3 context), "gpu" (GL 4.3,
   crowd/draw/gpu_cull.py), where the CPU uploads every agent's record once and a compute pass culls,
-  picks LODs and fills per-draw lists that the passes draw with render_indirect.
+  picks LODs and fills per-draw lists that the passes draw with render_indirect, and "feedback" (GL 4.0
+  to 4.2: macOS, crowd/draw/feedback_cull.py), the same decisions made by a transform-feedback pass per
+  list and drawn with glDrawElementsIndirect.
 - Positions are camera-relative: the CPU subtracts the camera in float64 and the GPU only sees small
   float32 numbers, so agents 1e5 m from the origin do not jitter.
 - With shadows on, a depth pass draws each of the sun's cascades (crowd/draw/shadows.py) into its tile
@@ -42,6 +44,7 @@ from ..asset.town import TILE
 from ..anim.processor import PaletteLayout, texel_code
 from ..asset.vertex_cache import best_triangle_order
 from .gpu_cull import CHARACTER_SHIFT, MAX_CAST, MAX_GROUPS, RECORD_DTYPE, CullCharacter, GpuCull, GpuCullError
+from .feedback_cull import FeedbackCharacter, FeedbackCull, FeedbackCullError, ListKey
 from .impostors import HELD_GROUP, HELD_NONE, ImpostorTextures, held_pieces
 from .materials import TEXTURE_UNIT, MaterialTextures
 from .morph import MorphDeltas
@@ -71,7 +74,7 @@ WEIGHT_STEP = 1.0 / 2046.0  # a stored weight is within half of this of the floa
 # (4 bits a group, which only the GPU cull reads: the record is the GPU cull's agent record too).
 INSTANCE_DTYPE = RECORD_DTYPE
 INSTANCE_FORMAT = ("4f 3u 4x/i", "i_position_scale", "i_packed")
-CULL_PATHS = ("cpu", "gpu")
+CULL_PATHS = ("cpu", "gpu", "feedback")
 BAKE_BOXES_UNIT = 4  # the impostor bake's per-frame boxes (the palette takes 0-2, the shadow map 3)
 DEFAULT_LOD_DISTANCES = DEFAULTS["lod_distances"]  # metres: LOD0 closer than the first, LOD1 to the second, LOD2 beyond
 
@@ -293,7 +296,7 @@ class CrowdRenderer(GLStage):
                  weapons_visibility: bool = False, occlusion: bool = False, town: bool = False, morphs=None, morph_buffers: bool | None = None,
                  impostors=None, impostor_distance: float = math.inf, lod_fade: float = 0.0):
         """`characters`: one Character, or the cast's, in its order (its agents come in that order,
-        crowd.frame). `cull_path`: "cpu" or "gpu" (a GL 4.3 context; see the module docstring); with
+        crowd.frame). `cull_path`: "cpu", "gpu" (a GL 4.3 context) or "feedback" (GL 4.0; see the module docstring); with
         `weapons_visibility` the GPU cull also writes each agent's visibility, for the weapons; with
         `occlusion` (the gpu path) it also drops agents hidden in the previous frame's depth. `morphs`: per
         character, whether the scene moves its morph targets (its bake has morph tracks: the processor then
@@ -310,6 +313,7 @@ class CrowdRenderer(GLStage):
         self.draws: list[_Draw] = []
         self.materials: MaterialTextures | None = None
         self.gpu: GpuCull | None = None
+        self.feedback: FeedbackCull | None = None
         if cull_path not in CULL_PATHS:
             raise RenderError(f"cull path must be one of {', '.join(CULL_PATHS)}, got {cull_path!r}")
         self.cull_path = cull_path
@@ -464,6 +468,21 @@ class CrowdRenderer(GLStage):
             self.gpu.lod_fade = self.lod_fade
             for draw in self.draws:  # every draw reads its list out of the one list buffer (baseInstance)
                 draw.instances = self.gpu.lists
+        if cull_path == "feedback":
+            keys = []
+            for d in self.draws:
+                group = self._piece_group[d.character][d.piece]
+                g = self.group_names.index(group) if group else -1
+                keys.append((ListKey(d.character, d.lod, g, self.groups[d.character][group].index(d.piece) if group else 0), d.triangles * 3))
+            characters = [FeedbackCharacter(self.lod_counts[k], tuple(float(x) for x in self.bounds[k]),
+                                            self.impostor_distance if self.impostor_lods[k] >= 0 else math.inf) for k in range(len(cast))]
+            try:
+                self.feedback = self._own("cull", FeedbackCull(ctx, keys, characters, CASCADES if shadows else 0, weapons_visibility))
+            except FeedbackCullError as exc:
+                raise RenderError(f"{exc} (the cpu cull path has no such limit)") from None
+            self.feedback.lod_fade = self.lod_fade
+            for d, draw in enumerate(self.draws):  # each draw reads its list's buffer
+                draw.instances = self.feedback.list_buffer(d)
         self.shadows = shadows
         self.shadow_size = int(shadow_size)
         self.shadow_map = None
@@ -573,12 +592,17 @@ class CrowdRenderer(GLStage):
             vao.program["u_morph_vertex_base"] = self.draws[first].morph_base
         vao.render_indirect(commands, moderngl.TRIANGLES, count=count, first=first + (cascade * len(self.draws) if kind == "depth" else 0))
 
-    def _vao(self, draw: _Draw, kind: str, skinned: bool, cascade: int = 0) -> moderngl.VertexArray:
+    def _vao(self, draw: _Draw, kind: str, skinned: bool, cascade: int = 0, index: int = 0) -> moderngl.VertexArray:
         key = (kind, skinned, cascade)
         if key not in draw.vaos:
             prog = self._draw_program(draw, kind, skinned)
             if kind == "depth":  # the shadow pass reads the shadow lists (the GPU path's: one buffer, by baseInstance)
-                instances = self.gpu.shadow_lists if self.gpu is not None else draw.shadow_instances[cascade]
+                if self.gpu is not None:
+                    instances = self.gpu.shadow_lists
+                elif self.feedback is not None:
+                    instances = self.feedback.list_buffer(index, cascade)
+                else:
+                    instances = draw.shadow_instances[cascade]
             else:
                 instances = draw.instances
             content = [(draw.vbo, *_read_by(prog, _LAYOUTS[draw.layout][1])), (instances, *_read_by(prog, INSTANCE_FORMAT))]
@@ -616,8 +640,9 @@ class CrowdRenderer(GLStage):
             for obj in reversed(stale):
                 obj.release()
         self.lod_fade = metres
-        if self.gpu is not None:
-            self.gpu.lod_fade = metres
+        for cull in (self.gpu, self.feedback):
+            if cull is not None:
+                cull.lod_fade = metres
 
     def set_impostor_distance(self, metres: float) -> None:
         """Draw impostors from `metres` on (both cull paths read it each frame)."""
@@ -627,6 +652,9 @@ class CrowdRenderer(GLStage):
         if self.gpu is not None:
             self.gpu.characters = [c._replace(impostor_start=self.impostor_distance if self.impostor_lods[k] >= 0 else math.inf)
                                    for k, c in enumerate(self.gpu.characters)]
+        if self.feedback is not None:
+            self.feedback.characters = [c._replace(impostor_start=self.impostor_distance if self.impostor_lods[k] >= 0 else math.inf)
+                                        for k, c in enumerate(self.feedback.characters)]
 
     def set_occlusion(self, on: bool) -> None:
         """Keep (or drop) the depth pyramid occlusion culling tests against; the cpu path has none."""
@@ -647,8 +675,8 @@ class CrowdRenderer(GLStage):
         out = {group: gpu_bytes(objs) for group, objs in self._objects.items() if group not in ("programs", "textures", "cull", "occlusion")}
         if self.materials is not None:
             out["textures"] = self.materials.gpu_bytes()
-        if self.gpu is not None:
-            out["cull"] = self.gpu.gpu_bytes()
+        if self.gpu is not None or self.feedback is not None:
+            out["cull"] = (self.gpu or self.feedback).gpu_bytes()
         if self.pyramid is not None:
             out["occlusion"] = self.pyramid.gpu_bytes()
         out["morphs"] = 0 if self.morph is None else self.morph.nbytes
@@ -664,6 +692,7 @@ class CrowdRenderer(GLStage):
         self.draws = []
         self.materials = None
         self.gpu = None
+        self.feedback = None
         self.pyramid = None
         self.morph = None
 
@@ -706,6 +735,16 @@ class CrowdRenderer(GLStage):
             except GpuCullError as exc:
                 raise RenderError(f"{exc} (the cpu cull path needs no lists: --cull cpu)") from None
             self.refresh_counts()  # the newest frame the GPU has finished (none queued for 0 agents: 0)
+            self._pending = (frustum_planes(matrix), None if shadow is None else (np.stack([frustum_planes(m) for m in shadow.view_proj]), shadow.reach_m), eye)
+            if cull_now:
+                self.cull(processor)
+            return FrameView(camera, matrix, shadow, None)
+        if self.feedback is not None:
+            try:
+                self.feedback.upload(self._all_records(instances, eye, row_offset, palette), counts)
+            except FeedbackCullError as exc:
+                raise RenderError(f"{exc} (the cpu cull path needs no lists: --cull cpu)") from None
+            self.refresh_counts()
             self._pending = (frustum_planes(matrix), None if shadow is None else (np.stack([frustum_planes(m) for m in shadow.view_proj]), shadow.reach_m), eye)
             if cull_now:
                 self.cull(processor)
@@ -884,9 +923,12 @@ class CrowdRenderer(GLStage):
         """The GPU path's cull dispatch for what `prepare(cull_now=False)` uploaded; False when there
         is nothing to do (the CPU path, or already done). `processor`: as for ``prepare``."""
         pending, self._pending = getattr(self, "_pending", None), None
-        if self.gpu is None or pending is None:
+        if not self.culls_on_gpu or pending is None:
             return False
         planes, light_planes, eye = pending  # the view's planes, (each cascade's planes, reach), the eye
+        if self.feedback is not None:
+            self.feedback.run(planes, self.lod_distances, self.culling, *(light_planes if light_planes is not None else (None, None)))
+            return True
         self.gpu.run(planes, 0.0, self.lod_distances, self.culling, occlusion=None if self.pyramid is None else (self.pyramid, eye), palette=processor)
         if light_planes is not None:
             self.gpu.run_shadow(light_planes[0], self.lod_distances, self.culling, light_planes[1], palette=processor)
@@ -895,32 +937,40 @@ class CrowdRenderer(GLStage):
     def refresh_counts(self, wait: bool = False) -> None:
         """``last`` on the GPU path: the newest counts the GPU has handed back (a frame or two old;
         `wait` finishes the frames queued: stats at the end of a run, tests). A no-op on the CPU path."""
-        if self.gpu is None:
+        cull = self.gpu or self.feedback
+        if cull is None:
             return
-        counts = self.gpu.counts(wait).astype(np.int64)
-        agents = self.gpu.agent_counts().astype(np.int64)  # (characters, LOD slots): each kept agent once
+        counts = cull.counts(wait).astype(np.int64)
+        agents = cull.agent_counts().astype(np.int64)  # (characters, LOD slots): each kept agent once
         lod_counts = [int(x) for x in agents.sum(axis=0)[: self.lod_count]]
         cast_visible = [int(x) for x in agents.sum(axis=1)]
         for draw, c in zip(self.draws, counts):
             draw.count = int(c)
-        shadow = self.gpu.shadow_counts(wait).astype(np.int64)  # (cascades, draws)
+        shadow = cull.shadow_counts(wait).astype(np.int64)  # (cascades, draws)
         for d, draw in enumerate(self.draws):
             draw.shadow_counts = [int(c) for c in shadow[:, d]]
         self.last = {"triangles": int(sum(c * d.triangles for c, d in zip(counts, self.draws))), "instances": int(counts.sum()),
                      "visible": int(sum(lod_counts)), "draws": int(np.count_nonzero(counts)), "lod_counts": lod_counts,
                      "shadow_instances": int(shadow.sum()), "cast_visible": cast_visible}
 
+    @property
+    def culls_on_gpu(self) -> bool:
+        """Whether the lists are made on the GPU (the gpu and feedback paths), by ``cull()``."""
+        return self.gpu is not None or self.feedback is not None
+
     def draws_anything(self, agents: int) -> bool:
-        """Whether this frame's passes have instances to draw (the GPU path cannot know: any agent may be)."""
-        return agents > 0 if self.gpu is not None else bool(self.last["instances"])
+        """Whether this frame's passes have instances to draw (the GPU paths cannot know: any agent may be)."""
+        return agents > 0 if self.culls_on_gpu else bool(self.last["instances"])
 
     def _render(self, index: int, draw: _Draw, kind: str, skinned: bool, cascade: int = 0) -> None:
         """One draw of a pass: the colour pass from the colour lists, the depth pass from the shadow
         lists of `cascade`."""
-        vao = self._vao(draw, kind, skinned, cascade if self.gpu is None else 0)
+        vao = self._vao(draw, kind, skinned, cascade if self.gpu is None else 0, index)
         if draw.morph and "u_morph_vertex_base" in vao.program:
             vao.program["u_morph_vertex_base"] = draw.morph_base
-        if self.gpu is not None:
+        if self.feedback is not None:
+            self.feedback.draw(vao, index, cascade if kind == "depth" else None)
+        elif self.gpu is not None:
             commands = self.gpu.shadow_commands if kind == "depth" else self.gpu.commands
             vao.render_indirect(commands, moderngl.TRIANGLES, count=1, first=index + (cascade * len(self.draws) if kind == "depth" else 0))
         else:
@@ -1002,7 +1052,7 @@ class CrowdRenderer(GLStage):
                     self._render_merged("color", skinned, morph=morph)
                     continue
                 for index, draw in enumerate(self.draws):
-                    if (draw.layout, draw.morph and skinned is True) == (layout, morph) and (draw.count or self.gpu is not None):
+                    if (draw.layout, draw.morph and skinned is True) == (layout, morph) and (draw.count or self.culls_on_gpu):
                         if layout == "impostor" and skinned is not True:  # the unskinned ceiling binds no palette, so no keys
                             continue
                         self._bind_piece(draw, prog)

@@ -21,7 +21,11 @@ Culling: on the CPU cull path ``attach`` is given the visible set and uploads on
 GPU path (``gpu_cull``) the CPU does not know it: every armed agent's weapon is uploaded with its
 owner, and a compute pass (shaders/weapon_cull.comp.glsl) keeps those whose agent the body cull marked
 visible, compacted per (weapon, LOD) mesh and counted in indirect commands, so a weapon is drawn exactly
-when its agent is, at its agent's LOD. With shadows on, each shadow cascade's tile gets the weapons of
+when its agent is, at its agent's LOD. On the transform-feedback path (``feedback_cull``, GL 4.0 to 4.2)
+the same: every placed weapon is uploaded with its agent's transform (as on the CPU path) and its agent's
+number, and feedback draws (shaders/weapon_feedback.*.glsl, 4 (weapon, LOD, pass) lists each, a vertex stream
+a list) keep those whose agent the body cull's visibility texture shows there, into each mesh's list of each
+pass, drawn with glDrawElementsIndirect (crowd.draw.feedback_cull). With shadows on, each shadow cascade's tile gets the weapons of
 the agents in that cascade's volume (the body cull's shadow lists), from lists of their own on both paths. ``last["weapons"]`` counts the weapons placed, ``last["drawn"]`` those drawn (on the GPU
 path as the GPU hands the counts back, a frame or two late; ``refresh_counts(wait=True)`` at a run's end).
 
@@ -36,6 +40,7 @@ import moderngl
 import numpy as np
 
 from ..gl import GLObjects, GLStage, load_shader
+from .feedback_cull import STREAMS, FeedbackCounter, TransformFeedbacks, capture, stream_groups, stream_varyings
 from .gpu_cull import BUFFER_UPDATE, COMMAND, COMMAND_DTYPE, GROUP_SIZE, VERTEX_ATTRIB_ARRAY, CountRing
 from ..asset.model import Character, RigidMesh, cast_weapons
 from ..asset.vertex_cache import best_triangle_order
@@ -106,9 +111,10 @@ def pack_rigid(mesh: RigidMesh, to_socket: np.ndarray) -> np.ndarray:
 class WeaponRenderer(GLStage):
     """Owns the weapon meshes, their instance buffers and programs."""
 
-    def __init__(self, ctx: moderngl.Context, characters, shadows: bool, gpu_cull: bool = False):
+    def __init__(self, ctx: moderngl.Context, characters, shadows: bool, gpu_cull: bool = False, feedback_cull: bool = False):
         """`characters`: one Character, or the cast's; every prop of every character that has a socket is
-        a weapon, numbered across the cast in its order (``first_weapon`` says where each one's start)."""
+        a weapon, numbered across the cast in its order (``first_weapon`` says where each one's start).
+        `gpu_cull` (GL 4.3) or `feedback_cull` (GL 4.0): culled on the GPU by the body cull's visibility."""
         self._objects = GLObjects()
         self._meshes = []
         cast = [characters] if isinstance(characters, Character) else list(characters)
@@ -138,6 +144,7 @@ class WeaponRenderer(GLStage):
         self._grip_point = grip_origin[:, :3]  # (W, 3): the grip point in each weapon's space
         self._grip_in_socket = np.einsum("wij,wj->wi", self._socket_to_weapon, grip_origin)  # the grip point, as baked
         self.gpu_cull = gpu_cull
+        self.feedback_cull = feedback_cull and not gpu_cull
         self.lod_count = max(len(p.lods) for p in props)
         draws = len(self.names) * self.lod_count  # draw w * lod_count + lod: weapon w at that LOD
         if gpu_cull:
@@ -165,6 +172,7 @@ class WeaponRenderer(GLStage):
                 else:
                     vbo = self._objects.add(ctx.buffer(vertices.tobytes()))
                     ibo = self._objects.add(ctx.buffer(indices.tobytes()))
+                # (the feedback path's lists: one buffer per mesh and pass, as the CPU path's, written by the GPU)
                 inst = self._shown if gpu_cull else self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
                 shadow = []  # per cascade: the CPU path's lists (the GPU path's are one buffer, by baseInstance)
                 if shadows:
@@ -182,6 +190,23 @@ class WeaponRenderer(GLStage):
                             "instances": self._shown, "shadow_instances": [self._shadow_shown] * CASCADES, "vaos": {}}
             for mesh, (first, base) in zip(self._meshes, starts):
                 mesh["first_index"], mesh["base_vertex"] = first, base
+        if self.feedback_cull:
+            self._feedback = self._objects.add(ctx.program(vertex_shader=load_shader("weapon_feedback.vert.glsl"),
+                                                           geometry_shader=load_shader("weapon_feedback.geom.glsl"),
+                                                           varyings=stream_varyings(["row0", "row1", "row2", "position_scale", "fields"])))
+            self._feedback["u_visible"] = 0
+            self._feedback["u_lod_count"] = self.lod_count
+            self._placed = self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
+            self._spare = self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))  # a group's unused streams
+            self._placed_vao = self._objects.add(ctx.vertex_array(self._feedback, [(self._placed, "4f 4f 4f 4f 4u", "i_row0", "i_row1", "i_row2",
+                                                                                     "i_position_scale", "i_fields")]))
+            passes = 1 + (CASCADES if shadows else 0)
+            self._slots = [(d, run) for run in range(passes) for d in range(len(self._meshes))]  # list k: mesh d of pass run
+            self._groups = stream_groups(self._slots, lambda slot: 0)
+            self._feedbacks = self._objects.add(TransformFeedbacks(len(self._groups)))
+            self._counter = FeedbackCounter(ctx, self._objects, [(self._meshes[d]["triangles"] * 3, k) for k, (d, _) in enumerate(self._slots)],
+                                            len(self._slots))
+            self._capacity = np.zeros(len(self.names), np.int64)  # weapons each mesh's lists hold
         defines = {"SHADOWS": 1, "CASCADES": CASCADES} if shadows else {}
         self._programs = {
             "color": self._objects.add(ctx.program(vertex_shader=load_shader("weapon.vert.glsl"), fragment_shader=load_shader("skin.frag.glsl", defines))),
@@ -255,6 +280,8 @@ class WeaponRenderer(GLStage):
             agents, weapon, rows = (np.concatenate([a, b]) for a, b in zip((agents, weapon, rows), self.dropped))
         if self.gpu_cull:
             return self._attach_on_gpu(agents, weapon, rows, np.concatenate([[0], np.cumsum(np.bincount(weapon, minlength=len(self.names)))]), visibility, held)
+        if self.feedback_cull:
+            return self._attach_on_feedback(agents, weapon, rows, frames, visibility, held)
         agent_lod = np.zeros(len(agents), np.int64) if lod is None else np.asarray(lod, np.int64)[agents]
         instances = frames.instances(agents, rows)
         if self.shadows:
@@ -391,11 +418,69 @@ class WeaponRenderer(GLStage):
         self.refresh_counts()
         return k
 
+    def _attach_on_feedback(self, agents, weapon, rows, frames: AgentFrames, visible, held: int) -> int:
+        """Every placed weapon uploaded once, with its agent's transform and number; a feedback draw per
+        mesh and pass keeps those the body cull's visibility texture (`visible`) shows there."""
+        if visible is None:
+            raise WeaponError("the weapons' feedback cull needs the body cull's visibility texture")
+        k = len(agents)
+        self.drawn = (agents[:held], weapon[:held], rows[:held])
+        self.last = {"weapons": held, "dropped": k - held}
+        if not k:
+            self._counter.ring.zero()
+            self.refresh_counts()
+            return 0
+        instances = frames.instances(agents, rows)
+        instances["fields"][:, 0] = agents
+        instances["fields"][:, 1] = weapon
+        if self._placed.size != instances.nbytes:
+            self._placed.orphan(instances.nbytes)
+        self._placed.write(instances)
+        # Each mesh's lists hold its weapon's placed count, grown by doubling and shrunk only at a quarter,
+        # so a crowd whose armed count wanders does not re-allocate every frame.
+        need = np.bincount(weapon, minlength=len(self.names))
+        resize = (self._capacity < need) | (self._capacity > 4 * need + 256)
+        for w in np.flatnonzero(resize):
+            self._capacity[w] = 1 << int(max(need[w], 1) - 1).bit_length()
+            for mesh in self._meshes[w * self.lod_count:(w + 1) * self.lod_count]:
+                for buf in [mesh["instances"], *mesh["shadow_instances"]]:
+                    buf.orphan(int(self._capacity[w]) * INSTANCE_DTYPE.itemsize)
+        visible.use(0)
+        p = self._feedback
+        p["u_visible_width"] = visible.width
+        lists = lambda d, run: self._meshes[d]["instances"] if run == 0 else self._meshes[d]["shadow_instances"][run - 1]  # noqa: E731
+        self._counter.target.use()  # (a draw needs a complete framebuffer bound, even one that writes no pixels)
+        self.ctx.enable(moderngl.RASTERIZER_DISCARD)  # (the feedback draws write lists, not pixels)
+        try:
+            for g, group in enumerate(self._groups):
+                passes, weapons, lods = [-1] * STREAMS, [0] * STREAMS, [0] * STREAMS
+                for s, index in enumerate(group):
+                    d, passes[s] = self._slots[index]
+                    weapons[s], lods[s] = d // self.lod_count, d % self.lod_count
+                p["u_slot_pass"], p["u_slot_weapon"], p["u_slot_lod"] = passes, weapons, lods
+                into = [lists(*self._slots[index]) for index in group] + [self._spare] * (STREAMS - len(group))
+                capture(p, self._placed_vao, self._feedbacks[g], into, 0, k)
+        finally:
+            self.ctx.disable(moderngl.RASTERIZER_DISCARD)
+        self._counter.begin()
+        for g, group in enumerate(self._groups):
+            for s, index in enumerate(group):
+                self._counter.count_stream(self._feedbacks[g], s, index)
+        self._counter.finish()
+        for d, mesh in enumerate(self._meshes):  # placed: the GPU draws the visible of them
+            mesh["count"] = int(need[d // self.lod_count])
+            mesh["shadow_counts"] = [mesh["count"]] * CASCADES
+        self.refresh_counts()
+        return k
+
     def refresh_counts(self, wait: bool = False) -> None:
-        """On the GPU path: what was drawn, from the newest counts handed back (`wait`: every queued frame's)."""
-        if not self.gpu_cull:
+        """On the GPU paths: what was drawn, from the newest counts handed back (`wait`: every queued frame's)."""
+        if self.feedback_cull:
+            counts = self._counter.counts(wait)[: len(self._meshes)].astype(np.int64)
+        elif self.gpu_cull:
+            counts = self._ring.read(wait).astype(np.int64)
+        else:
             return
-        counts = self._ring.read(wait).astype(np.int64)
         self.last.update(drawn=int(counts.sum()), draws=int(np.count_nonzero(counts)),
                          triangles=int(sum(int(c) * m["triangles"] for c, m in zip(counts, self._meshes))))
 
@@ -415,6 +500,11 @@ class WeaponRenderer(GLStage):
     def _render_pass(self, kind: str, cascade: int = 0) -> None:
         """Every (weapon, LOD) mesh of a pass: one multi-draw on the GPU path, a draw per mesh with
         instances on the CPU path."""
+        if self.feedback_cull:
+            for d, mesh in enumerate(self._meshes):
+                if mesh["shadow_counts"][cascade] if kind == "depth" else mesh["count"]:
+                    self._counter.draw(self._vao(mesh, kind, cascade if kind == "depth" else 0), d + ((1 + cascade) * len(self._meshes) if kind == "depth" else 0))
+            return
         if self.gpu_cull:
             if not any(m["shadow_counts"][cascade] if kind == "depth" else m["count"] for m in self._meshes):
                 return
@@ -455,5 +545,7 @@ class WeaponRenderer(GLStage):
     def release(self) -> None:
         if getattr(self, "_ring", None) is not None:
             self._ring.drop()
+        if getattr(self, "_counter", None) is not None:
+            self._counter.ring.drop()
         self._objects.release()
         self._meshes = []

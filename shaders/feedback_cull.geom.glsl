@@ -1,0 +1,30 @@
+#version 410 core
+// Compaction without compute shaders: an agent the vertex shader put in a list is emitted on that list's
+// vertex stream, which transform feedback appends to the list's buffer (in agent order). One draw fills
+// up to 4 lists, one stream each (GL 4.0): on the H200 a feedback draw costs about 5 ns an agent whatever
+// it writes, so four lists a draw cost what one did. The rasterizer is off; the lists are counted after,
+// from what each stream wrote (feedback_count.vert.glsl).
+layout(points) in;
+layout(points, max_vertices = 4) out;
+
+flat in ivec4 v_emit[];
+flat in uvec4 v_tint[];
+in vec4 v_position_scale[];
+flat in uvec4 v_fields[];
+
+// A list's record, one block a stream (transform feedback captures "S<k>.position_scale", "S<k>.fields").
+layout(stream = 0) out S0 { vec4 position_scale; flat uvec4 fields; } s0;
+layout(stream = 1) out S1 { vec4 position_scale; flat uvec4 fields; } s1;
+layout(stream = 2) out S2 { vec4 position_scale; flat uvec4 fields; } s2;
+layout(stream = 3) out S3 { vec4 position_scale; flat uvec4 fields; } s3;
+
+// The record on stream `k`, through block `out_block`, where the agent is in that list; the tint's
+// alpha byte that list's fade code.
+#define EMIT(out_block, k) \
+    if (v_emit[0][k] != 0) { \
+        out_block.position_scale = v_position_scale[0]; \
+        out_block.fields = uvec4(v_fields[0].x, v_tint[0][k], v_fields[0].zw); \
+        EmitStreamVertex(k); \
+    }
+
+#include "feedback_streams.glsl"
