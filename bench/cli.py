@@ -465,6 +465,32 @@ def bench_fragment(args) -> int:
     return 0
 
 
+def bench_feedback(args) -> int:
+    """The transform-feedback cull (GL 4.0 to 4.2) against the compute one, its counting spread less, and its
+    feedback draws alone (bench/feedback_probe.py)."""
+    from crowd.gl import describe, headless_context
+
+    from .feedback_probe import VARIANTS, floor, measure
+
+    ctx = headless_context()
+    info = describe(ctx)
+    print(f"{info['gl_renderer']} | {info['gl_version']} | the zombie, shadows, a 2 m fade | the cull's GPU ms, median of {args.repeats} runs")
+    print(f"{'agents':>8} {'listed':>8} {'lists':>6} {'draws':>6} " + " ".join(f"{n:>20}" for n in VARIANTS))
+    rows = measure(ctx, [int(x) for x in args.agents.split(",")], args.repeats) if args.agents else []
+    for r in rows:
+        print(f"{r['agents']:>8} {r.get('feedback_listed', 0):>8} {r.get('lists', 0):>6} {r.get('feedback_draws', 0):>6} "
+              + " ".join(f"{r.get(n + '_ms', float('nan')):>20.3f}" for n in VARIANTS))
+    floors = floor(ctx, args.floor) if args.floor else {}
+    if floors:
+        print(f"a draw of {args.floor:,} points, a quarter kept, GPU ms: " + ", ".join(f"{k[:-3]} {v:.3f}" for k, v in floors.items() if k != "points"))
+    if args.json:
+        from crowd.files import atomic_write_bytes
+
+        atomic_write_bytes(Path(args.json), json.dumps({"device": f"{info['gl_renderer']}, {info['gl_version']}", "rows": rows, "floor": floors},
+                                                       indent=1).encode())
+    return 0
+
+
 def bench_compaction(args) -> int:
     """The GPU cull's list compaction by shared-memory atomics (the runtime's) and by a prefix sum."""
     from crowd.gl import describe, has_compute, headless_context
@@ -644,6 +670,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--repeats", type=int, default=20, help='timed runs of each pass (the median is reported)')
     p.add_argument("--json", type=Path, help='write the results as JSON to this file')
     p.set_defaults(run=bench_fragment)
+    p = sub.add_parser("feedback", help="the transform-feedback cull (GL 4.0 to 4.2) against the compute one, its counting and its feedback draws alone, GPU ms")
+    p.add_argument("--agents", default="10000,100000,1000000", help='comma-separated agent counts')
+    p.add_argument("--repeats", type=int, default=20, help='timed runs per variant (the median is reported)')
+    p.add_argument("--floor", type=int, default=0, help="also time one point draw of this many records by kind: with feedback, a geometry shader, plain")
+    p.add_argument("--json", type=Path, help='write the results as JSON to this file')
+    p.set_defaults(run=bench_feedback)
     p = sub.add_parser("compaction", help="the GPU cull's lists compacted by atomics and by a prefix sum: same lists, GPU ms")
     p.add_argument("--agents", default="10000,100000,1000000", help='comma-separated agent counts')
     p.add_argument("--repeats", type=int, default=40, help='timed runs per agent count (the median is reported)')
