@@ -248,7 +248,8 @@ def _system_gl_function(name: str, prototype):
         opengl32.wglGetProcAddress.restype = ctypes.c_void_p
         opengl32.wglGetProcAddress.argtypes = [ctypes.c_char_p]
         address = opengl32.wglGetProcAddress(name.encode())
-        # (wglGetProcAddress answers only past GL 1.1, and some drivers say 1, 2, 3 or -1 for "no")
+        # (wglGetProcAddress answers only past GL 1.1, and some drivers say 1, 2, 3 or -1 for "no"; its
+        # pointers are the current context's, and a CFUNCTYPE prototype fits 64-bit Windows' one convention)
         return prototype(address) if address and address not in (1, 2, 3, ctypes.c_void_p(-1).value) else prototype((name, opengl32))
     except (OSError, AttributeError) as exc:
         raise GLUnavailable(f"the GL context has no {name}: {exc}") from exc

@@ -20,11 +20,7 @@ layout(stream = 3) out S3 { vec4 position_scale; flat uvec4 fields; } s3;
 
 // The record on stream `k`, through block `out_block`, where the agent is in that list; the tint's
 // alpha byte that list's fade code.
-#define EMIT(out_block, k) \
-    if (v_emit[0][k] != 0) { \
-        out_block.position_scale = v_position_scale[0]; \
-        out_block.fields = uvec4(v_fields[0].x, v_tint[0][k], v_fields[0].zw); \
-        EmitStreamVertex(k); \
-    }
+// (one line: GLSL 4.10 has no line continuation, which came with 4.20)
+#define EMIT(out_block, k) if (v_emit[0][k] != 0) { out_block.position_scale = v_position_scale[0]; out_block.fields = uvec4(v_fields[0].x, v_tint[0][k], v_fields[0].zw); EmitStreamVertex(k); }
 
 #include "feedback_streams.glsl"

@@ -30,6 +30,7 @@ void main() {
     v_fields = in_fields;
     Pick picks[3];
     picks[0] = pick(in_position_scale, u_planes, 0.0, 3.0e38, 0);
+    picks[1].inside = picks[2].inside = false;  // (a cascade the frame has none of holds no one)
     for (int k = 0; k < u_cascades; ++k) {
         vec4 planes[6];
         for (int i = 0; i < 6; ++i) planes[i] = u_shadow_planes[6 * k + i];

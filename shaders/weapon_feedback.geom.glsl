@@ -17,14 +17,7 @@ layout(stream = 1) out S1 { vec4 row0; vec4 row1; vec4 row2; vec4 position_scale
 layout(stream = 2) out S2 { vec4 row0; vec4 row1; vec4 row2; vec4 position_scale; flat uvec4 fields; } s2;
 layout(stream = 3) out S3 { vec4 row0; vec4 row1; vec4 row2; vec4 position_scale; flat uvec4 fields; } s3;
 
-#define EMIT(out_block, k) \
-    if (v_emit[0][k] != 0) { \
-        out_block.row0 = v_row0[0]; \
-        out_block.row1 = v_row1[0]; \
-        out_block.row2 = v_row2[0]; \
-        out_block.position_scale = v_position_scale[0]; \
-        out_block.fields = v_fields[0]; \
-        EmitStreamVertex(k); \
-    }
+// (one line: GLSL 4.10 has no line continuation, which came with 4.20)
+#define EMIT(out_block, k) if (v_emit[0][k] != 0) { out_block.row0 = v_row0[0]; out_block.row1 = v_row1[0]; out_block.row2 = v_row2[0]; out_block.position_scale = v_position_scale[0]; out_block.fields = v_fields[0]; EmitStreamVertex(k); }
 
 #include "feedback_streams.glsl"

@@ -219,3 +219,28 @@ def test_the_benchmark_lists_what_the_compute_cull_lists(gl_context):
     assert row["lists"] >= row["feedback_draws"] > 0
     kinds = floor(gl_context, 1000, repeats=1)
     assert set(kinds) == {"points", "feedback_geometry_shader_ms", "feedback_vertex_shader_ms", "geometry_shader_ms", "points_ms"}
+
+
+def test_a_crowd_gone_to_zero_leaves_no_commands_behind(gl_context):
+    """The passes draw from the commands without knowing what they hold: once the crowd (and with it every
+    placed weapon) is gone, every command draws nothing and nothing casts a shadow, and the picture is
+    the CPU path's (stale commands would draw the last crowd's lists)."""
+    from crowd.draw.feedback_cull import COMMAND_DTYPE
+    from crowd.gl import Offscreen
+
+    images = {}
+    for path in ("cpu", "feedback"):
+        with Offscreen(gl_context, SIZE) as target, CrowdPipeline(gl_context, PipelineConfig(agents=200, seed=2, cull=path, gl="4.1", survivor=False)) as p:
+            for _ in range(4):
+                p.frame(target.framebuffer, 1 / 30)
+            if path == "feedback":
+                assert p.weapons.casts_shadows() and int(p.renderer.feedback.counts(wait=True).sum()) > 0
+            p.set_agent_count(0)
+            p.frame(target.framebuffer, 1 / 30)
+            images[path] = target.image()
+            if path == "feedback":
+                assert not p.weapons.casts_shadows() and all(m["count"] == 0 for m in p.weapons._meshes)
+                for commands in (p.renderer.feedback.counter.commands, p.weapons._counter.commands):
+                    words = np.frombuffer(commands.read(), np.uint32)[: commands.size // 4 // 5 * 5].reshape(-1, 5)
+                    assert not words[:, 1].any()
+    assert np.array_equal(images["cpu"], images["feedback"])

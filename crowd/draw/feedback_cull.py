@@ -241,6 +241,11 @@ class FeedbackCounter:
         gl["glDrawElementsIndirect"](_GL_TRIANGLES, _GL_UNSIGNED_INT, ctypes.c_void_p(row * COMMAND_DTYPE.itemsize))
         gl["glBindBuffer"](_GL_DRAW_INDIRECT_BUFFER, 0)
 
+    def zero(self) -> None:
+        """Nothing listed from now on: every command draws nothing, and the counts are 0 at once."""
+        self.commands.clear()
+        self.ring.zero()
+
     def counts(self, wait: bool = False) -> np.ndarray:
         """(rows,) instance counts of the newest frame the GPU has finished (every queued one with `wait`);
         never waits otherwise."""
@@ -389,8 +394,8 @@ class FeedbackCull(GLStage):
         self.agents = len(records)
         if self.agents:
             self.agents_buffer.write(records)
-        else:
-            self.counter.ring.zero()
+        else:  # (the passes draw from the commands without knowing: the last crowd's must not stay)
+            self.counter.zero()
 
     def _set_character(self, program: moderngl.Program, k: int, lod_start, culling: bool) -> None:
         """feedback_pick.glsl's uniforms for character `k` (those a program uses: the census reads no fade)."""

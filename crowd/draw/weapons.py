@@ -426,8 +426,10 @@ class WeaponRenderer(GLStage):
         k = len(agents)
         self.drawn = (agents[:held], weapon[:held], rows[:held])
         self.last = {"weapons": held, "dropped": k - held}
-        if not k:
-            self._counter.ring.zero()
+        if not k:  # nothing to draw: the commands too, as the passes draw from them without knowing
+            self._counter.zero()
+            for mesh in self._meshes:
+                mesh["count"], mesh["shadow_counts"] = 0, [0] * CASCADES
             self.refresh_counts()
             return 0
         instances = frames.instances(agents, rows)
