@@ -6,13 +6,12 @@
 in vec4 in_position_scale;
 
 #include "feedback_pick.glsl"
-uniform vec4 u_planes[6];
 uniform ivec2 u_count_texel;  // LOD 0's block; LOD l's is l blocks to its right
 uniform int u_count_block;
 uniform vec2 u_count_size;
 
 void main() {
-    Pick p = pick(in_position_scale, u_planes, 0.0, 3.0e38, 0);
+    Pick p = view_pick(in_position_scale);
     int id = gl_VertexID;
     vec2 texel = vec2(u_count_texel + ivec2(p.lod * u_count_block, 0) + ivec2(id & (u_count_block - 1), (id / u_count_block) & (u_count_block - 1)));
     gl_Position = p.inside ? vec4((texel + 0.5) / u_count_size * 2.0 - 1.0, 0.0, 1.0) : vec4(2.0, 2.0, 2.0, 1.0);

@@ -9,10 +9,6 @@ in vec4 in_position_scale;  // the agent's record (cull_common.glsl's Record)
 in uvec4 in_fields;
 
 #include "feedback_pick.glsl"
-uniform vec4 u_planes[6];          // the view's; inside: dot(n, p) + d >= 0 (camera-relative)
-uniform int u_cascades;
-uniform vec4 u_shadow_planes[12];  // cascade k's at 6 k
-uniform float u_shadow_reach[2];   // metres from the eye past which an agent casts nothing into cascade k
 // The 4 lists (streams) of this draw: the pass each is of (0: colour, 1 + k: cascade k, -1: none), its
 // LOD, its variation group's 4 bits in fields.w (-1: the pieces every agent wears) and its choice there.
 uniform ivec4 u_slot_pass;
@@ -29,13 +25,9 @@ void main() {
     v_position_scale = in_position_scale;
     v_fields = in_fields;
     Pick picks[3];
-    picks[0] = pick(in_position_scale, u_planes, 0.0, 3.0e38, 0);
+    picks[0] = view_pick(in_position_scale);
     picks[1].inside = picks[2].inside = false;  // (a cascade the frame has none of holds no one)
-    for (int k = 0; k < u_cascades; ++k) {
-        vec4 planes[6];
-        for (int i = 0; i < 6; ++i) planes[i] = u_shadow_planes[6 * k + i];
-        picks[1 + k] = pick(in_position_scale, planes, 0.0, u_shadow_reach[k], 1);
-    }
+    for (int k = 0; k < u_cascades; ++k) picks[1 + k] = cascade_pick(in_position_scale, k);
     for (int s = 0; s < 4; ++s) {
         v_emit[s] = 0;
         v_tint[s] = in_fields.y | 0xFF000000u;

@@ -1,7 +1,7 @@
 // What the transform-feedback cull decides for one agent (crowd/draw/feedback_cull.py): the compute
 // cull's agent_draws (cull_common.glsl) for the one character a draw covers, in the same float32 steps,
-// so both GPU paths list the same agents. Used by feedback_cull.vert.glsl (the lists) and
-// feedback_visible.vert.glsl (each agent's visibility, for the weapons).
+// so both GPU paths list the same agents, and the volumes it tests against. Used by feedback_cull.vert.glsl (the lists),
+// feedback_visible.vert.glsl (each agent's visibility, for the weapons) and feedback_census.vert.glsl (the stats).
 uniform vec4 u_bound;       // the character's bind pose sphere: xyz its centre, w its radius (times the agent's scale)
 uniform float u_lod_start[4];
 uniform int u_lod_steps;
@@ -40,4 +40,21 @@ Pick pick(vec4 position_scale, vec4 planes[6], float margin, float reach, int lo
     p.held = impostor && !p.fading;
     p.through = p.fading ? uint(clamp((dist - boundary) / u_lod_fade, 0.0, 1.0) * 127.0 + 0.5) : 0u;
     return p;
+}
+
+// The volumes a frame culls against: the view, and each shadow cascade's box (culled one LOD coarser,
+// and no farther from the eye than its reach).
+uniform vec4 u_planes[6];          // the view's; inside: dot(n, p) + d >= 0 (camera-relative)
+uniform int u_cascades;
+uniform vec4 u_shadow_planes[12];  // cascade k's at 6 k
+uniform float u_shadow_reach[2];   // metres from the eye past which an agent casts nothing into cascade k
+
+Pick view_pick(vec4 position_scale) {
+    return pick(position_scale, u_planes, 0.0, 3.0e38, 0);
+}
+
+Pick cascade_pick(vec4 position_scale, int k) {
+    vec4 planes[6];
+    for (int i = 0; i < 6; ++i) planes[i] = u_shadow_planes[6 * k + i];
+    return pick(position_scale, planes, 0.0, u_shadow_reach[k], 1);
 }

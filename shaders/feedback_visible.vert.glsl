@@ -6,21 +6,15 @@
 in vec4 in_position_scale;
 
 #include "feedback_pick.glsl"
-uniform vec4 u_planes[6];
-uniform int u_cascades;
-uniform vec4 u_shadow_planes[12];  // cascade k's at 6 k
-uniform float u_shadow_reach[2];
 uniform ivec2 u_size;              // the texture's, in texels
 
 flat out uint v_visible;
 
 void main() {
-    Pick colour = pick(in_position_scale, u_planes, 0.0, 3.0e38, 0);
+    Pick colour = view_pick(in_position_scale);
     uint word = colour.inside && !colour.held ? uint(colour.lod + 1) : 0u;
     for (int k = 0; k < u_cascades; ++k) {
-        vec4 planes[6];
-        for (int i = 0; i < 6; ++i) planes[i] = u_shadow_planes[6 * k + i];
-        Pick lit = pick(in_position_scale, planes, 0.0, u_shadow_reach[k], 1);
+        Pick lit = cascade_pick(in_position_scale, k);
         if (lit.inside && !lit.held) word |= (0x10000u << uint(k)) | (uint(lit.lod) << 20);
     }
     v_visible = word;

@@ -649,12 +649,10 @@ class CrowdRenderer(GLStage):
         if not float(metres) > 0.0:
             raise RenderError(f"the impostor distance must be a positive number of metres, got {metres}")
         self.impostor_distance = float(metres)
-        if self.gpu is not None:
-            self.gpu.characters = [c._replace(impostor_start=self.impostor_distance if self.impostor_lods[k] >= 0 else math.inf)
-                                   for k, c in enumerate(self.gpu.characters)]
-        if self.feedback is not None:
-            self.feedback.characters = [c._replace(impostor_start=self.impostor_distance if self.impostor_lods[k] >= 0 else math.inf)
-                                        for k, c in enumerate(self.feedback.characters)]
+        for cull in (self.gpu, self.feedback):
+            if cull is not None:
+                cull.characters = [c._replace(impostor_start=self.impostor_distance if self.impostor_lods[k] >= 0 else math.inf)
+                                   for k, c in enumerate(cull.characters)]
 
     def set_occlusion(self, on: bool) -> None:
         """Keep (or drop) the depth pyramid occlusion culling tests against; the cpu path has none."""
@@ -729,22 +727,12 @@ class CrowdRenderer(GLStage):
                               f"{list(self.morphs)}: build both from the same bakes")
         # Shadows come from lists of their own, culled against the sun's volume (an agent outside the
         # view still shadows into it) one LOD coarser: the colour lists need no margin.
-        if self.gpu is not None:
+        if self.culls_on_gpu:  # the compute or the feedback cull: the same upload, the dispatch in cull()
             try:
-                self.gpu.upload(self._all_records(instances, eye, row_offset, palette), counts)
-            except GpuCullError as exc:
+                (self.gpu or self.feedback).upload(self._all_records(instances, eye, row_offset, palette), counts)
+            except (GpuCullError, FeedbackCullError) as exc:
                 raise RenderError(f"{exc} (the cpu cull path needs no lists: --cull cpu)") from None
             self.refresh_counts()  # the newest frame the GPU has finished (none queued for 0 agents: 0)
-            self._pending = (frustum_planes(matrix), None if shadow is None else (np.stack([frustum_planes(m) for m in shadow.view_proj]), shadow.reach_m), eye)
-            if cull_now:
-                self.cull(processor)
-            return FrameView(camera, matrix, shadow, None)
-        if self.feedback is not None:
-            try:
-                self.feedback.upload(self._all_records(instances, eye, row_offset, palette), counts)
-            except FeedbackCullError as exc:
-                raise RenderError(f"{exc} (the cpu cull path needs no lists: --cull cpu)") from None
-            self.refresh_counts()
             self._pending = (frustum_planes(matrix), None if shadow is None else (np.stack([frustum_planes(m) for m in shadow.view_proj]), shadow.reach_m), eye)
             if cull_now:
                 self.cull(processor)
