@@ -31,7 +31,7 @@ void main() {
     uvec2 o = owner[k];
     uint v = visible[o.x];
     if ((v & (u_shadow == 0u ? 0xFFFFu : 0x8000u << u_shadow)) == 0u) return;  // bit 16 + k: in cascade k's volume
-    uint lod = min(u_shadow == 0u ? (v & 0xFFFFu) - 1u : (v >> 20) & 15u, u_lod_count - 1u);
+    uint lod = min(u_shadow == 0u ? (v & 0xFFFFu) - 1u : (v >> 20) & 255u, u_lod_count - 1u);
     uint slot = atomicAdd(commands[(u_command_base + o.y * u_lod_count + lod) * 5u + 1u], 1u);
     Record a = agents[o.x];
     shown[u_list_base + lod * u_count + u_start[o.y] + slot] = Shown(placed[k], a.position_scale, a.fields);

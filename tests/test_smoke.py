@@ -12,7 +12,9 @@ import pytest
 from crowd.pipeline import CrowdPipeline, PipelineConfig, PipelineError
 from crowd.settings import SettingError, parse
 from crowd.frame import Camera, FrameError, Instances
-from crowd.draw.render import CrowdRenderer, frustum_planes, sphere_visible, view_proj
+from crowd.draw.cpu_cull import sphere_visible
+from crowd.draw.render import CrowdRenderer
+from crowd.draw.view import frustum_planes, view_proj
 from crowd.anim.roles import RoleError, clips_used, match_roles, parse_overrides
 from crowd.gl import Offscreen
 from crowd.smoke import FIXED_DT, run_headless

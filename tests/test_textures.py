@@ -373,7 +373,7 @@ def test_shared_textured_characters_draw_their_texture(name, tmp_path, gl_contex
 
 
 def test_texture_coordinates_are_packed_within_a_60th_of_a_texel():
-    from crowd.draw.render import pack_vertices, unpack_uvs, uv_box
+    from crowd.draw.packing import pack_vertices, unpack_uvs, uv_box
 
     rng = np.random.default_rng(3)
     for low, high in ((0.0, 1.0), (-3.0, 7.0), (0.25, 0.25)):
@@ -429,12 +429,12 @@ def test_packed_coordinates_draw_as_float_ones_do(tmp_path, zombie, gl_context, 
     coordinates draw, to 2 levels of 255; and a piece whose coordinates span more than PACKED_UV_SPAN
     (one stray vertex at u = 1000, which would make the packed step 1000/65535) is drawn with float
     coordinates and says so."""
-    from crowd.draw import render
+    from crowd.draw import packing
 
     write_glb(_gradient_character(zombie), tmp_path / "g.glb")
     packed = draw(tmp_path / "g.glb", gl_context)
     with monkeypatch.context() as m:
-        m.setattr(render, "PACKED_UV_SPAN", -1.0)  # every textured piece takes the float layout
+        m.setattr(packing, "PACKED_UV_SPAN", -1.0)  # every textured piece takes the float layout
         wide = draw(tmp_path / "g.glb", gl_context)
     assert np.abs(packed - wide).max() <= 2
     far = _gradient_character(zombie)
@@ -443,7 +443,7 @@ def test_packed_coordinates_draw_as_float_ones_do(tmp_path, zombie, gl_context, 
     write_glb(far, tmp_path / "far.glb")
     loaded = load_character(tmp_path / "far.glb")
     assert any("span" in w and "float coordinates" in w for w in loaded.warnings)
-    assert all(render.uv_layout(m) == "wide" for m in loaded.meshes)
+    assert all(packing.uv_layout(m) == "wide" for m in loaded.meshes)
 
 
 def test_sixteen_bit_grey_pngs_keep_their_values():

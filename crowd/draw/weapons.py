@@ -44,7 +44,8 @@ from .feedback_cull import STREAMS, FeedbackCounter, TransformFeedbacks, capture
 from .gpu_cull import BUFFER_UPDATE, COMMAND, COMMAND_DTYPE, GROUP_SIZE, VERTEX_ATTRIB_ARRAY, CountRing
 from ..asset.model import Character, RigidMesh, cast_weapons
 from ..asset.vertex_cache import best_triangle_order
-from .render import gl_bytes, heading_snorm16, pack_colors, pack_normals, shared_buffers, write_heading
+from .packing import heading_snorm16, pack_colors, pack_normals, shared_buffers, write_heading
+from .view import gl_bytes
 from .shadows import CASCADES
 
 VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("packed", "<u4", 2)])
