@@ -10,8 +10,9 @@ measured before the texture is trusted to it (``colour_difference``: CIEDE2000).
 
 Alpha is not kept: the shading reads a base colour's RGB only (alpha modes are left out at import).
 
-Why by hand: a BC1 encoder is 150 lines of numpy, where the packages that encode BCn are compiled
-extensions (a wheel per platform and Python); the error measure must be ours anyway.
+Why by hand: the packages that encode BCn (etcpak, quicktex) are compiled extensions, a wheel per
+platform and Python version; this encoder is 150 lines of vectorised numpy whose blocks are decoded and
+measured here anyway, and its load time is in docs/BENCHMARKS.md ("Textures at half a byte a texel").
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from ..spans import over_spans
 BLOCK = 4  # texels a side
 BLOCK_BYTES = 8
 CHUNK_BLOCKS = 1 << 15  # blocks encoded together: the index search holds (chunk, 16, 4) distances
-REFINE_STEPS = 2  # least-squares passes over each block's ends; a third changed CesiumMan's mean error by 0.2 %
+REFINE_STEPS = 2  # least-squares passes over each block's ends; a third changes the error little (docs/BENCHMARKS.md)
 _THIRDS = np.array([1.0, 0.0, 2.0 / 3.0, 1.0 / 3.0], np.float32)  # the share of end 0 in palette entries 0-3
 
 
@@ -94,7 +95,7 @@ def _fit(texels: np.ndarray, fields0: np.ndarray, fields1: np.ndarray):
     """Each texel's nearest palette entry for ends (fields0, fields1); returns (indices, the block's
     squared error less its texels' own squared length, which is the same whatever the ends).
     Plain squared error in sRGB codes: weighting the channels by their share of luminance measured
-    worse under CIEDE2000 (CesiumMan's mean 0.294 against 0.283)."""
+    worse under CIEDE2000 (docs/BENCHMARKS.md)."""
     palette = _palette(_decoded_ends(fields0), _decoded_ends(fields1)).astype(np.float32)
     # |x - p|^2 = |x|^2 - 2 x.p + |p|^2: one batched product instead of a (blocks, 16, 4, 3) difference.
     dist = (palette * palette).sum(-1)[:, None, :] - 2 * np.matmul(texels, palette.transpose(0, 2, 1))
@@ -175,14 +176,6 @@ def _ordered(fields0: np.ndarray, fields1: np.ndarray):
     return np.where(swap[:, None], fields1, fields0), np.where(swap[:, None], fields0, fields1)
 
 
-def _blocks_of(image: np.ndarray) -> np.ndarray:
-    """(H, W, C) to (blocks, 16, C), row-major blocks, the edges repeated out to whole blocks."""
-    h, w, c = image.shape
-    bh, bw = -(-h // BLOCK), -(-w // BLOCK)
-    padded = np.pad(image, ((0, bh * BLOCK - h), (0, bw * BLOCK - w), (0, 0)), mode="edge")
-    return padded.reshape(bh, BLOCK, bw, BLOCK, c).transpose(0, 2, 1, 3, 4).reshape(bh * bw, BLOCK * BLOCK, c)
-
-
 def encode_bc1(srgb: np.ndarray) -> np.ndarray:
     """(H, W, 3) sRGB codes (float, 0 to 255) to BC1 blocks: uint8 (ceil(H/4) * ceil(W/4) * 8,), blocks
     row by row, each as GL's COMPRESSED_SRGB_S3TC_DXT1 reads it. Deterministic: the same image gives the
@@ -198,12 +191,10 @@ def encode_bc1(srgb: np.ndarray) -> np.ndarray:
     return out.reshape(-1)
 
 
-def decode_bc1(data: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """BC1 blocks of an image of `size` (width, height) to its (H, W, 3) uint8 sRGB codes, as
-    ``encode_bc1`` wrote them (GPUs round the thirds within a code of this)."""
-    w, h = size
-    bh, bw = -(-h // BLOCK), -(-w // BLOCK)
-    blocks = np.asarray(data, np.uint8).reshape(bh * bw, BLOCK_BYTES)
+def decode_blocks(blocks: np.ndarray) -> np.ndarray:
+    """BC1 blocks (n, 8) uint8 to their texels (n, 16, 3) uint8 sRGB codes, row by row within a block,
+    as ``encode_bc1`` wrote them (GPUs round the thirds within a code of this)."""
+    blocks = np.ascontiguousarray(blocks, np.uint8)
     p0 = blocks[:, 0:2].copy().view("<u2")[:, 0].astype(np.int32)
     p1 = blocks[:, 2:4].copy().view("<u2")[:, 0].astype(np.int32)
     words = blocks[:, 4:8].copy().view("<u4")[:, 0].astype(np.int64)
@@ -216,9 +207,25 @@ def decode_bc1(data: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     three = np.stack([e0, e1, (e0 + e1) // 2, np.zeros_like(e0)], axis=1)
     palette = np.where((p0 > p1)[:, None, None], four, three)
     indices = (words[:, None] >> (2 * np.arange(16))) & 3
-    texels = np.take_along_axis(palette, indices[..., None], axis=1)  # (blocks, 16, 3)
+    return np.take_along_axis(palette, indices[..., None], axis=1).astype(np.uint8)
+
+
+def decode_bc1(data: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """BC1 blocks of an image of `size` (width, height) to its (H, W, 3) uint8 sRGB codes."""
+    w, h = size
+    bh, bw = -(-h // BLOCK), -(-w // BLOCK)
+    texels = decode_blocks(np.asarray(data, np.uint8).reshape(bh * bw, BLOCK_BYTES))
     image = texels.reshape(bh, bw, BLOCK, BLOCK, 3).transpose(0, 2, 1, 3, 4).reshape(bh * BLOCK, bw * BLOCK, 3)
-    return image[:h, :w].astype(np.uint8)
+    return image[:h, :w]
+
+
+def _blocks_of(image: np.ndarray) -> np.ndarray:
+    """(H, W, C) to (blocks, 16, C), row-major blocks, the edges repeated out to whole blocks."""
+    h, w, c = image.shape
+    bh, bw = -(-h // BLOCK), -(-w // BLOCK)
+    if (bh * BLOCK, bw * BLOCK) != (h, w):
+        image = np.pad(image, ((0, bh * BLOCK - h), (0, bw * BLOCK - w), (0, 0)), mode="edge")
+    return image.reshape(bh, BLOCK, bw, BLOCK, c).transpose(0, 2, 1, 3, 4).reshape(bh * bw, BLOCK * BLOCK, c)
 
 
 def bc1_bytes(size: tuple[int, int]) -> int:

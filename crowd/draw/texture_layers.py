@@ -24,7 +24,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..asset.model import NEAREST, Texture
-from .texture_codec import colour_difference, decode_bc1, encode_bc1, linear_to_srgb, srgb_to_linear
+from .texture_codec import colour_difference, decode_blocks, decode_bc1, encode_bc1, linear_to_srgb, srgb_to_linear
 
 MAX_LAYER_SIZE = 2048
 MAX_ARRAY_BYTES = 256 << 20  # an array with its mip chain; layers are halved until it fits
@@ -32,7 +32,8 @@ HALF_TEXEL_BYTES = 8  # RGBA16F
 BC1_TEXEL_BYTES = 0.5
 MAX_MEAN_DE = 1.0
 MAX_P99_DE = 5.0
-MEASURED_TEXELS = 1 << 18  # a level is measured on all its texels up to this, past it on this many, drawn with a fixed seed
+MEASURED_TEXELS = 1 << 16  # a level is measured on all its texels up to this, past it on the texels of this many / 16 blocks
+NEAR = 0.1  # ... and on all its texels where that puts it within this share of a bound (a sample is a few per cent off)
 KEPT_BYTES = 64 << 20  # the BC1 plans kept for a renderer built again (a live setting change)
 _KEPT: OrderedDict = OrderedDict()
 _SRGB8_TO_LINEAR64 = srgb_to_linear(np.arange(256) / 255.0)  # lookups: 8-bit codes only
@@ -95,14 +96,20 @@ def linear_mip_levels(layer: np.ndarray) -> list[np.ndarray]:
 
 def bc1_error(linear: np.ndarray, blocks: np.ndarray, sample: int | None = MEASURED_TEXELS) -> tuple[float, float]:
     """(mean, 99th percentile) CIEDE2000 of `blocks` (BC1 of the linear RGB image `linear`) against it;
-    on `sample` texels drawn with a fixed seed where the image has more (None: all of them)."""
+    on the texels of `sample` // 16 blocks drawn with a fixed seed where the image has more (None: all
+    of it). Whole blocks, so that only those are decoded."""
+    encoded = np.asarray(blocks, np.uint8).reshape(-1, 8)
     h, w = linear.shape[:2]
-    decoded = decode_bc1(blocks, (w, h)).reshape(-1, 3)
-    reference = np.asarray(linear[..., :3]).reshape(-1, 3)
-    if sample is not None and len(reference) > sample:
-        pick = np.sort(np.random.default_rng(0).choice(len(reference), sample, replace=False))
-        reference, decoded = reference[pick], decoded[pick]
-    return colour_difference(np.asarray(reference, np.float64), _SRGB8_TO_LINEAR64[decoded])
+    if sample is None or len(encoded) * 16 <= sample:
+        # (every texel once: the blocks' padding, which repeats edge texels, left out)
+        decoded = _SRGB8_TO_LINEAR64[decode_bc1(encoded, (w, h))]
+        return colour_difference(np.asarray(linear[..., :3], np.float64), decoded)
+    pick = np.sort(np.random.default_rng(0).choice(len(encoded), sample // 16, replace=False))
+    across = -(-w // 4)
+    rows = np.minimum(pick[:, None] // across * 4 + np.arange(4), h - 1)  # (the padding repeats the last row and column)
+    cols = np.minimum(pick[:, None] % across * 4 + np.arange(4), w - 1)
+    reference = np.asarray(linear[rows[:, :, None], cols[:, None, :], :3], np.float64).reshape(-1, 16, 3)
+    return colour_difference(reference, _SRGB8_TO_LINEAR64[decode_blocks(encoded[pick])])
 
 
 def within_bound(error: tuple[float, float]) -> bool:
@@ -159,6 +166,11 @@ def plan_bc1(images: list[Texture], mip_filtered: list[bool], limit: int = MAX_L
     return plan
 
 
+def forget_plans() -> None:
+    """Drop the kept plans (the next ``plan_bc1`` encodes, as a first load does)."""
+    _KEPT.clear()
+
+
 def _encoded_chain(image: Texture, size: tuple[int, int], mipmapped: bool):
     """([linear level (H, W, 4)], [BC1 blocks of each level], [(mean, p99) of each level]) of `image` at `size`."""
     layer = linear_layer(image, size)
@@ -169,5 +181,8 @@ def _encoded_chain(image: Texture, size: tuple[int, int], mipmapped: bool):
         own = i == 0 and image.pixels.shape[:2] == level.shape[:2]
         codes = image.pixels[..., :3].astype(np.float32) if own else linear_to_srgb(level[..., :3]) * 255.0
         blocks.append(encode_bc1(codes))
-        errors.append(bc1_error(level, blocks[-1]))
+        error = bc1_error(level, blocks[-1])
+        if abs(error[0] / MAX_MEAN_DE - 1) < NEAR or abs(error[1] / MAX_P99_DE - 1) < NEAR:
+            error = bc1_error(level, blocks[-1], sample=None)  # a sample's few per cent decide nothing here
+        errors.append(error)
     return (levels, blocks), errors
