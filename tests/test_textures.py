@@ -19,7 +19,9 @@ from crowd.asset.gltf import GltfImportError, load_character
 from crowd.asset.gltf_materials import MAX_IMAGE_PIXELS, ImageError, decode_image, texture_transform
 from crowd.asset.gltf_write import write_glb
 from crowd.asset.model import CLAMP_TO_EDGE, LINEAR, MIRRORED_REPEAT, NEAREST, REPEAT, Texture
-from crowd.draw.materials import MaterialTextures, layer_size, linear_layer, srgb_to_linear
+from crowd.draw.materials import MaterialTextures
+from crowd.draw.texture_codec import srgb_to_linear
+from crowd.draw.texture_layers import layer_size, linear_layer
 from crowd.pipeline import PipelineConfig
 from crowd.sim.ai import AIConfig
 from crowd.smoke import run_headless
@@ -322,7 +324,7 @@ def test_linear_filtering_mixes_light_not_srgb_codes(tmp_path, zombie, gl_contex
     assert to_light <= 3 < to_codes
 
 
-def test_one_texture_array_for_all_pieces_and_none_for_an_untextured_crowd(tmp_path, zombie, gl_context):
+def test_shared_texture_arrays_for_all_pieces_and_none_for_an_untextured_crowd(tmp_path, zombie, gl_context):
     base = run_headless(PipelineConfig(**CROWD), 2, SIZE, ctx=gl_context)
     assert "textures" not in base["gpu_bytes"]
     two = np.zeros((16, 8, 4), np.uint8)
@@ -330,10 +332,12 @@ def test_one_texture_array_for_all_pieces_and_none_for_an_untextured_crowd(tmp_p
     other = Texture("other", two, (REPEAT, REPEAT), LINEAR, 9987)
     meshes = [dataclasses.replace(m, texture=i % 2) for i, m in enumerate(char.meshes)]
     char = dataclasses.replace(char, meshes=meshes, textures=[char.textures[0], other])
-    with MaterialTextures(gl_context, char.textures, {0, 1}) as mats:
-        assert mats.array.size == (8, 16, 2) and mats.layers == {0: 0, 1: 1} and mats.mipmapped
+    with MaterialTextures(gl_context, char.textures, {0, 1}, compress=False) as mats:
+        assert mats.arrays["rgba16f"].size == (8, 16, 2) and mats.layers == {0: 0, 1: 1} and mats.mipmapped["rgba16f"]
         full = 8 * 16 + 4 * 8 + 2 * 4 + 1 * 2 + 1 * 1
         assert mats.gpu_bytes() == full * 2 * 4 * 2  # texels of the chain x layers x RGBA x f16
+    with MaterialTextures(gl_context, char.textures, {0, 1}) as mats:  # the strip, scaled NEAREST to 8x16: two hues a block
+        assert mats.storage == {0: "bc1", 1: "bc1"} and mats.layers == {0: 0, 1: 1} and mats.arrays["bc1"].size == (8, 16)
     write_glb(char, tmp_path / "two.glb")
     stats = run_headless(PipelineConfig(**CROWD, model=tmp_path / "two.glb"), 2, SIZE, ctx=gl_context)
     assert stats["last_frame"]["draws"] == base["last_frame"]["draws"]  # one instanced draw per (piece, LOD), textured or not
