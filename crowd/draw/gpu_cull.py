@@ -245,9 +245,9 @@ class GpuCull(GLStage):
         if need > self.max_block or agents * RECORD_DTYPE.itemsize > self.max_block:
             raise GpuCullError(f"the GPU cull's lists for {agents:,} agents need {max(need, agents * RECORD_DTYPE.itemsize):,} bytes, "
                                f"more than the {self.max_block:,} one shader storage block may hold on this GPU (GL_MAX_SHADER_STORAGE_BLOCK_SIZE): "
-                               "fewer agents, or --cull cpu")
+                               "fewer agents, or --cull feedback or cpu")
         if (agents + GROUP_SIZE - 1) // GROUP_SIZE > self.max_groups:
-            raise GpuCullError(f"{agents:,} agents need more than the {self.max_groups:,} work groups one dispatch may have: fewer agents, or --cull cpu")
+            raise GpuCullError(f"{agents:,} agents need more than the {self.max_groups:,} work groups one dispatch may have: fewer agents, or --cull feedback or cpu")
         self.ctx.error  # clear any earlier error, so the check below sees this allocation's
         self.cast, self.capacity = cast, capacity
         self.entries.orphan(max(need, 4))

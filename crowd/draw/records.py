@@ -84,7 +84,7 @@ class AgentRecords(GLStage):
             raise RecordError(f"{n:,} agents, more than the {MAX_AGENTS:,} a list entry can name")
         if 2 * n > self.max_texels:
             raise RecordError(f"{n:,} agents' records need {2 * n:,} texels of a buffer texture, more than the {self.max_texels:,} "
-                              "this GPU allows (GL_MAX_TEXTURE_BUFFER_SIZE)")
+                              "this GPU allows (GL_MAX_TEXTURE_BUFFER_SIZE): fewer agents")
         size = max(n, 1) * RECORD_DTYPE.itemsize
         if self.buffer.size != size:  # exact: a smaller crowd frees what it no longer needs
             self.buffer.orphan(size)
