@@ -23,7 +23,7 @@ uniform uint u_shadow;     // 0: the colour pass's weapons (agents drawn); 1 + k
 uniform uint u_list_base;  // entries before this run's lists (a cascade's: k * lods * u_count)
 uniform uint u_command_base;  // commands before this run's
 uniform uint u_lod_count;  // LODs per weapon
-uniform uint u_start[16];
+uniform uint u_start[WEAPONS];  // (a define: the cast's weapon meshes) each weapon's first entry in its LOD's lists
 
 void main() {
     uint k = gl_GlobalInvocationID.x;
