@@ -119,7 +119,8 @@ def main(argv=None) -> int:
     parser.add_argument("--cell", type=int, default=200)
     parser.add_argument("--yaw", type=float, default=0.6, help="camera yaw in radians (0 = front)")
     args = parser.parse_args(argv)
-    from crowd.asset.gltf import GltfImportError, load_character
+    from crowd.asset.gltf import load_character
+    from crowd.asset.gltf.reader import GltfImportError
     from crowd.asset.model import ModelError
 
     try:

@@ -5,7 +5,8 @@ import pytest
 
 from conftest import shared, shared_files
 from crowd.anim import reference
-from crowd.asset.gltf import GltfImportError, load_character
+from crowd.asset.gltf import load_character
+from crowd.asset.gltf.reader import GltfImportError
 from gltf_factory import KEY_TIMES, expected_skinning, make_gltf
 
 
@@ -171,6 +172,7 @@ def test_rigid_weapons_parented_to_joints_become_skinned_pieces():
     to their joint; skinned at any pose they sit where joint_world @ offset puts them."""
     from crowd.anim import reference
     from crowd.asset import gltf as gltf_module
+    from crowd.asset.gltf.reader import Reader
 
     c = load_character(shared("Quaternius_Characters_Matt_SingleWeapon.gltf"))
     assert not c.attachments
@@ -185,7 +187,7 @@ def test_rigid_weapons_parented_to_joints_become_skinned_pieces():
             j = sk.parents[j]
         assert "LowerArm.L" in chain  # both weapons ride on the left hand's finger joint
     # The same file's attachments, as the importer found them, against the pieces made of them.
-    raw = gltf_module._import(gltf_module._Reader(shared("Quaternius_Characters_Matt_SingleWeapon.gltf")))
+    raw = gltf_module._import(Reader(shared("Quaternius_Characters_Matt_SingleWeapon.gltf")))
     assert len(raw.attachments) == 2
     pose = reference.sample_clip(sk, c.clips[3], np.array([0.4]))
     world = reference.global_matrices(sk, pose)[0]

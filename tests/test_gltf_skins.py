@@ -12,7 +12,9 @@ import pytest
 from crowd.anim import reference
 from crowd.anim.processor import MAX_JOINTS as PROCESSOR_MAX_JOINTS
 from crowd.asset import gltf
-from crowd.asset.gltf import GltfImportError, load_character
+from crowd.asset.gltf import skins
+from crowd.asset.gltf import load_character
+from crowd.asset.gltf.reader import GltfImportError
 from gltf_factory import (EXTRA_POSITIONS, KEY_TIMES, add_skin, bind_worlds, expected_extra_skinning, expected_skinning,
                           joint_worlds, make_gltf)
 
@@ -161,7 +163,7 @@ def test_a_bad_second_skin_is_refused_in_one_line(tmp_path, mutate, needle):
 def test_the_joint_budget_counts_the_union_and_the_duplicates(tmp_path, monkeypatch):
     path = make_gltf(tmp_path)
     add_skin(path, "offset")
-    monkeypatch.setattr(gltf, "MAX_JOINTS", 5)
+    monkeypatch.setattr(skins, "MAX_JOINTS", 5)
     with pytest.raises(GltfImportError, match="skins 0, 1 need more than the 5 joints a vertex can address"):
         load_character(path)
 
