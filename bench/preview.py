@@ -53,7 +53,7 @@ def skinned_cells(character: Character, clip_names: list[str], columns: int, mes
 
 
 def render_sheet(character: Character, clip_names: list[str], columns: int, cell: int, out: Path, yaw: float = 0.6,
-                 pieces: tuple[str, ...] = ("body", "head_a", "shirt_torn")) -> Path:
+                 pieces: tuple[str, ...] = ("body", "head_a")) -> Path:
     """One row per clip, labelled with its name, `columns` poses across its length, every cell framed on
     the skinned poses of all rows (one scale for the whole sheet, so the rows compare)."""
     from PIL import Image, ImageDraw
@@ -126,7 +126,7 @@ def main(argv=None) -> int:
     try:
         character = load_character(args.model)
         names = args.clips or [c.name for c in character.clips]
-        pieces = ("body", "head_a", "shirt_torn") if args.model is None else ()
+        pieces = ("body", "head_a") if args.model is None else ()  # (the loaded zombie wears its shirt in its body piece)
         render_sheet(character, names, args.columns, args.cell, args.out, args.yaw, pieces)
     except (GltfImportError, ModelError) as exc:  # a bad file, or a --clips name it lacks: one line, no traceback
         print(f"bench.preview: {exc}", file=sys.stderr)

@@ -161,7 +161,7 @@ def test_cesium_man_matrix_root_and_late_start():
 
 
 def test_two_skinned_meshes_share_one_skin():
-    c = load_character(shared("Quaternius_Zombie_Basic.gltf"))
+    c = load_character(shared("Quaternius_Zombie_Basic.gltf"), merge=False)  # (merged, one draw)
     assert len(c.meshes) == 2 and c.skeleton.joint_count == 50
     assert {"Walk", "Run", "Idle", "Death"} <= {k.name for k in c.clips}
     assert c.clip("Walk").loop and not c.clip("Death").loop
@@ -174,7 +174,7 @@ def test_rigid_weapons_parented_to_joints_become_skinned_pieces():
     from crowd.asset import gltf as gltf_module
     from crowd.asset.gltf.reader import Reader
 
-    c = load_character(shared("Quaternius_Characters_Matt_SingleWeapon.gltf"))
+    c = load_character(shared("Quaternius_Characters_Matt_SingleWeapon.gltf"), merge=False)  # (merged, they share the body's draw)
     assert not c.attachments
     rigid = [m for m in c.meshes if m.piece.startswith("rigid")]
     assert len(rigid) == 2

@@ -57,7 +57,7 @@ def test_zero_and_one_agent(tmp_path, gl_context, agents):
     assert ("draw" in saved["passes_run"]) == (agents > 0)
     assert (saved["gpu_bytes"]["palette"] > 0) == (agents > 0)
     assert (tmp_path / "a.png").stat().st_size > 1000
-    assert stats["last_frame"]["instances"] == (3 * agents)  # body, head, shirt
+    assert stats["last_frame"]["instances"] == (2 * agents)  # the body (its shirt merged in at import) and the head
 
 
 def test_stats_fields_and_no_shadow_resources_when_shadows_are_off(tmp_path, gl_context):
@@ -158,7 +158,7 @@ def test_frustum_culling_and_render_input_checks(gl_context, zombie):
         n = 2
         good = Instances(np.zeros((n, 3)), np.zeros(n, np.float32), np.ones(n, np.float32), np.full((n, 4), 255, np.uint8), {"head": np.array([0, 1])})
         renderer.prepare(cam, good)
-        assert renderer.last["instances"] == 6
+        assert renderer.last["instances"] == 4  # each agent's body (the shirt merged in) and head
         bad = Instances(np.full((n, 3), np.nan), good.yaw, good.scale, good.tint)
         with pytest.raises(FrameError, match="finite"):
             renderer.prepare(cam, bad)

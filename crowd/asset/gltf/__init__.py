@@ -13,8 +13,9 @@ The import, in the order it runs, one module each:
 - ``meshes``: skinned meshes with their morph targets, rigid meshes on joints, props;
 - ``clips``: joint channels and morph weight channels, checked for what the stages can draw.
 Then the character is made whole: rigid meshes become skinned pieces (crowd.asset.pieces), root motion
-is taken out (root_motion), coarser LODs take their finer mesh's targets (morph_transfer), and a
-character far from a person's height is scaled (units).
+is taken out (root_motion), coarser LODs take their finer mesh's targets (morph_transfer), a character
+far from a person's height is scaled (units), and the meshes that can share a draw are merged (merge),
+the built-in characters' too.
 
 Refuse or repair. A value is repaired only where what the file means is not in doubt and the repair
 leaves a correct file unchanged; each repair is named in ``character.warnings``:
@@ -41,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..merge import merge_pieces
 from ..model import Character, ModelError
 from ..morph_transfer import transfer_targets
 from ..pieces import attachments_as_pieces
@@ -64,16 +66,19 @@ def is_built_in(model) -> bool:
     return model is None or (isinstance(model, str) and model in BUILT_IN)
 
 
-def load_character(path: str | Path | None = None, clips: list[str] | None = None, scale: float | str = AUTO) -> Character:
+def load_character(path: str | Path | None = None, clips: list[str] | None = None, scale: float | str = AUTO,
+                   merge: bool = True) -> Character:
     """Import a skinned character. ``path=None`` loads the built-in zombie, a built-in's name (BUILT_IN) that
     character; ``clips`` keeps only those clips; ``scale`` is a size factor, or "auto" for a person's
-    height where the file is far from it (units.py)."""
+    height where the file is far from it (units.py); ``merge`` joins the meshes that can share a draw
+    (crowd.asset.merge; False keeps the file's meshes as they are, to compare)."""
+    finish = merge_pieces if merge else (lambda character: character)
     if is_built_in(path):
         name = path or "zombie"
         generator = importlib.import_module(f"..{name}", __package__)
         path = generator.ASSET_PATH
         if not path.exists():  # a copy that lost the shipped file (wheels carry it): the generator is the source of truth
-            return to_crowd_units(_select_clips(generator.build_character(), clips, f"built-in {name}"), scale)
+            return finish(to_crowd_units(_select_clips(generator.build_character(), clips, f"built-in {name}"), scale))
     path = Path(path)
     if not path.is_file():
         raise GltfImportError(f"{path}: no such file")
@@ -90,7 +95,7 @@ def load_character(path: str | Path | None = None, clips: list[str] | None = Non
         # A safety net for what the checks above missed: one line for the person, and words the
         # hostile-file tests look for, so a miss still fails CI.
         raise GltfImportError(f"{path.name}: {_UNEXPECTED} ({type(exc).__name__}: {one_line(exc)})") from None
-    return to_crowd_units(transfer_targets(take_out_root_motion(attachments_as_pieces(_select_clips(character, clips, path.name)))), scale)
+    return finish(to_crowd_units(transfer_targets(take_out_root_motion(attachments_as_pieces(_select_clips(character, clips, path.name)))), scale))
 
 
 def _select_clips(character: Character, clips, where: str) -> Character:
