@@ -723,7 +723,7 @@ def main(argv=None) -> int:
     from crowd.sim.ai import AIError
     from crowd.anim.bake import BakeError
     from crowd.gl import GLUnavailable
-    from crowd.asset.gltf import GltfImportError
+    from crowd.asset.gltf.reader import GltfImportError
     from crowd.pipeline import PipelineError
     from crowd.anim.processor import ProcessorError
     from crowd.draw.readback import ReadbackError

@@ -15,8 +15,9 @@ import pytest
 from PIL import Image
 
 from conftest import shared
-from crowd.asset.gltf import GltfImportError, load_character
-from crowd.asset.gltf_materials import MAX_IMAGE_PIXELS, ImageError, decode_image, texture_transform
+from crowd.asset.gltf import load_character
+from crowd.asset.gltf.reader import GltfImportError
+from crowd.asset.gltf.materials import MAX_IMAGE_PIXELS, ImageError, decode_image, texture_transform
 from crowd.asset.gltf_write import write_glb
 from crowd.asset.model import CLAMP_TO_EDGE, LINEAR, MIRRORED_REPEAT, NEAREST, REPEAT, Texture
 from crowd.draw.materials import MaterialTextures
@@ -123,19 +124,19 @@ def test_a_cut_png_and_a_gif_are_one_line():
 
 
 def test_images_past_the_files_pixel_budget_are_left_out(tmp_path, textured_doc, monkeypatch):
-    from crowd.asset import gltf_materials
+    from crowd.asset.gltf import materials
 
     doc, blob = textured_doc
-    monkeypatch.setattr(gltf_materials, "MAX_TOTAL_PIXELS", 3)  # the 4-pixel strip is past it
+    monkeypatch.setattr(materials, "MAX_TOTAL_PIXELS", 3)  # the 4-pixel strip is past it
     c = load_character(_as_gltf(tmp_path, doc, blob))
     assert not c.textures and any("past the 3 pixels all images of a file" in w for w in c.warnings)
 
 
 def test_more_textures_than_an_array_holds_are_refused(tmp_path, textured_doc, monkeypatch):
-    from crowd.asset import gltf_materials
+    from crowd.asset.gltf import materials
 
     doc, blob = textured_doc
-    monkeypatch.setattr(gltf_materials, "MAX_TEXTURES", 0)
+    monkeypatch.setattr(materials, "MAX_TEXTURES", 0)
     with pytest.raises(GltfImportError, match="more than 0 base-colour images"):
         load_character(_as_gltf(tmp_path, doc, blob))
 
@@ -483,13 +484,13 @@ def test_specular_glossiness_diffuse_is_the_base_colour(tmp_path, textured_doc):
 
 
 def test_a_refused_read_counts_nothing_against_the_file_budget(tmp_path, textured_doc, monkeypatch):
-    from crowd.asset import gltf
+    from crowd.asset.gltf import reader
 
     path = _as_gltf(tmp_path, *textured_doc)
-    reader = gltf._Reader(path)
-    before = reader._loaded_bytes
-    monkeypatch.setattr(gltf, "MAX_FILE_BYTES", before + 10)
+    file = reader.Reader(path)
+    before = file._loaded_bytes
+    monkeypatch.setattr(reader, "MAX_FILE_BYTES", before + 10)
     with pytest.raises(GltfImportError, match="would bring the bytes read to"):
-        reader._charge_file(11, "image 0")
-    assert reader._loaded_bytes == before
-    reader._charge_file(10, "buffer 1")  # what comes after still fits
+        file._charge_file(11, "image 0")
+    assert file._loaded_bytes == before
+    file._charge_file(10, "buffer 1")  # what comes after still fits

@@ -382,6 +382,17 @@ class Prop:
         return (self.mesh, *self.coarser)
 
 
+@dataclass(frozen=True)
+class MergedMesh:
+    """One mesh the import made of several of the file's meshes at one LOD, to share a draw
+    (crowd.asset.merge): it takes the name and piece of its first source."""
+
+    lod: int
+    piece: str
+    name: str
+    sources: tuple[str, ...]  # the meshes' names, in file order
+
+
 @dataclass
 class Character:
     name: str
@@ -397,6 +408,7 @@ class Character:
     # weight where no clip drives it (glTF's mesh or node default weights).
     morphs: tuple[str, ...] = ()
     morph_defaults: np.ndarray = field(default_factory=lambda: np.zeros(0))  # float64 (M,)
+    merged: list[MergedMesh] = field(default_factory=list)  # the meshes made of several that share a draw
 
     @property
     def armed(self) -> bool:
