@@ -16,7 +16,9 @@ from conftest import khronos_issues, shared_files
 from crowd.asset.gltf import load_character
 from crowd.asset.merge import merge_pieces, meshes_per_lod
 from crowd.asset.model import PACKED_UV_SPAN, SkinnedMesh, Texture
-from crowd.draw.render import Camera, CrowdRenderer, Instances, pack_colors, pack_vertices, unpack_uvs, uv_box
+from crowd.draw.packing import pack_colors, pack_vertices, unpack_uvs, uv_box
+from crowd.draw.render import CrowdRenderer
+from crowd.frame import Camera, Instances
 from gltf_factory import make_gltf, modular_gltf
 
 MODULAR = {  # generated files: name -> modular_gltf's arguments

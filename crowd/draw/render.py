@@ -230,8 +230,8 @@ class CrowdRenderer(GLStage):
             self.draws.append(_Draw(m.piece, m.lod, m.triangle_count, vbo, ibo, texture, uv_layout(m), box, character=k, group=group, choice=choice,
                                     morph=morphing(k, m)))
         # The GPU path's untextured draws (draws 0 .. merged - 1): one vertex and one index buffer, so a pass
-        # draws them all with one glMultiDrawElementsIndirect instead of a call each (69 calls a frame for
-        # the built-in zombie with shadows; each costs the CPU a call through moderngl and the driver).
+        # draws them all with one glMultiDrawElementsIndirect instead of a call each (each costs the CPU a
+        # call through moderngl and the driver).
         self.merged = len(shared)
         self._merged_buffers = None
         if self.merged:
