@@ -133,10 +133,11 @@ class PipelineConfig:
         return tuple(self.characters) or (CharacterSpec(self.model, 1.0, dict(self.roles), self.model_scale),)
 
 
-@dataclass
+@dataclass(eq=False)
 class CastMember:
     """One character of the running crowd: its spec, what was loaded and baked for it, and its clips'
-    playback speeds."""
+    playback speeds. A member is an identity, not a value: a cast may hold one model twice, and its
+    members compare (and hash) as themselves, never field by field."""
 
     spec: CharacterSpec
     character: Character
@@ -204,8 +205,8 @@ class CrowdPipeline(GLStage):
         started.update(1)
         started.set_description("starting the crowd: the bake")
         # Leave out what the scene does not need: only the clips the roles play are baked.
-        for member in self.cast:
-            member.bake = self._bake(member, config.bake_fps, config.precision, config.compression_bound_mm)
+        for k, member in enumerate(self.cast):
+            member.bake = self._bake(k, config.bake_fps, config.precision, config.compression_bound_mm)
             member.legs = bake_legs(member.character.skeleton, member.bake)  # what the foot lock holds, if it runs
         started.update(1)
         started.set_description(f"starting the crowd: {config.agents:,} agents")
@@ -297,16 +298,17 @@ class CrowdPipeline(GLStage):
         """Agents the stages draw (the palette's rows of agents): the crowd's and the survivor."""
         return self.ai.n + (1 if self.survivor is not None else 0)
 
-    def _bake(self, member: CastMember, fps, precision: str, bound_mm: float, report=None, morphs: bool | None = None) -> AnimationBake:
-        """A member's bake: the clips its roles play (only those), or the survivor's (crowd.sim.player.ROLES),
+    def _bake(self, k: int, fps, precision: str, bound_mm: float, report=None, morphs: bool | None = None) -> AnimationBake:
+        """Character k's bake: the clips its roles play (only those), or the survivor's (crowd.sim.player.ROLES),
         with their morph weight tracks where the scene moves the character's targets (`morphs`: the
-        morphs setting, default the config's)."""
+        morphs setting, default the config's; each character's variations seeded by its place in the cast)."""
+        member = self.cast[k]
         clips = SURVIVOR_ROLES if member.player else clips_used(member.roles)
         clips = [member.character.clip(c) for c in clips]
         joints = bake(member.character.skeleton, clips, fps, precision, bound_mm=bound_mm, report=report)
         if self.config.morphs if morphs is None else morphs:
             try:
-                joints.morphs = bake_morphs(member.character, clips, joints, member.spec.morph, self.config.seed + self.cast.index(member))
+                joints.morphs = bake_morphs(member.character, clips, joints, member.spec.morph, self.config.seed + k)
             except MorphError as exc:
                 raise PipelineError(f"{member.character.name}: {exc}") from None
         return joints
@@ -538,7 +540,7 @@ class CrowdPipeline(GLStage):
         """New bakes of the scene's clips, one per character of the cast (CPU only, no GL: a thread may
         run it while frames go on); `report` is crowd.progress's callback."""
         bound_mm = self.config.compression_bound_mm if bound_mm is None else bound_mm
-        return tuple(self._bake(m, fps, precision, bound_mm, report) for m in self.cast)
+        return tuple(self._bake(k, fps, precision, bound_mm, report) for k in range(len(self.cast)))
 
     def use_bake(self, bakes, interpolation: str | None = None) -> None:
         """Process `bakes` (from make_bake: one per character) from now on, with `interpolation` (None: the
@@ -574,7 +576,7 @@ class CrowdPipeline(GLStage):
         on = SETTINGS["morphs"].check(on, PipelineError)
         if on == self.config.morphs:
             return
-        bakes = tuple(self._bake(m, m.bake.fps, m.bake.precision, m.bake.bound_mm, morphs=on) for m in self.cast)
+        bakes = tuple(self._bake(k, m.bake.fps, m.bake.precision, m.bake.bound_mm, morphs=on) for k, m in enumerate(self.cast))
         self.use_bake(bakes)
         self.config = dataclasses.replace(self.config, morphs=on)
 
