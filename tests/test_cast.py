@@ -21,7 +21,8 @@ from crowd.anim.roles import bake_roles, match_roles
 from crowd.asset.gltf import load_character
 from crowd.frame import CLIP, MASK, PHASE, WEIGHT, FrameError, Instances, cast_counts, cast_firsts, cast_moves, move_agents
 from crowd.gl import Offscreen, has_compute
-from crowd.pipeline import CharacterSpec, CrowdPipeline, PipelineConfig
+from crowd.pipeline import CrowdPipeline
+from crowd.pipeline_config import CharacterSpec, PipelineConfig
 from crowd.scene import Scene, SceneError, load_scene, save_scene
 from crowd.sim.ai import AIConfig, CrowdAI, motion_for
 
