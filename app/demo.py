@@ -68,7 +68,7 @@ def main(argv=None) -> int:
     from crowd.asset.gltf import BUILT_IN, is_built_in
     from crowd.asset.gltf.reader import GltfImportError
     from crowd.frame import FrameError
-    from crowd.pipeline import PipelineError
+    from crowd.pipeline_config import PipelineError
     from crowd.anim.processor import ProcessorError
     from crowd.draw.readback import ReadbackError
     from crowd.draw.render import RenderError
@@ -140,7 +140,7 @@ def main(argv=None) -> int:
 def _cast_flag(text: str) -> list[tuple[str, float]]:
     """--characters' (model, share) pairs: "zombie=3,brute=1,x.glb=0.5" (a share of 1 where none is given)."""
     from crowd.asset.gltf import is_built_in
-    from crowd.pipeline import PipelineError
+    from crowd.pipeline_config import PipelineError
 
     out = []
     for item in text.split(","):

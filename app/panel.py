@@ -14,7 +14,7 @@ import numpy as np
 
 from crowd.anim.bake import BakeError
 from crowd.anim.processor import ProcessorError
-from crowd.pipeline import PipelineError
+from crowd.pipeline_config import PipelineError
 from crowd.scene import SceneError
 from crowd.session import CrowdSession, SessionError
 from crowd.settings import SETTINGS, SOURCE_RATE

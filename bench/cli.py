@@ -538,7 +538,8 @@ def bench_readback(args) -> int:
     frame F - N overlaps the GPU's work; then a few frames measure the errors (their synchronous
     palette reads would disturb the timing)."""
     from crowd.gl import Offscreen, describe, headless_context
-    from crowd.pipeline import CrowdPipeline, PipelineConfig
+    from crowd.pipeline import CrowdPipeline
+    from crowd.pipeline_config import PipelineConfig
     from crowd.settings import parse
 
     size = parse("size", args.size)
@@ -724,7 +725,7 @@ def main(argv=None) -> int:
     from crowd.anim.bake import BakeError
     from crowd.gl import GLUnavailable
     from crowd.asset.gltf.reader import GltfImportError
-    from crowd.pipeline import PipelineError
+    from crowd.pipeline_config import PipelineError
     from crowd.anim.processor import ProcessorError
     from crowd.draw.readback import ReadbackError
     from crowd.draw.weapons import WeaponError

@@ -203,7 +203,8 @@ def _draw_times_of(ctx, model: Path, agents: int, target, stack: contextlib.Exit
     from unittest import mock
 
     from crowd.draw import materials
-    from crowd.pipeline import CrowdPipeline, PipelineConfig
+    from crowd.pipeline import CrowdPipeline
+    from crowd.pipeline_config import PipelineConfig
     from crowd.timing import PassTimer
 
     pipelines, driver, views = {}, {}, {}

@@ -42,7 +42,7 @@ from .anim.roles import ROLES
 from .files import atomic_write_bytes
 from .frame import MAX_CAST, Camera
 from .asset.gltf import is_built_in
-from .pipeline import CharacterSpec, PipelineConfig
+from .pipeline_config import CharacterSpec, PipelineConfig
 from .settings import DEFAULTS, SCENE_GROUPS, SETTINGS, group
 from .sim.ai import AIConfig, AIError
 

@@ -25,7 +25,8 @@ from .draw.render import RenderError, view_proj
 from .draw.weapons import WeaponError
 from .frame import CLIP, MASK, PHASE, WEIGHT, ForcedClip, LayerOverrides, cast_firsts
 from .gl import GLStage
-from .pipeline import CrowdPipeline, PipelineError
+from .pipeline import CrowdPipeline
+from .pipeline_config import PipelineError
 from .scene import CameraSetting, Scene, SceneError, save_scene
 from .settings import SETTINGS, group
 from .sim.ai import LAYERS, STATE_NAMES, AIError

@@ -24,7 +24,8 @@ import moderngl
 from .gl import Fence, Offscreen, headless_context
 from .images import write_png
 from .progress import bar
-from .pipeline import CrowdPipeline, PipelineConfig
+from .pipeline import CrowdPipeline
+from .pipeline_config import PipelineConfig
 from .stats import collect_stats, write_stats
 
 FIXED_DT = 1.0 / 30.0  # headless frames advance a fixed step, so a seed gives the same pictures

@@ -15,7 +15,8 @@ import pytest
 from conftest import ROOT, gl_census
 from crowd.frame import ForcedClip, LayerOverrides
 from crowd.gl import Offscreen
-from crowd.pipeline import CrowdPipeline, PipelineConfig
+from crowd.pipeline import CrowdPipeline
+from crowd.pipeline_config import PipelineConfig
 from crowd.scene import Scene, SceneError, load_scene
 from crowd.session import CrowdSession, SessionError
 from crowd.settings import SCENE_GROUPS, SETTINGS, SettingError, group, parse

@@ -378,7 +378,8 @@ def test_cesium_man_s_legs_are_found():
 
 def test_the_pipeline_reports_and_switches_the_lock(gl_context):
     from crowd.gl import Offscreen
-    from crowd.pipeline import CrowdPipeline, PipelineConfig
+    from crowd.pipeline import CrowdPipeline
+    from crowd.pipeline_config import PipelineConfig
 
     with Offscreen(gl_context, (96, 54)) as target, CrowdPipeline(gl_context, PipelineConfig(agents=20)) as p:
         p.frame(target.framebuffer, 1 / 30)

@@ -106,7 +106,8 @@ def test_the_running_crowd_s_feet_come_back_on_the_read_back_as_the_reference_pu
     that frame's layers and transforms, and with the foot lock (whose state the reference does not
     follow through a crowd) where that frame's palette, read at once, put them; the summary is finite."""
     from crowd.gl import Offscreen
-    from crowd.pipeline import CrowdPipeline, PipelineConfig
+    from crowd.pipeline import CrowdPipeline
+    from crowd.pipeline_config import PipelineConfig
 
     with Offscreen(gl_context, (160, 90)) as target, CrowdPipeline(gl_context, PipelineConfig(agents=200, foot_lock=foot_lock)) as p:
         if foot_lock and p.processor.legs is None:

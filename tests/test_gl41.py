@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from crowd.gl import GL_LIMITS, feature_level, has_compute
-from crowd.pipeline import CrowdPipeline, PipelineConfig, PipelineError
+from crowd.pipeline import CrowdPipeline
+from crowd.pipeline_config import PipelineConfig, PipelineError
 from crowd.scene import Scene
 from crowd.session import CrowdSession, SessionError
 from crowd.smoke import run_headless

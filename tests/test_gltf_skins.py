@@ -171,7 +171,8 @@ def test_the_joint_budget_counts_the_union_and_the_duplicates(tmp_path, monkeypa
 
 def test_more_joints_than_the_processor_draws_are_refused_in_one_line(tmp_path, gl_context):
     # The importer allows up to 65,536 joints (a vertex's uint16); the processor draws 256 and says so.
-    from crowd.pipeline import CrowdPipeline, PipelineConfig
+    from crowd.pipeline import CrowdPipeline
+    from crowd.pipeline_config import PipelineConfig
     from crowd.anim.processor import ProcessorError
 
     path = make_gltf(tmp_path)
@@ -191,7 +192,7 @@ def test_more_joints_than_the_processor_draws_are_refused_in_one_line(tmp_path, 
 
 
 def test_a_merged_character_draws(tmp_path, gl_context):
-    from crowd.pipeline import PipelineConfig
+    from crowd.pipeline_config import PipelineConfig
     from crowd.sim.ai import AIConfig
     from crowd.smoke import run_headless
 

@@ -13,7 +13,8 @@ from crowd.draw.cull_lists import entry_agents
 from crowd.draw.render import CrowdRenderer, RenderError
 from crowd.draw.view import frustum_planes, view_proj
 from crowd.frame import Camera, Instances
-from crowd.pipeline import CrowdPipeline, PipelineConfig
+from crowd.pipeline import CrowdPipeline
+from crowd.pipeline_config import PipelineConfig
 from crowd.smoke import run_headless
 from crowd.stages import cull_path
 

@@ -140,7 +140,8 @@ def test_only_scenes_that_need_impostors_allocate_them(gl_context):
     """auto with 200 agents (meshes fit): no atlas, no keys, no impostor bytes; on with 0 agents and then
     a few, and back: frames run, the pass appears only with the atlas."""
     from crowd.gl import Offscreen
-    from crowd.pipeline import CrowdPipeline, PipelineConfig
+    from crowd.pipeline import CrowdPipeline
+    from crowd.pipeline_config import PipelineConfig
 
     with Offscreen(gl_context, (160, 90)) as target:
         with CrowdPipeline(gl_context, PipelineConfig(agents=200, seed=1, impostors="auto")) as p:
@@ -218,7 +219,8 @@ def test_impostors_hold_their_weapons_without_a_read_back(gl_context, path):
     on the CPU, yet each armed one's impostor holds its own weapon (a held piece on the socket joint,
     drawn from its palette row), and an unarmed one none."""
     from crowd.gl import Offscreen, has_compute
-    from crowd.pipeline import CrowdPipeline, PipelineConfig
+    from crowd.pipeline import CrowdPipeline
+    from crowd.pipeline_config import PipelineConfig
     from crowd.draw.impostors import HELD_GROUP
 
     if path == "gpu" and not has_compute(gl_context):

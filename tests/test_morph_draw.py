@@ -119,7 +119,8 @@ def test_the_pipeline_draws_morphs_only_where_the_scene_moves_them(gl_context, c
     change the picture; switched off, none of it exists, and on again the same picture comes back (the
     foot lock is off: a new processor starts its planted feet anew); the two cull paths draw the same."""
     from crowd.gl import Offscreen, has_compute
-    from crowd.pipeline import CharacterSpec, CrowdPipeline, PipelineConfig
+    from crowd.pipeline import CrowdPipeline
+    from crowd.pipeline_config import CharacterSpec, PipelineConfig
 
     if cull == "gpu" and not has_compute(gl_context):
         pytest.skip("no GL 4.3 here")

@@ -6,7 +6,8 @@ import pytest
 
 from crowd.frame import Camera
 from crowd.gl import Offscreen
-from crowd.pipeline import CrowdPipeline, PipelineConfig
+from crowd.pipeline import CrowdPipeline
+from crowd.pipeline_config import PipelineConfig
 from crowd.sim.ai import AIConfig
 
 SIZE = (320, 180)

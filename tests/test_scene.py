@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from crowd.pipeline import PipelineConfig
+from crowd.pipeline_config import PipelineConfig
 from crowd.resources import SCENE_DIR
 from crowd.scene import CharacterEntry, Scene, SceneError, load_scene, save_scene
 from crowd.smoke import run_headless

@@ -18,7 +18,8 @@ from crowd.asset.gltf import load_character
 from crowd.asset.units import HUMAN_HEIGHTS, standing_height
 from crowd.frame import Camera
 from crowd.gl import Offscreen
-from crowd.pipeline import CrowdPipeline, PipelineConfig
+from crowd.pipeline import CrowdPipeline
+from crowd.pipeline_config import PipelineConfig
 from crowd.sim.ai import AIConfig
 from crowd.smoke import FIXED_DT
 

@@ -9,7 +9,8 @@ import sys
 import numpy as np
 import pytest
 
-from crowd.pipeline import CrowdPipeline, PipelineConfig, PipelineError
+from crowd.pipeline import CrowdPipeline
+from crowd.pipeline_config import PipelineConfig, PipelineError
 from crowd.settings import SettingError, parse
 from crowd.frame import Camera, FrameError, Instances
 from crowd.draw.cpu_cull import sphere_visible
@@ -291,7 +292,8 @@ def test_the_default_picture_shows_the_horde_at_any_size(gl_context, agents):
     horde around it in a big one, so the agents cover a share of the picture that does not fall away
     with the crowd's size (the whole-crowd view had 1.6 % at 100,000 agents, and less beyond)."""
     from crowd.gl import Offscreen
-    from crowd.pipeline import CrowdPipeline, PipelineConfig
+    from crowd.pipeline import CrowdPipeline
+    from crowd.pipeline_config import PipelineConfig
 
     size = (320, 180)
     with Offscreen(gl_context, size) as target, CrowdPipeline(gl_context, PipelineConfig(agents=agents, cull="cpu", weapons=False)) as p:

@@ -17,7 +17,8 @@ from crowd.asset.model import foot_joints
 from crowd.asset.survivor import ASSET_PATH, build_character
 from crowd.frame import CLIP, MASK, PHASE, WEIGHT, validate_layers
 from crowd.gl import Offscreen
-from crowd.pipeline import CharacterSpec, CrowdPipeline, PipelineConfig
+from crowd.pipeline import CrowdPipeline
+from crowd.pipeline_config import CharacterSpec, PipelineConfig
 from crowd.sim.ai import AIConfig
 from crowd.sim.player import HEALTH, HIT, NONE, ROLES, STRIKE, PlayerError, Survivor, survivor_motion
 

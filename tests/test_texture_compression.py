@@ -346,7 +346,7 @@ def test_the_41_path_draws_bc1_through_gl33_entry_points(tmp_path, zombie, gl_co
 
     from crowd import gl
     from crowd.asset.gltf_write import write_glb
-    from crowd.pipeline import PipelineConfig
+    from crowd.pipeline_config import PipelineConfig
     from crowd.smoke import run_headless
 
     core_33 = {"glGenTextures", "glDeleteTextures", "glActiveTexture", "glBindTexture", "glBindBuffer", "glTexParameteri",

@@ -23,7 +23,7 @@ from crowd.asset.model import CLAMP_TO_EDGE, LINEAR, MIRRORED_REPEAT, NEAREST, R
 from crowd.draw.materials import MaterialTextures
 from crowd.draw.texture_codec import srgb_to_linear
 from crowd.draw.texture_layers import layer_size, linear_layer
-from crowd.pipeline import PipelineConfig
+from crowd.pipeline_config import PipelineConfig
 from crowd.sim.ai import AIConfig
 from crowd.smoke import run_headless
 

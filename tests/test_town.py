@@ -12,7 +12,8 @@ import pytest
 from crowd.anim.roles import bake_roles, match_roles
 from crowd.asset.town import PERIOD, SDF_CELL, TILE, Box, box_distance, build_town
 from crowd.gl import Offscreen, has_compute
-from crowd.pipeline import CrowdPipeline, PipelineConfig
+from crowd.pipeline import CrowdPipeline
+from crowd.pipeline_config import PipelineConfig
 from crowd.scene import Scene
 from crowd.sim.ai import CLEARANCE, AIConfig, CrowdAI, PlayerScript, motion_for
 

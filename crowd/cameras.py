@@ -1,0 +1,50 @@
+"""The crowd's own views: what a newcomer sees first, and the overview that frames every agent (the
+benchmarks' view)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .frame import Camera
+from .lighting import LIGHTING
+from .sim.ai import CrowdAI
+
+# The default camera's neighbourhood of the player in a crowd too big to frame whole, and how far it sees
+# then: where the fog (crowd.lighting) has hidden 95 % of what is there, so the crowd fades out rather
+# than stopping at the far plane.
+VIEW_RADIUS_M = 20.0
+FOG_FAR_M = -math.log(0.05) / LIGHTING["u_fog_density"]
+
+
+def default_camera(ai: CrowdAI, aspect: float, town: bool) -> Camera:
+    """What a newcomer sees first: the whole crowd where it fits in VIEW_RADIUS_M (or one agent up
+    close), else the player and the horde around it, VIEW_RADIUS_M to each side, receding into the fog
+    (the crowd's density does not depend on its size, so the picture does not either). A view of the
+    whole of a big crowd showed specks at 10,000 agents and fog or sky at a million."""
+    if ai.half_extent <= VIEW_RADIUS_M:
+        return overview_camera(ai, aspect, town)
+    centre = np.array([ai.player[0], 0.0, ai.player[1]])
+    return three_quarter_view(centre, VIEW_RADIUS_M, aspect, FOG_FAR_M, town)
+
+
+def overview_camera(ai: CrowdAI, aspect: float, town: bool) -> Camera:
+    """A three-quarter view that frames the whole crowd (or one agent up close): the benchmarks' view,
+    which every agent is in."""
+    centre = np.array([ai.origin[0], 0.0, ai.origin[1]])
+    return three_quarter_view(centre, max(ai.half_extent, 1.2), aspect, 0.0, town)
+
+
+def overview_distance(half_extent: float) -> float:
+    """How far the overview's eye stands from the crowd's centre (the crowd `half_extent` metres to each side)."""
+    return half_extent * 1.5 + 2.5
+
+
+def three_quarter_view(centre: np.ndarray, extent: float, aspect: float, far: float, town: bool = False) -> Camera:
+    """A view of `centre` from up and to one side, `extent` metres around it in the picture. In a town,
+    from above the street that runs along z through the centre (the origin is a crossing), looking down
+    it: a diagonal view would look at the buildings' walls and roofs, not at the crowd in the streets."""
+    dist = overview_distance(extent)
+    eye = centre + (np.array([0.0, dist * 0.55, dist * 0.9]) if town else np.array([dist * 0.45, dist * 0.5, dist * 0.85]))
+    return Camera(eye=eye, target=centre + np.array([0.0, 0.8, 0.0]), aspect=aspect, far=max(200.0, dist * 4, far))
