@@ -271,3 +271,27 @@ def shared_made():
 def test_every_shared_file_gets_a_chain(shared_made, name):
     source, made = shared_made[name]
     _check_chain(source, made)
+
+
+def test_lod1_keeps_its_silhouette_at_its_own_switch_distance(extremes):
+    """The issue's target: LOD1's silhouette IoU against LOD0 at its switch distance at least 0.9 (the
+    measure of `crowd-bench lod`, bench/lod_silhouette.py)."""
+    from bench.lod_silhouette import silhouette_iou
+
+    for name in ("seam", "flat_shaded", "morphs"):
+        made = extremes[name][1]
+        rows = silhouette_iou(made, made.lod_distances)
+        assert rows[0]["lod"] == 1 and rows[0]["iou_min"] >= 0.9, (name, rows[0])
+
+
+def test_the_simplifier_comparison_runs_on_whatever_is_installed():
+    """`crowd-bench simplifiers` (bench/simplifier_compare.py): crowd's row is the generated chain; each
+    other candidate is measured at the same triangles where it imports, or named in one line."""
+    from bench.simplifier_compare import CANDIDATES, compare
+
+    out = compare(tube_character(rings=12, segments=8))
+    assert set(out["candidates"]) | {line.split(":")[0] for line in out["missing"]} == set(CANDIDATES)
+    crowd = out["candidates"]["crowd"]["rows"]
+    assert [r["lod"] for r in crowd] == [1, 2, 3][: len(crowd)] and len(crowd) >= 2
+    for name, c in out["candidates"].items():
+        assert all(r["triangles_lod0"] == crowd[0]["triangles_lod0"] for r in c["rows"]), name
