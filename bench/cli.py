@@ -382,14 +382,15 @@ def bench_simplifiers(args) -> int:
     from crowd.asset.gltf import load_character
     from crowd.settings import parse
 
-    from .simplifier_compare import compare
+    from .simplifier_compare import WIDE_UV, compare
 
     out = compare(load_character(args.model), parse("size", args.size))
     for line in out["missing"]:
         print(f"crowd-bench simplifiers: {line}", file=sys.stderr)
-    print(f"{out['character']}: LODs from {' / '.join(f'{d:.3g}' for d in out['lod_distances'])} m; IoU min / mean at each LOD's distance")
+    print(f"{out['character']}: LODs from {' / '.join(f'{d:.3g}' for d in out['lod_distances'])} m; IoU min / mean at each LOD's distance; "
+          f"uv: triangles across more than {WIDE_UV:g} of the texture (LOD0: {out['wide_uv_lod0']})")
     for name, c in out["candidates"].items():
-        cells = "  ".join(f"LOD{r['lod']} {r['triangles']:>5} tris {r['iou_min']:.4f} / {r['iou_mean']:.4f}" for r in c["rows"])
+        cells = "  ".join(f"LOD{r['lod']} {r['triangles']:>5} tris {r['iou_min']:.4f} / {r['iou_mean']:.4f} uv {r['wide_uv']}" for r in c["rows"])
         print(f"{name:<20} {c['seconds']:>7.2f} s  {cells}")
     if args.json:
         from crowd.files import atomic_write_bytes

@@ -4,7 +4,8 @@ algorithm) and meshoptimizer (no wheel: an alpha sdist, built by hand for this c
 
 Each candidate simplifies every LOD0 mesh of a character to the triangle count of the generated LOD of
 that mesh, so all of them spend the same triangles; then each LOD's silhouette is measured against LOD0
-at the generated LOD's switch distance (bench/lod_silhouette.py), with the time each candidate took.
+at the generated LOD's switch distance (bench/lod_silhouette.py), with the time each candidate took and
+how many triangles sample far-apart parts of the texture (``wide_uv_triangles``: a seam smeared).
 
 How the attributes follow where a candidate knows only positions:
 - fast-simplification and pyfqmr get the welded points (position, skin and morph deltas alike; crowd's
@@ -31,6 +32,7 @@ from crowd.asset.simplify import weld
 from .lod_silhouette import generated_lods, silhouette_iou
 
 CANDIDATES = ("crowd", "meshoptimizer", "fast-simplification", "pyfqmr")
+WIDE_UV = 0.25  # a triangle whose texture coordinates span more than a quarter of the texture on an axis
 
 
 def _moved_mesh(mesh: SkinnedMesh, lod: int, positions: np.ndarray, triangles: np.ndarray) -> SkinnedMesh:
@@ -95,6 +97,20 @@ def compare(character: Character, size: tuple[int, int] = (1920, 1080)) -> dict:
                 continue
             lods = dataclasses.replace(base, meshes=base.meshes + coarser, lod_distances=distances)
         rows = silhouette_iou(lods, distances, size)
-        out["candidates"][name] = {"seconds": round(spent, 3), "rows": [{k: r[k] for k in ("lod", "distance_m", "triangles", "triangles_lod0", "iou_min",
-                                                                                           "iou_mean")} for r in rows]}
+        out["candidates"][name] = {"seconds": round(spent, 3), "rows": [{**{k: r[k] for k in ("lod", "distance_m", "triangles", "triangles_lod0", "iou_min",
+                                                                                              "iou_mean")}, "wide_uv": wide_uv_triangles(lods, r["lod"])}
+                                                                        for r in rows]}
+    out["wide_uv_lod0"] = wide_uv_triangles(base, 0)
     return out
+
+
+def wide_uv_triangles(character: Character, lod: int, span: float = WIDE_UV) -> int:
+    """Textured triangles of LOD `lod` whose texture coordinates span more than `span` on an axis: where
+    a simplifier joined the two sides of a UV seam, a triangle's corners sample far-apart parts of the
+    texture (a smear). The source has its own few (LOD0's count is the baseline)."""
+    count = 0
+    for m in character.meshes:
+        if m.lod == lod and m.uvs is not None and m.indices.size:
+            uv = m.uvs[m.indices.reshape(-1, 3)]
+            count += int(np.count_nonzero(np.ptp(uv, axis=1).max(axis=1) > span))
+    return count

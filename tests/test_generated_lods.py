@@ -149,7 +149,7 @@ def test_the_recorded_error_bounds_the_distance_in_posed_frames(extremes):
         for m in frames[::3]:
             a, b = (_posed(m, x) for x in (lod0, mesh))
             error = max(_farthest(a, b, mesh.indices), _farthest(b[mesh.indices.reshape(-1, 3)].mean(axis=1), a, lod0.indices))
-            assert switch_distance(error) <= distance + 1e-9, (level, switch_distance(error), distance)
+            assert switch_distance(error) <= distance * (1 + 1e-5), (level, switch_distance(error), distance)  # measured in float32
 
 
 def _posed(matrices, mesh) -> np.ndarray:
@@ -295,3 +295,20 @@ def test_the_simplifier_comparison_runs_on_whatever_is_installed():
     assert [r["lod"] for r in crowd] == [1, 2, 3][: len(crowd)] and len(crowd) >= 2
     for name, c in out["candidates"].items():
         assert all(r["triangles_lod0"] == crowd[0]["triangles_lod0"] for r in c["rows"]), name
+
+
+def test_variation_pieces_each_get_their_own_chain():
+    """Two choices of one variation group (a thin and a wide tube, group "head") and a piece every agent
+    wears: each mesh gets its own LODs, keeping its piece and group."""
+    base = tube_character(rings=20, seam=False)
+    body = base.meshes[0]
+    wide = dataclasses.replace(body, name="wide", piece="head_b", group="head", positions=body.positions * np.float32([1.5, 1.0, 1.5]))
+    thin = dataclasses.replace(body, name="thin", piece="head_a", group="head")
+    made = with_generated_lods(dataclasses.replace(base, meshes=[body, thin, wide]), cache=False)
+    top = max(m.lod for m in made.meshes)
+    assert top >= 2
+    for piece, group in (("body", ""), ("head_a", "head"), ("head_b", "head")):
+        chain = [m for m in made.meshes if m.piece == piece]
+        assert [m.lod for m in chain] == list(range(top + 1)) and all(m.group == group for m in chain)
+    # The wide choice's LODs are its own vertices, not the thin one's.
+    assert np.abs([m for m in made.meshes if m.piece == "head_b" and m.lod == 1][0].positions[:, 0]).max() > 1.4 * np.abs(body.positions[:, 0]).max()
