@@ -213,10 +213,10 @@ def _one_mesh(character, **fields):
     return dataclasses.replace(character, meshes=[mesh])
 
 
-@pytest.mark.parametrize("case", ["degenerate", "collinear", "one_triangle", "no_triangles", "huge", "tiny"])
+@pytest.mark.parametrize("case", ["degenerate", "collinear", "one_triangle", "no_triangles", "huge", "tiny", "outlier"])
 def test_hostile_meshes_give_a_clear_result(case):
-    """Degenerate triangles, a mesh of no area, a lone triangle, none at all, and coordinates near
-    float32's limits: either a valid chain or the character unchanged with one line saying why."""
+    """Degenerate triangles, a mesh of no area, a lone triangle, none at all, coordinates near float32's
+    limits, and one vertex far out: either a valid chain or the character unchanged with one line saying why."""
     base = tube_character(rings=10, segments=6, seam=False)
     mesh = base.meshes[0]
     if case == "degenerate":  # every triangle repeats a corner
@@ -229,6 +229,10 @@ def test_hostile_meshes_give_a_clear_result(case):
         character = _one_mesh(base, indices=mesh.indices[:3].copy())
     elif case == "no_triangles":
         character = _one_mesh(base, indices=np.zeros(0, np.uint32))
+    elif case == "outlier":  # one vertex near float32's limit, the rest a person's size
+        positions = mesh.positions.copy()
+        positions[5] = (3e37, -3e37, 3e37)
+        character = _one_mesh(base, positions=positions)
     else:  # the whole character, skeleton and clips too, as a file in other units would be
         character = scale_character(base, 1e30 if case == "huge" else 1e-30)
     made = with_generated_lods(character.validate(), cache=False)

@@ -187,7 +187,8 @@ def lod_distances(errors: np.ndarray) -> tuple[float, ...]:
     out: list[float] = []
     for error in errors.max(axis=0) if errors.size else ():
         d = max(switch_distance(error), 1e-3)
-        out.append(max(d, out[-1] + 1e-3) if out else d)
+        # (past 1e13 m a millimetre is below float64's step: the next float up, then)
+        out.append(max(d, out[-1] + 1e-3, float(np.nextafter(out[-1], np.inf))) if out else d)
     return tuple(out)
 
 
