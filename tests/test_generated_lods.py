@@ -253,6 +253,11 @@ def test_a_piece_that_cannot_lose_a_triangle_is_drawn_whole_at_every_lod():
     lones = [m for m in made.meshes if m.piece == "lone"]
     assert [m.lod for m in lones] == list(range(max(m.lod for m in made.meshes) + 1)) and all(m.triangle_count == 1 for m in lones)
     assert any("'lone'" in w and "could not be simplified" in w for w in made.warnings)
+    # A piece of no vertices at all comes through as it is, at every LOD.
+    empty = dataclasses.replace(lone, name="empty", piece="empty", positions=np.zeros((0, 3), np.float32), normals=np.zeros((0, 3), np.float32),
+                                joints=np.zeros((0, 4), np.uint16), weights=np.zeros((0, 4), np.float32), indices=np.zeros(0, np.uint32))
+    made = with_generated_lods(dataclasses.replace(base, meshes=[base.meshes[0], empty]).validate(), cache=False)
+    assert [m.triangle_count for m in made.meshes if m.piece == "empty"] == [0] * (max(m.lod for m in made.meshes) + 1)
 
 
 def test_switch_distance_is_one_pixel_at_the_reference_view():

@@ -59,7 +59,7 @@ class Welded:
 
 def _rows(arrays: list[np.ndarray], n: int) -> np.ndarray:
     """One opaque row per vertex of the raw bytes of `arrays` (each (n, ...)): rows equal in every bit."""
-    parts = [np.ascontiguousarray(a).reshape(n, -1).view(np.uint8).reshape(n, -1) for a in arrays]
+    parts = [np.ascontiguousarray(a).reshape(n, int(np.prod(a.shape[1:]))).view(np.uint8) for a in arrays]
     joined = np.ascontiguousarray(np.concatenate(parts, axis=1) if parts else np.zeros((n, 0), np.uint8))
     return joined.view(np.dtype((np.void, joined.shape[1]))).ravel() if joined.shape[1] else np.zeros(n, np.int8)
 
