@@ -141,7 +141,7 @@ class Collapser:
 
     def __init__(self, posed: np.ndarray, tri_wedges: np.ndarray, wedge_point: np.ndarray):
         self.posed = np.asarray(posed, np.float64)
-        p, k = self.posed.shape[:2]
+        p = self.posed.shape[0]
         tri_wedges = np.asarray(tri_wedges, np.int64).reshape(-1, 3)
         tri_points = np.asarray(wedge_point, np.int64)[tri_wedges]
         self.tw = tri_wedges.tolist()
@@ -154,20 +154,19 @@ class Collapser:
                 self.point_tris[c].add(t)
         self.version = [0] * p
         self.collapses: list[tuple[int, int]] = []
-        self.q = self._quadrics(tri_points, tri_wedges)
-        edges, _, _, _ = _edges(tri_points, tri_wedges) if len(tri_points) else (np.zeros((0, 2), np.int64),) * 4
+        self.area = np.zeros(p)  # each point's triangles' area, summed over the poses
+        self.q = np.zeros((p, self.posed.shape[1], 10))
         self.heap: list[tuple[float, int, int, int, int]] = []
-        if len(edges):
+        if len(tri_points):
+            edges = self._quadrics(tri_points, tri_wedges)
             us = np.concatenate([edges[:, 0], edges[:, 1]])
             vs = np.concatenate([edges[:, 1], edges[:, 0]])
             self.heap = self._entries(us, vs)
             heapq.heapify(self.heap)
 
     def _quadrics(self, tri_points: np.ndarray, tri_wedges: np.ndarray) -> np.ndarray:
-        p, k = self.posed.shape[:2]
-        q = np.zeros((p, k, 10))
-        if not len(tri_points):
-            return q
+        """Each point's quadrics (faces, and its border and seam edges' planes) and area; returns the edges."""
+        q = self.q
         a, b, c = (self.posed[tri_points[:, i]] for i in range(3))  # (T, K, 3)
         cross = np.cross(b - a, c - a)
         length = np.linalg.norm(cross, axis=-1)
@@ -175,7 +174,6 @@ class Collapser:
         faces = plane_quadrics(unit, -np.einsum("tkc,tkc->tk", unit, a), 0.5 * length)
         for i in range(3):
             np.add.at(q, tri_points[:, i], faces)
-        self.area = np.zeros(p)
         for i in range(3):
             np.add.at(self.area, tri_points[:, i], 0.5 * length.sum(axis=1))
         # A plane through each border and seam edge, square to its triangle, keeps the edge where it is.
@@ -192,7 +190,7 @@ class Collapser:
             planes = plane_quadrics(side, -np.einsum("tkc,tkc->tk", side, self.posed[s]), BORDER_WEIGHT * np.einsum("tkc,tkc->tk", along, along))
             np.add.at(q, s, planes)
             np.add.at(q, e, planes)
-        return q
+        return edges
 
     def _entries(self, us: np.ndarray, vs: np.ndarray) -> list[tuple[float, int, int, int, int]]:
         """Heap entries (cost, u, v, u's version, v's version) of collapsing each of `us` onto `vs`."""
