@@ -65,7 +65,8 @@ def main(argv=None) -> int:
     from crowd.sim.ai import AIError
     from crowd.anim.bake import BakeError
     from crowd.gl import GLUnavailable, has_display
-    from crowd.asset.gltf import BUILT_IN, GltfImportError, is_built_in
+    from crowd.asset.gltf import BUILT_IN, is_built_in
+    from crowd.asset.gltf.reader import GltfImportError
     from crowd.frame import FrameError
     from crowd.pipeline import PipelineError
     from crowd.anim.processor import ProcessorError

@@ -8,7 +8,7 @@ import math
 import moderngl
 import numpy as np
 
-from crowd.draw.render import FrameView, gl_bytes
+from crowd.draw.view import FrameView, gl_bytes
 from crowd.gl import GLObjects, GLStage, load_shader
 
 SEGMENTS = 48

@@ -59,7 +59,7 @@ class OneAgent:
     def draw(self, kind: str, clip: int, phase: float, yaw: float, elevation_deg: float = 12.0, choice: int = 0):
         """(colour (size, size, 3) float64, covered (size, size) bool, depth in metres along the view);
         `choice`: the piece the agent wears in each variation group (the atlas holds the first's)."""
-        from crowd.draw.render import Camera, Instances
+        from crowd.frame import Camera, Instances
         from crowd.frame import CLIP, MASK, PHASE, WEIGHT, empty_layers
 
         layers = empty_layers(1, 4)

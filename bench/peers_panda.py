@@ -53,7 +53,7 @@ def lod_levels(source: Path) -> list[int]:
 
 def _scene_lods(gltf) -> tuple[dict, list[int]]:
     """(piece, lod) → node for every mesh node with crowd extras, and the complete levels of the scene."""
-    from crowd.asset.gltf import crowd_extras
+    from crowd.asset.gltf.reader import crowd_extras
 
     by_piece = {}
     for i, node in enumerate(gltf.nodes):
@@ -114,7 +114,7 @@ def panda_ready_gltf(source: Path, target: Path, lod: int = 0) -> None:
 
 
 def _world_matrix(gltf, parents: dict, node_index: int) -> np.ndarray:
-    from crowd.asset.gltf import node_local_matrix
+    from crowd.asset.gltf.tree import node_local_matrix
 
     m = np.eye(4)
     i = node_index

@@ -53,7 +53,7 @@ def skinned_cells(character: Character, clip_names: list[str], columns: int, mes
 
 
 def render_sheet(character: Character, clip_names: list[str], columns: int, cell: int, out: Path, yaw: float = 0.6,
-                 pieces: tuple[str, ...] = ("body", "head_a", "shirt_torn")) -> Path:
+                 pieces: tuple[str, ...] = ("body", "head_a")) -> Path:
     """One row per clip, labelled with its name, `columns` poses across its length, every cell framed on
     the skinned poses of all rows (one scale for the whole sheet, so the rows compare)."""
     from PIL import Image, ImageDraw
@@ -119,13 +119,14 @@ def main(argv=None) -> int:
     parser.add_argument("--cell", type=int, default=200)
     parser.add_argument("--yaw", type=float, default=0.6, help="camera yaw in radians (0 = front)")
     args = parser.parse_args(argv)
-    from crowd.asset.gltf import GltfImportError, load_character
+    from crowd.asset.gltf import load_character
+    from crowd.asset.gltf.reader import GltfImportError
     from crowd.asset.model import ModelError
 
     try:
         character = load_character(args.model)
         names = args.clips or [c.name for c in character.clips]
-        pieces = ("body", "head_a", "shirt_torn") if args.model is None else ()
+        pieces = ("body", "head_a") if args.model is None else ()  # (the loaded zombie wears its shirt in its body piece)
         render_sheet(character, names, args.columns, args.cell, args.out, args.yaw, pieces)
     except (GltfImportError, ModelError) as exc:  # a bad file, or a --clips name it lacks: one line, no traceback
         print(f"bench.preview: {exc}", file=sys.stderr)

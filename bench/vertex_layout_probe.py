@@ -24,11 +24,17 @@ from crowd.asset.gltf import load_character
 from crowd.files import atomic_write_bytes
 from .common import grid_crowd, random_layers
 from crowd.frame import Instances
-from crowd.draw.render import INSTANCE_FORMAT, VERTEX_DTYPE, VERTEX_FORMAT, _read_by, gl_bytes
+from crowd.draw.cull_lists import RECORD_DTYPE, entry_agents
+from crowd.draw.packing import VERTEX_DTYPE, VERTEX_FORMAT
+from crowd.draw.packing import read_by as _read_by
+from crowd.draw.view import gl_bytes
 from crowd.anim.roles import bake_roles, match_roles
 from crowd.settings import parse
 from crowd.stages import StageSpec, Stages
 
+# The packed variant's instances: each agent's record as attributes (the layout measured on the H100, before
+# the draws fetched records through a buffer texture).
+INSTANCE_FORMAT = ("4f 3u 4x/i", "i_position_scale", "i_packed")
 SEPARATE_VERTEX = np.dtype([("position", "<f4", 3), ("normal", "<f2", 4), ("joints", "u1", 4), ("weights", "<f2", 4), ("color", "u1", 4)])
 SEPARATE_VERTEX_FORMAT = ("3f 4f2 4u1 4f2 4f1", "in_position", "in_normal", "in_joints", "in_weights", "in_color")
 SEPARATE_INSTANCE = np.dtype([("position", "<f4", 3), ("yaw_scale", "<f4", 2), ("palette", "<u2", 2), ("tint", "u1", 4)])
@@ -98,6 +104,8 @@ def main(argv=None) -> int:
             instances = Instances(pos, yaw, np.ones(n, np.float32), np.full((n, 4), 200, np.uint8), {"head": np.zeros(n, int)})
             view_proj = renderer.prepare(camera, instances).view_proj
             draws = [d for d in renderer.draws if d.count]
+            records = np.frombuffer(renderer.records.buffer.read(), RECORD_DTYPE)
+            listed = {id(d): records[entry_agents(renderer.listed(k))[0]] for k, d in enumerate(renderer.draws) if d.count}
             meshes = {(m.piece, m.lod): m for m in character.meshes}
             sep_inst = np.zeros(n, SEPARATE_INSTANCE)
             sep_inst["position"] = pos - camera.eye
@@ -125,7 +133,8 @@ def main(argv=None) -> int:
                 vaos[name] = []
                 for draw in draws:
                     if layout == "PACKED":
-                        content = [(draw.vbo, *_read_by(prog, VERTEX_FORMAT)), (draw.instances, *_read_by(prog, INSTANCE_FORMAT))]
+                        own.append(ctx.buffer(listed[id(draw)].tobytes()))
+                        content = [(draw.vbo, *_read_by(prog, VERTEX_FORMAT)), (own[-1], *_read_by(prog, INSTANCE_FORMAT))]
                     else:
                         packed = np.frombuffer(draw.vbo.read(), VERTEX_DTYPE)
                         vbo = ctx.buffer(separate_vertices(packed, meshes[(draw.piece, draw.lod)]).tobytes())

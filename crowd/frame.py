@@ -43,7 +43,7 @@ class FrameError(ValueError):
     """A frame contract broken by its producer; the message is one line."""
 
 
-MAX_CAST = 16  # characters in one crowd: the GPU cull keeps an agent's character in 4 bits of its record
+MAX_CAST = 256  # characters in one crowd: an agent's record keeps its character in a byte (crowd.draw.cull_lists)
 
 
 # -- the cast

@@ -83,6 +83,8 @@ def pipeline_stats(pipeline) -> dict:
         "passes_run": list(p.passes_run),
         "gpu_bytes": p.gpu_bytes(),
         "last_frame": dict(p.renderer.last),
+        # How each base-colour texture is held ("bc1", or "rgba16f" where BC1's error is over the bound).
+        "textures": [] if p.renderer.materials is None else [p.renderer.materials.storage[t] for t in sorted(p.renderer.materials.storage)],
         "weapons": weapon_stats(p),
         "weapon_error_mm": None if p.weapons is None else _round(p.weapon_error_mm()),
         "readback_wait_ms": readback_wait(p),
@@ -110,7 +112,8 @@ def collect_stats(ctx: moderngl.Context, pipeline, timings: dict[str, list], siz
         "nan_count": pipeline.processor.nan_rows(),
         "python": platform.python_version(),
         "moderngl": moderngl.__version__,
-        "warnings": [w for m in pipeline.cast for w in m.character.warnings + m.bake.warnings] + pipeline.role_notes + _occlusion_note(pipeline),
+        "warnings": [w for m in pipeline.cast for w in m.character.warnings + m.bake.warnings] + pipeline.role_notes + _occlusion_note(pipeline)
+        + _texture_notes(pipeline),
     })
     stats.update(pipeline_stats(pipeline))
     return stats
@@ -118,6 +121,12 @@ def collect_stats(ctx: moderngl.Context, pipeline, timings: dict[str, list], siz
 
 def write_stats(path: Path, stats: dict) -> None:
     atomic_write_bytes(Path(path), (json.dumps(stats, indent=2) + "\n").encode())
+
+
+def _texture_notes(pipeline) -> list[str]:
+    """Why base-colour textures stayed RGBA16F other than their error (a driver without BC1)."""
+    materials = pipeline.renderer.materials
+    return list(materials.notes) if materials is not None else []
 
 
 def _occlusion_note(pipeline) -> list[str]:

@@ -8,19 +8,16 @@ layout(points) in;
 layout(points, max_vertices = 4) out;
 
 flat in ivec4 v_emit[];
-flat in uvec4 v_tint[];
-in vec4 v_position_scale[];
-flat in uvec4 v_fields[];
+flat in uvec4 v_entry[];
 
-// A list's record, one block a stream (transform feedback captures "S<k>.position_scale", "S<k>.fields").
-layout(stream = 0) out S0 { vec4 position_scale; flat uvec4 fields; } s0;
-layout(stream = 1) out S1 { vec4 position_scale; flat uvec4 fields; } s1;
-layout(stream = 2) out S2 { vec4 position_scale; flat uvec4 fields; } s2;
-layout(stream = 3) out S3 { vec4 position_scale; flat uvec4 fields; } s3;
+// A list's entry, one block a stream (transform feedback captures "S<k>.entry").
+layout(stream = 0) out S0 { flat uint entry; } s0;
+layout(stream = 1) out S1 { flat uint entry; } s1;
+layout(stream = 2) out S2 { flat uint entry; } s2;
+layout(stream = 3) out S3 { flat uint entry; } s3;
 
-// The record on stream `k`, through block `out_block`, where the agent is in that list; the tint's
-// alpha byte that list's fade code.
+// The entry on stream `k`, through block `out_block`, where the agent is in that list.
 // (one line: GLSL 4.10 has no line continuation, which came with 4.20)
-#define EMIT(out_block, k) if (v_emit[0][k] != 0) { out_block.position_scale = v_position_scale[0]; out_block.fields = uvec4(v_fields[0].x, v_tint[0][k], v_fields[0].zw); EmitStreamVertex(k); }
+#define EMIT(out_block, k) if (v_emit[0][k] != 0) { out_block.entry = v_entry[0][k]; EmitStreamVertex(k); }
 
 #include "feedback_streams.glsl"

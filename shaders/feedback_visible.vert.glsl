@@ -1,7 +1,7 @@
 #version 410 core
 // Each agent's visibility for the weapons' feedback cull (crowd/draw/feedback_cull.py), the compute cull's
 // `visible` word: bits 0-15 1 + its colour LOD (0: culled, or drawn as its impostor alone, which holds
-// its weapon); bit 16 + k where it is in shadow cascade k's volume, with its shadow LOD in bits 20-23.
+// its weapon); bit 16 + k where it is in shadow cascade k's volume, with its shadow LOD in bits 20-27.
 // One point per agent, into its own texel (agent i at (i % width, i / width)) of an R32UI texture.
 in vec4 in_position_scale;
 

@@ -5,12 +5,11 @@
 // shows that clip's two atlas frames around the phase, each from the two baked views around the
 // direction it is seen from, relative to the agent's heading, at the nearest baked elevation.
 in vec2 in_corner;          // the quad's corner, (0 or 1, 0 or 1): its place in a cell
-in vec4 i_position_scale;   // as skin.vert.glsl's
-in uvec3 i_packed;
 
 uniform mat4 u_view_proj;   // camera-relative
 #include "palette.glsl"
 #include "vertex_packing.glsl"
+#include "agent_instance.glsl"
 
 uniform sampler2D u_impostor_clips;  // (clips, 2): row 0 (first frame, frames, loop, 0), row 1 the clip's box
 uniform int u_key_offset;   // texels from an agent's key (its first texel) to its joint 0
@@ -34,9 +33,10 @@ flat out uint v_fade;       // lod_fade.glsl's code
 #endif
 
 void main() {
-    vec2 heading = heading_cos_sin(i_packed.z);
-    float scale = i_position_scale.w;
-    vec4 key = texelFetch(u_palette0, palette_texel(i_packed.x) - ivec3(u_key_offset, 0, 0), 0);
+    Agent agent = instance_agent();
+    vec2 heading = heading_cos_sin(agent.heading);
+    float scale = agent.position_scale.w;
+    vec4 key = texelFetch(u_palette0, palette_texel(agent.texel) - ivec3(u_key_offset, 0, 0), 0);
     int clip = max(int(key.x), 0);  // -1, the rest pose: the first clip's first frame
     vec4 frames = texelFetch(u_impostor_clips, ivec2(clip, 0), 0);
     vec4 box = texelFetch(u_impostor_clips, ivec2(clip, 1), 0) * scale;  // half width, bottom, height, depth half-range
@@ -56,7 +56,7 @@ void main() {
 #ifdef DEPTH_ONLY
     vec3 toward = u_toward_light;
 #else
-    vec3 toward = normalize(-(i_position_scale.xyz + vec3(0.0, box.y + 0.5 * box.z, 0.0)));
+    vec3 toward = normalize(-(agent.position_scale.xyz + vec3(0.0, box.y + 0.5 * box.z, 0.0)));
 #endif
     // The direction seen from, in the agent's frame (its heading turned back).
     vec3 m = turn_about_y(vec2(heading.x, -heading.y), toward);
@@ -79,14 +79,14 @@ void main() {
     vec3 right = vec3(toward.z, 0.0, -toward.x);
     right = dot(right, right) > 1e-8 ? normalize(right) : vec3(1.0, 0.0, 0.0);
     vec3 up = cross(toward, right);
-    vec3 world = i_position_scale.xyz + right * ((2.0 * in_corner.x - 1.0) * box.x) + up * (box.y + in_corner.y * box.z);
+    vec3 world = agent.position_scale.xyz + right * ((2.0 * in_corner.x - 1.0) * box.x) + up * (box.y + in_corner.y * box.z);
     gl_Position = u_view_proj * vec4(world, 1.0);
 #ifndef DEPTH_ONLY
     v_world = world;
     v_toward = toward;
     v_depth_range = box.w;
     v_heading = heading;
-    v_tint = unpack_rgba8(i_packed.y);
-    v_fade = i_packed.y >> 24;
+    v_tint = agent.tint;
+    v_fade = agent.fade;
 #endif
 }

@@ -1,6 +1,6 @@
 // LOD cross-fades (crowd/draw/render.py, LOD_FADE): an agent within a fade band past a LOD switch is drawn
 // at both LODs, and each copy keeps the pixels the other leaves, by a screen-space dither. The band's
-// code rides in the alpha byte of the copy's tint (the tint's own alpha is not drawn): 255 for no fade;
+// code rides in the top byte of the copy's list entry (shaders/agent_instance.glsl): 255 for no fade;
 // else bit 7 says which side (0: the finer LOD, fading out; 1: the coarser, fading in) and bits 0-6 how
 // far through the band the agent is (0 at the switch, 127 at its end).
 float fade_dither(vec2 pixel) {  // interleaved gradient noise (Jimenez 2014): even over any small block of pixels

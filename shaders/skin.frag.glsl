@@ -1,13 +1,16 @@
 #version 330 core
 // Shared by the crowd, the weapons and the Panda3D peer of crowd-bench peers (panda_actor.vert.glsl).
-// TEXTURED: the base colour times a layer of the crowd's texture array (crowd/draw/materials.py).
+// TEXTURED: the base colour times a layer of one of the crowd's texture arrays (crowd/draw/materials.py).
 #include "lighting.glsl"
 in vec3 v_world;
 in vec3 v_normal;
 in vec4 v_color;
 #ifdef TEXTURED
 in vec2 v_uv;
-uniform sampler2DArray u_albedo;  // linear RGBA16F; wrap and filter from the piece's sampler object
+uniform sampler2DArray u_albedo;  // sRGB BC1 or linear RGBA16F, read as linear light; wrap and filter from the piece's sampler object
+uniform sampler2DArray u_albedo_coarse;  // a BC1 array's coarser mip levels in RGBA16F, the same layers
+uniform float u_coarse_lod;       // the level of detail from which u_albedo_coarse is read (1e9: never)
+uniform vec2 u_albedo_size;       // u_albedo's texels, for the level of detail
 uniform float u_layer;
 uniform vec2 u_uv_mirror;         // 1 where the wrap is MIRRORED_REPEAT (the sampler itself repeats)
 #endif
@@ -34,7 +37,17 @@ void main() {
     // Fold mirrored axes by hand; the unfolded coordinate's derivatives keep the mip level smooth
     // across the fold.
     vec2 folded = mix(v_uv, 1.0 - abs(mod(v_uv, 2.0) - 1.0), u_uv_mirror);
-    albedo *= textureGrad(u_albedo, vec3(folded, u_layer), dFdx(v_uv), dFdy(v_uv)).rgb;
+    vec2 du = dFdx(v_uv), dv = dFdy(v_uv);
+    vec3 at = vec3(folded, u_layer);
+    // GL's level of detail (the longer footprint's log2); the coarse array's level 0 is level
+    // u_coarse_lod, blended in over the level before it as trilinear filtering blends two levels.
+    vec2 fx = du * u_albedo_size, fy = dv * u_albedo_size;
+    float lod = 0.5 * log2(max(max(dot(fx, fx), dot(fy, fy)), 1e-20));
+    float coarse = clamp(lod - u_coarse_lod + 1.0, 0.0, 1.0);
+    vec3 texel = vec3(0.0);
+    if (coarse < 1.0) texel = textureGrad(u_albedo, at, du, dv).rgb;
+    if (coarse > 0.0) texel = mix(texel, textureGrad(u_albedo_coarse, at, du, dv).rgb, coarse);
+    albedo *= texel;
 #endif
 #ifdef IMPOSTOR_BAKE
     o_color = vec4(albedo, 1.0);

@@ -44,12 +44,10 @@ in vec3 in_position;   // bind space
 in uvec4 in_packed;    // x: normal, snorm10 x3 | y: joints, 4 x u8 (by descending weight)
                        // z: weights 1-3 as unorm10 of 2w (weight 0 = 1 - the rest) | w: colour, RGBA8
 
-in vec4 i_position_scale;  // agent origin relative to the camera (float64 on the CPU, then float32), uniform scale
-in uvec3 i_packed;         // x: palette texel code of joint 0 (palette.glsl) | y: tint, RGBA8 | z: cos, sin of the heading, snorm16 x2
-
 uniform mat4 u_view_proj;  // camera-relative: the camera sits at the origin
 #include "palette.glsl"
 #include "vertex_packing.glsl"
+#include "agent_instance.glsl"
 
 #ifdef MORPH
 // The vertex table (per vertex: the first entry of its block of deltas, -1: no target moves it) and the
@@ -131,7 +129,7 @@ out vec3 v_world;      // camera-relative
 out vec3 v_normal;
 out vec4 v_color;
 #ifdef LOD_FADE
-flat out uint v_fade;  // lod_fade.glsl's code, from the tint's alpha byte
+flat out uint v_fade;  // lod_fade.glsl's code, from the list entry
 #endif
 #endif
 #ifdef IMPOSTOR_BAKE
@@ -160,6 +158,7 @@ vec4 bake_position(vec3 p) {
 
 
 void main() {
+    Agent agent = instance_agent();
 #if defined(TEXTURED) && !defined(WIDE_UV)
     vec3 position = uintBitsToFloat(in_position.xyz);
 #else
@@ -170,7 +169,7 @@ void main() {
     vec3 skinned = position;
     vec3 normal = bind_normal;
 #else
-    ivec3 base = palette_texel(i_packed.x);  // an agent's joints sit side by side in one row of one layer
+    ivec3 base = palette_texel(agent.texel);  // an agent's joints sit side by side in one row of one layer
 #ifdef MORPH
     morph(base, position, bind_normal);
 #endif
@@ -196,8 +195,8 @@ void main() {
     vec3 skinned = vec3(dot(r0, p), dot(r1, p), dot(r2, p));
     vec3 normal = vec3(dot(r0.xyz, bind_normal), dot(r1.xyz, bind_normal), dot(r2.xyz, bind_normal));
 #endif
-    vec2 heading = heading_cos_sin(i_packed.z);
-    vec3 world = i_position_scale.xyz + i_position_scale.w * turn_about_y(heading, skinned);
+    vec2 heading = heading_cos_sin(agent.heading);
+    vec3 world = agent.position_scale.xyz + agent.position_scale.w * turn_about_y(heading, skinned);
 #ifdef IMPOSTOR_BAKE
     gl_Position = bake_position(world);
 #else
@@ -206,9 +205,9 @@ void main() {
 #ifndef DEPTH_ONLY
     v_world = world;
     v_normal = turn_about_y(heading, normal);
-    v_color = unpack_rgba8(in_packed.w) * unpack_rgba8(i_packed.y);
+    v_color = unpack_rgba8(in_packed.w) * agent.tint;
 #ifdef LOD_FADE
-    v_fade = i_packed.y >> 24;
+    v_fade = agent.fade;
 #endif
 #endif
 #if defined(TEXTURED) && defined(WIDE_UV) && !defined(DEPTH_ONLY)

@@ -23,7 +23,7 @@ uniform uint u_shadow;     // 0: the colour pass's weapons (agents drawn); 1 + k
 uniform uint u_list_base;  // entries before this run's lists (a cascade's: k * lods * u_count)
 uniform uint u_command_base;  // commands before this run's
 uniform uint u_lod_count;  // LODs per weapon
-uniform uint u_start[16];
+uniform uint u_start[WEAPONS];  // (a define: the cast's weapon meshes) each weapon's first entry in its LOD's lists
 
 void main() {
     uint k = gl_GlobalInvocationID.x;
@@ -31,7 +31,7 @@ void main() {
     uvec2 o = owner[k];
     uint v = visible[o.x];
     if ((v & (u_shadow == 0u ? 0xFFFFu : 0x8000u << u_shadow)) == 0u) return;  // bit 16 + k: in cascade k's volume
-    uint lod = min(u_shadow == 0u ? (v & 0xFFFFu) - 1u : (v >> 20) & 15u, u_lod_count - 1u);
+    uint lod = min(u_shadow == 0u ? (v & 0xFFFFu) - 1u : (v >> 20) & 255u, u_lod_count - 1u);
     uint slot = atomicAdd(commands[(u_command_base + o.y * u_lod_count + lod) * 5u + 1u], 1u);
     Record a = agents[o.x];
     shown[u_list_base + lod * u_count + u_start[o.y] + slot] = Shown(placed[k], a.position_scale, a.fields);

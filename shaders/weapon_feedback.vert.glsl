@@ -32,7 +32,7 @@ void main() {
     for (int s = 0; s < 4; ++s) {
         uint pass = uint(max(u_slot_pass[s], 0));
         bool shown = u_slot_pass[s] >= 0 && (v & (pass == 0u ? 0xFFFFu : 0x8000u << pass)) != 0u;  // bit 16 + k: in cascade k's volume
-        uint lod = min(pass == 0u ? (v & 0xFFFFu) - 1u : (v >> 20) & 15u, u_lod_count - 1u);
+        uint lod = min(pass == 0u ? (v & 0xFFFFu) - 1u : (v >> 20) & 255u, u_lod_count - 1u);
         v_emit[s] = int(shown && i_fields.y == u_slot_weapon[s] && lod == u_slot_lod[s]);
     }
     v_row0 = i_row0;

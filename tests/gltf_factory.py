@@ -324,3 +324,216 @@ def expected_extra_skinning(extra: dict, key: int, armature_scale=1.0, armature_
     for k in range(4):
         out += extra["weights"][:, k, None] * np.einsum("vij,vj->vi", skin[extra["vertex_joints"][:, k]], p)[:, :3]
     return out
+
+
+# -- modular characters: many pieces on one skeleton (issue 40, point 1: merging, and the cull's extremes)
+
+PART_HALF = 0.035  # half the side of a piece's box, metres
+MODULAR_COLOURS = np.array([[0.80, 0.20, 0.15, 1.0], [0.15, 0.55, 0.25, 1.0], [0.20, 0.30, 0.80, 1.0], [0.85, 0.75, 0.20, 1.0],
+                            [0.55, 0.25, 0.65, 1.0], [0.90, 0.55, 0.35, 1.0], [0.35, 0.75, 0.80, 1.0], [0.25, 0.20, 0.15, 1.0]])
+
+
+def modular_gltf(folder: Path, pieces: int = 40, joints: int = 32, materials: int = 6, apart: str | None = None,
+                 groups: dict[str, int] | None = None, primitives_per_mesh: int = 1, lods: int = 1,
+                 name: str = "modular.gltf") -> Path:
+    """Writes a valid skinned glTF (buffers as a data URI) of a modular character: `pieces` skinned
+    primitives at each LOD on one skeleton, each a small box on its own joint (spread over the whole
+    figure, so a picture shows every piece), and returns its path.
+
+    - `joints`: the skeleton (at least 2): a root at the hips and five chains from it (spine to the head,
+      two arms, two legs) sharing the other joints, the figure about 1.8 m tall, standing on y = 0.
+    - `materials`: how many distinct flat materials (base colour factors, no texture) the pieces cycle
+      through; 0 gives them none. Pieces that differ only so share one draw once merged.
+    - `apart`: what keeps pieces from sharing a draw. None: nothing (the common pieces merge into one draw
+      a LOD, each variation choice's primitives into one). "texture": each primitive its own material with
+      its own 4x4 PNG (the same across its LODs; the importer takes at most 256 images). "morph": each mesh
+      its own morph target set (one target, "<piece>.swell", at every LOD of the piece; the "Idle" clip keys
+      its weight), so each mesh is its own draw and the primitives of one mesh share theirs.
+      With "texture", or "morph" and one primitive a mesh, every primitive is its own draw: `pieces`
+      draws a LOD reach the renderer.
+    - `groups`: variation groups, group name → number of choices ({"head": 3}: pieces "head_a" ..
+      "head_c", written as extras.crowd {"group": "head", "piece": "head_b"}); each choice is one mesh of
+      `primitives_per_mesh` primitives, counted in `pieces`; the rest of `pieces` are worn by every agent.
+    - `primitives_per_mesh`: primitives each glTF mesh holds (the last common mesh may hold fewer); a
+      mesh's primitives are one piece (extras.crowd.piece "part<k>").
+    - `lods`: LODs written, each mesh again with extras.crowd.lod k and coarser shapes (LOD0 a box of 12
+      triangles, LOD1 a pyramid of 6, coarser a tetrahedron of 4).
+    Clips: "Idle" (every joint sways about z, looping; with apart="morph" the targets swell and back) and
+    "Walk" (the limbs swing about x)."""
+    from io import BytesIO
+
+    from PIL import Image
+
+    groups = dict(groups or {})
+    choice_primitives = sum(groups.values()) * primitives_per_mesh
+    if joints < 2 or pieces < 1 or choice_primitives > pieces or primitives_per_mesh < 1 or lods < 1 or apart not in (None, "texture", "morph"):
+        raise ValueError("modular_gltf: joints >= 2, 1 <= pieces, groups' primitives within pieces, primitives_per_mesh >= 1, "
+                         "lods >= 1, apart None, 'texture' or 'morph'")
+    blob = bytearray()
+    views, accessors = [], []
+
+    def add(arr: np.ndarray, ctype: int, kind: str, minmax=False, target=None) -> int:
+        while len(blob) % 4:
+            blob.append(0)
+        views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": arr.nbytes, **({"target": target} if target else {})})
+        blob.extend(np.ascontiguousarray(arr).tobytes())
+        acc = {"bufferView": len(views) - 1, "componentType": ctype, "count": int(arr.shape[0]), "type": kind}
+        if minmax:
+            flat = arr.reshape(len(arr), -1)
+            acc["min"], acc["max"] = flat.min(0).tolist(), flat.max(0).tolist()
+        accessors.append(acc)
+        return len(accessors) - 1
+
+    # The skeleton: joint 0 the root; chain c's joints evenly from its start to its end, the first a child of the root.
+    chains = [((0.0, 1.08, 0.0), (0.0, 1.72, 0.0)), ((0.2, 1.45, 0.0), (0.8, 1.45, 0.0)), ((-0.2, 1.45, 0.0), (-0.8, 1.45, 0.0)),
+              ((0.14, 0.85, 0.0), (0.14, 0.08, 0.0)), ((-0.14, 0.85, 0.0), (-0.14, 0.08, 0.0))]
+    world, parent, chain_of = [np.array([0.0, 0.95, 0.0])], [-1], [-1]
+    for c, (start, end) in enumerate(chains):
+        n = (joints - 1) // 5 + (1 if c < (joints - 1) % 5 else 0)
+        for k in range(n):
+            world.append(np.array(start) + (np.array(end) - np.array(start)) * (k / (n - 1) if n > 1 else 0.0))
+            parent.append(0 if k == 0 else len(world) - 2)
+            chain_of.append(c)
+    world = np.array(world)
+    nodes = [{"name": "Armature", "children": [1]}]
+    for j in range(joints):
+        local = world[j] - (world[parent[j]] if parent[j] >= 0 else 0.0)
+        node = {"name": "root" if j == 0 else f"joint{j}", "translation": local.tolist()}
+        children = [1 + i for i in range(joints) if parent[i] == j]
+        if children:
+            node["children"] = children
+        nodes.append(node)
+    ibm = np.tile(np.eye(4), (joints, 1, 1))
+    ibm[:, :3, 3] = -world
+    ibm_acc = add(np.transpose(ibm, (0, 2, 1)).astype(np.float32).reshape(joints, 16), 5126, "MAT4")
+
+    # Where each primitive sits: spread over the joints, those sharing a joint on a ring about it, across
+    # its chain (the arms' rings stand upright), so that no two boxes touch.
+    on_joint = [i % joints if pieces >= joints else i * joints // pieces for i in range(pieces)]
+    centres = []
+    for i in range(pieces):
+        j = on_joint[i]
+        count = pieces // joints + (1 if j < pieces % joints else 0) if pieces >= joints else 1
+        angle = 2 * np.pi * (i // joints) / count
+        ring = [0.0, np.cos(angle), np.sin(angle)] if chain_of[j] in (1, 2) else [np.cos(angle), 0.0, np.sin(angle)]
+        centres.append(world[j] + (0.075 * np.array(ring) if count > 1 else 0.0))
+
+    images, textures, samplers, mats = [], [], [], []
+    if apart == "texture":
+        samplers.append({"magFilter": 9728, "minFilter": 9728})
+        for i in range(pieces):
+            a, b = MODULAR_COLOURS[i % len(MODULAR_COLOURS)], MODULAR_COLOURS[(i * 3 + 1) % len(MODULAR_COLOURS)]
+            check = np.where(((np.arange(4)[:, None] + np.arange(4)[None, :] + i) % 2)[..., None] == 0, a, b)
+            png = BytesIO()
+            Image.fromarray((check * 255).round().astype(np.uint8), "RGBA").save(png, format="PNG")
+            data = np.frombuffer(png.getvalue(), np.uint8)
+            while len(blob) % 4:
+                blob.append(0)
+            views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": len(data)})
+            blob.extend(data.tobytes())
+            images.append({"bufferView": len(views) - 1, "mimeType": "image/png", "name": f"part{i}"})
+            textures.append({"source": i, "sampler": 0})
+            mats.append({"name": f"textured{i}", "pbrMetallicRoughness": {"baseColorTexture": {"index": i}}})
+    else:
+        mats = [{"name": f"flat{m}", "pbrMetallicRoughness": {"baseColorFactor": MODULAR_COLOURS[m % len(MODULAR_COLOURS)].tolist()}}
+                for m in range(materials)]
+
+    # The meshes: the common pieces (primitives_per_mesh each), then each group's choices.
+    units = []  # (piece, group, its primitives' indices)
+    common = pieces - choice_primitives
+    for u, first in enumerate(range(0, common, primitives_per_mesh)):
+        units.append((f"part{u}", "", list(range(first, min(first + primitives_per_mesh, common)))))
+    first = common
+    for group, choices in groups.items():
+        for c in range(choices):
+            units.append((f"{group}_{chr(ord('a') + c)}", group, list(range(first, first + primitives_per_mesh))))
+            first += primitives_per_mesh
+    meshes, mesh_nodes = [], []
+    for lod in range(lods):
+        for piece, group, parts in units:
+            prims = []
+            for i in parts:
+                pos, nrm, uv, idx = _part_shape(centres[i], lod)
+                j = on_joint[i]
+                vj = np.tile([j, max(parent[j], 0), 0, 0], (len(pos), 1)).astype(np.uint8)
+                vw = np.tile([0.8, 0.2, 0.0, 0.0] if parent[j] >= 0 else [1.0, 0.0, 0.0, 0.0], (len(pos), 1)).astype(np.float32)
+                attributes = {"POSITION": add(pos, 5126, "VEC3", minmax=True, target=34962), "NORMAL": add(nrm, 5126, "VEC3", target=34962),
+                              "JOINTS_0": add(vj, 5121, "VEC4", target=34962), "WEIGHTS_0": add(vw, 5126, "VEC4", target=34962)}
+                prim = {"attributes": attributes, "indices": add(idx, 5123, "SCALAR", target=34963)}
+                if apart == "texture":
+                    attributes["TEXCOORD_0"] = add(uv, 5126, "VEC2", target=34962)
+                    prim["material"] = i
+                elif mats:
+                    prim["material"] = i % len(mats)
+                if apart == "morph":
+                    prim["targets"] = [{"POSITION": add(((pos - centres[i]) * 0.5).astype(np.float32), 5126, "VEC3", minmax=True, target=34962)}]
+                prims.append(prim)
+            crowd = {"piece": piece, "lod": lod, **({"group": group} if group else {})}
+            mesh = {"name": f"{piece}_lod{lod}", "primitives": prims, "extras": {"crowd": crowd}}
+            if apart == "morph":
+                mesh["extras"]["targetNames"] = [f"{piece}.swell"]
+                mesh["weights"] = [0.0]
+            meshes.append(mesh)
+            nodes.append({"name": mesh["name"], "mesh": len(meshes) - 1, "skin": 0})
+            mesh_nodes.append(len(nodes) - 1)
+
+    # The clips.
+    sway_t = add(np.array([0.0, 0.5, 1.0], np.float32), 5126, "SCALAR", minmax=True)
+    walk_t = add(np.array([0.0, 0.25, 0.5, 0.75, 1.0], np.float32), 5126, "SCALAR", minmax=True)
+    idle, walk = {"name": "Idle", "samplers": [], "channels": []}, {"name": "Walk", "samplers": [], "channels": []}
+    for j in range(joints):
+        keys = tf.quat_from_axis_angle([0.0, 0.0, 1.0], np.array([0.0, 0.12 * np.sin(j + 1.0), 0.0]))
+        idle["samplers"].append({"input": sway_t, "output": add(keys.astype(np.float32), 5126, "VEC4")})
+        idle["channels"].append({"sampler": len(idle["samplers"]) - 1, "target": {"node": 1 + j, "path": "rotation"}})
+        if j and parent[j] == 0 and chain_of[j] > 0:  # the first joint of a limb
+            swing = 0.4 * (1 if chain_of[j] in (1, 4) else -1)
+            keys = tf.quat_from_axis_angle([1.0, 0.0, 0.0], np.array([0.0, swing, 0.0, -swing, 0.0]))
+            walk["samplers"].append({"input": walk_t, "output": add(keys.astype(np.float32), 5126, "VEC4")})
+            walk["channels"].append({"sampler": len(walk["samplers"]) - 1, "target": {"node": 1 + j, "path": "rotation"}})
+    if apart == "morph":
+        swell = add(np.array([[0.0], [1.0], [0.0]], np.float32), 5126, "SCALAR")
+        idle["samplers"].append({"input": sway_t, "output": swell})
+        for n in mesh_nodes:
+            idle["channels"].append({"sampler": len(idle["samplers"]) - 1, "target": {"node": n, "path": "weights"}})
+    animations = [idle] + ([walk] if walk["channels"] else [])
+
+    doc = {"asset": {"version": "2.0", "generator": "tests/gltf_factory.py modular_gltf"}, "scene": 0,
+           "scenes": [{"nodes": [0, *mesh_nodes]}], "nodes": nodes, "meshes": meshes,
+           "skins": [{"joints": list(range(1, joints + 1)), "inverseBindMatrices": ibm_acc, "skeleton": 1}],
+           "animations": animations, "accessors": accessors, "bufferViews": views}
+    for key, value in (("materials", mats), ("textures", textures), ("images", images), ("samplers", samplers)):
+        if value:
+            doc[key] = value
+    doc["buffers"] = [{"byteLength": len(blob), "uri": "data:application/octet-stream;base64," + base64.b64encode(bytes(blob)).decode()}]
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / name
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def _part_shape(centre: np.ndarray, lod: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(positions, normals, uvs, uint16 indices) of one piece at `lod`, flat-shaded: a box at LOD0, a
+    pyramid at LOD1, a tetrahedron beyond; each triangle's corners take uvs (0, 0), (1, 0), (1, 1)."""
+    h = PART_HALF
+    corners = np.array([[x, y, z] for x in (-h, h) for y in (-h, h) for z in (-h, h)])
+    if lod == 0:
+        quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+        faces = [(q[0], q[1], q[2]) for q in quads] + [(q[0], q[2], q[3]) for q in quads]
+        points = corners
+    elif lod == 1:
+        points = np.array([[-h, -h, -h], [h, -h, -h], [h, -h, h], [-h, -h, h], [0.0, h, 0.0]])
+        faces = [(0, 1, 2), (0, 2, 3), (0, 4, 1), (1, 4, 2), (2, 4, 3), (3, 4, 0)]
+    else:
+        points = np.array([[-h, -h, -h], [h, -h, h], [-h, h, h], [h, h, -h]])
+        faces = [(0, 1, 2), (0, 3, 1), (0, 2, 3), (1, 3, 2)]
+    tri = points[np.array(faces)]  # (T, 3, 3)
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    outward = np.sign(np.sum(normal * tri.mean(axis=1), axis=1))[:, None]  # (each shape holds its centre) -1: wound inward, flipped
+    tri = np.where(outward[..., None] < 0, tri[:, ::-1], tri)
+    normal = normal * outward
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    positions = (tri.reshape(-1, 3) + centre).astype(np.float32)
+    normals = np.repeat(normal, 3, axis=0).astype(np.float32)
+    uvs = np.tile([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]], (len(faces), 1)).astype(np.float32)
+    return positions, normals, uvs, np.arange(len(positions), dtype=np.uint16)

@@ -58,7 +58,7 @@ def test_counts_sum_to_the_crowd_and_stay_within_one_agent_of_each_share(agents,
     assert counts == cast_counts(agents, shares)  # one rule, the same answer
 
 
-@pytest.mark.parametrize("shares", [[], [0.0], [-1.0, 1.0], [float("nan")], [float("inf")], [1.0] * 17])
+@pytest.mark.parametrize("shares", [[], [0.0], [-1.0, 1.0], [float("nan")], [float("inf")], [1.0] * 257])
 def test_bad_shares_are_refused_in_one_line(shares):
     with pytest.raises(FrameError) as info:
         cast_counts(10, shares)
@@ -159,7 +159,8 @@ def _mixed_instances(counts, rng, spread=30.0):
 def test_gpu_and_cpu_culls_put_each_character_in_its_own_draws(gl_context, cast):
     if not has_compute(gl_context):
         pytest.skip("no GL 4.3 here")
-    from crowd.draw.render import INSTANCE_DTYPE, CrowdRenderer
+    from crowd.draw.cull_lists import entry_agents
+    from crowd.draw.render import CrowdRenderer
     from crowd.frame import Camera
 
     characters = [c for c, _, _ in cast]
@@ -174,18 +175,11 @@ def test_gpu_and_cpu_culls_put_each_character_in_its_own_draws(gl_context, cast)
             lists = []
             if path != "cpu":
                 r.refresh_counts(wait=True)
-            if path == "gpu":
-                records = np.frombuffer(r.gpu.lists.read(), INSTANCE_DTYPE)
             for d, draw in enumerate(r.draws):
-                if path == "gpu":
-                    assert r.gpu.list_of(d)[1] == counts[draw.character]
-                    chosen = records[r.gpu.drawn_records(d, draw.count)]
-                elif path == "feedback":  # (a list of its own per (character, LOD, choice), as long as its character's agents)
-                    assert r.feedback.list_buffer(d).size == counts[draw.character] * INSTANCE_DTYPE.itemsize
-                    chosen = np.frombuffer(r.feedback.list_buffer(d).read(), INSTANCE_DTYPE)[:draw.count]
-                else:
-                    chosen = np.frombuffer(draw.instances.read(), INSTANCE_DTYPE)[:draw.count] if draw.count else np.zeros(0, INSTANCE_DTYPE)
-                agents = r.palette.agents_at(chosen["packed"][:, 0] & 0xFFF, chosen["packed"][:, 0] >> 12)
+                if path == "feedback":  # (a list of its own per (character, LOD, choice), as long as its character's agents)
+                    assert r.feedback.list_buffer(d).size == counts[draw.character] * 4
+                agents = entry_agents(r.listed(d))[0]
+                assert len(agents) == draw.count
                 block = cast_firsts(counts)[draw.character:draw.character + 2]
                 assert np.all((agents >= block[0]) & (agents < block[1])), (path, draw.piece)  # only its own character's agents
                 lists.append((draw.character, draw.piece, draw.lod, frozenset(agents.tolist())))
@@ -329,7 +323,7 @@ model_scale = 1.0
     ('[scene]\nmodel = "brute"\n[[characters]]\nmodel = "zombie"\n', "with [[characters]]"),
     ('characters = 5\n', "array of tables"),
     ('[[characters]]\nmodel = "zombie"\nroles = { fly = "x" }\n', "unknown role 'fly'"),
-    ("".join('[[characters]]\nmodel = "zombie"\n' for _ in range(17)), "at most 16"),
+    ("".join('[[characters]]\nmodel = "zombie"\n' for _ in range(257)), "at most 256"),
 ])
 def test_a_bad_cast_is_one_line_naming_the_file_and_the_entry(tmp_path, text, words):
     path = tmp_path / "bad.toml"
@@ -359,3 +353,26 @@ def test_the_characters_flag(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "app.demo", "--headless", "--characters", "zombie=1,nowhere.glb=2"],
                          capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "nowhere.glb" in bad.stderr
+
+
+@pytest.mark.parametrize("cull", ["gpu", "feedback"])
+def test_a_cast_of_many_armed_characters_draws_every_weapon_on_the_gpu_paths(gl_context, cull):
+    """Nine zombies and nine brutes: 27 weapon meshes, more than the 16 the GPU path once listed, each
+    drawn in its own character's hand, as the CPU path draws them."""
+    if cull == "gpu" and not has_compute(gl_context):
+        pytest.skip("no GL 4.3 here")
+    cast = tuple(CharacterSpec(model, 1.0) for model in ("zombie", "brute") * 9)
+    drawn = {}
+    for path in ("cpu", cull):
+        config = PipelineConfig(agents=360, seed=6, characters=cast, cull=path, gl="4.1" if path == "feedback" else "auto",
+                                ai=AIConfig(armed_share=1.0), survivor=False, impostors="off")
+        with Offscreen(gl_context, (160, 90)) as target, CrowdPipeline(gl_context, config) as p:
+            assert len(p.weapons.names) == 27
+            p.camera = p.overview_camera(16 / 9)
+            for _ in range(4):
+                p.frame(target.framebuffer, 1 / 30)
+            p.refresh_counts()
+            drawn[path] = (sorted(m["count"] for m in p.weapons._meshes), target.image())
+            assert p.weapon_error_mm() < 0.05
+    assert drawn["cpu"][0] == drawn[cull][0] and sum(drawn["cpu"][0]) > 100
+    assert np.array_equal(drawn["cpu"][1], drawn[cull][1])

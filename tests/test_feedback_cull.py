@@ -10,12 +10,13 @@ import pytest
 
 from crowd.anim.bake import bake
 from crowd.anim.processor import AnimationProcessor
-from crowd.draw.render import INSTANCE_DTYPE, CrowdRenderer, RenderError
+from crowd.draw.cull_lists import entry_agents
+from crowd.draw.render import CrowdRenderer, RenderError
 from crowd.frame import Camera, Instances
 from crowd.pipeline import CrowdPipeline, PipelineConfig
 from crowd.smoke import run_headless
 from crowd.stages import cull_path
-from test_gpu_cull import BOUNDARY_M, LOD_DISTANCES, _cpu_list, _doubtful, _listed_agents, cascade_slack, crowd, reference
+from test_gpu_cull import BOUNDARY_M, LOD_DISTANCES, _doubtful, _lists, cascade_slack, crowd, reference
 
 SIZE = (320, 180)
 FADE_M = 3.0
@@ -43,15 +44,10 @@ def _prepared(renderers, camera, seed: int, agents: int):
     return instances
 
 
-def _codes(renderer, records) -> dict:
-    """{agent: the fade code its record carries in its tint's alpha byte} of a list's records."""
-    texel = records["packed"][:, 0]
-    agents = renderer.palette.agents_at(texel & 0xFFF, texel >> 12)
-    return dict(zip(agents.tolist(), (records["packed"][:, 1] >> 24).tolist()))
-
-
-def _feedback_list(renderer, k, count, cascade=None):
-    return np.frombuffer(renderer.feedback.list_buffer(k, cascade).read(), INSTANCE_DTYPE)[:count]
+def _codes(renderer, k: int) -> dict:
+    """{agent: the fade code of its entry} of draw k's list in the view's pass."""
+    agents, codes = entry_agents(renderer.listed(k))
+    return dict(zip(agents.tolist(), codes.tolist()))
 
 
 def _doubtful_with_fades(instances, renderer, camera) -> set:
@@ -72,10 +68,9 @@ def test_each_list_holds_the_cpu_paths_agents_with_their_fade_codes(renderers, s
     doubtful = _doubtful_with_fades(instances, fb, camera)
     total = fading = 0
     for k, draw in enumerate(cpu.draws):
-        on_cpu = _codes(cpu, np.frombuffer(draw.instances.read(), INSTANCE_DTYPE)[: draw.count]) if draw.count else {}
-        listed = _feedback_list(fb, k, int(counts[k]))
-        on_gpu = _codes(fb, listed)
-        assert len(on_gpu) == len(listed)  # no agent twice in a list
+        on_cpu = _codes(cpu, k)
+        on_gpu = _codes(fb, k)
+        assert len(on_gpu) == int(counts[k])  # no agent twice in a list
         keep = lambda codes: {a: c for a, c in codes.items() if a not in doubtful}  # noqa: E731
         assert keep(on_cpu) == keep(on_gpu), (draw.piece, draw.lod)
         total += len(on_cpu)
@@ -89,14 +84,11 @@ def test_shadow_lists_hold_the_cpu_paths_agents(renderers):
     camera = Camera(eye=np.array([0.0, 12.0, 30.0]), target=np.zeros(3), aspect=16 / 9)
     instances = _prepared(renderers, camera, 5, 4000)
     cpu, fb = renderers["cpu"], renderers["feedback"]
-    counts = fb.feedback.shadow_counts(wait=True)
     casting = []
     for cascade, dist, slack in cascade_slack(fb, camera, instances):
         doubtful = _doubtful(slack, dist)
         found = 0
-        for k, draw in enumerate(cpu.draws):
-            on_cpu = _cpu_list(cpu, k, draw.shadow_instances[cascade], draw.shadow_counts[cascade])
-            on_gpu = _listed_agents(fb, k, _feedback_list(fb, k, int(counts[cascade][k]), cascade))
+        for k, (draw, on_cpu, on_gpu) in enumerate(zip(cpu.draws, _lists(cpu, cascade), _lists(fb, cascade))):
             assert on_cpu - doubtful == on_gpu - doubtful, (cascade, draw.piece, draw.lod)
             found += len(on_gpu)
         casting.append(found)
@@ -133,10 +125,10 @@ def test_every_agent_of_a_big_list_is_counted_exactly(gl_context, zombie):
         r.prepare(Camera(eye=np.array([0.0, 5.0, 80.0]), target=np.zeros(3)), instances)
         counts = r.feedback.counts(wait=True)
         for k, draw in enumerate(r.draws):
-            want = n if r._piece_group[0][draw.piece] == "" else int(np.sum(heads == r.groups[0]["head"].index(draw.piece)))
+            want = n if draw.group < 0 else int(np.sum(heads == draw.choice))
             assert int(counts[k]) == (want if draw.lod == 0 else 0), (draw.piece, draw.lod)
         body = next(k for k, d in enumerate(r.draws) if d.piece == "body" and d.lod == 0)
-        assert len(_listed_agents(r, body, _feedback_list(r, body, n))) == n
+        assert len(set(entry_agents(r.listed(body))[0].tolist())) == n
         r.refresh_counts(wait=True)
         assert r.last["visible"] == n and r.last["lod_counts"][0] == n
 
@@ -173,19 +165,19 @@ def test_resizing_the_feedback_cull_from_0_to_200000_and_back_leaks_nothing(gl_c
     from test_architecture import gl_census
 
     before = gl_census()
-    with CrowdPipeline(gl_context, PipelineConfig(agents=0, cull="feedback", processor_path="fragment")) as pipeline:
+    with CrowdPipeline(gl_context, PipelineConfig(agents=0, cull="feedback", processor_path="fragment", impostors="off")) as pipeline:
         with Offscreen(gl_context, (64, 64)) as target:
             pipeline.camera = Camera(eye=np.array([0.0, 300.0, 0.0]), target=np.array([0.0, 400.0, 0.1]))  # high, at the sky: all culled
-            fixed = None  # the counts, the commands and a record's worth of each list: what no agents cost
+            fixed = None  # the counts, the commands and an entry's worth of each list: what no agents cost
             for n in (0, 1, 200_000, 0):
                 pipeline.set_agent_count(n)
                 pipeline.frame(target.framebuffer, 1 / 30)
                 gl_context.finish()
                 cull = pipeline.renderer.feedback
-                held = pipeline.renderer.gpu_bytes()["cull"]
-                fixed = held if fixed is None else fixed
-                lists = sum(cull.cast[key.character] for key, _ in cull.slots)
-                assert cull.cast == (n,) and held <= fixed + 33 * (lists + n) + 4 * (n + 2048)
+                held = pipeline.renderer.gpu_bytes()
+                fixed = held["cull"] if fixed is None else fixed
+                assert cull.cast == (n,) and held["lists"] == 4 * sum(max(cull.cast[key.character], 1) for key, _ in cull.slots)
+                assert held["cull"] <= fixed + 4 * n + 4 * (n + 2048)  # the agents' indices, their visibility
                 assert int(cull.counts(wait=True).sum()) == 0
             assert pipeline.renderer.gpu_bytes()["cull"] == fixed < 4 << 20
     assert gl_census() == before

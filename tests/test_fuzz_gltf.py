@@ -39,7 +39,8 @@ from gltf_factory import make_gltf
 from crowd.anim.bake import MAX_ROWS, BakeError, bake
 from crowd.anim.processor import INTERPOLATIONS, reference_palette
 from crowd.asset import gltf
-from crowd.asset.gltf import GltfImportError, load_character
+from crowd.asset.gltf import load_character
+from crowd.asset.gltf.reader import GltfImportError
 from crowd.asset.gltf_write import glb_bytes
 from crowd.asset.pose import morph_vertices, sample_morph_weights
 from crowd.asset.zombie import ASSET_PATH

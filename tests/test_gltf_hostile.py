@@ -16,7 +16,9 @@ import pytest
 
 from conftest import ROOT, shared
 from crowd.asset import gltf
-from crowd.asset.gltf import GltfImportError, load_character
+from crowd.asset.gltf import reader
+from crowd.asset.gltf import load_character
+from crowd.asset.gltf.reader import GltfImportError
 from crowd.asset.model import vertex_normals
 from crowd.asset.zombie import ASSET_PATH
 from gltf_factory import make_gltf
@@ -298,16 +300,16 @@ def test_sparse_indices_are_checked(tmp_path, indices, needle):
 
 
 def test_memory_budget_over_all_accessor_reads(tmp_path, monkeypatch):
-    monkeypatch.setattr(gltf, "MAX_DECODED_BYTES", 1000)
+    monkeypatch.setattr(reader, "MAX_DECODED_BYTES", 1000)
     refused(make_gltf(tmp_path), "brings the data read to", "more than the 1,000 allowed")
 
 
 def test_file_budget_and_json_budget(tmp_path, monkeypatch):
     path = make_gltf(tmp_path, buffer_mode="external")
-    monkeypatch.setattr(gltf, "MAX_FILE_BYTES", path.stat().st_size + 100)
+    monkeypatch.setattr(reader, "MAX_FILE_BYTES", path.stat().st_size + 100)
     refused(path, "buffer 0 file 'test.bin' would bring the bytes read to")
-    monkeypatch.setattr(gltf, "MAX_FILE_BYTES", 1 << 30)
-    monkeypatch.setattr(gltf, "MAX_JSON_VALUES", 50)
+    monkeypatch.setattr(reader, "MAX_FILE_BYTES", 1 << 30)
+    monkeypatch.setattr(reader, "MAX_JSON_VALUES", 50)
     refused(path, "the JSON holds about", "more than the 50 allowed")
 
 

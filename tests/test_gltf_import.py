@@ -5,7 +5,8 @@ import pytest
 
 from conftest import shared, shared_files
 from crowd.anim import reference
-from crowd.asset.gltf import GltfImportError, load_character
+from crowd.asset.gltf import load_character
+from crowd.asset.gltf.reader import GltfImportError
 from gltf_factory import KEY_TIMES, expected_skinning, make_gltf
 
 
@@ -160,7 +161,7 @@ def test_cesium_man_matrix_root_and_late_start():
 
 
 def test_two_skinned_meshes_share_one_skin():
-    c = load_character(shared("Quaternius_Zombie_Basic.gltf"))
+    c = load_character(shared("Quaternius_Zombie_Basic.gltf"), merge=False)  # (merged, one draw)
     assert len(c.meshes) == 2 and c.skeleton.joint_count == 50
     assert {"Walk", "Run", "Idle", "Death"} <= {k.name for k in c.clips}
     assert c.clip("Walk").loop and not c.clip("Death").loop
@@ -171,8 +172,9 @@ def test_rigid_weapons_parented_to_joints_become_skinned_pieces():
     to their joint; skinned at any pose they sit where joint_world @ offset puts them."""
     from crowd.anim import reference
     from crowd.asset import gltf as gltf_module
+    from crowd.asset.gltf.reader import Reader
 
-    c = load_character(shared("Quaternius_Characters_Matt_SingleWeapon.gltf"))
+    c = load_character(shared("Quaternius_Characters_Matt_SingleWeapon.gltf"), merge=False)  # (merged, they share the body's draw)
     assert not c.attachments
     rigid = [m for m in c.meshes if m.piece.startswith("rigid")]
     assert len(rigid) == 2
@@ -185,7 +187,7 @@ def test_rigid_weapons_parented_to_joints_become_skinned_pieces():
             j = sk.parents[j]
         assert "LowerArm.L" in chain  # both weapons ride on the left hand's finger joint
     # The same file's attachments, as the importer found them, against the pieces made of them.
-    raw = gltf_module._import(gltf_module._Reader(shared("Quaternius_Characters_Matt_SingleWeapon.gltf")))
+    raw = gltf_module._import(Reader(shared("Quaternius_Characters_Matt_SingleWeapon.gltf")))
     assert len(raw.attachments) == 2
     pose = reference.sample_clip(sk, c.clips[3], np.array([0.4]))
     world = reference.global_matrices(sk, pose)[0]

@@ -1,6 +1,7 @@
 """Several skins in one glTF file (issue 18, point 1): skins whose joints hang in the main skin's joint
 trees are merged into one skeleton (a joint listed with another inverse bind gets a duplicate child at
-identity rest), skins on another joint tree are other characters and are left out with one line."""
+identity rest), skins on another joint tree are other characters and are left out with one line.
+The meshes are checked as the file has them (merge=False): merged, the skins' meshes share one draw."""
 
 from __future__ import annotations
 
@@ -12,7 +13,9 @@ import pytest
 from crowd.anim import reference
 from crowd.anim.processor import MAX_JOINTS as PROCESSOR_MAX_JOINTS
 from crowd.asset import gltf
-from crowd.asset.gltf import GltfImportError, load_character
+from crowd.asset.gltf import skins
+from crowd.asset.gltf import load_character
+from crowd.asset.gltf.reader import GltfImportError
 from gltf_factory import (EXTRA_POSITIONS, KEY_TIMES, add_skin, bind_worlds, expected_extra_skinning, expected_skinning,
                           joint_worlds, make_gltf)
 
@@ -33,7 +36,7 @@ def skin_warnings(character) -> list[str]:
 def test_a_visor_skin_over_the_head_joints_is_merged_without_duplicates(tmp_path):
     path = make_gltf(tmp_path)
     visor = add_skin(path, "visor")
-    c = load_character(path)
+    c = load_character(path, merge=False)
     assert c.skeleton.names == ("root", "mid", "tip")
     assert skin_warnings(c) == ["merged skins 0, 1 into one skeleton (3 joints; 0 duplicated for differing inverse binds)"]
     assert [m.name for m in c.meshes] == ["body", "visor1"]
@@ -46,7 +49,7 @@ def test_a_visor_skin_over_the_head_joints_is_merged_without_duplicates(tmp_path
 def test_a_skin_with_other_inverse_binds_draws_through_duplicate_joints(tmp_path, scale, rotation):
     path = make_gltf(tmp_path, armature_scale=scale, armature_rotation=rotation)
     offset = add_skin(path, "offset", armature_scale=scale, armature_rotation=rotation)
-    c = load_character(path)
+    c = load_character(path, merge=False)
     sk = c.skeleton
     assert skin_warnings(c) == ["merged skins 0, 1 into one skeleton (6 joints; 3 duplicated for differing inverse binds)"]
     assert sk.names == ("root", "mid", "tip", "mid@skin1", "tip@skin1", "root@skin1")  # in the skin's order
@@ -74,7 +77,7 @@ def test_a_skin_with_other_inverse_binds_draws_through_duplicate_joints(tmp_path
 def test_a_separate_character_is_left_out_in_one_line(tmp_path):
     path = make_gltf(tmp_path)
     add_skin(path, "separate", name="Bob")
-    c = load_character(path)
+    c = load_character(path, merge=False)
     assert skin_warnings(c) == ["skin 1 ('Bob', 3 joints) shares no joint tree with skin 0: it is another character; left out"]
     assert c.skeleton.joint_count == 3 and [m.name for m in c.meshes] == ["body"]
     np.testing.assert_allclose(skinned_at_key(c, 1, "body"), expected_skinning(1), atol=1e-5)
@@ -84,7 +87,7 @@ def test_three_skins_merge_two_and_leave_out_one(tmp_path):
     path = make_gltf(tmp_path)
     visor = add_skin(path, "visor")
     add_skin(path, "separate")
-    c = load_character(path)
+    c = load_character(path, merge=False)
     assert skin_warnings(c) == [
         "skin 2 (3 joints) shares no joint tree with skin 0: it is another character; left out",
         "merged skins 0, 1 into one skeleton (3 joints; 0 duplicated for differing inverse binds)"]
@@ -98,7 +101,7 @@ def test_a_skin_straddling_two_joint_trees_is_left_out(tmp_path):
     doc = json.loads(path.read_text())
     doc["skins"][1]["joints"][2] = 3  # tip2 → the main character's tip
     path.write_text(json.dumps(doc))
-    c = load_character(path)
+    c = load_character(path, merge=False)
     assert skin_warnings(c) == ["skin 1 (3 joints) has 2 joints outside skin 0's joint trees: it does not fit one skeleton with it; left out"]
     assert c.skeleton.joint_count == 3
 
@@ -114,7 +117,7 @@ def test_a_skin_over_joints_the_main_skin_does_not_list_brings_them_in(tmp_path)
     doc["nodes"] += [{"name": "holder", "children": [antenna]}, {"name": "antenna"}]
     doc["skins"][1]["joints"] = [antenna, 2]
     path.write_text(json.dumps(doc))
-    c = load_character(path)
+    c = load_character(path, merge=False)
     assert c.skeleton.names == ("root", "mid", "tip", "antenna") and c.skeleton.parents.tolist() == [-1, 0, 1, 2]
     assert skin_warnings(c) == ["merged skins 0, 1 into one skeleton (4 joints; 0 duplicated for differing inverse binds)"]
     for key in range(3):
@@ -129,7 +132,7 @@ def test_a_mesh_drawn_with_two_merged_skins_is_read_once_per_skin(tmp_path):
     doc["nodes"].append({"name": "visor on the main skin", "mesh": 1, "skin": 0})
     doc["scenes"][0]["nodes"].append(len(doc["nodes"]) - 1)
     path.write_text(json.dumps(doc))
-    c = load_character(path)
+    c = load_character(path, merge=False)
     assert [m.name for m in c.meshes] == ["body", "visor1", "visor1@skin0"]
     a, b = c.meshes[1], c.meshes[2]
     # The same JOINTS_0 index different joint lists: skin 1's [tip, mid], skin 0's [root, mid, tip].
@@ -161,7 +164,7 @@ def test_a_bad_second_skin_is_refused_in_one_line(tmp_path, mutate, needle):
 def test_the_joint_budget_counts_the_union_and_the_duplicates(tmp_path, monkeypatch):
     path = make_gltf(tmp_path)
     add_skin(path, "offset")
-    monkeypatch.setattr(gltf, "MAX_JOINTS", 5)
+    monkeypatch.setattr(skins, "MAX_JOINTS", 5)
     with pytest.raises(GltfImportError, match="skins 0, 1 need more than the 5 joints a vertex can address"):
         load_character(path)
 

@@ -8,7 +8,10 @@ import pytest
 
 from crowd.anim.bake import bake
 from crowd.anim.processor import AnimationProcessor
-from crowd.draw.render import CrowdRenderer, RenderError, frustum_planes, sphere_visible, view_proj
+from crowd.draw.cpu_cull import sphere_visible
+from crowd.draw.cull_lists import entry_agents
+from crowd.draw.render import CrowdRenderer, RenderError
+from crowd.draw.view import frustum_planes, view_proj
 from crowd.frame import Camera, Instances
 from crowd.pipeline import CrowdPipeline, PipelineConfig
 from crowd.smoke import run_headless
@@ -94,13 +97,9 @@ def _doubtful(slack, dist) -> set:
     return set(np.flatnonzero((np.abs(slack) < BOUNDARY_M) | near_lod).tolist())
 
 
-def _gpu_lists(renderer, buffer, counts, cascade: int | None = None) -> list[set]:
-    """The agents in each draw's list of one of the GPU cull's list buffers (the colour lists, or a
-    shadow cascade's)."""
-    from crowd.draw.render import INSTANCE_DTYPE
-
-    records = np.frombuffer(buffer.read(), INSTANCE_DTYPE)
-    return [_listed_agents(renderer, k, records[renderer.gpu.drawn_records(k, int(c), cascade)]) for k, c in enumerate(counts)]
+def _lists(renderer, cascade: int | None = None) -> list[set]:
+    """The agents in each draw's list in the view's pass (or a shadow cascade's), as the draws read them."""
+    return [set(entry_agents(renderer.listed(k, cascade))[0].tolist()) for k in range(len(renderer.draws))]
 
 
 def _prepared_on_both_paths(stages, camera, seed: int, agents: int):
@@ -110,18 +109,6 @@ def _prepared_on_both_paths(stages, camera, seed: int, agents: int):
     cpu.prepare(camera, instances)
     gpu.prepare(camera, instances)
     return cpu, gpu, instances
-
-
-def _cpu_list(renderer, k, buffer, count) -> set:
-    from crowd.draw.render import INSTANCE_DTYPE
-
-    return _listed_agents(renderer, k, np.frombuffer(buffer.read(), INSTANCE_DTYPE)[:count]) if count else set()
-
-
-def _listed_agents(renderer, k, records):
-    """The agents in draw k's records (from each record's palette texel)."""
-    texel = records["packed"][:, 0]
-    return set(renderer.palette.agents_at(texel & 0xFFF, texel >> 12).tolist())
 
 
 def test_each_draws_list_holds_the_agents_the_cpu_path_draws(stages):
@@ -134,9 +121,8 @@ def test_each_draws_list_holds_the_agents_the_cpu_path_draws(stages):
     _, _, slack, dist = reference(gpu, camera, instances)
     doubtful = _doubtful(slack, dist)
     total = 0
-    for k, (c, on_gpu) in enumerate(zip(cpu.draws, _gpu_lists(gpu, gpu.gpu.lists, counts))):
-        on_cpu = _cpu_list(cpu, k, c.instances, c.count)
-        assert len(on_gpu) == int(counts[k])  # no agent twice in a list
+    for k, (c, on_cpu, on_gpu) in enumerate(zip(cpu.draws, _lists(cpu), _lists(gpu))):
+        assert len(on_gpu) == int(counts[k]) == len(gpu.listed(k))  # no agent twice in a list
         assert on_cpu - doubtful == on_gpu - doubtful, (c.piece, c.lod)
         total += len(on_cpu)
     assert total > 1000 and len(doubtful) < 0.2 * len(instances)
@@ -162,16 +148,13 @@ def test_the_stats_describe_the_last_frame_on_the_gpu_path(gl_context):
 
 
 def test_lists_past_what_a_shader_may_address_are_one_line(gl_context, monkeypatch):
-    from crowd.draw import gpu_cull
-
     with CrowdPipeline(gl_context, PipelineConfig(agents=10, cull="gpu", weapons=False)) as pipeline:
         monkeypatch.setattr(pipeline.renderer.gpu, "max_block", 1000)
         pipeline.set_agent_count(50)
         from crowd.gl import Offscreen
 
-        with Offscreen(gl_context, (32, 32)) as target, pytest.raises(RenderError, match=r"lists for 50 agents need [\d,]+ bytes, more than the 1,000 one shader storage block may hold on this GPU .*--cull cpu"):
+        with Offscreen(gl_context, (32, 32)) as target, pytest.raises(RenderError, match=r"lists for 50 agents need [\d,]+ bytes, more than the 1,000 one shader storage block may hold on this GPU .*--cull feedback or cpu"):
             pipeline.frame(target.framebuffer, 1 / 30)
-    assert gpu_cull.MAX_DRAWS >= 12
 
 
 def test_switching_the_cull_path_live_leaks_nothing(gl_context):
@@ -247,9 +230,10 @@ def test_resizing_the_gpu_cull_from_0_to_200000_and_back_leaks_nothing(gl_contex
                 pipeline.frame(target.framebuffer, 1 / 30)
                 gl_context.finish()
                 cull = pipeline.renderer.gpu
-                assert cull.cast == (n,) and pipeline.renderer.gpu_bytes()["cull"] < 4096 + n * 32 * (1 + len(cull.index_counts)) + n * 4 + 64
+                held = pipeline.renderer.gpu_bytes()
+                assert cull.cast == (n,) and held["lists"] <= 64 * n + 4 and held["cull"] < 16384 + 4 * n
                 assert int(cull.counts(wait=True).sum()) == 0
-            assert pipeline.renderer.gpu_bytes()["cull"] < 4096
+            assert pipeline.renderer.gpu_bytes()["cull"] < 16384 and pipeline.renderer.gpu_bytes()["lists"] == 4
     assert gl_census() == before
 
 
@@ -323,21 +307,23 @@ def test_an_agent_outside_the_view_still_shadows_into_it(gl_context, zombie, pat
     it): it is not drawn, but its shadow darkens the ground in view."""
     lit, lit_last = _shadow_scene(gl_context, zombie, path, np.array([200.0]))  # far away: no shadow in view
     shaded, last = _shadow_scene(gl_context, zombie, path, np.array([3.0]))  # about 4 m right of the view
-    # Not drawn in colour; body, head and shirt in the shadow lists of one cascade or both.
-    assert last["instances"] == 0 and last["shadow_instances"] in (3, 6)
+    # Not drawn in colour; the body (its shirt merged in) and the head in the shadow lists of one cascade or both.
+    assert last["instances"] == 0 and last["shadow_instances"] in (2, 4)
     darker = (lit - shaded).max(axis=2) > 10
     assert darker.mean() > 0.002 and not np.any((shaded - lit).max(axis=2) > 10)  # a shadow, and nothing brighter
 
 
 @pytest.mark.parametrize("shadows", [True, False])
 def test_shadow_lists_exist_only_with_shadows(gl_context, shadows):
+    from crowd.draw.shadows import CASCADES
+
     for path in ("cpu", "gpu"):
         with CrowdPipeline(gl_context, PipelineConfig(agents=20, cull=path, shadows=shadows, weapons=False)) as pipeline:
             r = pipeline.renderer
-            if path == "gpu":
-                assert (r.gpu.shadow_lists is not None) == shadows
-            else:
-                assert all(bool(d.shadow_instances) == shadows for d in r.draws)
+            cull = r.gpu if path == "gpu" else r.cpu
+            assert cull.cascades == (CASCADES if shadows else 0)
+            if path == "cpu":
+                assert len(cull.buffers) == 1 + cull.cascades
 
 
 def cascade_slack(renderer, camera, instances):
@@ -361,15 +347,13 @@ def test_shadow_lists_are_each_cascades_agents_one_lod_coarser(stages):
     coarser than the colour pass would draw it (capped)."""
     camera = Camera(eye=np.array([0.0, 12.0, 30.0]), target=np.zeros(3), aspect=16 / 9)
     cpu, gpu, instances = _prepared_on_both_paths(stages, camera, seed=5, agents=4000)
-    counts = gpu.gpu.shadow_counts(wait=True)
     per_cascade = []
     for cascade, dist, slack in cascade_slack(gpu, camera, instances):
         colour_lod = np.minimum(np.searchsorted(np.asarray(LOD_DISTANCES), dist, side="right"), gpu.lod_count - 1)
-        shadow_lists = _gpu_lists(gpu, gpu.gpu.shadow_lists, counts[cascade], cascade=cascade)
+        shadow_lists = _lists(gpu, cascade)
         doubtful = _doubtful(slack, dist)
         casting = 0
-        for k, (c, g, on_gpu) in enumerate(zip(cpu.draws, gpu.draws, shadow_lists)):
-            on_cpu = _cpu_list(cpu, k, c.shadow_instances[cascade], c.shadow_counts[cascade])
+        for k, (c, g, on_cpu, on_gpu) in enumerate(zip(cpu.draws, gpu.draws, _lists(cpu, cascade), shadow_lists)):
             assert on_cpu - doubtful == on_gpu - doubtful, (cascade, c.piece, c.lod)
             for a in on_gpu - doubtful:
                 assert g.lod == min(colour_lod[a] + 1, gpu.lod_count - 1)

@@ -16,7 +16,8 @@ from crowd.asset.gltf import load_character
 from crowd.draw.impostor_bake import bake_atlas, load_atlas
 from crowd.draw.impostors import (ImpostorSettings, _default_meshes, read_atlas, skinned_points,
                                   view_axes)
-from crowd.draw.render import Camera, CrowdRenderer, Instances
+from crowd.draw.render import CrowdRenderer
+from crowd.frame import Camera, Instances
 from crowd.frame import CLIP, MASK, PHASE, WEIGHT, empty_layers
 
 SMALL = ImpostorSettings(views=8, elevations=(0.0, 30.0), cell=(40, 80), rate=6.0)

@@ -11,7 +11,10 @@ import pytest
 from crowd.anim.morph import active_pairs, reference_weights
 from crowd.anim.processor import AnimationProcessor, reference_palette
 from crowd.draw.morph import NORMAL_RANGE, SNORM, pack_deltas, position_step, unpack_deltas
-from crowd.draw.render import WEIGHT_STEP, Camera, CrowdRenderer, Instances
+from crowd.draw.cull_lists import entry_agents
+from crowd.draw.packing import WEIGHT_STEP
+from crowd.draw.render import CrowdRenderer
+from crowd.frame import Camera, Instances
 from test_morph_processor import _baked, _character, _layers
 from test_render import capture
 
@@ -28,13 +31,13 @@ def test_packed_deltas_decode_within_half_a_step():
     assert np.max(np.abs(dn - n)) <= 0.5 * NORMAL_RANGE / SNORM + 1e-15
 
 
-def _capture(ctx, renderer, draw, proc):
-    """v_world and v_normal of every vertex of every instance of one draw, through the MORPH program."""
+def _capture(ctx, renderer, index, proc):
+    """v_world and v_normal of every vertex of every instance of draw `index`, through the MORPH program."""
     def morphs(prog):
         renderer.morph.bind(prog)
-        prog["u_morph_vertex_base"] = draw.morph_base
+        prog["u_morph_vertex_base"] = renderer.draws[index].morph_base
 
-    return capture(ctx, draw, proc, {"MORPH": 1, **({"MORPH_BUFFERS": 1} if renderer.morph_buffers else {})}, setup=morphs)
+    return capture(ctx, renderer, index, proc, {"MORPH": 1, **({"MORPH_BUFFERS": 1} if renderer.morph_buffers else {})}, setup=morphs)
 
 
 @pytest.mark.parametrize("path, buffers", [("compute", True), ("compute", False), ("fragment", False)])
@@ -63,9 +66,8 @@ def test_morphed_skinned_vertices_match_float64(gl_context, tmp_path, path, buff
         renderer.prepare(camera, instances, palette=proc.layout)
         (draw,) = renderer.draws
         assert draw.morph and renderer.morph is not None and renderer.gpu_bytes()["morphs"] > 0
-        world, normal = _capture(ctx, renderer, draw, proc)
-        texel = np.frombuffer(draw.instances.read(), np.uint32).reshape(draw.count, 8)[:, 4]
-        agents = proc.layout.agents_at(texel & 0xFFF, texel >> 12)
+        world, normal = _capture(ctx, renderer, 0, proc)
+        agents = entry_agents(renderer.listed(0))[0]
         gpu_pairs = proc.read_morph_pairs()
     palette = reference_palette(baked, layers)
     pairs = active_pairs(reference_weights(baked.morphs, baked, layers))
@@ -191,13 +193,8 @@ def test_agents_moving_no_target_are_drawn_by_the_plain_twins(gl_context, tmp_pa
         for routed in (True, False):
             view = renderer.prepare(camera, instances, palette=proc.layout, processor=proc if routed else None)
             renderer.refresh_counts(wait=True)
-            for buffer, cascade in [(renderer.gpu.lists, None), *((renderer.gpu.shadow_lists, k) for k in range(len(twin.shadow_counts)))]:
-                records = np.frombuffer(buffer.read(), np.uint32).reshape(-1, 8)
-                listed = []
-                for d, draw in enumerate((twin, morph)):
-                    count = draw.count if cascade is None else draw.shadow_counts[cascade]
-                    texel = records[renderer.gpu.drawn_records(d, count, cascade), 4]
-                    listed.append(set(proc.layout.agents_at(texel & 0xFFF, texel >> 12).tolist()))
+            for cascade in [None, *range(len(twin.shadow_counts))]:
+                listed = [set(entry_agents(renderer.listed(d, cascade))[0].tolist()) for d in (0, 1)]
                 want = (still, set(range(AGENTS)) - still) if routed else (set(), set(range(AGENTS)))
                 assert tuple(listed) == want, (routed, cascade)
             target.framebuffer.use()

@@ -9,7 +9,8 @@ import struct
 import numpy as np
 import pytest
 
-from crowd.asset.gltf import GltfImportError, load_character
+from crowd.asset.gltf import load_character
+from crowd.asset.gltf.reader import GltfImportError
 from crowd.asset.gltf_write import glb_bytes
 from crowd.asset.model import ModelError
 from crowd.asset.pose import morph_vertices, phase_to_time, sample_morph_weights
@@ -298,9 +299,9 @@ def test_the_khronos_validator_passes_the_writers_morphs(tmp_path, sparse):
 def test_many_empty_targets_are_charged_before_they_are_made(tmp_path, monkeypatch):
     """Targets with no data cost the file nothing, but the importer makes dense deltas for each: they
     count against the import's budget before any is allocated."""
-    import crowd.asset.gltf as gltf
+    from crowd.asset.gltf import reader
 
-    monkeypatch.setattr(gltf, "MAX_DECODED_BYTES", 100_000)
+    monkeypatch.setattr(reader, "MAX_DECODED_BYTES", 100_000)
     def many(doc):
         doc["meshes"][0]["primitives"][0]["targets"] = [{} for _ in range(1000)]
         del doc["meshes"][0]["weights"], doc["meshes"][0]["extras"], doc["nodes"][4]["weights"]

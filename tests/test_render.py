@@ -15,18 +15,11 @@ from crowd.anim.bake import bake
 from crowd.gl import load_shader
 from crowd.frame import CLIP, PHASE, WEIGHT, empty_layers
 from crowd.anim.processor import AnimationProcessor, reference_palette
-from crowd.draw.render import (
-    INSTANCE_FORMAT,
-    VERTEX_DTYPE,
-    VERTEX_FORMAT,
-    WEIGHT_STEP,
-    Camera,
-    CrowdRenderer,
-    Instances,
-    _read_by,
-    pack_vertices,
-    unpack_weights,
-)
+from crowd.draw.cull_lists import entry_agents
+from crowd.draw.packing import VERTEX_DTYPE, VERTEX_FORMAT, WEIGHT_STEP, pack_vertices, read_by, unpack_weights
+from crowd.draw.records import use_records_unit
+from crowd.draw.render import ENTRY_FORMAT, CrowdRenderer
+from crowd.frame import Camera, Instances
 
 AGENTS = 9
 
@@ -42,17 +35,20 @@ def test_packed_weights_decode_to_the_float_weights(zombie):
         assert np.all(decoded >= 0.0)
 
 
-def capture(ctx, draw, proc, defines=None, instance_format=INSTANCE_FORMAT, setup=None):
-    """v_world and v_normal of every vertex of every instance of one draw (instance-major), through
-    skin.vert.glsl with `defines`; `setup(program)` binds what those need."""
+def capture(ctx, renderer, index, proc, defines=None, setup=None):
+    """v_world and v_normal of every vertex of every instance of draw `index` of `renderer` (instance-major),
+    through skin.vert.glsl with `defines`; `setup(program)` binds what those need."""
+    draw = renderer.draws[index]
     prog = ctx.program(vertex_shader=load_shader("skin.vert.glsl", defines), varyings=["v_world", "v_normal"])
     for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
         prog[name] = unit
+    use_records_unit(prog)
+    renderer.records.bind()
     proc.bind_palette(0, prog)
     if setup is not None:
         setup(prog)
     prog["u_view_proj"].write(np.eye(4, dtype=np.float32).tobytes())
-    vao = ctx.vertex_array(prog, [(draw.vbo, *_read_by(prog, VERTEX_FORMAT)), (draw.instances, *_read_by(prog, instance_format))])
+    vao = ctx.vertex_array(prog, [(draw.vbo, *read_by(prog, VERTEX_FORMAT)), (renderer._entries(index, None), *read_by(prog, ENTRY_FORMAT))])
     vertices = draw.vbo.size // VERTEX_DTYPE.itemsize
     out = ctx.buffer(reserve=vertices * draw.count * 6 * 4)
     # A standalone context has no default framebuffer, and Mesa refuses even a rasteriser-discarded draw
@@ -92,13 +88,12 @@ def test_gpu_skinned_vertices_match_float64_skinning(gl_context, zombie):
     checked = 0
     worst = 0.0
     try:
-        for draw in renderer.draws:
+        for index, draw in enumerate(renderer.draws):
             if not draw.count:
                 continue
             mesh = meshes[(draw.piece, draw.lod)]
-            world, normal = capture(ctx, draw, proc)
-            texel = np.frombuffer(draw.instances.read(), np.uint32).reshape(draw.count, 8)[:, 4]
-            agents = proc.layout.agents_at(texel & 0xFFF, texel >> 12)
+            world, normal = capture(ctx, renderer, index, proc)
+            agents = entry_agents(renderer.listed(index))[0]
             w = mesh.weights.astype(np.float64) / mesh.weights.sum(axis=1, keepdims=True)
             p = np.concatenate([mesh.positions.astype(np.float64), np.ones((len(mesh.positions), 1))], axis=1)
             for k, a in enumerate(agents):

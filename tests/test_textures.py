@@ -15,11 +15,14 @@ import pytest
 from PIL import Image
 
 from conftest import shared
-from crowd.asset.gltf import GltfImportError, load_character
-from crowd.asset.gltf_materials import MAX_IMAGE_PIXELS, ImageError, decode_image, texture_transform
+from crowd.asset.gltf import load_character
+from crowd.asset.gltf.reader import GltfImportError
+from crowd.asset.gltf.materials import MAX_IMAGE_PIXELS, ImageError, decode_image, texture_transform
 from crowd.asset.gltf_write import write_glb
 from crowd.asset.model import CLAMP_TO_EDGE, LINEAR, MIRRORED_REPEAT, NEAREST, REPEAT, Texture
-from crowd.draw.materials import MaterialTextures, layer_size, linear_layer, srgb_to_linear
+from crowd.draw.materials import MaterialTextures
+from crowd.draw.texture_codec import srgb_to_linear
+from crowd.draw.texture_layers import layer_size, linear_layer
 from crowd.pipeline import PipelineConfig
 from crowd.sim.ai import AIConfig
 from crowd.smoke import run_headless
@@ -121,19 +124,19 @@ def test_a_cut_png_and_a_gif_are_one_line():
 
 
 def test_images_past_the_files_pixel_budget_are_left_out(tmp_path, textured_doc, monkeypatch):
-    from crowd.asset import gltf_materials
+    from crowd.asset.gltf import materials
 
     doc, blob = textured_doc
-    monkeypatch.setattr(gltf_materials, "MAX_TOTAL_PIXELS", 3)  # the 4-pixel strip is past it
+    monkeypatch.setattr(materials, "MAX_TOTAL_PIXELS", 3)  # the 4-pixel strip is past it
     c = load_character(_as_gltf(tmp_path, doc, blob))
     assert not c.textures and any("past the 3 pixels all images of a file" in w for w in c.warnings)
 
 
 def test_more_textures_than_an_array_holds_are_refused(tmp_path, textured_doc, monkeypatch):
-    from crowd.asset import gltf_materials
+    from crowd.asset.gltf import materials
 
     doc, blob = textured_doc
-    monkeypatch.setattr(gltf_materials, "MAX_TEXTURES", 0)
+    monkeypatch.setattr(materials, "MAX_TEXTURES", 0)
     with pytest.raises(GltfImportError, match="more than 0 base-colour images"):
         load_character(_as_gltf(tmp_path, doc, blob))
 
@@ -322,7 +325,7 @@ def test_linear_filtering_mixes_light_not_srgb_codes(tmp_path, zombie, gl_contex
     assert to_light <= 3 < to_codes
 
 
-def test_one_texture_array_for_all_pieces_and_none_for_an_untextured_crowd(tmp_path, zombie, gl_context):
+def test_shared_texture_arrays_for_all_pieces_and_none_for_an_untextured_crowd(tmp_path, zombie, gl_context):
     base = run_headless(PipelineConfig(**CROWD), 2, SIZE, ctx=gl_context)
     assert "textures" not in base["gpu_bytes"]
     two = np.zeros((16, 8, 4), np.uint8)
@@ -330,10 +333,12 @@ def test_one_texture_array_for_all_pieces_and_none_for_an_untextured_crowd(tmp_p
     other = Texture("other", two, (REPEAT, REPEAT), LINEAR, 9987)
     meshes = [dataclasses.replace(m, texture=i % 2) for i, m in enumerate(char.meshes)]
     char = dataclasses.replace(char, meshes=meshes, textures=[char.textures[0], other])
-    with MaterialTextures(gl_context, char.textures, {0, 1}) as mats:
-        assert mats.array.size == (8, 16, 2) and mats.layers == {0: 0, 1: 1} and mats.mipmapped
+    with MaterialTextures(gl_context, char.textures, {0, 1}, compress=False) as mats:
+        assert mats.arrays["rgba16f"].size == (8, 16, 2) and mats.layers == {0: 0, 1: 1} and mats.mipmapped["rgba16f"]
         full = 8 * 16 + 4 * 8 + 2 * 4 + 1 * 2 + 1 * 1
         assert mats.gpu_bytes() == full * 2 * 4 * 2  # texels of the chain x layers x RGBA x f16
+    with MaterialTextures(gl_context, char.textures, {0, 1}) as mats:  # the strip, scaled NEAREST to 8x16: two hues a block
+        assert mats.storage == {0: "bc1", 1: "bc1"} and mats.layers == {0: 0, 1: 1} and mats.arrays["bc1"].size == (8, 16)
     write_glb(char, tmp_path / "two.glb")
     stats = run_headless(PipelineConfig(**CROWD, model=tmp_path / "two.glb"), 2, SIZE, ctx=gl_context)
     assert stats["last_frame"]["draws"] == base["last_frame"]["draws"]  # one instanced draw per (piece, LOD), textured or not
@@ -373,7 +378,7 @@ def test_shared_textured_characters_draw_their_texture(name, tmp_path, gl_contex
 
 
 def test_texture_coordinates_are_packed_within_a_60th_of_a_texel():
-    from crowd.draw.render import pack_vertices, unpack_uvs, uv_box
+    from crowd.draw.packing import pack_vertices, unpack_uvs, uv_box
 
     rng = np.random.default_rng(3)
     for low, high in ((0.0, 1.0), (-3.0, 7.0), (0.25, 0.25)):
@@ -429,12 +434,12 @@ def test_packed_coordinates_draw_as_float_ones_do(tmp_path, zombie, gl_context, 
     coordinates draw, to 2 levels of 255; and a piece whose coordinates span more than PACKED_UV_SPAN
     (one stray vertex at u = 1000, which would make the packed step 1000/65535) is drawn with float
     coordinates and says so."""
-    from crowd.draw import render
+    from crowd.draw import packing
 
     write_glb(_gradient_character(zombie), tmp_path / "g.glb")
     packed = draw(tmp_path / "g.glb", gl_context)
     with monkeypatch.context() as m:
-        m.setattr(render, "PACKED_UV_SPAN", -1.0)  # every textured piece takes the float layout
+        m.setattr(packing, "PACKED_UV_SPAN", -1.0)  # every textured piece takes the float layout
         wide = draw(tmp_path / "g.glb", gl_context)
     assert np.abs(packed - wide).max() <= 2
     far = _gradient_character(zombie)
@@ -443,7 +448,7 @@ def test_packed_coordinates_draw_as_float_ones_do(tmp_path, zombie, gl_context, 
     write_glb(far, tmp_path / "far.glb")
     loaded = load_character(tmp_path / "far.glb")
     assert any("span" in w and "float coordinates" in w for w in loaded.warnings)
-    assert all(render.uv_layout(m) == "wide" for m in loaded.meshes)
+    assert all(packing.uv_layout(m) == "wide" for m in loaded.meshes)
 
 
 def test_sixteen_bit_grey_pngs_keep_their_values():
@@ -479,13 +484,13 @@ def test_specular_glossiness_diffuse_is_the_base_colour(tmp_path, textured_doc):
 
 
 def test_a_refused_read_counts_nothing_against_the_file_budget(tmp_path, textured_doc, monkeypatch):
-    from crowd.asset import gltf
+    from crowd.asset.gltf import reader
 
     path = _as_gltf(tmp_path, *textured_doc)
-    reader = gltf._Reader(path)
-    before = reader._loaded_bytes
-    monkeypatch.setattr(gltf, "MAX_FILE_BYTES", before + 10)
+    file = reader.Reader(path)
+    before = file._loaded_bytes
+    monkeypatch.setattr(reader, "MAX_FILE_BYTES", before + 10)
     with pytest.raises(GltfImportError, match="would bring the bytes read to"):
-        reader._charge_file(11, "image 0")
-    assert reader._loaded_bytes == before
-    reader._charge_file(10, "buffer 1")  # what comes after still fits
+        file._charge_file(11, "image 0")
+    assert file._loaded_bytes == before
+    file._charge_file(10, "buffer 1")  # what comes after still fits

@@ -341,7 +341,7 @@ def test_the_cpu_paths_weapon_instances_carry_their_agents_records_bit_for_bit(h
     agents = np.flatnonzero(p.ai.armed())
     assert len(agents)
     inst = p.last.agent_frames.instances(agents, np.zeros((len(agents), 3, 4), np.float32))
-    records = p.renderer._all_records(p.instances(), np.asarray(p.camera.eye, np.float64), 0, p.processor.layout)[agents]
+    records = p.renderer._packer.pack(p.instances(), np.asarray(p.camera.eye, np.float64), 0, p.processor.layout)[agents]
     assert np.array_equal(inst["position_scale"].view(np.uint32), records["position_scale"].view(np.uint32))
     assert np.array_equal(inst["fields"][:, 2], records["packed"][:, 2])
 

@@ -38,7 +38,7 @@ from ..asset.model import Character, ModelError
 from ..asset.pose import sample_morph_weights
 from ..frame import CLIP, PHASE, WEIGHT
 
-MAX_MORPH_WEIGHT = 10.0  # as the importer's bound (crowd.asset.gltf.MAX_MORPH_WEIGHT)
+MAX_MORPH_WEIGHT = 10.0  # as the importer's bound (crowd.asset.gltf.reader.MAX_MORPH_WEIGHT)
 # Below this in size a target's weight is not drawn: at most 1/1024 of its largest delta (0.05 mm of a
 # 5 cm jaw), where fetching it would cost as much as a weight of 1.
 ACTIVE_WEIGHT = 1.0 / 1024.0

@@ -383,6 +383,17 @@ class Prop:
         return (self.mesh, *self.coarser)
 
 
+@dataclass(frozen=True)
+class MergedMesh:
+    """One mesh the import made of several of the file's meshes at one LOD, to share a draw
+    (crowd.asset.merge): it takes the name and piece of its first source."""
+
+    lod: int
+    piece: str
+    name: str
+    sources: tuple[str, ...]  # the meshes' names, in file order
+
+
 @dataclass
 class Character:
     name: str
@@ -402,6 +413,7 @@ class Character:
     # the last one cast shadows only); None: the global lod_distances setting, as for the built-ins.
     # crowd.asset.lod sets them for the LODs it makes, from each LOD's measured error.
     lod_distances: tuple[float, ...] | None = None
+    merged: list[MergedMesh] = field(default_factory=list)  # the meshes made of several that share a draw
 
     @property
     def armed(self) -> bool:

@@ -6,12 +6,14 @@ neighbours share vertices cuts vertex shader invocations per triangle; the geome
 Why by hand: meshoptimizer does this in C, but it ships no wheel for our Python versions (only an alpha sdist), and
 the algorithm is short. Measured against meshoptimizer's optimizeVertexCache on the built-in zombie
 (`crowd-bench vertex-cache`, docs/BENCHMARKS.md), this order shades 0.789 vertices a triangle in the
-batch model below and meshoptimizer's 0.792: it stays. It runs once per mesh at load time (170 ms
-for the zombie's 23 meshes, meshoptimizer 4 ms). ``best_triangle_order`` keeps the source order where
+batch model below and meshoptimizer's 0.792: it stays. It runs once per mesh at load time (its time
+against meshoptimizer's: docs/BENCHMARKS.md and docs/ASSETS.md). ``best_triangle_order`` keeps the source order where
 that is already better (the zombie's merged LOD3: 0.797 against 0.819).
 """
 
 from __future__ import annotations
+
+import heapq
 
 import numpy as np
 
@@ -53,12 +55,21 @@ def optimize_triangle_order(indices: np.ndarray, vertex_count: int) -> np.ndarra
     cache: list[int] = []
     out: list[int] = []
     best = int(np.argmax(tscore))
-    scan_from = 0
+    # The best of the rest (the highest score, the first on ties) from a heap of (-score, triangle), each
+    # changed score pushed when next needed: scanning every triangle each time the cache runs dry made
+    # meshes of many parts (a merged modular character, or one whose triangles share no vertex) quadratic.
+    rest = [(-score, i) for i, score in enumerate(tscore)]
+    heapq.heapify(rest)
+    changed: set[int] = set()
     for _ in range(t):
         if best < 0:  # nothing in the cache touches a remaining triangle: take the best of the rest
-            while emitted[scan_from]:
-                scan_from += 1
-            best = max((i for i in range(scan_from, t) if not emitted[i]), key=tscore.__getitem__)
+            for i in changed:
+                if not emitted[i]:
+                    heapq.heappush(rest, (-tscore[i], i))
+            changed.clear()
+            while emitted[rest[0][1]] or -rest[0][0] != tscore[rest[0][1]]:  # gone, or an old score
+                heapq.heappop(rest)
+            best = rest[0][1]
         emitted[best] = True
         tri = tri_list[best]
         out.append(best)
@@ -76,6 +87,7 @@ def optimize_triangle_order(indices: np.ndarray, vertex_count: int) -> np.ndarra
             vscore[v] = _vertex_score(-1, remaining[v])
             touched.update(vert_tris[v])
         best, best_score = -1, -1.0
+        changed.update(touched)
         for i in touched:
             a, b, c = tri_list[i]
             s = vscore[a] + vscore[b] + vscore[c]

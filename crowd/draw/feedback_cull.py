@@ -5,12 +5,13 @@ objects that keep what each stream wrote (glDrawTransformFeedbackStream) and glD
 GL 4.0): enough to keep the CPU out of the per-agent work, as the compute cull (crowd.draw.gpu_cull) does.
 
 Contract, used by ``CrowdRenderer`` when its cull path is "feedback":
-- ``upload(records, cast)``: every agent's 32-byte record (the GPU cull's RECORD_DTYPE), in one write;
+- the renderer writes every agent's 32-byte record into the crowd's record buffer (crowd.draw.records), which
+  the feedback draws read as vertex attributes; ``upload(agents, cast)`` sizes the lists for that crowd;
 - ``run(planes, ...)``: the lists, in feedback draws of one character's agents as points through
   shaders/feedback_cull.*.glsl, each filling 4 lists: the vertex shader makes the compute cull's
   decision (feedback_pick.glsl: the sphere against the view's or a cascade's planes, the LOD, the fade
   band, the variation choice) for each, the geometry shader emits the agent on the stream of each list
-  it is in, and transform feedback appends it to that list's buffer. Then each list is counted on the
+  it is in, and transform feedback appends its 4-byte entry (crowd.draw.cull_lists) to that list's buffer. Then each list is counted on the
   GPU (``FeedbackCounter``) into one DrawElementsIndirectCommand per (pass, draw), packed into the command
   buffer by glReadPixels: nothing waits;
 - ``draw(vao, draw, cascade)``: glDrawElementsIndirect of that command;
@@ -20,10 +21,9 @@ Contract, used by ``CrowdRenderer`` when its cull path is "feedback":
   ``visible`` buffer: colour LOD + 1, or 0 where culled or held by its impostor; the shadow cascades it
   is in, with its shadow LOD), one point per agent into its texel, which the weapons' feedback cull reads.
 
-Lists: draws of pieces worn by the same agents at the same LOD (a character's common pieces at one LOD, or
-one choice of a variation group) read one list, so there is one list per (character, LOD, group, choice)
-and pass, not per piece. A list is a buffer of its own (GL 4.1's commands have no baseInstance), as long as
-its character has agents (an agent is in a list at most once: across a fade it is in two LODs' lists).
+Lists: those of crowd.draw.cull_lists, one per (character, LOD, group, choice) and pass, read by every piece
+worn there. A list is a buffer of its own (GL 4.1's commands have no baseInstance), of 4 bytes for each agent
+its character has (an agent is in a list at most once: across a fade it is in two LODs' lists).
 Shadow lists are culled against the cascade's box one LOD coarser, as on the compute path, so a cascade
 has no list at LOD 0 (unless the character has one LOD). Agents moving no morph target are not routed
 to plain twins here (the CPU path does not route them either), and there is no occlusion culling.
@@ -41,17 +41,16 @@ points blended into one texel wait for one another, and two fragment passes sum 
 from __future__ import annotations
 
 import ctypes
-from typing import NamedTuple
-
 import moderngl
 import numpy as np
 
 from ..gl import GLObjects, GLStage, current_context_function, load_shader
-from .gpu_cull import COMMAND_DTYPE, MAX_CAST, MAX_LOD_STEPS, RECORD_DTYPE, CountRing
+from .cull_lists import ListKey, ListPlan
+from .gpu_cull import COMMAND_DTYPE, CountRing, CullCharacter
+from .records import use_records_unit
 
 STREAMS = 4  # lists one feedback draw fills: GL 4.0's vertex streams (GL_MAX_VERTEX_STREAMS is at least 4)
 COUNT_BLOCK = 64  # the side of the block of texels each list's records are counted over (a power of two)
-LOD_SLOTS = 8  # as the compute cull's: per character, agents counted per LOD
 VISIBLE_WIDTH = 2048  # agents a row of the visibility texture
 NEVER = 3.0e38  # float32's largest: "no limit"
 
@@ -61,25 +60,6 @@ _GL_DRAW_INDIRECT_BUFFER, _GL_UNSIGNED_INT = 0x8F3F, 0x1405
 
 class FeedbackCullError(ValueError):
     """A crowd the transform-feedback cull cannot take; the message is one line."""
-
-
-class FeedbackCharacter(NamedTuple):
-    """What the cull knows of one character: its mesh LOD count, its bind pose's sphere (x, y, z, radius)
-    and the distance from which its agents are its impostor (inf: never)."""
-
-    lod_count: int
-    bound: tuple
-    impostor_start: float = float("inf")
-
-
-class ListKey(NamedTuple):
-    """Which agents a list holds: those of `character` drawn at `lod` whose choice in variation group
-    `group` (its index in the records' 4-bit fields; -1 for the pieces every agent wears) is `choice`."""
-
-    character: int
-    lod: int
-    group: int = -1
-    choice: int = 0
 
 
 _api: dict | None = None
@@ -272,55 +252,57 @@ def stream_groups(slots: list, key) -> list[list[int]]:
 
 
 class FeedbackCull(GLStage):
-    """Owns the agent records, a buffer per list (of each pass), the feedback objects, the counter (counts,
-    commands and the ring they come back through) and, with `with_visible`, each agent's visibility for
-    the weapons."""
+    """Owns a buffer per list (of each pass), the feedback objects, the counter (counts, commands and the ring
+    they come back through) and, with `with_visible`, each agent's visibility for the weapons."""
 
-    def __init__(self, ctx: moderngl.Context, draws: list[tuple], characters: list[FeedbackCharacter], shadow_cascades: int = 0,
-                 with_visible: bool = False):
-        """`draws`: per draw (ListKey, index count). `characters`: the cast's, in its order."""
+    def __init__(self, ctx: moderngl.Context, plan: ListPlan, index_counts: list[int], characters: list[CullCharacter],
+                 records, shadow_cascades: int = 0, with_visible: bool = False):
+        """`plan`: the cast's lists and each draw's; `index_counts`: each draw's; `characters`: the cast's, in
+        its order; `records`: the crowd's AgentRecords (crowd.draw.records)."""
         self._objects = GLObjects()
         self.ctx = ctx
-        if not 1 <= len(characters) <= MAX_CAST:
-            raise FeedbackCullError(f"the feedback cull takes 1 to {MAX_CAST} characters, this cast has {len(characters)}")
-        if any(c.lod_count + 1 > LOD_SLOTS for c in characters):
-            raise FeedbackCullError(f"the feedback cull counts up to {LOD_SLOTS - 1} mesh LODs a character")
         if shadow_cascades > 2:
             raise FeedbackCullError(f"the feedback cull culls up to 2 shadow cascades, got {shadow_cascades}")
+        self.plan = plan
         self.characters = list(characters)
         self.cascades = shadow_cascades
-        self.keys: list[ListKey] = list(dict.fromkeys(ListKey(*key) for key, _ in draws))
-        list_of_draw = [self.keys.index(ListKey(*key)) for key, _ in draws]
-        self.draw_count = len(draws)
+        self.keys: tuple[ListKey, ...] = plan.keys
+        self.draw_count = len(index_counts)
+        mesh_lods = plan.mesh_lods
         # The lists (key, pass) that can hold anything: a cascade's are one LOD coarser, so never at LOD 0
         # of a character with more than one.
         self.slots = [(key, 0) for key in self.keys]
-        self.slots += [(key, 1 + k) for k in range(shadow_cascades) for key in self.keys if key.lod > 0 or characters[key.character].lod_count == 1]
+        self.slots += [(key, 1 + k) for k in range(shadow_cascades) for key in self.keys if key.lod > 0 or mesh_lods[key.character] == 1]
         self.slots.sort(key=lambda slot: slot[0].character)  # (stable: a character's lists, then the next one's)
         slot_of = {slot: index for index, slot in enumerate(self.slots)}
         self.groups = stream_groups(self.slots, lambda slot: slot[0].character)
         # Blocks: one a list, one that is never counted into (a (pass, draw) with no list: 0), then per
-        # character LOD_SLOTS for the stats' agents per LOD.
+        # character one per LOD slot for the stats' agents per LOD.
         empty = len(self.slots)
         self.census_first = empty + 1
-        commands = [(count, slot_of.get((self.keys[list_of_draw[d]], p), empty)) for p in range(1 + shadow_cascades)
-                    for d, (_, count) in enumerate(draws)]
-        self.counter = FeedbackCounter(ctx, self._objects, commands, self.census_first + len(characters) * LOD_SLOTS,
-                                       stats=(self.census_first, len(characters) * LOD_SLOTS))
-        self.program = self._objects.add(ctx.program(vertex_shader=load_shader("feedback_cull.vert.glsl"),
+        self.stats_first = plan.stats_first()
+        stats = int(self.stats_first[-1])
+        commands = [(count, slot_of.get((self.keys[int(plan.draw_list[d])], p), empty)) for p in range(1 + shadow_cascades)
+                    for d, count in enumerate(index_counts)]
+        self.counter = FeedbackCounter(ctx, self._objects, commands, self.census_first + stats, stats=(self.census_first, stats))
+        steps = {"STEPS": max(max(len(c.lod_starts) for c in characters), 1)}
+        self.program = self._objects.add(ctx.program(vertex_shader=load_shader("feedback_cull.vert.glsl", steps),
                                                      geometry_shader=load_shader("feedback_cull.geom.glsl"),
-                                                     varyings=stream_varyings(["position_scale", "fields"])))
-        self._census = self._objects.add(ctx.program(vertex_shader=load_shader("feedback_census.vert.glsl"),
+                                                     varyings=stream_varyings(["entry"])))
+        self._census = self._objects.add(ctx.program(vertex_shader=load_shader("feedback_census.vert.glsl", steps),
                                                      fragment_shader=load_shader("feedback_count.frag.glsl")))
+        self._steps = steps
+        self._records = records
+        self.records = records.buffer
+        use_records_unit(self.program)
+        self._indices = self._objects.add(ctx.buffer(reserve=4))  # 0 .. agents - 1 (feedback_cull.vert.glsl says why)
+        self._agents_vao = self._objects.add(ctx.vertex_array(self.program, [(self._indices, "1u", "in_agent")]))
+        self._census_vao = self._objects.add(ctx.vertex_array(self._census, [(records.buffer, "4f 16x", "in_position_scale")]))
         # Made once and re-sized in place (orphan keeps the GL name), so the draws' vertex arrays on the
         # lists stay valid when the crowd grows or shrinks.
-        self.agents_buffer = self._objects.add(ctx.buffer(reserve=RECORD_DTYPE.itemsize))
-        self._agents_vao = self._objects.add(ctx.vertex_array(self.program, [(self.agents_buffer, "4f 4u", "in_position_scale", "in_fields")]))
-        self._census_vao = self._objects.add(ctx.vertex_array(self._census, [(self.agents_buffer, "4f 16x", "in_position_scale")]))
-        self.lists = [self._objects.add(ctx.buffer(reserve=RECORD_DTYPE.itemsize)) for _ in self.slots]
-        self._spare = self._objects.add(ctx.buffer(reserve=RECORD_DTYPE.itemsize))  # a group's unused streams write nothing here
+        self.lists = [self._objects.add(ctx.buffer(reserve=4)) for _ in self.slots]
+        self._spare = self._objects.add(ctx.buffer(reserve=4))  # a group's unused streams write nothing here
         self.feedbacks = self._objects.add(TransformFeedbacks(len(self.groups)))
-        self._list_of_draw = list_of_draw
         self._uniforms: dict[int, frozenset] = {}
         self._slot_of = slot_of
         self.cast: tuple[int, ...] | None = None
@@ -335,13 +317,19 @@ class FeedbackCull(GLStage):
         """Keep (or drop) each agent's visibility, which the weapons' feedback cull reads: only with weapons."""
         self.with_visible = bool(on)
         if on and self._visible_program is None:
-            self._visible_program = self._objects.add(self.ctx.program(vertex_shader=load_shader("feedback_visible.vert.glsl"),
+            self._visible_program = self._objects.add(self.ctx.program(vertex_shader=load_shader("feedback_visible.vert.glsl", self._steps),
                                                                        fragment_shader=load_shader("feedback_visible.frag.glsl")))
-            self._visible_vao = self._objects.add(self.ctx.vertex_array(self._visible_program, [(self.agents_buffer, "4f 16x", "in_position_scale")]))
+            self._visible_vao = self._objects.add(self.ctx.vertex_array(self._visible_program, [(self.records, "4f 16x", "in_position_scale")]))
         if not on:
             self._drop_visible_texture()
         elif self.cast is not None:
             self._size_visible(sum(self.cast))
+
+    def set_characters(self, characters: list[CullCharacter]) -> None:
+        """The characters' bounds, LOD starts, impostor distances (each frame's uniforms come from them)."""
+        if len(characters) != len(self.characters) or max(len(c.lod_starts) for c in characters) > self._steps["STEPS"]:
+            raise FeedbackCullError("the cull's characters keep their count, and no more LOD switches than it was built for")
+        self.characters = list(characters)
 
     def _drop_visible_texture(self) -> None:
         for obj in (self._visible_target, self.visible):
@@ -360,9 +348,9 @@ class FeedbackCull(GLStage):
         self._visible_target = self._objects.add(self.ctx.framebuffer([self.visible]))
 
     def list_buffer(self, draw: int, cascade: int | None = None) -> moderngl.Buffer:
-        """The buffer draw `draw` reads its instances from: its list in the colour pass, or in `cascade`'s
+        """The buffer draw `draw` reads its entries from: its list in the colour pass, or in `cascade`'s
         (a spare, never written, where a cascade has no list at its LOD)."""
-        slot = self._slot_of.get((self.keys[self._list_of_draw[draw]], 0 if cascade is None else 1 + cascade))
+        slot = self._slot_of.get((self.keys[int(self.plan.draw_list[draw])], 0 if cascade is None else 1 + cascade))
         return self._spare if slot is None else self.lists[slot]
 
     # -- storage
@@ -377,34 +365,38 @@ class FeedbackCull(GLStage):
         self.cast = cast
         self.first_agent = np.concatenate([[0], np.cumsum(cast)[:-1]]).astype(np.int64)
         for (key, _), buffer in zip(self.slots, self.lists):
-            buffer.orphan(max(cast[key.character], 1) * RECORD_DTYPE.itemsize)
-        self.agents_buffer.orphan(max(sum(cast), 1) * RECORD_DTYPE.itemsize)
+            buffer.orphan(max(cast[key.character], 1) * 4)
+        self._indices.orphan(max(sum(cast), 1) * 4)
+        if sum(cast):
+            self._indices.write(np.arange(sum(cast), dtype=np.uint32))
         if self.with_visible:
             self._size_visible(sum(cast))
         if self.ctx.error == "GL_OUT_OF_MEMORY":
             self.cast = None  # the next resize tries again
-            need = sum(cast[key.character] for key, _ in self.slots) * RECORD_DTYPE.itemsize
+            need = sum(cast[key.character] for key, _ in self.slots) * 4
             raise FeedbackCullError(f"the GPU ran out of memory for the feedback cull's {need:,} bytes of lists for {sum(cast):,} agents")
+
+    def entry_bytes(self) -> int:
+        """Bytes the lists of every pass hold together."""
+        return sum(b.size for b in self.lists)
 
     # -- per frame
 
-    def upload(self, records: np.ndarray, cast) -> None:
-        """This frame's agent records (RECORD_DTYPE), `cast` the agents of each character, in its order."""
+    def upload(self, agents: int, cast) -> None:
+        """This frame's crowd: `agents` records in the record buffer, `cast` the agents of each character."""
         self.resize(tuple(int(c) for c in cast))
-        self.agents = len(records)
-        if self.agents:
-            self.agents_buffer.write(records)
-        else:  # (the passes draw from the commands without knowing: the last crowd's must not stay)
+        self.agents = int(agents)
+        if not self.agents:  # (the passes draw from the commands without knowing: the last crowd's must not stay)
             self.counter.zero()
 
-    def _set_character(self, program: moderngl.Program, k: int, lod_start, culling: bool) -> None:
+    def _set_character(self, program: moderngl.Program, k: int, culling: bool) -> None:
         """feedback_pick.glsl's uniforms for character `k` (those a program uses: the census reads no fade)."""
         c = self.characters[k]
-        starts = np.zeros(MAX_LOD_STEPS, np.float32)
-        starts[: len(lod_start)] = lod_start
+        starts = np.zeros(self._steps["STEPS"], np.float32)
+        starts[: len(c.lod_starts)] = c.lod_starts
         program["u_lod_start"].write(starts.tobytes())
-        values = {"u_lod_steps": len(lod_start), "u_culling": int(bool(culling)), "u_bound": tuple(float(x) for x in c.bound),
-                  "u_lod_count": c.lod_count, "u_impostor_start": float(min(c.impostor_start, NEVER)), "u_lod_fade": float(self.lod_fade)}
+        values = {"u_lod_steps": len(c.lod_starts), "u_culling": int(bool(culling)), "u_bound": tuple(float(x) for x in c.bound),
+                  "u_lod_count": self.plan.mesh_lods[k], "u_impostor_start": float(min(c.impostor_start, NEVER)), "u_lod_fade": float(self.lod_fade)}
         names = self._uniforms.setdefault(program.glo, frozenset(program))  # (a program's names, listed once: `in` walks them all)
         for name, value in values.items():
             if name in names:
@@ -422,7 +414,7 @@ class FeedbackCull(GLStage):
         program["u_shadow_planes"].write(light.tobytes())
         program["u_shadow_reach"].write(reaches.tobytes())
 
-    def run(self, planes: np.ndarray, lod_start, culling: bool, shadow_planes: np.ndarray | None = None, reach=None) -> None:
+    def run(self, planes: np.ndarray, culling: bool, shadow_planes: np.ndarray | None = None, reach=None) -> None:
         """Fill every list of the colour pass (`planes`: the view's (6, 4)) and, with `shadow_planes`
         ((cascades, 6, 4)) and `reach` ((cascades,) metres from the eye past which an agent casts nothing
         there), each shadow cascade's; count them into the commands; with weapons, each agent's visibility.
@@ -431,6 +423,7 @@ class FeedbackCull(GLStage):
             return
         p = self.program
         self._set_volumes(p, planes, shadow_planes, reach)
+        self._records.bind()
         self.counter.target.use()  # (a draw needs a complete framebuffer bound, even one that writes no pixels)
         self.ctx.enable(moderngl.RASTERIZER_DISCARD)  # (the feedback draws write lists, not pixels)
         try:
@@ -440,13 +433,15 @@ class FeedbackCull(GLStage):
                 if not self.cast[character]:
                     continue
                 if character != current:  # (a character's groups follow one another: its uniforms once)
-                    self._set_character(p, character, lod_start, culling)
+                    self._set_character(p, character, culling)
                     current = character
-                passes, lods, shifts, choices = [-1] * STREAMS, [0] * STREAMS, [-1] * STREAMS, [0] * STREAMS
+                passes, lods, shifts, bits, choices = [-1] * STREAMS, [0] * STREAMS, [-1] * STREAMS, [0] * STREAMS, [0] * STREAMS
                 for s, index in enumerate(group):
                     key, passes[s] = self.slots[index]
-                    lods[s], shifts[s], choices[s] = key.lod, -1 if key.group < 0 else 4 * key.group, key.choice
-                p["u_slot_pass"], p["u_slot_lod"], p["u_slot_shift"], p["u_slot_choice"] = passes, lods, shifts, choices
+                    lods[s], choices[s] = key.lod, key.choice
+                    if key.group >= 0:
+                        shifts[s], bits[s] = self.plan.choice_shift[key.group], self.plan.choice_bits[key.group]
+                p["u_slot_pass"], p["u_slot_lod"], p["u_slot_shift"], p["u_slot_bits"], p["u_slot_choice"] = passes, lods, shifts, bits, choices
                 into = [self.lists[index] for index in group] + [self._spare] * (STREAMS - len(group))
                 capture(p, self._agents_vao, self.feedbacks[g], into, self.first_agent[character], self.cast[character])
         finally:
@@ -460,14 +455,14 @@ class FeedbackCull(GLStage):
         census["u_planes"].write(np.ascontiguousarray(planes, np.float32).tobytes())
         for k, count in enumerate(self.cast):
             if count:
-                self._set_character(census, k, lod_start, culling)
-                self.counter.uniforms(census, self.census_first + k * LOD_SLOTS)
+                self._set_character(census, k, culling)
+                self.counter.uniforms(census, self.census_first + int(self.stats_first[k]))
                 self._census_vao.render(moderngl.POINTS, vertices=count, first=int(self.first_agent[k]))
         self.counter.finish()
         if self.with_visible and self.visible is not None:
-            self._write_visible(planes, lod_start, culling, shadow_planes, reach)
+            self._write_visible(planes, culling, shadow_planes, reach)
 
-    def _write_visible(self, planes, lod_start, culling, shadow_planes, reach) -> None:
+    def _write_visible(self, planes, culling, shadow_planes, reach) -> None:
         v = self._visible_program
         self._set_volumes(v, planes, shadow_planes, reach)
         v["u_size"] = self.visible.size
@@ -477,7 +472,7 @@ class FeedbackCull(GLStage):
         self.ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE | moderngl.BLEND)
         for k, count in enumerate(self.cast):
             if count:
-                self._set_character(v, k, lod_start, culling)
+                self._set_character(v, k, culling)
                 self._visible_vao.render(moderngl.POINTS, vertices=count, first=int(self.first_agent[k]))
 
     def visible_agents(self) -> np.ndarray:
@@ -501,9 +496,19 @@ class FeedbackCull(GLStage):
         return self.counter.counts(wait)[self.draw_count:].reshape(self.cascades, self.draw_count)
 
     def agent_counts(self) -> np.ndarray:
-        """(characters, LOD_SLOTS) agents the colour pass kept, per character and the LOD each is drawn
+        """(characters, most LOD slots) agents the colour pass kept, per character and the LOD each is drawn
         at (its coarser across a fade), of the frame ``counts`` last read."""
-        return self.counter.stat_counts().astype(np.int64).reshape(len(self.characters), LOD_SLOTS)
+        stats = self.counter.stat_counts().astype(np.int64)
+        out = np.zeros((len(self.characters), max(self.plan.lod_slots)), np.int64)
+        for c in range(len(self.characters)):
+            out[c, : self.stats_first[c + 1] - self.stats_first[c]] = stats[self.stats_first[c]:self.stats_first[c + 1]]
+        return out
+
+    def listed(self, draw: int, cascade: int | None = None) -> np.ndarray:
+        """uint32 entries of draw `draw`'s list in the view (or `cascade`'s) pass, as many as counted
+        (synchronous: tests)."""
+        count = int(self.counter.counts(wait=True)[draw + (0 if cascade is None else (1 + cascade) * self.draw_count)])
+        return np.frombuffer(self.list_buffer(draw, cascade).read(), np.uint32)[:count].copy()
 
     def gpu_bytes(self) -> int:
         return self._objects.gpu_bytes()

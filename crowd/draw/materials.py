@@ -1,10 +1,25 @@
-"""The crowd's base-colour textures on the GPU: one texture array and one sampler object per texture.
+"""The crowd's base-colour textures on the GPU: texture arrays and one sampler object per texture.
 
-Why one array: every piece of every agent is one instanced draw per (piece, LOD); a texture array lets
-the draws of all pieces share one binding, and a piece picks its layer with one uniform. Layers of an
-array share one size, so each image is resampled to the largest image's size (at most MAX_LAYER_SIZE);
-this is done in linear light, per channel, with Pillow, and pixel-art textures (magnified NEAREST) are
-resampled NEAREST so their pixels stay square.
+Why arrays: every piece of every agent is one instanced draw per (piece, LOD); a texture array lets
+the draws of many pieces share one binding, and a piece picks its layer with one uniform. Layers of an
+array share one size, so each image is resampled to the largest image's size in its array (at most
+MAX_LAYER_SIZE; ``texture_layers``).
+
+Up to three arrays, by how a texture is stored:
+- **"bc1"**: BC1 blocks with sRGB ends (``texture_codec``; EXT_texture_compression_s3tc, on Mesa,
+  NVIDIA, AMD, Intel and macOS's 4.1 core alike), half a byte a texel. The GPU decodes a block to sRGB
+  codes and those to linear light before it filters, so filtering mixes light. It holds each texture's
+  mip levels down to the first whose error is over the bound (``texture_layers.plan_bc1``); GL cannot
+  make a compressed format's mip levels, so they are made on the CPU in linear light and encoded.
+- **"coarse"**: the BC1 textures' levels from there down, in RGBA16F, a sixteenth of the texels or
+  fewer. The fragment shader reads it past that level of detail (``u_coarse_lod``), blending the
+  two arrays across one level as trilinear filtering blends two levels.
+- **"rgba16f"**: linear colour, for every texture whose level 0 or 1 is over the bound, where the
+  driver lacks the BC1 formats, or with compression off. moderngl cannot make an sRGB texture array,
+  and decoding sRGB after filtering would darken every filtered edge (a black-white edge half way reads
+  0.21 instead of 0.5); half floats filter and mipmap in linear light and hold 8-bit sRGB's darkest
+  step at 8 bytes a texel.
+``gpu_bytes`` counts all three, mip levels included.
 
 Why sampler objects: each glTF texture carries its own wrap and filter, and a sampler object binds
 them to the array at draw time (GL 3.3 core). GL's MIRRORED_REPEAT has no moderngl switch, so the
@@ -12,118 +27,196 @@ shader folds the coordinate into [0, 1] (``u_uv_mirror``) and the sampler clamps
 filtering at a fold blends the edge texel with itself as GL's mirrored repeat does (a repeating
 sampler would blend it with the opposite edge); the unfolded coordinate's derivatives keep the mip
 level smooth across the fold.
-
-Storage: RGBA16F holding linear colour. moderngl cannot make an sRGB texture array, and decoding sRGB
-after filtering would darken every filtered edge (a black-white edge half way reads 0.21 instead of
-0.5); half floats filter and mipmap in linear light and hold 8-bit sRGB's darkest step (1.2e-3 relative
-precision against sRGB's 0.5 %) at twice its bytes, which ``gpu_bytes`` reports.
 """
 
 from __future__ import annotations
 
+import ctypes
+
 import moderngl
 import numpy as np
 
-from ..asset.model import MIPMAP_FILTERS, MIRRORED_REPEAT, NEAREST, REPEAT, Texture
-from ..gl import GLObjects, GLStage
+from ..asset.model import MIPMAP_FILTERS, MIRRORED_REPEAT, REPEAT, Texture
+from ..gl import GLObjects, GLStage, current_context_function
+from .texture_layers import MAX_LAYER_SIZE, layer_size, linear_layer, plan_bc1
 
-MAX_LAYER_SIZE = 2048
-MAX_ARRAY_BYTES = 256 << 20  # the array with its mip chain; layers are halved until it fits
 TEXTURE_UNIT = 6  # units 0-2: the palette, 3: the shadow map; the processor's pass uses 0-5
+COARSE_UNIT = 11  # after the impostors' 8-10 and the pyramid's 7
+NEVER = 1e9  # a u_coarse_lod no level of detail reaches
+S3TC_EXTENSION = "GL_EXT_texture_compression_s3tc"
+COMPRESSED_SRGB_S3TC_DXT1 = 0x8C4C  # EXT_texture_sRGB's enum (core profiles that list no EXT_texture_sRGB accept it too)
 
 
-def srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    """The sRGB transfer function's inverse (IEC 61966-2-1), float64 in [0, 1]."""
-    c = np.asarray(c, np.float64)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+def bc1_unavailable(ctx: moderngl.Context) -> str:
+    """Why `ctx` cannot hold BC1 textures, in a few words; "" where it can (the format itself is
+    checked again when the array is made)."""
+    return "" if S3TC_EXTENSION in ctx.extensions else f"the driver lacks {S3TC_EXTENSION}"
 
 
-_SRGB8_TO_LINEAR = srgb_to_linear(np.arange(256) / 255.0).astype(np.float32)  # a lookup: 8-bit codes only
+class BlockFormatRefused(RuntimeError):
+    """The driver did not store a compressed array in the format asked for."""
 
 
-def layer_size(textures: list[Texture], limit: int = MAX_LAYER_SIZE, budget: int = MAX_ARRAY_BYTES) -> tuple[int, int]:
-    """(width, height) every layer is stored at: the largest image's, each side at most `limit`, both
-    halved until the array (RGBA16F, a third more for mip levels) fits `budget` bytes. Small images
-    are scaled up to the largest, so many small ones beside one big one would otherwise multiply it."""
-    w = min(max(t.pixels.shape[1] for t in textures), limit)
-    h = min(max(t.pixels.shape[0] for t in textures), limit)
-    while len(textures) * w * h * 8 * 4 // 3 > budget and (w > 1 or h > 1):
-        w, h = max(w // 2, 1), max(h // 2, 1)
-    return w, h
+class BlockArray:
+    """A texture array of BC1 blocks with sRGB ends. moderngl has no compressed upload, so the texture
+    is made and bound through GL 3.0 core entry points (``current_context_function``); these touch no
+    state moderngl caches (it binds a texture's unit itself every time it uses one)."""
 
+    _TEXTURE_2D_ARRAY = 0x8C1A
+    _TEXTURE0 = 0x84C0
+    _PIXEL_UNPACK_BUFFER = 0x88EC
+    _MAX_LEVEL = 0x813D
+    _INTERNAL_FORMAT = 0x1003
+    _COMPRESSED = 0x86A1
 
-def linear_layer(texture: Texture, size: tuple[int, int]) -> np.ndarray:
-    """float32 (H, W, 4): the texture's colour in linear light (alpha as stored), resampled to `size`."""
-    from PIL import Image
+    def __init__(self, size: tuple[int, int], layers: int, levels: list[bytes], unit: int = TEXTURE_UNIT):
+        """`levels`: each mip level's blocks, every layer's in turn, from the full size down."""
+        c, i, p = ctypes.c_uint, ctypes.c_int, ctypes.c_void_p
+        types = {"glGenTextures": (None, i, ctypes.POINTER(c)), "glDeleteTextures": (None, i, ctypes.POINTER(c)),
+                 "glActiveTexture": (None, c), "glBindTexture": (None, c, c), "glBindBuffer": (None, c, c),
+                 "glTexParameteri": (None, c, c, i), "glCompressedTexImage3D": (None, c, i, c, i, i, i, i, i, p),
+                 "glGetTexLevelParameteriv": (None, c, i, c, ctypes.POINTER(i)), "glGetError": (c,)}
+        self._gl = {name: current_context_function(name, ctypes.CFUNCTYPE(*sig)) for name, sig in types.items()}
+        self.size, self.layers, self.levels = size, layers, len(levels)
+        self.nbytes = sum(len(level) for level in levels)
+        name = ctypes.c_uint(0)
+        self._gl["glGenTextures"](1, ctypes.byref(name))
+        self.name = name.value
+        self.use(unit)
+        self._gl["glBindBuffer"](self._PIXEL_UNPACK_BUFFER, 0)  # a bound unpack buffer would make the pointer an offset
+        self._gl["glTexParameteri"](self._TEXTURE_2D_ARRAY, self._MAX_LEVEL, len(levels) - 1)
+        for level, data in enumerate(levels):
+            w, h = max(size[0] >> level, 1), max(size[1] >> level, 1)
+            self._gl["glCompressedTexImage3D"](self._TEXTURE_2D_ARRAY, level, COMPRESSED_SRGB_S3TC_DXT1, w, h, layers, 0, len(data),
+                                               ctypes.create_string_buffer(data, len(data)))
+        stored, compressed = ctypes.c_int(0), ctypes.c_int(0)
+        self._gl["glGetTexLevelParameteriv"](self._TEXTURE_2D_ARRAY, 0, self._INTERNAL_FORMAT, ctypes.byref(stored))
+        self._gl["glGetTexLevelParameteriv"](self._TEXTURE_2D_ARRAY, 0, self._COMPRESSED, ctypes.byref(compressed))
+        if stored.value != COMPRESSED_SRGB_S3TC_DXT1 or not compressed.value:
+            error = self._gl["glGetError"]()  # taken off the queue, so no later check blames another call
+            self.release()
+            raise BlockFormatRefused(f"the driver refused the sRGB BC1 format {COMPRESSED_SRGB_S3TC_DXT1:#x} (GL error {error:#x})")
 
-    rgba = _SRGB8_TO_LINEAR[texture.pixels]
-    rgba[..., 3] = texture.pixels[..., 3] / np.float32(255.0)
-    w, h = size
-    if rgba.shape[:2] == (h, w):
-        return rgba
-    # Upscaled as the GPU would have filtered the original (bilinear: Lanczos rings and sharpens what
-    # was authored soft); reduced with Lanczos. Pillow's resampling clamps at the edges whatever the
-    # wrap, which can leave a faint seam on a repeating texture that is resampled.
-    if texture.mag_filter == NEAREST:
-        method = Image.Resampling.NEAREST
-    elif w >= rgba.shape[1] and h >= rgba.shape[0]:
-        method = Image.Resampling.BILINEAR
-    else:
-        method = Image.Resampling.LANCZOS
-    channels = [np.asarray(Image.fromarray(np.ascontiguousarray(rgba[..., k]), mode="F").resize((w, h), method)) for k in range(4)]
-    return np.clip(np.stack(channels, axis=-1), 0.0, 1.0).astype(np.float32)
+    def use(self, unit: int) -> None:
+        self._gl["glActiveTexture"](self._TEXTURE0 + unit)
+        self._gl["glBindTexture"](self._TEXTURE_2D_ARRAY, self.name)
+
+    def release(self) -> None:
+        if getattr(self, "name", 0):
+            self._gl["glDeleteTextures"](1, ctypes.byref(ctypes.c_uint(self.name)))
+            self.name = 0
 
 
 class MaterialTextures(GLStage):
-    """The texture array and the samplers of the textures that the drawn pieces use (only those)."""
+    """The texture arrays and the samplers of the textures that the drawn pieces use (only those).
+    `compress`: False keeps every texture in "rgba16f"."""
 
-    def __init__(self, ctx: moderngl.Context, textures: list[Texture], used):
+    def __init__(self, ctx: moderngl.Context, textures: list[Texture], used, compress: bool = True):
         self._objects = GLObjects()
-        self.layers: dict[int, int] = {}  # texture index -> layer
+        self.layers: dict[int, int] = {}  # texture index -> layer of its array
+        self.storage: dict[int, str] = {}  # texture index -> "bc1" or "rgba16f"
+        self.errors: dict[int, list[tuple[float, float]]] = {}  # texture index -> (mean, p99) CIEDE2000 of each BC1 level tried
+        self.arrays: dict[str, moderngl.TextureArray | BlockArray] = {}  # "bc1", "coarse", "rgba16f": those in use
+        self.mipmapped: dict[str, bool] = {}  # by array
+        self.coarse_lod = NEVER  # the level of detail from which BC1 textures read the "coarse" array
+        self.notes: list[str] = []  # one line for each thing that kept textures out of BC1 other than their error
         images: list[Texture] = []  # one per distinct image
+        image_of: dict[int, int] = {}
         by_image: dict[int, int] = {}
         for t in sorted(set(used)):
             key = id(textures[t].pixels)  # textures sharing one image share one layer (model.Texture)
             if key not in by_image:
                 by_image[key] = len(images)
                 images.append(textures[t])
-            self.layers[t] = by_image[key]
+            image_of[t] = by_image[key]
         if not images:
             raise ValueError("MaterialTextures needs at least one used texture")
         limit = min(MAX_LAYER_SIZE, int(ctx.info.get("GL_MAX_TEXTURE_SIZE", MAX_LAYER_SIZE)))
         max_layers = int(ctx.info.get("GL_MAX_ARRAY_TEXTURE_LAYERS", 256))
         if len(images) > max_layers:
             raise ValueError(f"{len(images)} textures, more than the {max_layers} layers this GPU's texture arrays hold")
-        self.size = layer_size(images, limit)
-        data = np.stack([linear_layer(t, self.size) for t in images]).astype(np.float16)
-        self.array = self._objects.add(ctx.texture_array((*self.size, len(images)), 4, data.tobytes(), dtype="f2"))
-        self.mipmapped = any(textures[t].min_filter in MIPMAP_FILTERS for t in self.layers)
-        if self.mipmapped:
-            self.array.build_mipmaps()
-        self.array.extra = {"mipmapped": self.mipmapped}
+        mip_filtered = [any(textures[t].min_filter in MIPMAP_FILTERS for t in image_of if image_of[t] == k) for k in range(len(images))]
+
+        order = {"bc1": [], "rgba16f": list(range(len(images)))}
+        why = bc1_unavailable(ctx) if compress else ""
+        if why:
+            self.notes.append(f"textures kept in RGBA16F: {why}")
+        elif compress:
+            plan = plan_bc1(images, mip_filtered, limit)
+            for t, k in image_of.items():
+                if k in plan.errors:
+                    self.errors[t] = plan.errors[k]
+            if plan.blocks:
+                try:
+                    self._make_bc1(ctx, plan)
+                    order = {"bc1": sorted(plan.blocks), "rgba16f": [k for k in range(len(images)) if k not in plan.blocks]}
+                except BlockFormatRefused as exc:
+                    self.notes.append(f"textures kept in RGBA16F: {exc}")
+        if order["rgba16f"]:
+            subset = [images[k] for k in order["rgba16f"]]
+            size = layer_size(subset, limit)
+            data = np.stack([linear_layer(t, size) for t in subset]).astype(np.float16)
+            self.mipmapped["rgba16f"] = any(mip_filtered[k] for k in order["rgba16f"])
+            self.arrays["rgba16f"] = self._half_array(ctx, size, data, self.mipmapped["rgba16f"])
+        for t, k in image_of.items():
+            self.storage[t] = "bc1" if k in order["bc1"] else "rgba16f"
+            self.layers[t] = order[self.storage[t]].index(k)
+
         self.samplers: dict[int, moderngl.Sampler] = {}
         self.mirror: dict[int, tuple[float, float]] = {}
         for t in self.layers:
             tex = textures[t]
-            minify = tex.min_filter if self.mipmapped or tex.min_filter not in MIPMAP_FILTERS else tex.mag_filter
+            minify = tex.min_filter if self.mipmapped[self.storage[t]] or tex.min_filter not in MIPMAP_FILTERS else tex.mag_filter
             self.samplers[t] = self._objects.add(ctx.sampler(
                 repeat_x=tex.wrap[0] == REPEAT, repeat_y=tex.wrap[1] == REPEAT, filter=(minify, tex.mag_filter)))
             self.mirror[t] = (float(tex.wrap[0] == MIRRORED_REPEAT), float(tex.wrap[1] == MIRRORED_REPEAT))
 
+    def _make_bc1(self, ctx: moderngl.Context, plan) -> None:
+        """The "bc1" array of the plan's images, in their order, and its "coarse" array where it has one."""
+        members = sorted(plan.blocks)
+        array = BlockArray(plan.size, len(members), [b"".join(plan.blocks[k][level] for k in members) for level in range(plan.fine_levels)])
+        self.arrays["bc1"] = self._objects.add(array)
+        self.mipmapped["bc1"] = plan.fine_levels > 1
+        if plan.coarse:
+            first = plan.coarse[members[0]]
+            data = np.stack([plan.coarse[k] for k in members]).astype(np.float16)
+            self.arrays["coarse"] = self._half_array(ctx, (first.shape[1], first.shape[0]), data, True)
+            self.coarse_lod = float(plan.fine_levels)
+
+    def _half_array(self, ctx: moderngl.Context, size: tuple[int, int], data: np.ndarray, mipmapped: bool) -> moderngl.TextureArray:
+        array = self._objects.add(ctx.texture_array((*size, len(data)), 4, data.tobytes(), dtype="f2"))
+        if mipmapped:
+            array.build_mipmaps()
+        array.extra = {"mipmapped": mipmapped}
+        return array
+
     def bind(self, texture: int, prog: moderngl.Program) -> None:
-        """Bind `texture`'s layer and sampler for the next draw with `prog`."""
-        self.array.use(TEXTURE_UNIT)
+        """Bind `texture`'s arrays, layer and sampler for the next draw with `prog`."""
+        storage = self.storage[texture]
+        array = self.arrays[storage]
+        array.use(TEXTURE_UNIT)
         self.samplers[texture].use(TEXTURE_UNIT)
         prog["u_layer"] = float(self.layers[texture])
         if "u_uv_mirror" in prog:
             prog["u_uv_mirror"] = self.mirror[texture]
+        if "u_coarse_lod" in prog:
+            coarse = storage == "bc1" and "coarse" in self.arrays
+            prog["u_coarse_lod"] = self.coarse_lod if coarse else NEVER
+            prog["u_albedo_size"] = tuple(float(x) for x in array.size[:2])
+            prog["u_albedo_coarse"] = COARSE_UNIT
+            if coarse:
+                self.arrays["coarse"].use(COARSE_UNIT)
+                self.samplers[texture].use(COARSE_UNIT)
 
     def unbind(self) -> None:
-        """Leave unit TEXTURE_UNIT without a sampler object, which would override any texture bound there later."""
-        next(iter(self.samplers.values())).clear(TEXTURE_UNIT)
+        """Leave the units without a sampler object, which would override any texture bound there later."""
+        sampler = next(iter(self.samplers.values()))
+        sampler.clear(TEXTURE_UNIT)
+        sampler.clear(COARSE_UNIT)
 
     def gpu_bytes(self) -> int:
-        return self._objects.gpu_bytes()
+        """Bytes of the arrays with their mip levels (BC1's are whole 4x4 blocks of 8 bytes)."""
+        return self._objects.gpu_bytes() + sum(a.nbytes for a in self.arrays.values() if isinstance(a, BlockArray))
 
     def release(self) -> None:
         if hasattr(self, "_objects"):

@@ -21,7 +21,9 @@ import numpy as np
 
 from ..asset.town import PERIOD, TINTS, Town
 from ..gl import GLObjects, GLStage, load_shader
-from .render import frustum_planes, gl_bytes, sphere_visible, write_heading
+from .cpu_cull import sphere_visible
+from .packing import write_heading
+from .view import frustum_planes, gl_bytes
 from .shadows import CASCADES
 from .weapons import VERTEX_DTYPE, pack_rigid
 

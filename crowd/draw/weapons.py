@@ -44,7 +44,8 @@ from .feedback_cull import STREAMS, FeedbackCounter, TransformFeedbacks, capture
 from .gpu_cull import BUFFER_UPDATE, COMMAND, COMMAND_DTYPE, GROUP_SIZE, VERTEX_ATTRIB_ARRAY, CountRing
 from ..asset.model import Character, RigidMesh, cast_weapons
 from ..asset.vertex_cache import best_triangle_order
-from .render import gl_bytes, heading_snorm16, pack_colors, pack_normals, shared_buffers, write_heading
+from .packing import heading_snorm16, pack_colors, pack_normals, shared_buffers, write_heading
+from .view import gl_bytes
 from .shadows import CASCADES
 
 VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("packed", "<u4", 2)])
@@ -148,9 +149,7 @@ class WeaponRenderer(GLStage):
         self.lod_count = max(len(p.lods) for p in props)
         draws = len(self.names) * self.lod_count  # draw w * lod_count + lod: weapon w at that LOD
         if gpu_cull:
-            if len(self.names) > 16:
-                raise WeaponError(f"{len(self.names)} weapon meshes, more than the 16 the GPU cull lists")
-            self._cull = self._objects.add(ctx.compute_shader(load_shader("weapon_cull.comp.glsl")))
+            self._cull = self._objects.add(ctx.compute_shader(load_shader("weapon_cull.comp.glsl", {"WEAPONS": len(self.names)})))
             self._placed = self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))
             self._owner = self._objects.add(ctx.buffer(reserve=8))
             self._shown = self._objects.add(ctx.buffer(reserve=INSTANCE_DTYPE.itemsize))  # every mesh's list, one buffer
@@ -398,9 +397,7 @@ class WeaponRenderer(GLStage):
             self._owner.write(owner)
             self._cull["u_count"] = k
             self._cull["u_lod_count"] = self.lod_count
-            first = np.zeros(16, np.uint32)
-            first[: len(self.names)] = starts[:-1]
-            self._cull["u_start"].write(first.tobytes())
+            self._cull["u_start"].write(np.asarray(starts[:-1], np.uint32).tobytes())
             for run in range(sets):  # the colour pass's weapons, then each shadow cascade's
                 shown, command_buffer = (self._shown, self._commands) if run == 0 else (self._shadow_shown, self._shadow_commands)
                 self._cull["u_shadow"] = run  # 0: colour; 1 + k: cascade k

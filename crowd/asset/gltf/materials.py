@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import CLAMP_TO_EDGE, LINEAR, MIPMAP_FILTERS, NEAREST, PACKED_UV_SPAN, REPEAT, WRAPS, Texture
+from ..model import CLAMP_TO_EDGE, LINEAR, MIPMAP_FILTERS, NEAREST, PACKED_UV_SPAN, REPEAT, WRAPS, Texture
 
 MAX_IMAGE_PIXELS = 4096 * 4096  # 64 MB as RGBA8: a character's atlas is at most 4k
 MAX_TOTAL_PIXELS = 4 * MAX_IMAGE_PIXELS  # all images of one file together, decoded (256 MB)
