@@ -31,6 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .morph_transfer import nearest_vertices
+
 # A border or seam edge's plane weighs this much more than a face of the same size: enough that a border
 # stays where it is unless moving it costs nothing.
 BORDER_WEIGHT = 10.0
@@ -352,21 +354,27 @@ def expand_runs(first: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, np.nd
 
 def deviation(posed: np.ndarray, source: np.ndarray, simplified: np.ndarray, rep: np.ndarray) -> float:
     """How far `simplified` (triangles (T', 3) of points) lies from `source` (T, 3), the larger of both
-    ways and over every pose of `posed` (P, K, 3), each way measured against the triangles near where
-    the collapse took a point (so an upper bound of the true distance, in linear time):
-    - each source point to the simplified triangles around the point it ended on (`rep`);
-    - each simplified triangle's centre to the source triangles around the points that ended on its corners."""
+    ways and over every pose of `posed` (P, K, 3), each way measured against the triangles near it (so an
+    upper bound of the true distance, in about linear time):
+    - each source point to the simplified triangles around the point it ended on (`rep`) and around the
+      kept point nearest it at bind (a chain of collapses can carry a point's end 10 cm away);
+    - each simplified triangle's centre to the source triangles around the points that ended on its
+      corners and around the source point nearest it at bind."""
     p = posed.shape[0]
-    if not len(source):
-        return 0.0
+    if not len(source) or not len(simplified):
+        return 0.0 if not len(source) else float(np.linalg.norm(posed - posed[rep], axis=-1).max())
     used = np.unique(source)
+    bind = posed[:, 0]
+    kept = np.unique(simplified)
+    nearest_kept = kept[nearest_vertices(bind[kept], bind[used])[0]]
     first, count, tris = _incidence(simplified, p)
-    owner, at = expand_runs(first[rep[used]], count[rep[used]])
-    worst = 0.0
-    lonely = used[count[rep[used]] == 0]  # its point's triangles all went: measured to the point itself
-    if len(lonely):
-        worst = float(np.linalg.norm(posed[lonely] - posed[rep[lonely]], axis=-1).max())
-    pairs_point, pairs_tri = used[owner], simplified[tris[at]]
+    t = len(simplified)
+    pairs = []
+    for around in (rep[used], nearest_kept):
+        owner, at = expand_runs(first[around], count[around])
+        pairs.append(owner * t + tris[at])
+    pairs = np.unique(np.concatenate(pairs))  # each (source point, simplified triangle) once, by point
+    owner, pairs_point, pairs_tri = pairs // t, used[pairs // t], simplified[pairs % t]
     src_first, src_count, src_tris = _incidence(source, p)
     members = np.argsort(rep, kind="stable")
     member_count = np.bincount(rep, minlength=p)
@@ -374,19 +382,21 @@ def deviation(posed: np.ndarray, source: np.ndarray, simplified: np.ndarray, rep
     corner_owner, corner_at = expand_runs(member_first[simplified.ravel()], member_count[simplified.ravel()])
     point = members[corner_at]
     tri_owner, tri_at = expand_runs(src_first[point], src_count[point])
-    # Each (simplified triangle, source triangle) pair once: a source triangle is found from up to three corners.
-    pairs = np.unique((corner_owner[tri_owner] // 3) * len(source) + src_tris[tri_at])
-    centre_tri, near_tri = pairs // len(source), source[pairs % len(source)]
+    nearest_used = used[nearest_vertices(bind[used], bind[simplified].mean(axis=1))[0]]
+    near_owner, near_at = expand_runs(src_first[nearest_used], src_count[nearest_used])
+    # Each (simplified triangle, source triangle) pair once: a source triangle is found from several points.
+    found = np.unique(np.concatenate([(corner_owner[tri_owner] // 3) * len(source) + src_tris[tri_at],
+                                      near_owner * len(source) + src_tris[near_at]]))
+    centre_tri, near_tri = found // len(source), source[found % len(source)]
     # (K, 3, P) in float32: half the bytes to stream, and 0.1 micrometre on a figure of unit size is plenty.
     rows = np.ascontiguousarray(np.transpose(posed, (1, 2, 0)), np.float32)
+    worst = 0.0
     for x in rows:
-        if len(pairs_point):
-            near = _distance_rows(x[:, pairs_point], *(x[:, pairs_tri[:, i]] for i in range(3)))
-            worst = max(worst, _largest_least(near, owner))
-        if len(centre_tri):
-            centre = (x[:, simplified[:, 0]] + x[:, simplified[:, 1]] + x[:, simplified[:, 2]]) / 3.0
-            near = _distance_rows(centre[:, centre_tri], *(x[:, near_tri[:, i]] for i in range(3)))
-            worst = max(worst, _largest_least(near, centre_tri))
+        near = _distance_rows(x[:, pairs_point], *(x[:, pairs_tri[:, i]] for i in range(3)))
+        worst = max(worst, _largest_least(near, owner))
+        centre = (x[:, simplified[:, 0]] + x[:, simplified[:, 1]] + x[:, simplified[:, 2]]) / 3.0
+        near = _distance_rows(centre[:, centre_tri], *(x[:, near_tri[:, i]] for i in range(3)))
+        worst = max(worst, _largest_least(near, centre_tri))
     return worst
 
 
