@@ -345,26 +345,57 @@ def _replay_gpu_passes(ctx, pipeline, framebuffer, count: int) -> dict:
 
 
 def bench_lod(args) -> int:
-    """Silhouette IoU of each coarser LOD against LOD0 at its switch distance (bench/lod_silhouette.py)."""
+    """Silhouette IoU of each coarser LOD against LOD0 at its switch distance (bench/lod_silhouette.py).
+    A character whose file has no coarser LODs gets them made (crowd/asset/lod.py, without the cache,
+    timed: the median of --repeats runs) and is measured at its own switch distances."""
     from crowd.asset.gltf import load_character
     from crowd.settings import DEFAULTS, parse
 
-    from .lod_silhouette import silhouette_iou
+    from .lod_silhouette import generated_lods, silhouette_iou
 
     character = load_character(args.model)
-    distances = parse("lod_distances", args.lod_distances) if args.lod_distances else DEFAULTS["lod_distances"]
+    character, seconds = generated_lods(character, args.repeats)
+    if args.lod_distances:
+        distances = parse("lod_distances", args.lod_distances)
+    else:
+        distances = character.lod_distances or DEFAULTS["lod_distances"]
     size = parse("size", args.size)
     rows = silhouette_iou(character, distances, size)
-    print(f"{character.name}: silhouettes at {size[0]}x{size[1]}, 45-degree camera, {rows[0]['views'] if rows else 0} views per LOD")
+    made = f", LODs made in {np.median(seconds):.2f} s (median of {len(seconds)})" if seconds else ""
+    print(f"{character.name}: silhouettes at {size[0]}x{size[1]}, 45-degree camera, {rows[0]['views'] if rows else 0} views per LOD{made}")
     print(f"{'LOD':>4} {'from m':>7} {'height px':>10} {'triangles':>14} {'IoU min / mean (samples)':>25} {'(pixels)':>16}")
     for r in rows:
-        print(f"{r['lod']:>4} {r['distance_m']:>7g} {r['height_px']:>10.1f} {r['triangles']:>6} / {r['triangles_lod0']:<6} "
+        print(f"{r['lod']:>4} {r['distance_m']:>7.3g} {r['height_px']:>10.1f} {r['triangles']:>6} / {r['triangles_lod0']:<6} "
               f"{r['iou_min']:>16.4f} / {r['iou_mean']:.4f} {r['pixel_iou_min']:>9.4f} / {r['pixel_iou_mean']:.4f}")
     if args.json:
         from crowd.files import atomic_write_bytes
 
         atomic_write_bytes(Path(args.json), json.dumps({"model": str(args.model or "built-in zombie"), "size": list(size),
-                                                        "lod_distances": list(distances), "rows": rows}, indent=1).encode())
+                                                        "lod_distances": [float(d) for d in distances], "own_distances": character.lod_distances is not None,
+                                                        "generation_s": [round(t, 3) for t in seconds], "rows": rows}, indent=1).encode())
+    return 0
+
+
+def bench_simplifiers(args) -> int:
+    """crowd's simplifier against fast-simplification, pyfqmr and meshoptimizer on the LODs made for a
+    file without them (bench/simplifier_compare.py): triangles, silhouette IoU at the switch distances, time."""
+    from crowd.asset.gltf import load_character
+    from crowd.settings import parse
+
+    from .simplifier_compare import WIDE_UV, compare
+
+    out = compare(load_character(args.model), parse("size", args.size))
+    for line in out["missing"]:
+        print(f"crowd-bench simplifiers: {line}", file=sys.stderr)
+    print(f"{out['character']}: LODs from {' / '.join(f'{d:.3g}' for d in out['lod_distances'])} m; IoU min / mean at each LOD's distance; "
+          f"uv: triangles across more than {WIDE_UV:g} of the texture (LOD0: {out['wide_uv_lod0']})")
+    for name, c in out["candidates"].items():
+        cells = "  ".join(f"LOD{r['lod']} {r['triangles']:>5} tris {r['iou_min']:.4f} / {r['iou_mean']:.4f} uv {r['wide_uv']}" for r in c["rows"])
+        print(f"{name:<20} {c['seconds']:>7.2f} s  {cells}")
+    if args.json:
+        from crowd.files import atomic_write_bytes
+
+        atomic_write_bytes(Path(args.json), json.dumps(out, indent=1).encode())
     return 0
 
 
@@ -660,10 +691,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(run=bench_frame)
     p = sub.add_parser("lod", help="silhouette IoU of each coarser LOD against LOD0 at its switch distance (float64, CPU)")
     p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
-    p.add_argument("--lod-distances", help="D1,D2,D3 (default: the settings' default)")
+    p.add_argument("--lod-distances", help="D1,D2,D3 (default: the character's own, for LODs made at load; else the settings' default)")
     p.add_argument("--size", default="1920x1080", help="frame size WxH the camera draws")
+    p.add_argument("--repeats", type=int, default=3, help="times the LODs of a file without them are made, for the median time")
     p.add_argument("--json", type=Path, help='write the results as JSON to this file')
     p.set_defaults(run=bench_lod)
+    p = sub.add_parser("simplifiers", help="the LOD simplifier against fast-simplification, pyfqmr and meshoptimizer (those importable)")
+    p.add_argument("--model", type=Path, required=True, help="a .glb/.gltf without coarser LODs")
+    p.add_argument("--size", default="1920x1080", help="frame size WxH the camera draws")
+    p.add_argument("--json", type=Path, help='write the results as JSON to this file')
+    p.set_defaults(run=bench_simplifiers)
     p = sub.add_parser("vertex-cache", help="the hand-written triangle order against meshoptimizer's (needs meshoptimizer built)")
     p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
     p.add_argument("--json", type=Path, help='write the results as JSON to this file')

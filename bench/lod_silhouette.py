@@ -16,11 +16,14 @@ pixel can show). The IoU is over the samples, i.e. of the coverage masks at 4 ti
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import time
 
 import numpy as np
 
 from crowd.anim import reference
+from crowd.asset.lod import with_generated_lods
 from crowd.asset.model import Character
 
 SAMPLES = 4  # per pixel side
@@ -60,6 +63,20 @@ def rasterise(triangles: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
             inside &= sign * ((q[0] - p[0]) * (py - p[1]) - (q[1] - p[1]) * (px - p[0])) >= 0
         mask[y0:y1, x0:x1] |= inside
     return mask
+
+
+def generated_lods(character: Character, repeats: int = 1) -> tuple[Character, list[float]]:
+    """`character` as drawn: with its own LODs where its file has them (no time), else with LODs made
+    by crowd.asset.lod without the cache, `repeats` times (the seconds each took; the last result)."""
+    if any(m.lod > 0 for m in character.meshes) and character.lod_distances is None:
+        return character, []
+    base = dataclasses.replace(character, meshes=[m for m in character.meshes if m.lod == 0], lod_distances=None)
+    seconds = []
+    for _ in range(max(repeats, 1)):
+        start = time.perf_counter()
+        made = with_generated_lods(base, cache=False)
+        seconds.append(time.perf_counter() - start)
+    return made, seconds
 
 
 def silhouette_iou(character: Character, lod_distances, size: tuple[int, int] = (1920, 1080), fov_y: float = 45.0) -> list[dict]:

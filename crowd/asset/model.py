@@ -7,6 +7,7 @@ so a malformed character is reported where it enters, not as a wrong pose three 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -408,6 +409,10 @@ class Character:
     # weight where no clip drives it (glTF's mesh or node default weights).
     morphs: tuple[str, ...] = ()
     morph_defaults: np.ndarray = field(default_factory=lambda: np.zeros(0))  # float64 (M,)
+    # Metres from the camera where LOD1, LOD2, ... start for this character alone, ascending (LODs past
+    # the last one cast shadows only); None: the global lod_distances setting, as for the built-ins.
+    # crowd.asset.lod sets them for the LODs it makes, from each LOD's measured error.
+    lod_distances: tuple[float, ...] | None = None
     merged: list[MergedMesh] = field(default_factory=list)  # the meshes made of several that share a draw
 
     @property
@@ -433,12 +438,24 @@ class Character:
         _finite(f"character {self.name!r} morph_defaults", self.morph_defaults)
         for mesh in self.meshes:
             mesh.validate(self.skeleton.joint_count, len(self.textures), m)
+        _check_lod_distances(self)
         names = [c.name for c in self.clips]
         if len(set(names)) != len(names):
             raise ModelError(f"character {self.name!r} has duplicate clip names")
         for c in self.clips:
             c.validate(self.skeleton, m)
         return self
+
+
+def _check_lod_distances(character: Character) -> None:
+    d = character.lod_distances
+    if d is None:
+        return
+    top = max((m.lod for m in character.meshes), default=0)
+    numbers = isinstance(d, tuple) and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x > 0 for x in d)
+    if not numbers or not 1 <= len(d) <= top or any(b <= a for a, b in zip(d, d[1:])):
+        raise ModelError(f"character {character.name!r}: lod_distances must be 1 to {top} (its coarsest LOD) ascending finite metres "
+                         f"above 0, got {d!r}")
 
 
 def cast_weapons(characters) -> tuple[list[int], list[str]]:

@@ -107,7 +107,8 @@ def scale_character(character: Character, factor: float) -> Character:
         attachments=[dataclasses.replace(a, mesh=rigid(a.mesh), offset=moved(a.offset)) for a in character.attachments],
         props={name: dataclasses.replace(p, mesh=rigid(p.mesh), grip=moved(p.grip), coarser=tuple(rigid(c) for c in p.coarser))
                for name, p in character.props.items()},
-        warnings=list(character.warnings))
+        warnings=list(character.warnings),
+        lod_distances=None if character.lod_distances is None else tuple(d * f for d in character.lod_distances))
 
 
 def to_crowd_units(character: Character, model_scale: float | str = AUTO) -> Character:

@@ -15,8 +15,9 @@ from ..anim.bake import AnimationBake
 from ..anim.processor import AnimationProcessor, reference_palette, resolve_path
 from ..asset.model import Character
 from ..frame import CLIP, MASK, PHASE, WEIGHT, Camera, Instances, empty_layers
+from ..cache import cache_dir
 from ..gl import GLObjects, has_compute
-from .impostors import (ImpostorAtlas, ImpostorError, ImpostorSettings, atlas_key, cache_dir, clip_boxes, clip_frames, read_atlas,
+from .impostors import (ImpostorAtlas, ImpostorError, ImpostorSettings, atlas_key, clip_boxes, clip_frames, read_atlas,
                         save_atlas, skinned_points, view_axes)
 from .render import CrowdRenderer
 
@@ -95,7 +96,7 @@ def load_atlas(ctx: moderngl.Context, character: Character, bake: AnimationBake,
     check is rebuilt, and the atlas's ``notes`` say so in one line."""
     settings = (settings or ImpostorSettings()).validate()
     notes = []
-    path = cache_dir() / f"{character.name}-{atlas_key(character, bake, settings)}.npz" if cache else None
+    path = cache_dir("impostors") / f"{character.name}-{atlas_key(character, bake, settings)}.npz" if cache else None
     if path is not None and path.exists():
         try:
             atlas = read_atlas(path)

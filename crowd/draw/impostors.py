@@ -24,17 +24,15 @@ What is baked, and what is not (issue 24 asks to say):
   the agent's palette row with no read-back, so the CPU places weapons only for agents drawn as meshes;
 - actions (attack, hit, death): baked like locomotion; an impostor shows its heaviest layer's clip.
 
-**The cache**: a file per (model bytes, bake, settings) under the user's cache folder (``cache_dir``),
-written atomically with a checksum of its arrays; a file that does not load or check is rebuilt, with
-one line saying so.
+**The cache**: a file per (model bytes, bake, settings) under the user's cache folder, kept by crowd.cache's
+rule (written atomically with a checksum of its arrays); a file that does not load or check is rebuilt,
+with one line saying so.
 """
 
 from __future__ import annotations
 
 import hashlib
-import io
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -43,10 +41,10 @@ import numpy as np
 
 from ..anim.bake import AnimationBake
 from ..asset.model import Character
-from ..files import atomic_write_bytes
+from ..cache import CacheError, checksum, read_arrays, write_arrays
 from ..gl import GLObjects, GLStage
 
-FORMAT = 1  # the cache files' layout; a change makes every older file a miss
+FORMAT = 2  # the cache files' layout; a change makes every older file a miss (2: crowd.cache's checksum over every array)
 MAX_ELEVATIONS = 4  # impostor.vert.glsl's u_elevation
 
 
@@ -123,10 +121,7 @@ class ImpostorAtlas:
         return self
 
     def checksum(self) -> str:
-        h = hashlib.sha256()
-        for a in (self.clips, self.albedo, self.normal_depth):
-            h.update(np.ascontiguousarray(a).tobytes())
-        return h.hexdigest()
+        return checksum((self.clips, self.albedo, self.normal_depth))
 
 
 # -- baking
@@ -240,15 +235,6 @@ def held_pieces(character: Character, lod: int) -> list:
 # -- the cache
 
 
-def cache_dir() -> Path:
-    """Where atlases are kept: $CROWD_CACHE_DIR, else the user's cache folder ($XDG_CACHE_HOME or
-    ~/.cache) /crowd/impostors."""
-    if os.environ.get("CROWD_CACHE_DIR"):
-        return Path(os.environ["CROWD_CACHE_DIR"])
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "crowd" / "impostors"
-
-
 def atlas_key(character: Character, bake: AnimationBake, settings: ImpostorSettings) -> str:
     """A name for the atlas of this model, these clips and these settings: a hash of everything the bake
     reads (the drawn meshes' vertices and colours, the skeleton, the baked clips' frames)."""
@@ -269,29 +255,25 @@ def atlas_key(character: Character, bake: AnimationBake, settings: ImpostorSetti
 
 
 def save_atlas(path: Path, atlas: ImpostorAtlas) -> None:
-    buffer = io.BytesIO()
     s = atlas.settings
-    np.savez(buffer, clips=atlas.clips, albedo=atlas.albedo, normal_depth=atlas.normal_depth, rows=np.int64(atlas.rows),
-             names=np.array(atlas.clip_names), views=np.int64(s.views), elevations=np.array(s.elevations, np.float64),
-             cell=np.array(s.cell, np.int64), rate=np.float64(s.rate), checksum=np.array(atlas.checksum()))
-    atomic_write_bytes(path, buffer.getvalue())
+    write_arrays(path, {"clips": atlas.clips, "albedo": atlas.albedo, "normal_depth": atlas.normal_depth, "rows": np.int64(atlas.rows),
+                        "names": np.array(atlas.clip_names), "views": np.int64(s.views), "elevations": np.array(s.elevations, np.float64),
+                        "cell": np.array(s.cell, np.int64), "rate": np.float64(s.rate)})
 
 
 def read_atlas(path: Path) -> ImpostorAtlas:
-    """The atlas a cache file holds, checked; ImpostorError (one line) for anything else."""
+    """The atlas a cache file holds, checked (crowd.cache's rule); ImpostorError (one line) for anything else."""
     try:
-        with np.load(path, allow_pickle=False) as z:
-            settings = ImpostorSettings(int(z["views"]), tuple(float(x) for x in z["elevations"]), tuple(int(x) for x in z["cell"]), float(z["rate"]))
-            atlas = ImpostorAtlas(settings, tuple(str(n) for n in z["names"]), z["clips"], z["albedo"], z["normal_depth"], int(z["rows"]))
-            checksum = str(z["checksum"])
+        z = read_arrays(path)
+        settings = ImpostorSettings(int(z["views"]), tuple(float(x) for x in z["elevations"]), tuple(int(x) for x in z["cell"]), float(z["rate"]))
+        atlas = ImpostorAtlas(settings, tuple(str(n) for n in z["names"]), z["clips"], z["albedo"], z["normal_depth"], int(z["rows"]))
+    except CacheError as exc:
+        raise ImpostorError(str(exc)) from None
     except ImpostorError:
         raise
-    except Exception as exc:  # a truncated or foreign file: zip, pickle, key and shape errors alike
+    except Exception as exc:  # a checked file of some other kind: missing keys, wrong shapes
         raise ImpostorError(f"{path}: not an impostor atlas ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
-    atlas.validate()
-    if atlas.checksum() != checksum:
-        raise ImpostorError(f"{path}: its arrays do not match its checksum")
-    return atlas
+    return atlas.validate()
 
 
 # -- on the GPU
