@@ -21,6 +21,15 @@ def shared(name: str) -> Path:
     return path
 
 
+@pytest.fixture(scope="session", autouse=True)
+def cache_folder(tmp_path_factory):
+    """The caches (impostor atlases, generated LODs) of a test session in a folder of its own, not the user's."""
+    import os
+
+    os.environ["CROWD_CACHE_DIR"] = str(tmp_path_factory.mktemp("cache"))
+    yield
+
+
 @pytest.fixture(scope="session")
 def zombie():
     from crowd.asset.gltf import load_character

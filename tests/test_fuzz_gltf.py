@@ -67,13 +67,19 @@ _PYTHON_DIRS = tuple({str(Path(p).resolve()) for p in (sys.prefix, sys.base_pref
 
 
 def _outside_opens(folder: Path) -> list:
+    """Files the load opened outside `folder`: none but Python's own imports and the generated LODs' cache
+    (crowd.cache, kept by a name the file's contents hash to, written atomically with the process's umask,
+    which crowd.files reads from /proc)."""
+    from crowd.cache import cache_dir
+
     inside = str(folder.resolve())
+    cache = os.path.realpath(cache_dir("lods"))
     bad = []
     for p in _AUDIT["opened"]:
         if isinstance(p, int):
             continue  # an already open descriptor
         text = os.path.realpath(os.fsdecode(p))
-        if text.startswith(inside + os.sep):
+        if text.startswith(inside + os.sep) or text.startswith(cache + os.sep) or text == os.path.realpath("/proc/self/status"):
             continue
         if text.endswith((".py", ".pyc", ".so", ".pth")) and text.startswith(_PYTHON_DIRS):
             continue  # an import during the load

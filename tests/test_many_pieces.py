@@ -11,7 +11,8 @@ import pytest
 
 from crowd.asset.gltf import load_character
 from crowd.gl import Offscreen, has_compute
-from crowd.pipeline import CharacterSpec, CrowdPipeline, PipelineConfig
+from crowd.pipeline import CrowdPipeline
+from crowd.pipeline_config import CharacterSpec, PipelineConfig
 from crowd.sim.ai import AIConfig
 from gltf_factory import modular_gltf
 

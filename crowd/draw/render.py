@@ -275,7 +275,7 @@ class CrowdRenderer(GLStage):
 
     def _cull_characters(self) -> list[CullCharacter]:
         routed = {d.character for d in self.draws if d.twin_of is not None}
-        return [CullCharacter(tuple(float(x) for x in self.bounds[k]), tuple(self._lod_distances),
+        return [CullCharacter(tuple(float(x) for x in self.bounds[k]), tuple(self.cast[k].lod_distances or self._lod_distances),
                               self.impostor_distance if self.impostor_lods[k] >= 0 else math.inf, k in routed) for k in range(len(self.cast))]
 
     def _build_cull(self, weapons_visibility: bool) -> None:
