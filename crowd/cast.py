@@ -21,6 +21,7 @@ from .anim.bake import AnimationBake, bake
 from .anim.morph import MorphError, bake_morphs
 from .anim.roles import clips_used, match_roles
 from .asset.gltf import load_character
+from .asset.lod import with_generated_lods
 from .asset.model import Character, cast_weapons
 from .pipeline_config import CharacterSpec, PipelineError
 from .settings import SETTINGS
@@ -60,7 +61,8 @@ def load_cast(specs: tuple[CharacterSpec, ...], survivor: bool) -> list[CastMemb
     several), then the survivor where the scene has one; nothing is baked yet."""
     cast = []
     for spec in specs:
-        character = load_character(spec.model, scale=SETTINGS["model_scale"].check(spec.model_scale, PipelineError))
+        # A file without coarser LODs gets a chain of them (cached), for the crowd to draw from afar.
+        character = with_generated_lods(load_character(spec.model, scale=SETTINGS["model_scale"].check(spec.model_scale, PipelineError)))
         roles, notes = match_roles(character.clips, spec.roles)
         if len(specs) > 1:
             notes = [f"{character.name}: {note}" for note in notes]

@@ -16,7 +16,9 @@ def test_a_short_soak_holds_memory_and_gl_objects_and_logs_no_fault(gl_context):
     result = run_soak(agents=300, frames=640, size=(96, 54), warmup=320, every=20)
     assert result["faults"] == []
     assert len(result["samples"]) == 17 and result["samples"][-1]["agents"] == 300 and result["rounds"] >= 3
-    assert abs(result["rss_mb"]["drift"]) <= 0.02, result["rss_mb"]
+    # A leak grows: memory may fall back past the warm-up (glibc handing freed frames back to the system:
+    # -3.6 % and -6.3 % in two runs once meshes merged and the cull's lists shrank) but may not rise.
+    assert result["rss_mb"]["drift"] <= 0.02, result["rss_mb"]
     assert result["gl_objects"]["spread"] <= 0.02, result["gl_objects"]
 
 

@@ -42,7 +42,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..lod import with_generated_lods
 from ..merge import merge_pieces
 from ..model import Character, ModelError
 from ..morph_transfer import transfer_targets
@@ -72,11 +71,9 @@ def load_character(path: str | Path | None = None, clips: list[str] | None = Non
     """Import a skinned character. ``path=None`` loads the built-in zombie, a built-in's name (BUILT_IN) that
     character; ``clips`` keeps only those clips; ``scale`` is a size factor, or "auto" for a person's
     height where the file is far from it (units.py); ``merge`` joins the meshes that can share a draw
-    (crowd.asset.merge) and gives a file without coarser LODs a chain of them (crowd.asset.lod, cached);
-    False keeps the file's meshes as they are, to compare."""
-    # Merged into the draws it needs, then given coarser LODs where the file has none (crowd.asset.lod);
-    # merge=False keeps the meshes as the file wrote them.
-    finish = (lambda character: with_generated_lods(merge_pieces(character))) if merge else (lambda character: character)
+    (crowd.asset.merge; False keeps the file's meshes as they are, to compare). The coarser LODs a file
+    lacks are made where a crowd is built from it (crowd.cast, crowd.asset.lod)."""
+    finish = merge_pieces if merge else (lambda character: character)
     if is_built_in(path):
         name = path or "zombie"
         generator = importlib.import_module(f"..{name}", __package__)
