@@ -1,6 +1,7 @@
-"""Coarser LODs made at load for characters whose file gives none (crowd/asset/lod.py, simplify.py): on
-generated extremes (a UV seam, flat shading, no index buffer, morph targets, 256 joints, thousands of
-vertices), on hostile meshes, and on every third-party file in ../shared/gltf (skipped when absent)."""
+"""Coarser LODs made at load for characters whose file gives none (crowd/asset/lod.py, simplify.py,
+deviation.py): on generated extremes (a UV seam, flat shading, no index buffer, morph targets, 256 joints,
+thousands of vertices), on hostile meshes, and on every third-party file in ../shared/gltf (skipped when
+absent)."""
 
 from __future__ import annotations
 
@@ -9,11 +10,13 @@ import dataclasses
 import numpy as np
 import pytest
 
+from crowd.asset import deviation as deviation_module
 from crowd.asset import lod
 from crowd.asset.lod import switch_distance, with_generated_lods
 from crowd.asset.model import ModelError
 from crowd.asset.units import scale_character
-from crowd.asset.simplify import point_triangle_distance, weld
+from crowd.asset.deviation import Deviation, TriangleGrid, point_triangle_distance
+from crowd.asset.simplify import weld
 from crowd.cache import read_arrays
 
 from conftest import shared_files
@@ -136,20 +139,20 @@ def test_each_corner_takes_the_normal_that_faces_its_triangle_best(extremes):
             assert np.mean(cos > np.cos(np.radians(30))) > 0.9
 
 
-def test_the_recorded_error_bounds_the_distance_in_posed_frames(extremes):
-    """Each LOD's error (behind its switch distance) is at least the true distance between it and LOD0,
-    both ways, found by brute force in every frame the generator samples (the clip's, and the bind
-    pose): what the switch distance promises holds where the joints bend, not only at bind."""
-    source, made = extremes["seam"]
-    lod0 = made.meshes[0]
-    frames = lod.sample_skinning(source)
-    assert len(frames) == lod.POSES
-    for level, distance in enumerate(made.lod_distances, start=1):
-        (mesh,) = [m for m in made.meshes if m.lod == level]
-        for m in frames[::3]:
-            a, b = (_posed(m, x) for x in (lod0, mesh))
-            error = max(_farthest(a, b, mesh.indices), _farthest(b[mesh.indices.reshape(-1, 3)].mean(axis=1), a, lod0.indices))
-            assert switch_distance(error) <= distance * (1 + 1e-5), (level, switch_distance(error), distance)  # measured in float32
+def test_the_recorded_error_is_the_distance_found_by_brute_force(extremes):
+    """Each LOD's error (behind its switch distance) is the distance between it and LOD0, both ways
+    (every LOD0 vertex to the LOD's surface, every LOD triangle's centre to LOD0's), the largest over
+    every frame the generator samples (the clips', and the bind pose), found by trying every triangle:
+    the switch distance is where the LOD's real error is one pixel, in the frames where joints bend."""
+    for name in ("seam", "flat_shaded"):
+        source, made = extremes[name]
+        lod0 = made.meshes[0]
+        frames = lod.sample_skinning(source)
+        assert len(frames) == lod.POSES
+        errors = np.array([[max(_farthest(a, b, mesh.indices), _farthest(b[mesh.indices.reshape(-1, 3)].mean(axis=1), a, lod0.indices))
+                            for m in frames for a, b in [(_posed(m, lod0), _posed(m, mesh))]]
+                           for mesh in sorted((m for m in made.meshes if m.lod > 0), key=lambda m: m.lod)])
+        assert lod.lod_distances(errors.max(axis=1)[None]) == pytest.approx(made.lod_distances, rel=1e-9), name
 
 
 def _posed(matrices, mesh) -> np.ndarray:
@@ -158,8 +161,68 @@ def _posed(matrices, mesh) -> np.ndarray:
 
 
 def _farthest(points, vertices, indices) -> float:
-    tri = vertices[np.asarray(indices).reshape(-1, 3)]
-    return max(point_triangle_distance(np.repeat(q[None], len(tri), 0), tri[:, 0], tri[:, 1], tri[:, 2]).min() for q in points)
+    """The largest over `points` of the distance to the nearest of every triangle (brute force)."""
+    return float(_nearest_by_brute_force(points, vertices, np.asarray(indices, np.int64).reshape(-1, 3))[0].max())
+
+
+def _nearest_by_brute_force(points, vertices, triangles):
+    """Each point's distance to the nearest triangle, and which (the first of equals), trying every pair."""
+    tri = vertices[triangles]
+    d = np.stack([point_triangle_distance(np.repeat(q[None], len(tri), 0), tri[:, 0], tri[:, 1], tri[:, 2]) for q in points])
+    return d.min(axis=1), d.argmin(axis=1)
+
+
+def test_the_grid_finds_the_nearest_triangle_as_brute_force_does():
+    """TriangleGrid (the exact search behind the error): triangles of every size, from slivers to one
+    across the whole set, and points on them, near them, inside the grid's empty cells and far outside
+    it, with no bound or a loose one: the same distance and triangle as trying every one, bit for bit."""
+    rng = np.random.default_rng(7)
+    centres = rng.uniform(-1.0, 1.0, (300, 3))
+    vertices = np.concatenate([centres[:, None] + rng.normal(0.0, s, (300, 3, 3)) for s in (0.02, 0.1)] + [rng.uniform(-1, 1, (1, 3, 3))]).reshape(-1, 3)
+    vertices[3] = vertices[4] + 1e-9  # a sliver
+    triangles = np.arange(len(vertices)).reshape(-1, 3)
+    points = np.concatenate([rng.uniform(-1.2, 1.2, (200, 3)), vertices[:50] + 1e-4, rng.uniform(-30.0, 30.0, (20, 3))])
+    expect, which = _nearest_by_brute_force(points, vertices, triangles)
+    grid = TriangleGrid(vertices, triangles)
+    for bound in (np.full(len(points), np.inf), expect * rng.uniform(1.0, 50.0, len(points))):
+        found, tri = grid.nearest(points, bound)
+        assert np.array_equal(found, expect) and np.array_equal(tri, which)
+
+
+@pytest.mark.parametrize("grids", [False, True])
+@pytest.mark.parametrize("lost_piece", [False, True])
+def test_the_deviation_is_exact_where_the_connectivity_bound_is_loose_or_missing(monkeypatch, grids, lost_piece):
+    """Deviation.measure against brute force on a case made to defeat its first guess: a bumpy sheet
+    whose simplified version is two large triangles, every removed point's end a random corner (so the
+    triangles around that end are often the wrong ones), in three poses, one of which folds the sheet;
+    with a second piece collapsed to nothing (its points' end has no triangle left) or without. Its
+    exact searches go through grids or try every pair (few pairs): both."""
+    if grids:
+        monkeypatch.setattr(deviation_module, "BRUTE", 0)
+    rng = np.random.default_rng(3)
+    g = np.stack(np.meshgrid(np.linspace(0, 1, 9), np.linspace(0, 1, 9)), -1).reshape(-1, 2)
+    bind = np.concatenate([g, 0.05 * rng.standard_normal((81, 1))], axis=1)
+    quads = np.array([(r * 9 + c, r * 9 + c + 1, r * 9 + c + 9, r * 9 + c + 10) for r in range(8) for c in range(8)])
+    source = np.concatenate([quads[:, [0, 1, 2]], quads[:, [1, 3, 2]]])
+    corners = [0, 8, 72, 80]
+    simplified = np.array([[0, 8, 72], [8, 80, 72]])
+    rep = np.array(corners)[rng.integers(0, 4, 81)]
+    rep[corners] = corners
+    if lost_piece:
+        bind = np.concatenate([bind, [[0.5, 0.5, 0.3], [0.6, 0.5, 0.3], [0.5, 0.6, 0.3]]])
+        source, rep = np.concatenate([source, [[81, 82, 83]]]), np.r_[rep, 81, 81, 81]
+    fold = bind @ _rotation(0.9).T
+    posed = np.stack([bind, bind @ _rotation(0.4).T + 0.01, np.where((bind[:, 0] > 0.5)[:, None], fold, bind)], axis=1)
+    expect = 0.0
+    for k in range(3):
+        x = posed[:, k]
+        expect = max(expect, _farthest(x[np.unique(source)], x, simplified), _farthest(x[simplified].mean(axis=1), x, source))
+    assert Deviation(posed, source).measure(simplified, rep) == expect
+
+
+def _rotation(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
 def test_generation_is_deterministic():
@@ -273,7 +336,9 @@ def shared_made():
     files = shared_files()
     if not files:
         pytest.skip("../shared/gltf is absent (third-party test files live outside the project)")
-    return {p.name: (c, with_generated_lods(c, cache=False)) for p in files for c in [load_character(p)]}
+    # load_character gives a file its generated chain (merged, then crowd.asset.lod): the source is its LOD0.
+    return {p.name: (dataclasses.replace(c, meshes=[m for m in c.meshes if m.lod == 0], lod_distances=None), c)
+            for p in files for c in [load_character(p)]}
 
 
 @pytest.mark.parametrize("name", [p.name for p in shared_files()] or ["absent"])

@@ -3,7 +3,7 @@
 Each mesh (every piece, every variation choice) is simplified on its own by ``crowd.asset.simplify``, in
 the bind pose and frames of the character's clips at once, and measured as it goes: a ladder of meshes,
 each ``LADDER`` times the triangles of the one before, with its distance from the source (``deviation``:
-both ways, in every sampled pose, in metres). LOD k is made by taking meshes down
+exact, both ways, in every sampled pose, in metres). LOD k is made by taking meshes down
 their ladders, always the one whose next rung adds least error, until the character draws at most
 ``MAX_SHARE`` of LOD k - 1's triangles, and on while the next step stays within ``ERROR_BUDGETS[k - 1]``
 of the character's size: so every mesh is about as far from its source as the others, and a small piece
@@ -30,9 +30,10 @@ import numpy as np
 from ..cache import CacheError, cache_dir, read_arrays, write_arrays
 from .model import Character, SkinnedMesh
 from .pose import global_matrices, sample_clip
-from .simplify import BORDER_WEIGHT, MIN_NORMAL_COS, Collapser, Welded, deviation, expand_runs, representatives, weld
+from .deviation import Deviation, expand_runs
+from .simplify import BORDER_WEIGHT, MIN_NORMAL_COS, Collapser, Welded, representatives, weld
 
-FORMAT = 1  # the cache files' layout and the generator's rules; a change makes every older file a miss
+FORMAT = 2  # the cache files' layout and the generator's rules; a change makes every older file a miss (2: exact errors)
 COARSER_LODS = 3  # one a global lod_distances start (LOD1 to LOD3)
 # Each LOD's largest error, as a share of the character's size (its bind pose's longest side): for a
 # person 1.8 m tall 9, 27 and 72 mm, one pixel at the reference view from 12, 35 and 94 m.
@@ -106,6 +107,7 @@ class _Chain:
             if 0 < len(tris) < len(self.rungs[-1][0]):  # a piece is never made to vanish
                 self.rungs.append((tris, done))
         self._errors: dict[int, float] = {0: 0.0}
+        self._deviation = Deviation(self.posed, self.source_points)
 
     def triangles(self, rung: int) -> int:
         return len(self.rungs[rung][0])
@@ -115,7 +117,7 @@ class _Chain:
         if rung not in self._errors:
             tris, done = self.rungs[rung]
             rep = representatives(len(self.posed), self.collapses[:done])
-            self._errors[rung] = deviation(self.posed, self.source_points, self.welded.wedge_point[tris], rep) * self.scale
+            self._errors[rung] = self._deviation.measure(self.welded.wedge_point[tris], rep) * self.scale
         return self._errors[rung]
 
     def lod_mesh(self, rung: int) -> tuple[np.ndarray, np.ndarray]:
@@ -149,11 +151,12 @@ def character_size(character: Character) -> float:
     return size if math.isfinite(size) and size > 0.0 else 1.0
 
 
-def generate(character: Character) -> tuple[list[list[tuple[np.ndarray, np.ndarray]]], np.ndarray, list[str]]:
+def generate(character: Character, skinning: np.ndarray | None = None) -> tuple[list[list[tuple[np.ndarray, np.ndarray]]], np.ndarray, list[str]]:
     """For each mesh, its coarser LODs (up to COARSER_LODS) as (source vertices, triangles), the error
     of each (meshes, LODs) in metres, and a line for each mesh that could not be simplified. Every mesh
-    gets the same number of LODs; a mesh that stops early repeats its last."""
-    skinning = sample_skinning(character)
+    gets the same number of LODs; a mesh that stops early repeats its last. `skinning`: the character's
+    ``sample_skinning``, where the caller has it already (the cache's key needs it too)."""
+    skinning = sample_skinning(character) if skinning is None else skinning
     size = character_size(character)
     chains = [_Chain(m, skinning) for m in character.meshes]
     notes = [f"mesh {c.mesh.name!r}: its {c.triangles(0):,} triangles could not be simplified (each collapse would tear a seam "
@@ -165,12 +168,16 @@ def generate(character: Character) -> tuple[list[list[tuple[np.ndarray, np.ndarr
         # Every mesh the same error where it can: the mesh whose next rung costs least goes first, until
         # the LOD draws at most MAX_SHARE of the triangles of the one before, and on while within budget.
         while True:
-            ahead = [(c.error(r + 1), i) for i, (c, r) in enumerate(zip(chains, rungs)) if r + 1 < len(c.rungs)]
-            if not ahead:
+            movable = [i for i, (c, r) in enumerate(zip(chains, rungs)) if r + 1 < len(c.rungs)]
+            if not movable:
                 break
-            error, i = min(ahead)
-            if sum(c.triangles(r) for c, r in zip(chains, rungs)) <= MAX_SHARE * before and error > budget * size:
-                break
+            small = sum(c.triangles(r) for c, r in zip(chains, rungs)) <= MAX_SHARE * before
+            if len(movable) == 1 and not small:
+                i = movable[0]  # the one way on: its error chooses nothing, so it is not measured (most of the time taken)
+            else:
+                error, i = min((chains[i].error(rungs[i] + 1), i) for i in movable)
+                if small and error > budget * size:
+                    break
             rungs[i] += 1
         if sum(c.triangles(r) for c, r in zip(chains, rungs)) >= before:
             break
@@ -258,9 +265,10 @@ def with_generated_lods(character: Character, cache: bool = True, folder: Path |
     warnings = list(character.warnings)
     path = None
     found = None
+    skinning = sample_skinning(character)
     if cache:
         name = re.sub(r"[^A-Za-z0-9_.-]", "_", character.name)[:48] or "character"
-        key = _key(character, sample_skinning(character))
+        key = _key(character, skinning)
         path = (folder or cache_dir("lods")) / f"{name}-lods-{key}.npz"
         if path.exists():
             try:
@@ -268,7 +276,7 @@ def with_generated_lods(character: Character, cache: bool = True, folder: Path |
             except CacheError as exc:
                 warnings.append(f"LOD cache rebuilt: {exc}")
     if found is None:
-        lods, errors, notes = generate(character)
+        lods, errors, notes = generate(character, skinning)
         warnings += notes
         if path is not None:
             try:
