@@ -332,13 +332,13 @@ def test_switch_distance_is_one_pixel_at_the_reference_view():
 @pytest.fixture(scope="module")
 def shared_made():
     from crowd.asset.gltf import load_character
+    from crowd.asset.lod import with_generated_lods
 
     files = shared_files()
     if not files:
         pytest.skip("../shared/gltf is absent (third-party test files live outside the project)")
-    # load_character gives a file its generated chain (merged, then crowd.asset.lod): the source is its LOD0.
-    return {p.name: (dataclasses.replace(c, meshes=[m for m in c.meshes if m.lod == 0], lod_distances=None), c)
-            for p in files for c in [load_character(p)]}
+    # The source is the file as imported (its meshes merged); the chain is what crowd.cast builds from it.
+    return {p.name: (c, with_generated_lods(c)) for p in files for c in [load_character(p)]}
 
 
 @pytest.mark.parametrize("name", [p.name for p in shared_files()] or ["absent"])
