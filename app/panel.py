@@ -26,6 +26,7 @@ AGENTS, TIME_SCALE, CROSSFADE = SETTINGS["agents"], SETTINGS["time_scale"], SETT
 CLIP_SPEED, WEIGHT, BAKE_FPS = SETTINGS["clip_speed"], SETTINGS["layer_weight"], SETTINGS["bake_fps"]
 LOD, LATENCY = SETTINGS["lod_distances"], SETTINGS["readback_latency"]
 LOD_FADE, IMPOSTOR_DISTANCE, IMPOSTOR_MODES = SETTINGS["lod_fade"], SETTINGS["impostor_distance"], SETTINGS["impostors"].choices
+LOD_ERROR = SETTINGS["lod_error_px"]
 PRECISIONS, INTERPOLATIONS = SETTINGS["precision"].choices, SETTINGS["interpolation"].choices
 BOUND, MORPH_WEIGHT = SETTINGS["compression_bound_mm"], SETTINGS["morph_weight"]
 CULL_PATHS = SETTINGS["cull"].choices
@@ -76,7 +77,7 @@ class Panel:
         "agents": "set_agent_count", "seed": "set_seed", "crossfade": "set_crossfade", "time_scale": "set_time_scale",
         "pause": "set_paused", "step": "step_once", "clip_speed": "set_clip_speed", "clip_loop": "set_clip_loop",
         "play": "play", "weight": "set_weight", "rebake": "start_rebake", "measure_error": "measure_error", "lod": "set_lod_distances", "culling": "set_culling", "occlusion": "set_occlusion",
-        "lod_fade": "set_lod_fade", "impostors": "set_impostors", "impostor_distance": "set_impostor_distance",
+        "lod_fade": "set_lod_fade", "lod_error_px": "set_lod_error_px", "impostors": "set_impostors", "impostor_distance": "set_impostor_distance",
         "shadows": "set_shadows", "weapons": "set_weapons", "latency": "set_readback_latency", "cull": "set_cull_path",
         "foot_lock": "set_foot_lock", "morph": "set_morph_weight", "morphs": "set_morphs",
     }
@@ -319,6 +320,10 @@ class Panel:
         changed, distances = imgui.drag_float3("LOD distances (m)", list(p.renderer.lod_distances), 0.5, *LOD.slider)
         if changed:
             self.apply("lod", *map(float, np.maximum.accumulate(distances)))  # dragging one past the next pushes the next along
+        if any(m.character.lod_distances for m in p.cast):  # only a character with generated LODs reads it
+            changed, pixels = imgui.slider_float("LOD error (px)", float(p.config.lod_error_px), *LOD_ERROR.slider, "%.2f")
+            if changed:
+                self.apply("lod_error_px", max(float(pixels), LOD_ERROR.slider[0]))
         changed, fade = imgui.slider_float("LOD fade (m)", float(p.config.lod_fade), *LOD_FADE.slider, "%.1f")
         if changed:
             self.apply("lod_fade", float(fade))

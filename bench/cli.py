@@ -354,11 +354,14 @@ def bench_lod(args) -> int:
     from .lod_silhouette import generated_lods, silhouette_iou
 
     character = load_character(args.model)
+    pixels = parse("lod_error_px", args.lod_error_px) if args.lod_error_px else DEFAULTS["lod_error_px"]
     character, seconds = generated_lods(character, args.repeats)
     if args.lod_distances:
         distances = parse("lod_distances", args.lod_distances)
+    elif character.lod_distances:
+        distances = tuple(d / pixels for d in character.lod_distances)
     else:
-        distances = character.lod_distances or DEFAULTS["lod_distances"]
+        distances = DEFAULTS["lod_distances"]
     size = parse("size", args.size)
     rows = silhouette_iou(character, distances, size)
     made = f", LODs made in {np.median(seconds):.2f} s (median of {len(seconds)})" if seconds else ""
@@ -371,7 +374,7 @@ def bench_lod(args) -> int:
         from crowd.files import atomic_write_bytes
 
         atomic_write_bytes(Path(args.json), json.dumps({"model": str(args.model or "built-in zombie"), "size": list(size),
-                                                        "lod_distances": [float(d) for d in distances], "own_distances": character.lod_distances is not None,
+                                                        "lod_distances": [float(d) for d in distances], "lod_error_px": pixels, "own_distances": character.lod_distances is not None,
                                                         "generation_s": [round(t, 3) for t in seconds], "rows": rows}, indent=1).encode())
     return 0
 
@@ -692,6 +695,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("lod", help="silhouette IoU of each coarser LOD against LOD0 at its switch distance (float64, CPU)")
     p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
     p.add_argument("--lod-distances", help="D1,D2,D3 (default: the character's own, for LODs made at load; else the settings' default)")
+    p.add_argument("--lod-error-px", help="pixels of error where a made LOD starts (default: the lod_error_px setting's)")
     p.add_argument("--size", default="1920x1080", help="frame size WxH the camera draws")
     p.add_argument("--repeats", type=int, default=3, help="times the LODs of a file without them are made, for the median time")
     p.add_argument("--json", type=Path, help='write the results as JSON to this file')

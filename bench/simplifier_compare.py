@@ -28,6 +28,7 @@ from crowd.asset.lod import lod_mesh
 from crowd.asset.model import Character, SkinnedMesh
 from crowd.asset.morph_transfer import nearest_vertices
 from crowd.asset.simplify import weld
+from crowd.settings import DEFAULTS
 
 from .lod_silhouette import generated_lods, silhouette_iou
 
@@ -81,7 +82,7 @@ def compare(character: Character, size: tuple[int, int] = (1920, 1080)) -> dict:
     switch distance, and its time for every mesh and LOD (crowd's includes measuring its ladder)."""
     base = dataclasses.replace(character, meshes=[m for m in character.meshes if m.lod == 0], lod_distances=None)
     made, seconds = generated_lods(base, 1)
-    distances = made.lod_distances
+    distances = tuple(d / DEFAULTS["lod_error_px"] for d in made.lod_distances)
     out = {"character": character.name, "lod_distances": list(distances), "candidates": {}, "missing": []}
     for name in CANDIDATES:
         if name == "crowd":

@@ -47,7 +47,7 @@ class LiveSettings:
         return StageSpec(layers=LAYERS, processor_path=c.processor_path, interpolation=c.interpolation, lod_distances=c.lod_distances,
                          shadows=c.shadows, culling=c.culling, occlusion=c.occlusion, armed=self.readback is not None if armed is None else armed,
                          readback_latency=self.latency, cull=c.cull, foot_lock=c.foot_lock, town=c.town,
-                         impostor_distance=c.impostor_distance, lod_fade=c.lod_fade, gl_limit=GL_LIMITS[c.gl])
+                         impostor_distance=c.impostor_distance, lod_fade=c.lod_fade, lod_error_px=c.lod_error_px, gl_limit=GL_LIMITS[c.gl])
 
     # -- impostors (crowd.draw.impostors): only where the scene needs them
 
@@ -109,6 +109,12 @@ class LiveSettings:
         metres = SETTINGS["lod_fade"].check(metres, PipelineError)
         self.renderer.set_lod_fade(metres)
         self.config = dataclasses.replace(self.config, lod_fade=metres)
+
+    def set_lod_error_px(self, pixels: float) -> None:
+        """Generated LODs switch where their error covers `pixels`, live."""
+        pixels = SETTINGS["lod_error_px"].check(pixels, PipelineError)
+        self.renderer.set_lod_error_px(pixels)
+        self.config = dataclasses.replace(self.config, lod_error_px=pixels)
 
     def set_impostors(self, mode: str) -> None:
         """Impostors "auto", "on" or "off", live."""

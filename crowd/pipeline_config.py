@@ -56,6 +56,7 @@ class PipelineConfig:
     impostors: str = DEFAULTS["impostors"]  # "auto", "on" or "off": far agents drawn as impostors (crowd.draw.impostors)
     impostor_distance: float = DEFAULTS["impostor_distance"]  # metres from the camera
     lod_fade: float = DEFAULTS["lod_fade"]  # metres past each LOD switch over which the two LODs cross-fade
+    lod_error_px: float = DEFAULTS["lod_error_px"]  # pixels of error where a generated LOD starts (crowd.asset.lod)
     characters: tuple = ()  # CharacterSpec per character of a mixed crowd; () is one character: model, roles, model_scale above
     # The player drawn as the built-in survivor (crowd.sim.player), after the crowd. Off here, on in scenes (the
     # settings' default): a PipelineConfig is the crowd the library draws, a scene is the game the demo plays.

@@ -362,6 +362,9 @@ class CrowdSession(GLStage):
     def set_lod_fade(self, metres: float) -> None:
         self.pipeline.set_lod_fade(SETTINGS["lod_fade"].check(metres, SessionError))
 
+    def set_lod_error_px(self, pixels: float) -> None:
+        self.pipeline.set_lod_error_px(SETTINGS["lod_error_px"].check(pixels, SessionError))
+
     def set_impostor_distance(self, metres: float) -> None:
         self.pipeline.set_impostor_distance(SETTINGS["impostor_distance"].check(metres, SessionError))
 
@@ -397,7 +400,7 @@ class CrowdSession(GLStage):
             "lod_distances": lambda v: self.set_lod_distances(*SETTINGS["lod_distances"].check(v, SessionError)),
             "readback_latency": self.set_readback_latency, "cull": self.set_cull_path, "foot_lock": self.set_foot_lock,
             "morphs": self.set_morphs, "impostors": self.set_impostors, "impostor_distance": self.set_impostor_distance,
-            "lod_fade": self.set_lod_fade,
+            "lod_fade": self.set_lod_fade, "lod_error_px": self.set_lod_error_px,
         }
         if name in ("model_scale", "survivor", "town", "gl"):  # what the cast, its world and its GL paths are: set when the crowd is built
             SETTINGS[name].check(value, SessionError)
@@ -567,7 +570,7 @@ class CrowdSession(GLStage):
             weapons=p.config.weapons, readback_latency=p.latency, shadows=p.renderer.shadows, culling=p.renderer.culling, occlusion=p.config.occlusion,
             lod_distances=tuple(p.renderer.lod_distances), processor=p.config.processor_path, cull=p.config.cull, gl=p.config.gl, foot_lock=p.config.foot_lock,
             survivor=p.survivor is not None, town=p.town is not None, morphs=p.config.morphs, impostors=p.config.impostors,
-            impostor_distance=p.config.impostor_distance, lod_fade=p.config.lod_fade,
+            impostor_distance=p.config.impostor_distance, lod_fade=p.config.lod_fade, lod_error_px=p.config.lod_error_px,
             camera=CameraSetting(tuple(float(v) for v in cam.eye), tuple(float(v) for v in cam.target), float(cam.fov_y)))
 
     def save(self, path) -> Path | None:

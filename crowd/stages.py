@@ -66,6 +66,7 @@ class StageSpec:
     readback_latency: int = DEFAULTS["readback_latency"]
     impostor_distance: float = DEFAULTS["impostor_distance"]  # metres, for the characters with an atlas
     lod_fade: float = DEFAULTS["lod_fade"]  # metres past each LOD switch over which the LODs cross-fade
+    lod_error_px: float = DEFAULTS["lod_error_px"]  # pixels of error where a generated LOD starts
     gl_limit: int | None = GL_LIMITS[DEFAULTS["gl"]]  # the highest GL version whose features the stages use (None: the context's)
 
     @property
@@ -99,7 +100,8 @@ def build_renderer(ctx: moderngl.Context, cast, spec: StageSpec) -> CrowdRendere
                          culling=spec.culling, cull_path=cull_path(ctx, spec.cull, spec.gl_limit), weapons_visibility=spec.armed, occlusion=spec.occlusion,
                          morph_buffers=has_compute(ctx, spec.gl_limit),
                          town=spec.town, morphs=[part.bake.morphs is not None for part in cast],
-                         impostors=[part.impostor for part in cast], impostor_distance=spec.impostor_distance, lod_fade=spec.lod_fade)
+                         impostors=[part.impostor for part in cast], impostor_distance=spec.impostor_distance, lod_fade=spec.lod_fade,
+                         lod_error_px=spec.lod_error_px)
 
 
 def cull_path(ctx: moderngl.Context, asked: str, limit: int | None = None) -> str:

@@ -386,3 +386,30 @@ def test_variation_pieces_each_get_their_own_chain():
         assert [m.lod for m in chain] == list(range(top + 1)) and all(m.group == group for m in chain)
     # The wide choice's LODs are its own vertices, not the thin one's.
     assert np.abs([m for m in made.meshes if m.piece == "head_b" and m.lod == 1][0].positions[:, 0]).max() > 1.4 * np.abs(body.positions[:, 0]).max()
+
+
+@pytest.mark.parametrize("path", ["cpu", "gpu"])
+def test_the_cull_switches_generated_lods_at_the_pixels_set(gl_context, extremes, path):
+    """A character with generated LODs switches where its error covers lod_error_px pixels: its own
+    (one-pixel) distances over the setting, changed live; the lod_distances setting is not read for it."""
+    from crowd.draw.render import CrowdRenderer
+    from crowd.frame import Camera, Instances
+
+    made = extremes["seam"][1]
+    own = np.array(made.lod_distances)
+    distances = np.geomspace(own[0] / 8, own[-1] * 2, 64)
+    n = len(distances)
+    positions = np.column_stack([np.zeros(n), np.zeros(n), -distances])
+    instances = Instances(positions, np.zeros(n, np.float32), np.ones(n, np.float32), np.full((n, 4), 255, np.uint8), {})
+    camera = Camera(eye=(0.0, 0.0, 0.0), target=(0.0, 0.0, -1.0))
+    with CrowdRenderer(gl_context, made, lod_distances=(1.0, 2.0, 3.0), shadows=False, culling=False, cull_path=path) as renderer:
+        for pixels in (2.0, 1.0, 4.0):
+            if pixels != 2.0:
+                renderer.set_lod_error_px(pixels)
+            renderer.prepare(camera, instances)
+            renderer.refresh_counts(wait=True)
+            switch = own / pixels
+            near = np.min(np.abs(distances[:, None] / switch[None] - 1.0), axis=1) < 0.02  # within float rounding of a switch
+            expect = np.bincount(np.searchsorted(switch, distances[~near], side="right"), minlength=renderer.lod_count)
+            got = renderer.last["lod_counts"]
+            assert sum(got) == n and all(g >= e for g, e in zip(got, expect)) and sum(expect) >= n - 2, (pixels, got, expect.tolist())

@@ -96,7 +96,7 @@ class CrowdRenderer(GLStage):
     def __init__(self, ctx: moderngl.Context, characters, pieces: tuple[str, ...] | None = None, lod_distances=DEFAULT_LOD_DISTANCES,
                  shadows: bool = True, shadow_size: int = 2048, culling: bool = True, cull_path: str = "cpu",
                  weapons_visibility: bool = False, occlusion: bool = False, town: bool = False, morphs=None, morph_buffers: bool | None = None,
-                 impostors=None, impostor_distance: float = math.inf, lod_fade: float = 0.0):
+                 impostors=None, impostor_distance: float = math.inf, lod_fade: float = 0.0, lod_error_px: float = DEFAULTS["lod_error_px"]):
         """`characters`: one Character, or the cast's, in its order (its agents come in that order,
         crowd.frame). `cull_path`: "cpu", "gpu" (a GL 4.3 context) or "feedback" (GL 4.0; see the module docstring); with
         `weapons_visibility` the GPU culls also write each agent's visibility, for the weapons; with
@@ -107,7 +107,8 @@ class CrowdRenderer(GLStage):
         its ImpostorAtlas (crowd.draw.impostors) or None; an agent of a character with one is drawn as its
         impostor from `impostor_distance` metres on (its last LOD; its processor row starts with its key).
         `lod_fade`: metres past each LOD switch (the impostor's too) over which an agent is drawn at both
-        LODs, cross-faded by a dither (shaders/lod_fade.glsl); 0, none."""
+        LODs, cross-faded by a dither (shaders/lod_fade.glsl); 0, none. `lod_error_px`: a character with
+        generated LODs (its own `lod_distances`, each where its error is one pixel) switches where the error covers this many."""
         self._objects: dict[str, list] = {"meshes": [], "records": [], "programs": [], "shadow_map": [], "ground": [], "textures": [], "cull": [],
                                           "occlusion": [], "morphs": [], "impostors": []}
         self.pyramid: DepthPyramid | None = None
@@ -124,6 +125,7 @@ class CrowdRenderer(GLStage):
         self.town = town  # the ground shows the town's streets, sidewalks and lots (crowd.asset.town)
         self.culling = culling
         self._lod_distances = SETTINGS["lod_distances"].check(tuple(lod_distances), RenderError)
+        self.lod_error_px = SETTINGS["lod_error_px"].check(lod_error_px, RenderError)
         cast = [characters] if isinstance(characters, Character) else list(characters)
         self.cast = cast
         self.morphs = tuple(bool(x) for x in (morphs if morphs is not None else [False] * len(cast)))
@@ -275,7 +277,7 @@ class CrowdRenderer(GLStage):
 
     def _cull_characters(self) -> list[CullCharacter]:
         routed = {d.character for d in self.draws if d.twin_of is not None}
-        return [CullCharacter(tuple(float(x) for x in self.bounds[k]), tuple(self.cast[k].lod_distances or self._lod_distances),
+        return [CullCharacter(tuple(float(x) for x in self.bounds[k]), self.character_lod_distances(k),
                               self.impostor_distance if self.impostor_lods[k] >= 0 else math.inf, k in routed) for k in range(len(self.cast))]
 
     def _build_cull(self, weapons_visibility: bool) -> None:
@@ -450,6 +452,15 @@ class CrowdRenderer(GLStage):
         if not float(metres) > 0.0:
             raise RenderError(f"the impostor distance must be a positive number of metres, got {metres}")
         self.impostor_distance = float(metres)
+        self._cull.set_characters(self._cull_characters())
+
+    def character_lod_distances(self, k: int) -> tuple:
+        """Metres where character k's LOD 1, 2, ... start: its own (generated) at lod_error_px, else the setting's."""
+        own = self.cast[k].lod_distances
+        return tuple(float(d) / self.lod_error_px for d in own) if own else tuple(self._lod_distances)
+
+    def set_lod_error_px(self, pixels: float) -> None:
+        self.lod_error_px = SETTINGS["lod_error_px"].check(pixels, RenderError)
         self._cull.set_characters(self._cull_characters())
 
     @property
