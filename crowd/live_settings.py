@@ -25,9 +25,20 @@ from .sim.ai import LAYERS, AIConfig, CrowdAI
 from .stages import CastPart, StageSpec, build_processor, build_readback, build_renderer, build_weapons
 from .stages import build_town as build_town_stage
 
-# Agents from which "auto" draws the far ones as impostors: fewer fit the frame as meshes (docs/BENCHMARKS.md,
-# "Impostors").
-IMPOSTOR_AGENTS = 20_000
+# Triangles the crowd's agents would draw at their coarsest LODs from which "auto" draws the far ones as
+# impostors: 20,000 of the built-ins (138 each), where impostors were measured to pay (docs/BENCHMARKS.md,
+# "Impostors"); a character with heavier far LODs gets them with fewer agents.
+IMPOSTOR_TRIANGLES = 20_000 * 138
+
+
+def far_triangles(character, switches: int) -> float:
+    """Triangles one agent of `character` draws at its coarsest drawn LOD (the one past the last of its
+    `switches` switch distances; those past it cast shadows only), a variation group's choices averaged."""
+    lod = min(max((m.lod for m in character.meshes), default=0), switches)
+    at = [m for m in character.meshes if m.lod == lod]
+    groups = {m.group for m in at if m.group}
+    return sum(m.triangle_count for m in at if not m.group) + sum(
+        float(np.mean([m.triangle_count for m in at if m.group == g])) for g in groups)
 
 
 class LiveSettings:
@@ -52,13 +63,16 @@ class LiveSettings:
     # -- impostors (crowd.draw.impostors): only where the scene needs them
 
     def impostors_needed(self) -> bool:
-        """Whether the crowd's far agents are drawn as impostors: setting "on", or "auto" with at least
-        IMPOSTOR_AGENTS agents (fewer fit as meshes) spread wide enough that the camera framing them all
-        has some past the impostor distance."""
+        """Whether the crowd's far agents are drawn as impostors: setting "on", or "auto" where its agents
+        would draw at least IMPOSTOR_TRIANGLES at their coarsest LODs (fewer fit as meshes), spread wide
+        enough that the camera framing them all has some past the impostor distance."""
         mode = SETTINGS["impostors"].check(self.config.impostors, PipelineError)
         if mode != "auto":
             return mode == "on"
-        if self.ai.n < IMPOSTOR_AGENTS:
+        members = self.cast[:self.crowd_cast]
+        load = sum(count * far_triangles(m.character, len(m.character.lod_distances or self.config.lod_distances))
+                   for m, count in zip(members, self.counts))
+        if load < IMPOSTOR_TRIANGLES:
             return False
         half = self.ai.half_extent
         reach = overview_distance(half) + half * math.sqrt(2.0)  # the overview camera's distance, then the farthest corner

@@ -291,3 +291,31 @@ def test_far_impostors_are_measured_against_the_supersampled_mesh(gl_context, zo
     assert row["agent_pixels_tall"] == pytest.approx(15.6, abs=0.1)
     for key in ("mipmapped_error", "linear_error", "mipmapped_flicker", "linear_flicker"):
         assert 0.0 < row[key] < 128.0  # (measured, and within the 0-255 scale's lower half)
+
+
+def test_auto_makes_impostors_by_the_triangles_the_far_meshes_would_draw(zombie):
+    """"auto": the built-ins get impostors from 20,000 agents as before; a character whose coarsest LOD
+    draws 5 times the triangles gets them from a fifth of that; a spread too small for the impostor
+    distance gets none."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from crowd.live_settings import IMPOSTOR_TRIANGLES, LiveSettings, far_triangles
+    from crowd.pipeline_config import PipelineConfig
+
+    character = zombie[0]
+    assert far_triangles(character, 3) == 138 and far_triangles(character, 1) == 996 + 160 + 196
+    far = max(m.lod for m in character.meshes if m.lod <= 3)
+    heavy = dataclasses.replace(character, meshes=[m for m in character.meshes if m.lod != far] + [
+        dataclasses.replace(m, indices=np.tile(m.indices, 5)) for m in character.meshes if m.lod == far])
+    assert far_triangles(heavy, 3) == 5 * 138
+
+    def needed(member, agents, half_extent=400.0):
+        fake = SimpleNamespace(config=PipelineConfig(impostors="auto"), cast=[SimpleNamespace(character=member)], crowd_cast=1,
+                               counts=(agents, 1), ai=SimpleNamespace(n=agents, half_extent=half_extent))
+        return LiveSettings.impostors_needed(fake)
+
+    assert IMPOSTOR_TRIANGLES == 20_000 * 138
+    assert not needed(character, 19_999) and needed(character, 20_000)
+    assert not needed(heavy, 3_999) and needed(heavy, 4_000)
+    assert not needed(heavy, 100_000, half_extent=1.0)
