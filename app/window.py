@@ -13,10 +13,11 @@ round's time against the best.
 
 from __future__ import annotations
 
+import logging
+import os
+import sys
 import time
 from pathlib import Path
-
-import logging
 
 import numpy as np
 
@@ -31,6 +32,27 @@ from .overlay import Overlay
 PLAYER_SPEED = 4.0  # m/s with W/A/S/D
 MAX_FRAME_DT = 0.25
 mglw = import_moderngl_window()
+
+
+def config_dir() -> Path:
+    """The user's configuration folder for crowd: %APPDATA% on Windows, ~/Library/Application Support on
+    macOS, $XDG_CONFIG_HOME or ~/.config elsewhere."""
+    if sys.platform == "win32" and os.environ.get("APPDATA"):
+        return Path(os.environ["APPDATA"]) / "crowd"
+    if sys.platform == "darwin":
+        return Path.home() / "Library" / "Application Support" / "crowd"
+    return Path(os.environ.get("XDG_CONFIG_HOME") or Path.home() / ".config") / "crowd"
+
+
+def imgui_ini_path() -> str:
+    """Where ImGui keeps the panel's layout between runs: imgui.ini in the user's configuration folder,
+    never the working folder (ImGui's default); "" (kept nowhere) where that folder cannot be made."""
+    try:
+        folder = config_dir()
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return ""
+    return str(folder / "imgui.ini")
 
 
 class CrowdWindow(mglw.WindowConfig):
@@ -54,6 +76,7 @@ class CrowdWindow(mglw.WindowConfig):
 
         self.imgui = imgui
         imgui.create_context()
+        imgui.get_io().set_ini_filename(imgui_ini_path())
         implot.create_context()
         self.gui = ModernglWindowRenderer(self.wnd)
         width, height = self.wnd.buffer_size

@@ -40,7 +40,7 @@ def display():
 
 
 def test_window_renders_zombies_and_the_panel_and_takes_clip_settings(display, tmp_path):
-    env = {**os.environ, "DISPLAY": display}
+    env = {**os.environ, "DISPLAY": display, "XDG_CONFIG_HOME": str(tmp_path / "config")}  # the panel's layout: not the user's
     out = subprocess.run([sys.executable, str(ROOT / "tests" / "window_script.py"), str(tmp_path)], cwd=ROOT, env=env,
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
@@ -69,10 +69,16 @@ def test_window_renders_zombies_and_the_panel_and_takes_clip_settings(display, t
 
 def test_closing_the_window_ends_the_run_with_its_stats(display, tmp_path):
     """The interactive loop, ended by the user closing the window: the stats are still taken and written,
-    then everything is released (no traceback)."""
-    env = {**os.environ, "DISPLAY": display}
-    out = subprocess.run([sys.executable, str(ROOT / "tests" / "window_close_script.py"), str(tmp_path)], cwd=ROOT, env=env,
+    then everything is released (no traceback). Started from a folder of its own, it leaves no imgui.ini
+    there or in the checkout: ImGui's layout goes to the user's configuration folder."""
+    work, config = tmp_path / "work", tmp_path / "config"
+    work.mkdir()
+    before = (ROOT / "imgui.ini").exists()
+    env = {**os.environ, "DISPLAY": display, "XDG_CONFIG_HOME": str(config), "PYTHONPATH": str(ROOT)}
+    out = subprocess.run([sys.executable, str(ROOT / "tests" / "window_close_script.py"), str(tmp_path)], cwd=work, env=env,
                          capture_output=True, text=True, timeout=300)
+    assert not (work / "imgui.ini").exists() and (ROOT / "imgui.ini").exists() == before
+    assert (config / "crowd").is_dir() and {p.name for p in (config / "crowd").iterdir()} <= {"imgui.ini"}
     assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr[-2000:]
     result = json.loads(out.stdout.strip().splitlines()[-1])
     assert result["frames"] in (3, 4)  # pyglet sets is_closing at the next event poll
