@@ -12,6 +12,10 @@ Traps this module works around, each checked by the pose screenshot bench/peers.
   writes a copy whose skin also lists the root joint's parent (with its inverse world matrix), which puts
   the Character there. Meshes, skin weights and clips are untouched. The copy also keeps only the scene
   it shows (``panda_ready_gltf`` says why).
+- panda3d-gltf 1.3.0 reads only dense accessors: a sparse one (the built-in zombie's morph targets are
+  sparse, with no bufferView) stops its converter with ``KeyError: 'bufferView'``. The copy leaves the
+  morph targets out, and their weight channels with them (the crowd side draws none in this benchmark
+  either: the comparison stays skinning against skinning), and writes any other sparse accessor dense.
 - A model loaded through the model pool is a copy whose skinned meshes outside the Character still point
   at the pooled original's joints, so the model is loaded with ``noCache`` and its meshes reparented
   under the Character before the first ``Actor`` copies it.
@@ -84,6 +88,8 @@ def panda_ready_gltf(source: Path, target: Path, lod: int = 0) -> None:
     gltf.scenes, gltf.scene = [scene], 0
     gltf.convert_buffers(pygltflib.BufferFormat.BINARYBLOB)
     blob = bytearray(gltf.binary_blob() or b"")
+    _leave_out_morph_targets(gltf)
+    _write_sparse_dense(gltf, blob)
     parents = {child: i for i, node in enumerate(gltf.nodes) for child in (node.children or [])}
     for skin in gltf.skins:
         joints = set(skin.joints)
@@ -111,6 +117,55 @@ def panda_ready_gltf(source: Path, target: Path, lod: int = 0) -> None:
     gltf.buffers[0].byteLength = len(blob)
     gltf.set_binary_blob(bytes(blob))
     gltf.save_binary(str(target))
+
+
+def _leave_out_morph_targets(gltf) -> None:
+    """No primitive keeps its targets, no mesh its default weights, no animation its weight channels."""
+    for mesh in gltf.meshes:
+        mesh.weights = None
+        if isinstance(mesh.extras, dict):
+            mesh.extras.pop("targetNames", None)
+        for primitive in mesh.primitives:
+            primitive.targets = None
+    for animation in gltf.animations:
+        animation.channels = [c for c in animation.channels if c.target.path != "weights"]
+
+
+_COMPONENTS = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
+_WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+
+
+def _read_view(gltf, blob: bytearray, view_index: int, offset: int, count: int, dtype, width: int) -> np.ndarray:
+    """(count, width) elements of a bufferView from `offset`, honouring its byteStride."""
+    view = gltf.bufferViews[view_index]
+    item = np.dtype(dtype).itemsize * width
+    stride = view.byteStride or item
+    start = (view.byteOffset or 0) + offset
+    rows = [bytes(blob[start + i * stride:start + i * stride + item]) for i in range(count)] if stride != item else None
+    data = b"".join(rows) if rows is not None else bytes(blob[start:start + count * item])
+    return np.frombuffer(data, dtype).reshape(count, width).copy()
+
+
+def _write_sparse_dense(gltf, blob: bytearray) -> None:
+    """Every referenced-or-not sparse accessor (and one without a bufferView: zeros) written out dense."""
+    import pygltflib
+
+    for acc in gltf.accessors:
+        if acc.sparse is None and acc.bufferView is not None:
+            continue
+        dtype, width = _COMPONENTS[acc.componentType], _WIDTH[acc.type]
+        if acc.bufferView is None:
+            values = np.zeros((acc.count, width), dtype)
+        else:
+            values = _read_view(gltf, blob, acc.bufferView, acc.byteOffset or 0, acc.count, dtype, width)
+        if acc.sparse is not None:
+            s = acc.sparse
+            where = _read_view(gltf, blob, s.indices.bufferView, s.indices.byteOffset or 0, s.count, _COMPONENTS[s.indices.componentType], 1)
+            values[where[:, 0].astype(np.int64)] = _read_view(gltf, blob, s.values.bufferView, s.values.byteOffset or 0, s.count, dtype, width)
+        blob.extend(b"\0" * (-len(blob) % 4))
+        gltf.bufferViews.append(pygltflib.BufferView(buffer=0, byteOffset=len(blob), byteLength=values.nbytes))
+        blob.extend(values.tobytes())
+        acc.bufferView, acc.byteOffset, acc.sparse = len(gltf.bufferViews) - 1, 0, None
 
 
 def _world_matrix(gltf, parents: dict, node_index: int) -> np.ndarray:

@@ -48,8 +48,9 @@ def test_layout_is_the_same_for_both_sides_and_every_count():
 
 
 def test_panda_ready_gltf_anchors_the_skin_at_the_root_joints_parent(tmp_path):
-    """The copy Panda3D loads differs only in the skin: the root joint's parent joins the joint list
-    (so panda3d-gltf puts the Character there) with its inverse world matrix; nothing else changes."""
+    """The copy Panda3D loads differs in the skin: the root joint's parent joins the joint list (so
+    panda3d-gltf puts the Character there) with its inverse world matrix; and in its morph targets, left
+    out (next test); nothing else changes."""
     import pygltflib
 
     from bench.peers_panda import panda_ready_gltf
@@ -74,6 +75,45 @@ def test_panda_ready_gltf_anchors_the_skin_at_the_root_joints_parent(tmp_path):
     assert [n.name for n in before.nodes] == names
     # One scene only: panda3d-gltf would skin a mesh that two scenes show to the last scene's Character.
     assert len(after.scenes) == 1 and after.scenes[0].nodes == before.scenes[before.scene or 0].nodes
+
+
+@pytest.mark.parametrize("lod", [0, 1, 2])
+def test_panda_ready_gltf_is_dense_and_without_morph_targets(tmp_path, lod):
+    """What panda3d-gltf 1.3 reads (without Panda3D, so it runs everywhere): every accessor dense, with a
+    bufferView; no targets, mesh weights or weight channels (the zombie's morph targets are sparse
+    accessors without one, which stopped its converter with KeyError 'bufferView')."""
+    import pygltflib
+
+    from bench.peers_panda import panda_ready_gltf
+    from crowd.asset.zombie import ASSET_PATH
+
+    before = pygltflib.GLTF2().load(str(ASSET_PATH))
+    assert any(a.sparse is not None and a.bufferView is None for a in before.accessors)  # what broke it
+    panda_ready_gltf(ASSET_PATH, tmp_path / "ready.glb", lod=lod)
+    after = pygltflib.GLTF2().load(str(tmp_path / "ready.glb"))
+    assert all(a.sparse is None and a.bufferView is not None for a in after.accessors)
+    assert all(not m.weights and all(not p.targets for p in m.primitives) for m in after.meshes)
+    assert all("targetNames" not in (m.extras or {}) for m in after.meshes)
+    assert all(c.target.path != "weights" for a in after.animations for c in a.channels)
+    kept = [(a.name, len([c for c in a.channels if c.target.path != "weights"])) for a in before.animations]
+    assert [(a.name, len(a.channels)) for a in after.animations] == kept
+
+
+def test_panda_ready_gltf_writes_a_sparse_attribute_dense(tmp_path):
+    """A file whose positions are a sparse accessor over zeros: the copy's dense positions are the ones
+    the importer reads from the original."""
+    import pygltflib
+
+    from bench.peers_panda import panda_ready_gltf
+    from crowd.asset.gltf import load_character
+    from tests.gltf_factory import make_gltf
+
+    source = make_gltf(tmp_path, sparse=True)
+    panda_ready_gltf(source, tmp_path / "ready.glb")
+    after = pygltflib.GLTF2().load(str(tmp_path / "ready.glb"))
+    assert all(a.sparse is None and a.bufferView is not None for a in after.accessors)
+    a, b = load_character(source), load_character(tmp_path / "ready.glb")
+    assert [m.positions.tobytes() for m in a.meshes] == [m.positions.tobytes() for m in b.meshes]
 
 
 def test_panda_ready_gltf_shows_the_asked_lod_in_place_of_lod0(tmp_path):
@@ -169,7 +209,8 @@ def test_every_panda3d_mode_has_a_pose_reference_a_plot_style_and_a_peer_setting
 
 def test_panda3d_lod_actor_shows_the_level_the_crowd_would_at_each_distance(tmp_path):
     """One Actor built with setLODNode / addLOD; the camera at 8, 20 and 60 m from its LOD centre; each
-    level drawn alone in turn: only the level the crowd's LOD distances pick draws anything. Panda3D
+    level drawn alone in turn: only the level the crowd's LOD distances pick draws anything (at 480x270:
+    at 60 m the zombie is 10 px tall; at 160x90 its LOD2 covered no whole pixel). Panda3D
     runs in a child process, as in the benchmark: its GL stack would leave this process's contexts
     without a current one."""
     if peers.panda3d_missing():
@@ -200,7 +241,7 @@ from crowd.asset.zombie import ASSET_PATH
 
 out = Path(sys.argv[1])
 spec = {"system": "panda3d", "mode": "gpu_walk_lod", "model": str(ASSET_PATH), "clips": ["shamble", "run"],
-        "size": [160, 90], "seed": 1, "lod_distances": [14.0, 40.0, 90.0]}
+        "size": [480, 270], "seed": 1, "lod_distances": [14.0, 40.0, 90.0]}
 side = PandaSide(spec)
 side.set_agents(1)
 actor = side.actors[0]
