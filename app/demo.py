@@ -32,7 +32,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--characters", default=None, metavar="MODEL=SHARE,...",
                    help="a mixed crowd: models (built-in names or files) and their relative shares, e.g. zombie=3,brute=1,x.glb=1")
     p.add_argument("--roles", default=None, help="clip role overrides of a crowd of one character, e.g. walk=Walking,idle=Idle")
-    for name in ("frames", "size"):
+    for name in ("frames", "size", "view"):
         s = SETTINGS[name]
         p.add_argument(s.flag, default=None, metavar=s.name.upper(), help=f"{s.help} ({s.rule()})")
     titles = {"scene": "crowd", "clips": "the bake", "features": "what is drawn", "ai": "the crowd's behaviour (scene table [ai])"}
@@ -110,8 +110,9 @@ def main(argv=None) -> int:
                 from app.overlay import HeadlessPanel
 
                 overlay = HeadlessPanel.factory(scene, follow=True)
+            view = SETTINGS["view"].default if args.view is None else parse("view", args.view, SceneError, "--view")
             stats = run_headless(scene.pipeline_config(), args.frames, size, args.screenshot, args.stats,
-                                 camera=scene.camera_for(size[0] / size[1]), overlay=overlay)
+                                 camera=scene.camera_for(size[0] / size[1]) or view, overlay=overlay)
     except (AIError, GltfImportError, BakeError, PipelineError, ProcessorError, RenderError, RoleError, GLUnavailable,
             ReadbackError, WeaponError, SceneError, SettingError, FrameError) as exc:
         print(f"crowd-demo: {exc}", file=sys.stderr)
@@ -123,6 +124,7 @@ def main(argv=None) -> int:
     timed = f"latency p50 {latency['p50']} ms, p95 {latency['p95']} ms; " if latency else ""
     print(f"{stats['agents']} agents, {stats['frames']} frames at {stats['size'][0]}x{stats['size'][1]} on {stats['gl_renderer']}: "
           f"{paced}{timed}processor ({stats['processor_path']}) {stats['passes_ms'].get('process', 0)} ms; "
+          f"{stats['drawn']['meshes']:,} agents drawn as meshes and {stats['drawn']['impostors']:,} as impostors, "
           f"{stats['last_frame']['triangles']:,} triangles; NaN rows {stats['nan_count']}")
     w = stats["weapons"]
     if w["enabled"]:

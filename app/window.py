@@ -6,8 +6,9 @@ is one; drag turns it around the survivor, the wheel moves it in and out), and t
 orbits, middle drag or shift + left drag pans, the wheel zooms).
 Mouse: a left click (without dragging) selects the zombie under the cursor, a right click sends the
 player there. Keys: W/A/S/D move the player (relative to the camera; behind the survivor it faces where
-the camera looks, so A and D strafe), space swings, C switches cameras, P pauses, "." steps one frame,
-H hides the panel. The HUD (app/hud.py) shows the survivor's health, kills, the zombies near it and the
+the camera looks, so A and D strafe), space swings, C switches cameras, V shows the horizon view (high over
+the horde's near edge, across it to its far side: crowd.cameras.horizon_camera) and back, P pauses, "."
+steps one frame, H hides the panel. The HUD (app/hud.py) shows the survivor's health, kills, the zombies near it and the
 round's time against the best.
 """
 
@@ -92,6 +93,7 @@ class CrowdWindow(mglw.WindowConfig):
         self.follow = FollowControl()
         self.walls = FollowControl.walls_in(self.session.pipeline.obstacles)
         self.camera_mode = "follow" if self.session.pipeline.survivor is not None else "orbit"
+        self.horizon = False  # V: the horizon view in place of the follow or orbit camera, until V again
         self._steering = False  # whether the keys steered the survivor last frame
         self.keys_down: set = set()
         self._press = None  # where a left press started, to tell a click from a drag
@@ -109,12 +111,18 @@ class CrowdWindow(mglw.WindowConfig):
         dt = min(max(frame_time, 0.0), MAX_FRAME_DT)
         self._walk_player(dt)
         survivor = self.session.pipeline.survivor
-        if self.camera_mode == "follow" and survivor is not None:
-            self.follow.apply(self.session.pipeline.camera, survivor.position, self.walls)
-        else:
-            self.orbit.apply(self.session.pipeline.camera)
         width, height = self.wnd.buffer_size
-        self.session.pipeline.camera.aspect = width / max(height, 1)
+        camera = self.session.pipeline.camera
+        if self.horizon:  # recomputed each frame: the crowd's extent follows its agent count
+            view = self.session.pipeline.view_camera("horizon", width / max(height, 1))
+            camera.eye, camera.target, camera.near, camera.far, camera.fog_reach = view.eye, view.target, view.near, view.far, view.fog_reach
+        else:
+            camera.near, camera.fog_reach = 0.1, None
+            if self.camera_mode == "follow" and survivor is not None:
+                self.follow.apply(camera, survivor.position, self.walls)
+            else:
+                self.orbit.apply(camera)
+        camera.aspect = width / max(height, 1)
         fbo = self.wnd.fbo
         self.session.frame(fbo, dt)
         self.markers.draw(fbo, self.session.last.view, *self.session.markers())
@@ -158,7 +166,10 @@ class CrowdWindow(mglw.WindowConfig):
         if key == keys.SPACE:
             self.session.strike()
         elif key == keys.C and self.session.pipeline.survivor is not None:
+            self.horizon = False
             self._switch_camera()
+        elif key == keys.V:
+            self.horizon = not self.horizon
         elif key == keys.P:
             self.panel.apply("pause", not self.session.paused)
         elif key == keys.PERIOD:

@@ -1,5 +1,5 @@
-"""The crowd's own views: what a newcomer sees first, and the overview that frames every agent (the
-benchmarks' view)."""
+"""The crowd's own views: what a newcomer sees first, the horizon view that shows the horde's scale, and
+the overview that frames every agent (the benchmarks' view)."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import numpy as np
 
 from .frame import Camera
 from .lighting import LIGHTING
+from .settings import SETTINGS
 from .sim.ai import CrowdAI
 
 # The default camera's neighbourhood of the player in a crowd too big to frame whole, and how far it sees
@@ -16,17 +17,48 @@ from .sim.ai import CrowdAI
 # than stopping at the far plane.
 VIEW_RADIUS_M = 20.0
 FOG_FAR_M = -math.log(0.05) / LIGHTING["u_fog_density"]
+# Agents from which a newcomer's first view is the horizon view: below, the horde around the player fills
+# the picture; from here, that picture looks the same at any size, and the scale is what there is to see.
+HORIZON_AGENTS = 10_000
+
+
+def view_camera(view: str, ai: CrowdAI, aspect: float, town: bool) -> Camera:
+    """The camera of a named view: "player", "horizon", "overview", or "auto" (the horizon view from
+    HORIZON_AGENTS agents, else the player's)."""
+    if view == "auto":
+        view = "horizon" if ai.n >= HORIZON_AGENTS else "player"
+    if view == "horizon":
+        return horizon_camera(ai, aspect, town)
+    if view == "overview":
+        return overview_camera(ai, aspect, town)
+    if view == "player":
+        return default_camera(ai, aspect, town)
+    raise ValueError(f"view must be one of {', '.join(SETTINGS['view'].choices)}, got {view!r}")
 
 
 def default_camera(ai: CrowdAI, aspect: float, town: bool) -> Camera:
-    """What a newcomer sees first: the whole crowd where it fits in VIEW_RADIUS_M (or one agent up
-    close), else the player and the horde around it, VIEW_RADIUS_M to each side, receding into the fog
-    (the crowd's density does not depend on its size, so the picture does not either). A view of the
-    whole of a big crowd showed specks at 10,000 agents and fog or sky at a million."""
+    """The player's view: the whole crowd where it fits in VIEW_RADIUS_M (or one agent up close), else
+    the player and the horde around it, VIEW_RADIUS_M to each side, receding into the fog (the crowd's
+    density does not depend on its size, so the picture does not either). A view of the whole of a big
+    crowd showed specks at 10,000 agents and fog or sky at a million."""
     if ai.half_extent <= VIEW_RADIUS_M:
         return overview_camera(ai, aspect, town)
     centre = np.array([ai.player[0], 0.0, ai.player[1]])
     return three_quarter_view(centre, VIEW_RADIUS_M, aspect, FOG_FAR_M, town)
+
+
+def horizon_camera(ai: CrowdAI, aspect: float, town: bool) -> Camera:
+    """The horde's scale: from high over its near edge, looking across it to its far side, which the
+    picture's upper part reaches. On the plane the fog is thinned to end there, so the crowd thins into
+    the distance instead of into grey; in a town the buildings hide the far streets, and its fog stays."""
+    half = max(ai.half_extent, VIEW_RADIUS_M)
+    centre = np.array([ai.origin[0], 0.0, ai.origin[1]])
+    height = max(12.0, (0.3 if town else 0.12) * half)  # in a town, over the roofs into the streets
+    eye = centre + np.array([0.0, height, 1.1 * half])
+    target = centre + np.array([0.0, 0.0, 0.55 * half])  # pitched so the far side sits high in the picture, under a band of sky
+    far_side = float(np.linalg.norm(eye - (centre + np.array([half, 0.0, -half]))))
+    return Camera(eye=eye, target=target, aspect=aspect, near=max(0.1, 0.25 * height), far=far_side * 1.05,
+                  fog_reach=None if town else max(FOG_FAR_M, far_side))
 
 
 def overview_camera(ai: CrowdAI, aspect: float, town: bool) -> Camera:

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .lighting import LIGHTING
 from .spans import min_max, over_spans
 
 CLIP, PHASE, WEIGHT, MASK = range(4)  # the columns of one layer
@@ -339,6 +340,9 @@ class Camera:
     near: float = 0.1
     far: float = 400.0
     aspect: float = 16 / 9
+    # Metres at which the fog has hidden 95 % of what is there; None: the lighting's own (crowd.lighting).
+    # The view of the horde to its far side thins it (crowd.cameras.horizon_camera).
+    fog_reach: float | None = None
 
     def validate(self) -> "Camera":
         eye, target = np.asarray(self.eye, np.float64), np.asarray(self.target, np.float64)
@@ -348,4 +352,12 @@ class Camera:
             raise FrameError("camera eye and target coincide")
         if not 0 < self.near < self.far or not 1.0 <= self.fov_y <= 170.0 or not self.aspect > 0:
             raise FrameError("camera needs 0 < near < far, a field of view of 1 to 170 degrees and a positive aspect")
+        if self.fog_reach is not None and not (0.0 < float(self.fog_reach) < math.inf):
+            raise FrameError(f"camera fog reach must be a positive number of metres or None, got {self.fog_reach}")
         return self
+
+    def fog_density(self) -> float:
+        """The exponential fog's density per metre for this view (shaders/lighting.glsl)."""
+        if self.fog_reach is None:
+            return float(LIGHTING["u_fog_density"])
+        return -math.log(0.05) / float(self.fog_reach)

@@ -228,8 +228,12 @@ class CrowdPipeline(LiveSettings, GLStage):
     # -- views
 
     def default_camera(self, aspect: float) -> Camera:
-        """What a newcomer sees first (crowd.cameras.default_camera), in this crowd."""
-        return cameras.default_camera(self.ai, aspect, self.obstacles is not None)
+        """What a newcomer sees first: the "auto" view (crowd.cameras.view_camera), in this crowd."""
+        return self.view_camera("auto", aspect)
+
+    def view_camera(self, view: str, aspect: float) -> Camera:
+        """A named view of this crowd: "auto", "player", "horizon" or "overview" (crowd.cameras.view_camera)."""
+        return cameras.view_camera(view, self.ai, aspect, self.obstacles is not None)
 
     def overview_camera(self, aspect: float) -> Camera:
         """The three-quarter view that frames the whole crowd (crowd.cameras.overview_camera)."""

@@ -302,6 +302,11 @@ _ALL = (
     # how long and how big (command line only)
     Setting("frames", "run", "int", 60, "frames to run (headless default 60; the window runs until closed)", low=1, high=100_000),
     Setting("size", "run", "size", (1280, 720), "frame size WxH", low=16, high=8192),
+    Setting("view", "run", "choice", "auto",
+            "the headless picture's camera: player (the horde around the player), horizon (high over the horde's near edge, "
+            "across it to its far side: its scale), overview (every agent framed, the benchmarks' view); auto: horizon from "
+            "10,000 agents, else player. A scene's [camera] comes first; the window's V key toggles the horizon view",
+            choices=("auto", "player", "horizon", "overview")),
 )
 
 SETTINGS: dict[str, Setting] = {s.name: s for s in _ALL}

@@ -57,13 +57,15 @@ def paced_frames(ctx: moderngl.Context, frame, count: int, in_flight: int = FRAM
 
 def run_headless(config: PipelineConfig, frames: int, size: tuple[int, int], screenshot: Path | None = None,
                  stats_path: Path | None = None, ctx: moderngl.Context | None = None, camera=None, overlay=None) -> dict:
-    """`overlay`: drawn over every frame, as a window draws its panel: called as overlay(ctx, pipeline, size)
+    """`camera`: a Camera, or the name of one of the crowd's views (crowd.cameras.view_camera; None: "auto").
+    `overlay`: drawn over every frame, as a window draws its panel: called as overlay(ctx, pipeline, size)
     once the pipeline exists, it gives a GL stage with draw(framebuffer, dt), released when the run ends."""
     own_ctx = ctx is None
     ctx = ctx or headless_context()
     try:
         with Offscreen(ctx, size) as target, CrowdPipeline(ctx, config) as pipeline:
-            pipeline.camera = camera if camera is not None else pipeline.default_camera(size[0] / size[1])
+            named = camera is None or isinstance(camera, str)
+            pipeline.camera = pipeline.view_camera(camera or "auto", size[0] / size[1]) if named else camera
             with (overlay(ctx, pipeline, size) if overlay is not None else nullcontext()) as drawn_over, \
                     bar(frames, f"{config.agents:,} agents", "frame") as shown:  # on a terminal only (crowd.progress)
 

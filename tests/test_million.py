@@ -46,3 +46,23 @@ def test_a_driver_with_smaller_storage_blocks_refuses_the_million_in_one_line(gl
         million.frame(target.framebuffer, FIXED_DT)
     line = str(refused.value)
     assert "\n" not in line and "1,000,001 agents need" in line and "16,777,216" in line and "--cull" in line
+
+
+def test_the_default_picture_at_a_million_holds_more_agents_than_at_100000(gl_context, million):
+    """From 10,000 agents the headless default is the horizon view (crowd.cameras): the same framing of
+    a horde of constant density, so a million shows about ten times the agents of 100,000, most as
+    impostors; the stats' "drawn" says how many of each."""
+    from crowd.stats import pipeline_stats
+
+    def drawn(pipeline) -> dict:
+        pipeline.camera = pipeline.default_camera(16 / 9)
+        with Offscreen(gl_context, (160, 90)) as target:
+            for _ in range(2):
+                pipeline.frame(target.framebuffer, FIXED_DT)
+        pipeline.refresh_counts()
+        return pipeline_stats(pipeline)["drawn"]
+
+    with CrowdPipeline(gl_context, Scene().with_overrides(agents=100_000).pipeline_config()) as smaller:
+        hundred_k = drawn(smaller)
+    a_million = drawn(million)
+    assert a_million["impostors"] > 0 and a_million["meshes"] + a_million["impostors"] > 4 * (hundred_k["meshes"] + hundred_k["impostors"])

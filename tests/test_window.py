@@ -55,6 +55,8 @@ def test_window_renders_zombies_and_the_panel_and_takes_clip_settings(display, t
     # The survivor: behind it the camera follows; W runs (the run clip), D strafes, space swings; the
     # zombies that reach it take its health, and the HUD shows it; C switches to the orbit camera.
     assert result["camera"] == "follow" and result["camera_after_c"] == "orbit"
+    assert result["horizon"]["eye_y"] >= 12.0 and result["horizon"]["stats_drawn"] > 0  # V: high over the horde, which it sees
+    assert result["after_horizon"]["fog_reach"] is None and result["after_horizon"]["eye_y"] < result["horizon"]["eye_y"]
     assert result["ran_m"] > 1.0 and result["ran_weight"] > 0.5 and result["strafe_weight"] > 0.5 and result["swinging"]
     assert result["hud_before"]["health"] == 100 and result["hud_after"]["health"] < 100, (result["hud_before"], result["hud_after"])
     with_panel, without_panel, empty = (np.asarray(Image.open(tmp_path / f"{n}.png"), np.int32) for n in ("with_panel", "without_panel", "empty"))

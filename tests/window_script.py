@@ -91,6 +91,15 @@ for _ in range(240):  # standing among the horde
 result["hud_after"] = dict(window.overlay.hud_shown)
 window.on_key_event(wnd.keys.C, wnd.keys.ACTION_PRESS, KeyModifiers())
 result["camera_after_c"] = window.camera_mode
+# V: the horizon view (the fog thinned to the crowd's far side on the plane), and back.
+window.on_key_event(wnd.keys.V, wnd.keys.ACTION_PRESS, KeyModifiers())
+window.on_key_event(wnd.keys.V, wnd.keys.ACTION_RELEASE, KeyModifiers())
+render_frame(window, 1 / 30)
+camera = window.session.pipeline.camera
+result["horizon"] = {"eye_y": float(camera.eye[1]), "far": float(camera.far), "stats_drawn": window.session.pipeline.renderer.last["visible"]}
+window.on_key_event(wnd.keys.V, wnd.keys.ACTION_PRESS, KeyModifiers())
+render_frame(window, 1 / 30)
+result["after_horizon"] = {"eye_y": float(camera.eye[1]), "fog_reach": camera.fog_reach}
 result["gl"] = window.ctx.info["GL_RENDERER"]
 window.release()
 window.wnd.destroy()

@@ -56,6 +56,7 @@ class CpuPicks:
     held: np.ndarray  # bool (N,)
     counts: np.ndarray  # int64 (1 + cascades, draws)
     cast_visible: list[int]  # agents shown per character
+    impostors: int  # agents shown as their impostor
 
 
 class CpuCull(GLStage):
@@ -133,7 +134,7 @@ class CpuCull(GLStage):
         pass_counts = np.stack([self._upload(p, *entry, kind, variants) for p, entry in enumerate(picks)])
         held = as_impostor & (dist >= impostor_start[kind] + self.lod_fade)
         cast_visible = np.bincount(kind[shown], minlength=len(counts)).tolist()
-        return CpuPicks(visible, casting, lod, held, pass_counts, cast_visible)
+        return CpuPicks(visible, casting, lod, held, pass_counts, cast_visible, int(np.count_nonzero(as_impostor[shown])))
 
     def _view_entries(self, shown, kind, lod, passed, last_start, dist, as_impostor, impostor_start, top):
         """The view's (agents, LODs, fade codes): each shown agent at its LOD, and those within lod_fade of

@@ -190,7 +190,7 @@ class CrowdRenderer(GLStage):
             self.shadow_map.repeat_x = self.shadow_map.repeat_y = False
             self._shadow_fbo = self._own("shadow_map", ctx.framebuffer(depth_attachment=self.shadow_map))
         ground_prog = self._program("ground", False)
-        extent = 1000.0
+        extent = 20_000.0  # past any crowd's far side: a million agents stand 2.4 km wide (the fog hides the edge)
         quad = np.array([[-extent, -extent], [extent, -extent], [extent, extent], [-extent, -extent], [extent, extent], [-extent, extent]], np.float32)
         self._ground_vbo = self._own("ground", ctx.buffer(quad.tobytes()))
         self._ground_vao = self._own("ground", ctx.vertex_array(ground_prog, [(self._ground_vbo, "2f", "in_position")]))
@@ -200,7 +200,7 @@ class CrowdRenderer(GLStage):
         self.palette: PaletteLayout | None = None
         self._pending = None
         self.last = {"triangles": 0, "instances": 0, "visible": 0, "draws": 0, "lod_counts": [0] * self.lod_count, "shadow_instances": 0,
-                     "cast_visible": [0] * len(self.cast)}
+                     "cast_visible": [0] * len(self.cast), "impostors": 0}
 
     def _build_draws(self, ctx: moderngl.Context, per_character: list, atlases: list) -> None:
         """One draw per (piece, LOD) of every character, its mesh packed; on the GPU path the untextured ones
@@ -567,7 +567,8 @@ class CrowdRenderer(GLStage):
         self.last = {"triangles": int(sum(d.count * d.triangles for d in self.draws)), "instances": int(picks.counts[0].sum()),
                      "visible": int(shown.sum()), "draws": int(np.count_nonzero(picks.counts[0])),
                      "lod_counts": np.bincount(picks.lod[shown], minlength=self.lod_count).tolist(),
-                     "shadow_instances": int(picks.counts[1:].sum()), "cast_visible": picks.cast_visible}
+                     "shadow_instances": int(picks.counts[1:].sum()), "cast_visible": picks.cast_visible,
+                     "impostors": picks.impostors}
         return FrameView(camera, matrix, shadow, picks.visible, picks.casting, picks.lod, picks.held)
 
     def cull(self, processor=None) -> bool:
@@ -594,6 +595,7 @@ class CrowdRenderer(GLStage):
         agents = cull.agent_counts().astype(np.int64)  # (characters, LOD slots): each kept agent once
         lod_counts = [int(x) for x in np.pad(agents.sum(axis=0), (0, self.lod_count))[: self.lod_count]]
         cast_visible = [int(x) for x in agents.sum(axis=1)]
+        impostors = sum(int(agents[k, slot]) for k, slot in enumerate(self.impostor_lods) if 0 <= slot < agents.shape[1])
         for draw, c in zip(self.draws, counts):
             draw.count = int(c)
         shadow = cull.shadow_counts(wait).astype(np.int64) if self.shadows else np.zeros((0, len(self.draws)), np.int64)
@@ -601,7 +603,7 @@ class CrowdRenderer(GLStage):
             draw.shadow_counts = [int(c) for c in shadow[:, d]]
         self.last = {"triangles": int(sum(c * d.triangles for c, d in zip(counts, self.draws))), "instances": int(counts.sum()),
                      "visible": int(sum(lod_counts)), "draws": int(np.count_nonzero(counts)), "lod_counts": lod_counts,
-                     "shadow_instances": int(shadow.sum()), "cast_visible": cast_visible}
+                     "shadow_instances": int(shadow.sum()), "cast_visible": cast_visible, "impostors": impostors}
 
     def listed(self, index: int, cascade: int | None = None) -> np.ndarray:
         """uint32 entries draw `index` drew in the view's pass (or `cascade`'s) of the last frame
@@ -646,7 +648,7 @@ class CrowdRenderer(GLStage):
         top = float(np.max(self.bounds[:, 1] + self.bounds[:, 3])) * (float(np.max(instances.scale)) if some else 1.0)
         lo, hi = np.asarray(box[0], np.float64).copy(), np.asarray(box[1], np.float64).copy()
         hi[1] = max(hi[1], lo[1] + top)  # as tall as an agent's bound
-        return cascades(camera, self.sun_dir, (lo, hi), self.shadow_size, LIGHTING["u_fog_density"])
+        return cascades(camera, self.sun_dir, (lo, hi), self.shadow_size, camera.fog_density())
 
     def shadow_tiles(self, view: "FrameView"):
         """(cascade, light matrix) for each cascade, the shadow framebuffer's viewport on its tile."""
@@ -686,6 +688,8 @@ class CrowdRenderer(GLStage):
         for name, value in LIGHTING.items():
             if name in prog:
                 prog[name] = value
+        if "u_fog_density" in prog:
+            prog["u_fog_density"] = view.camera.fog_density()
         if self.shadows and "u_light_view_proj" in prog:
             prog["u_light_view_proj"].write(b"".join(gl_bytes(m) for m in view.shadow.view_proj))
             prog["u_shadow_texel"].write(view.shadow.texel_m.tobytes())
