@@ -75,7 +75,7 @@ class CharacterEntry:
 
 
 # What a fresh clone shows: a mixed horde of the two built-in zombie types, three zombies to a brute, each
-# zombie's body its own (the built-ins' morph targets, crowd.asset.zombie.MORPH_TARGETS).
+# zombie's body its own (the built-ins' morph targets, crowd.asset.morph_targets.MORPH_TARGETS).
 BODY_VARIATION = {"belly_swell": (0.0, 0.9), "chest_sunken": (0.0, 1.0), "gaunt": (0.0, 1.0)}
 DEFAULT_CAST = (CharacterEntry("zombie", 3.0, morph=BODY_VARIATION), CharacterEntry("brute", 1.0, morph=BODY_VARIATION))
 

@@ -157,7 +157,7 @@ def _zombie_walk(zombie, speed: float, seconds: float = 3.2, rate: float = 120.0
 
 
 def test_the_built_in_walk_and_run_plant_their_feet(zombie):
-    """Their legs are solved for feet that stand still in world space while low (crowd.asset.zombie,
+    """Their legs are solved for feet that stand still in world space while low (crowd.asset.planted_feet,
     "Planted feet"): keyed angles had slid 33 cm (walk) and 4.4 cm (run) per metre. Measured: 0.39 and
     0.56 cm/m for the worst foot joint, the rest being the 30 fps keys' interpolation."""
     motion, _, _ = _zombie_walk(zombie, 0.0, seconds=0.1)

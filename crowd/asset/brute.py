@@ -5,14 +5,14 @@ with nothing downloaded. The brute is the zombie's rig at heavier proportions (t
 names, so every role, mask, foot and socket rule finds the same joints), with clips of its own: a slow,
 wide, lumbering shamble, a heavy charge, and an overhead smash with a sledgehammer held in both hands.
 
-How its body is made from the zombie's (crowd.asset.zombie.remodel): the brute's joints stand where its proportions
+How its body is made from the zombie's (crowd.asset.remodel): the brute's joints stand where its proportions
 put them (10 % taller, shoulders and hips wider, arms set out); each vertex of the zombie's meshes,
 built with the brute's colours, moves with the joints it is skinned to, each joint carrying it along and
 scaling it about the joint's bone: along the bone by the bone's change in length, across it by the
 joint's girth (a thick neck, heavy arms, a barrel chest). Blending those moves by the vertex's own skin
 weights keeps the surface smooth where two bones meet, as skinning does. The clips are the
-generator's own machinery (crowd.asset.zombie): pose parameters, and legs solved by IK for feet planted
-in world space, on the brute's skeleton and gaits.
+generator's own machinery (crowd.asset.pose_angles, crowd.asset.planted_feet): pose parameters, and
+legs solved by IK for feet planted in world space, on the brute's skeleton and gaits.
 
 The output is byte-for-byte deterministic, as the zombie's is; a test regenerates and compares it.
 """
@@ -28,8 +28,16 @@ from pathlib import Path
 import numpy as np
 
 from ..resources import ASSET_DIR
-from . import zombie as z
+from . import planted_feet, zombie_meshes
+from .clip_keys import build_clips
+from .mesh_builder import LOD_DIVISORS, _MeshBuilder, _noise, _rigid_from_builder, _tube
 from .model import Character, Prop, SkinnedMesh
+from .morph_targets import MORPH_TARGETS
+from .palette import Palette
+from .planted_feet import _Gait, _foot_markers
+from .pose_angles import _keyed, _neutral
+from .remodel import remodel
+from .rig import SOCKET_JOINT, ZOMBIE_BODY, Body, build_skeleton
 
 ASSET_PATH = ASSET_DIR / "brute.glb"
 TAU = 2.0 * math.pi
@@ -59,21 +67,21 @@ def _brute_joint(name: str, position) -> tuple[float, float, float]:
     return (round(x, 6), round(HEIGHT * y, 6), round(1.1 * zz, 6))
 
 
-def _body() -> z.Body:
-    joints = tuple((name, parent, _brute_joint(name, pos)) for name, parent, pos in z.ZOMBIE_BODY.joints)
-    zb = z.ZOMBIE_BODY
+def _body() -> Body:
+    joints = tuple((name, parent, _brute_joint(name, pos)) for name, parent, pos in ZOMBIE_BODY.joints)
+    zb = ZOMBIE_BODY
     heel = tuple(round(1.15 * v, 6) for v in zb.heel)
     tip = tuple(round(1.15 * v, 6) for v in zb.tip)
     toe_from_ankle = tuple(round(v, 6) for v in np.subtract(dict((j[0], j[2]) for j in joints)["toe_l"], dict((j[0], j[2]) for j in joints)["foot_l"]))
     pos = {j[0]: np.array(j[2]) for j in joints}
     lowest = min(pos["foot_l"][1] + heel[1], pos["toe_l"][1] + tip[1])  # the rest foot's lowest sole point
-    return z.Body(joints, stance_ankle_y=round(float(pos["foot_l"][1] - lowest), 6), toe_from_ankle=toe_from_ankle, heel=heel, tip=tip,
-                  stance_width=round(LEG_OUT * 0.11, 6))
+    return Body(joints, stance_ankle_y=round(float(pos["foot_l"][1] - lowest), 6), toe_from_ankle=toe_from_ankle, heel=heel, tip=tip,
+                stance_width=round(LEG_OUT * 0.11, 6))
 
 
 BRUTE_BODY = _body()
-PALETTE = z.Palette(skin=(0.52, 0.50, 0.47), pants=(0.28, 0.22, 0.15), shoes=(0.10, 0.09, 0.08), shirt=(0.24, 0.30, 0.22),
-                    blood=(0.30, 0.04, 0.04))
+PALETTE = Palette(skin=(0.52, 0.50, 0.47), pants=(0.28, 0.22, 0.15), shoes=(0.10, 0.09, 0.08), shirt=(0.24, 0.30, 0.22),
+                  blood=(0.30, 0.04, 0.04))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -81,7 +89,7 @@ PALETTE = z.Palette(skin=(0.52, 0.50, 0.47), pants=(0.28, 0.22, 0.15), shoes=(0.
 
 
 def build_meshes() -> list[SkinnedMesh]:
-    return [z.remodel(m, BRUTE_BODY, _GIRTH, "brute") for m in z.build_meshes(PALETTE)]
+    return [remodel(m, BRUTE_BODY, _GIRTH, "brute") for m in zombie_meshes.build_meshes(PALETTE)]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -90,21 +98,21 @@ def build_meshes() -> list[SkinnedMesh]:
 
 def _build_sledge(div: int):
     jc = 1
-    suffix = f"_lod{z.LOD_DIVISORS.index(div)}" if div > 1 else ""
+    suffix = f"_lod{LOD_DIVISORS.index(div)}" if div > 1 else ""
     caps = {} if div <= 4 else {"cap_start": False, "cap_end": False}
-    wood = lambda pos, u: np.concatenate([np.array([[0.40, 0.28, 0.17]]) * (0.8 + 0.2 * z._noise(11, pos[:, 1] * 30.0))[:, None],
+    wood = lambda pos, u: np.concatenate([np.array([[0.40, 0.28, 0.17]]) * (0.8 + 0.2 * _noise(11, pos[:, 1] * 30.0))[:, None],
                                           np.ones((pos.shape[0], 1))], 1)
     iron = lambda pos, u: np.concatenate([np.repeat(np.array([[0.30, 0.30, 0.32]]), pos.shape[0], 0), np.ones((pos.shape[0], 1))], 1)
-    m = z._MeshBuilder()
+    m = _MeshBuilder()
     handle = np.array([[0.0, -0.16, 0.0], [0.0, 0.86, 0.0]])
-    z._tube(m, handle, lambda u: 0.02 + 0.003 * u, lambda u: 0.018 + 0.003 * u, 10 // div, 10 // div, [0], [0.0, 1.0], [0.0], wood, jc, **caps)
+    _tube(m, handle, lambda u: 0.02 + 0.003 * u, lambda u: 0.018 + 0.003 * u, 10 // div, 10 // div, [0], [0.0, 1.0], [0.0], wood, jc, **caps)
     head = np.array([[0.0, 0.84, -0.14], [0.0, 0.84, 0.14]])  # across the handle's end, striking face toward +Z
-    z._tube(m, head, lambda u: 0.065, lambda u: 0.065, 4 // div, 8 // div, [0], [0.0, 1.0], [0.0], iron, jc)
-    return z._rigid_from_builder(m, "weapon_sledge" + suffix, (1.0, 1.0, 1.0, 1.0))
+    _tube(m, head, lambda u: 0.065, lambda u: 0.065, 4 // div, 8 // div, [0], [0.0, 1.0], [0.0], iron, jc)
+    return _rigid_from_builder(m, "weapon_sledge" + suffix, (1.0, 1.0, 1.0, 1.0))
 
 
 def build_props() -> dict[str, Prop]:
-    full, *coarser = [_build_sledge(div) for div in z.LOD_DIVISORS]
+    full, *coarser = [_build_sledge(div) for div in LOD_DIVISORS]
     grip = np.eye(4)
     grip[1, 3] = 0.05  # the right fist near the end of the handle; the left hand holds it higher up
     return {"sledge": Prop(full, grip, tuple(coarser))}
@@ -113,15 +121,15 @@ def build_props() -> dict[str, Prop]:
 # ------------------------------------------------------------------------------------------------
 # Clips: heavier, slower, wider than the zombie's.
 
-SHAMBLE_GAIT = z._Gait(stride=1.0, duty=0.66, lift=0.2, mid_stance=0.3, height=(0.08, 0.07), toe_down=(0.2, 0.2), toe_out=(0.25, 0.3),
-                       width=round(LEG_OUT * 0.10, 6))
-CHARGE_GAIT = z._Gait(stride=2.2, duty=0.36, lift=0.08, mid_stance=0.3, height=(0.18, 0.18), toe_down=(0.4, 0.4), toe_out=(0.15, 0.15),
-                      width=round(LEG_OUT * 0.10, 6))
-_planted = functools.partial(z._planted, body=BRUTE_BODY)
+SHAMBLE_GAIT = _Gait(stride=1.0, duty=0.66, lift=0.2, mid_stance=0.3, height=(0.08, 0.07), toe_down=(0.2, 0.2), toe_out=(0.25, 0.3),
+                     width=round(LEG_OUT * 0.10, 6))
+CHARGE_GAIT = _Gait(stride=2.2, duty=0.36, lift=0.08, mid_stance=0.3, height=(0.18, 0.18), toe_down=(0.4, 0.4), toe_out=(0.15, 0.15),
+                    width=round(LEG_OUT * 0.10, 6))
+_planted = functools.partial(planted_feet._planted, body=BRUTE_BODY)
 
 
 def _standing(p, a):
-    return z._standing(p, a, toe_out=(0.3, 0.3), reach=(0.04, -0.03), body=BRUTE_BODY)
+    return planted_feet._standing(p, a, toe_out=(0.3, 0.3), reach=(0.04, -0.03), body=BRUTE_BODY)
 
 
 # The right fist turned so that the sledgehammer it holds points forward and down, not across the body.
@@ -130,7 +138,7 @@ _HOLD = {"arm_twist_r": -0.6, "wrist_r": 0.5}
 
 def _idle(p):
     """Stands with its feet wide, heaving breaths, arms hanging out from its bulk, head low."""
-    a = z._neutral(p.shape[0])
+    a = _neutral(p.shape[0])
     s = np.sin(TAU * p)
     a["hips_x"] = 0.025 * s
     a["hips_roll"] = -0.03 * s
@@ -153,7 +161,7 @@ def _idle(p):
 
 def _shamble(p):
     """A slow, heavy, rolling walk: the body sways over each planted foot, the arms swing wide."""
-    a = z._neutral(p.shape[0])
+    a = _neutral(p.shape[0])
     c, s = np.cos(TAU * p), np.sin(TAU * p)
     a["hips_x"] = 0.06 * s
     a["hips_pitch"] = 0.1
@@ -180,7 +188,7 @@ def _shamble(p):
 
 def _charge(p):
     """A lumbering run, leaning in, arms pumping."""
-    a = z._neutral(p.shape[0])
+    a = _neutral(p.shape[0])
     p_strike = p - CHARGE_GAIT.mid_stance + 0.5 * CHARGE_GAIT.duty
     c, s = np.cos(TAU * p_strike), np.sin(TAU * p_strike)
     a["hips_x"] = 0.04 * s
@@ -228,7 +236,7 @@ def _smash(p):
         (0.7, _both_arms(arm_down=0.95, arm_fwd=1.6, elbow=0.3, chest_pitch=0.6, spine_pitch=0.3, hips_y=-0.1)),
         (1.0, {}),
     ]
-    return z._keyed(p, keys, a)
+    return _keyed(p, keys, a)
 
 
 def _hit(p):
@@ -240,7 +248,7 @@ def _hit(p):
         (0.5, dict(chest_pitch=0.35, head_pitch=0.3, head_roll=0.1, hips_z=-0.03, arm_down_l=1.0, arm_down_r=1.05)),
         (1.0, {}),
     ]
-    return z._keyed(p, keys, a)
+    return _keyed(p, keys, a)
 
 
 def _death(p):
@@ -258,14 +266,14 @@ def _death(p):
         (0.9, dict(hips_y=-0.83, knee_l=0.25, knee_r=0.4)),
         (1.0, dict()),
     ]
-    return z._keyed(p, keys, a)
+    return _keyed(p, keys, a)
 
 
 # name, authoring function, duration (s), loop, phase markers, stride (m per cycle), keep feet grounded
 CLIP_SPECS = [
     ("idle", _idle, 3.6, True, {}, None, False),
-    ("shamble", _shamble, 2.0, True, z._foot_markers(SHAMBLE_GAIT), SHAMBLE_GAIT.stride, False),
-    ("run", _charge, 1.0, True, z._foot_markers(CHARGE_GAIT), CHARGE_GAIT.stride, False),
+    ("shamble", _shamble, 2.0, True, _foot_markers(SHAMBLE_GAIT), SHAMBLE_GAIT.stride, False),
+    ("run", _charge, 1.0, True, _foot_markers(CHARGE_GAIT), CHARGE_GAIT.stride, False),
     ("attack", _smash, 1.6, False, {"impact": 0.56}, None, True),
     ("hit", _hit, 0.7, False, {}, None, True),
     ("death", _death, 2.6, False, {}, None, False),
@@ -273,16 +281,16 @@ CLIP_SPECS = [
 
 
 def build_character() -> Character:
-    skeleton = z.build_skeleton(BRUTE_BODY)
+    skeleton = build_skeleton(BRUTE_BODY)
     return Character(
         name="brute",
         skeleton=skeleton,
         meshes=build_meshes(),
-        clips=z.build_clips(skeleton, CLIP_SPECS, BRUTE_BODY),
+        clips=build_clips(skeleton, CLIP_SPECS, BRUTE_BODY),
         props=build_props(),
-        sockets={"weapon_r": skeleton.index(z.SOCKET_JOINT)},
-        morphs=z.MORPH_TARGETS,
-        morph_defaults=np.zeros(len(z.MORPH_TARGETS)),
+        sockets={"weapon_r": skeleton.index(SOCKET_JOINT)},
+        morphs=MORPH_TARGETS,
+        morph_defaults=np.zeros(len(MORPH_TARGETS)),
     ).validate()
 
 
