@@ -41,7 +41,8 @@ from .anim.bake import AnimationBake
 from .anim.foot_lock import bake_legs
 from .anim.foot_skate import FootSkateMonitor
 from .anim.morph import NOT_HELD
-from .anim.processor import AnimationProcessor, palette_joint_positions
+from .anim.palette_reference import palette_joint_positions
+from .anim.processor import AnimationProcessor
 from .asset.model import Character
 from .asset.town import build_town
 from .cast import CastMember, bake_member, character_motion, load_cast, player_motion

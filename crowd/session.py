@@ -19,7 +19,7 @@ import numpy as np
 
 from .anim.bake import BakeError
 from .anim.morph import ALL_HELD
-from .anim.processor import ProcessorError
+from .anim.processor_inputs import ProcessorError
 from .asset.model import cast_weapons
 from .draw.render import RenderError, view_proj
 from .draw.weapons import WeaponError

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import moderngl
 
 from .anim.bake import AnimationBake
-from .anim.processor import AnimationProcessor, resolve_path
+from .anim.processor import AnimationProcessor
+from .anim.processor_inputs import resolve_path
 from .asset.model import Character
 from .draw.readback import SocketReadback
 from .draw.render import CrowdRenderer, RenderError

@@ -159,7 +159,7 @@ def test_agents_moving_no_target_are_drawn_by_the_plain_twins(gl_context, tmp_pa
     """The GPU cull reads each agent's first morph pair: an agent whose weights move nothing is listed in
     the plain twin of each morph draw (the same geometry, no morph code), the others in the morph draws,
     in the colour and the shadow lists alike; the picture is the one every agent in the morph draws gives."""
-    from crowd.anim.processor import CLIP, WEIGHT
+    from crowd.frame import CLIP, WEIGHT
     from crowd.gl import Offscreen, has_compute
 
     if not has_compute(gl_context):

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..asset.model import CONTACT_M, Skeleton, foot_joints
-from .processor import palette_joint_positions
+from .palette_reference import palette_joint_positions
 
 __all__ = ["CONTACT_M", "SKATE_SPEED_M_S", "FootSkate", "FootSkateMonitor", "SkateError", "contact_steps", "foot_joints",
            "joint_positions", "measure", "to_world"]

@@ -12,7 +12,7 @@ input ``layers``: float32 (N, L, 4) with L = the processor's layer count (1..4);
   - mask: -1 for the whole body, else a row of the processor's joint masks (factor per joint in [0, 1]).
   Per joint, as crowd.anim.reference.blend (its docstring says why each rule), with S the sum of the
   layers' max(weight, 0) (only ratios of weights matter): weights are multiplied by the mask; each
-  layer samples its keys as the interpolation says (INTERPOLATIONS below: by default rotation nlerp at
+  layer samples its keys as the interpolation says (processor_inputs.INTERPOLATIONS: by default rotation nlerp at
   a weight corrected to track slerp, and translation lerp); rotations are sign-aligned to the anchor,
   the first-listed layer with a weight above 0 at that joint, and their weighted sum normalised (the
   anchor's rotation where the sum is shorter than CANCELLED_NORM times S), translations and scales are weighted means (dq_lerp
@@ -51,386 +51,36 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
 
 import moderngl
 import numpy as np
 
-from .. import transforms as tf
-from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, FrameError, validate_layers, validate_masks
-from .bake import AnimationBake
-from .compress import PER_KEY
+from ..frame import MAX_LAYERS, validate_masks
+from ..gl import GLStage, gpu_bytes
+from ..settings import SETTINGS
 from . import foot_lock as lock
-from ..gl import GLStage, gpu_bytes, has_compute, limit_note, load_shader
-from ..settings import DEFAULTS, SETTINGS
-from ..spans import min_max, over_spans
-from .morph import ACTIVE_WEIGHT, MAX_MORPH_WEIGHT, MORPH_PAIRS, NOT_HELD
-from .reference import CANCELLED_NORM, REST_THRESHOLD, aligned_sign
+from .bake import AnimationBake
+from .layer_upload import LayerUpload
+from .palette_layout import (MAX_PALETTE_ROWS, MAX_TEXTURE_WIDTH, TEXEL_ROW_SHIFT, PaletteLayout, PalettePart, palette_limits,
+                             palette_texel, texel_code)
+from .palette_reference import SLERP_FIT, corrected_weight, palette_joint_positions, reference_palette
+from .processor_inputs import (DEFAULT_INTERPOLATION, INTERPOLATIONS, MAX_HISTORY, ProcessorError, check_history, check_interpolation,
+                               check_motion, resolve_path)
+from .processor_programs import GROUP_SIZE, MAX_JOINTS, CharacterPrograms, ProcessorPart
+from .processor_readback import ProcessorReadback
 
 LOCALS_UNITS = (12, 13, 14)  # the fragment path's scratch of blended locals, read by its compose pass
-MAX_JOINTS = 256  # one compute work group of 256 invocations holds at least one whole agent
-GROUP_SIZE = 256
-# How one layer turns its two (or four) neighbouring baked keys into a local transform, and how layers
-# blend (crowd-bench error measures each; docs/BENCHMARKS.md says why the default is the default):
-# - dq_lerp: the DQ keys lerped blindly and normalised; layers blended as dual quaternions (DLB);
-# - qt_lerp: each key split into rotation and translation; rotations nlerped, translations lerped;
-#   layers blended the same way (ozz-animation's blending job, and the float64 reference's semantics);
-# - qt_corrected: as qt_lerp, with the nlerp's weight corrected so that it tracks slerp (below);
-# - qt_cubic: as qt_lerp, with Catmull-Rom through four keys instead of the lerp between two.
-INTERPOLATIONS = SETTINGS["interpolation"].choices
-# qt_corrected's weight: nlerp at weight u' = u + u (u - 1/2) (u - 1) (1 - d) (A(d) (u - 1/2)^2 + B(d)), d the keys'
-# dot product, A and B quadratics in d, turns by u times the keys' angle, as slerp does: to within 6.6e-7 rad
-# of rotation for keys up to 36 degrees apart (d >= 0.95) and 1.1e-3 rad for keys a half turn apart, where
-# nlerp is off by 1.0e-3 and 0.14 rad. The (1 - d) factor is the shape of nlerp's own error (it vanishes as the keys
-# meet), so the fit holds its ratio to it near d = 1, where keys usually are. Fitted by weighted least
-# squares, bench/slerp_fit.py; the error's maxima over (u, d) are searched in tests/test_processor.py.
-SLERP_FIT = (1.007417582391, -1.563037689162, 0.556641371575, 0.848875584203, -0.236418056665, 0.054274391573)  # A's, then B's
+
+# Every name importers have found here stays importable from here, wherever it now lives.
+__all__ = ["DEFAULT_INTERPOLATION", "GROUP_SIZE", "INTERPOLATIONS", "LOCALS_UNITS", "MAX_HISTORY", "MAX_JOINTS", "MAX_PALETTE_ROWS",
+           "MAX_TEXTURE_WIDTH", "SLERP_FIT", "TEXEL_ROW_SHIFT", "AnimationProcessor", "PaletteLayout", "PalettePart", "ProcessorError",
+           "check_interpolation", "check_motion", "corrected_weight", "palette_joint_positions", "palette_limits", "palette_texel",
+           "reference_palette", "resolve_path", "texel_code"]
 
 
-def corrected_weight(u, d):
-    """qt_corrected's nlerp weight (float64; shaders/processor_common.glsl has it in float32)."""
-    d = np.clip(d, 0.0, 1.0)
-    a = SLERP_FIT[0] + d * (SLERP_FIT[1] + d * SLERP_FIT[2])
-    b = SLERP_FIT[3] + d * (SLERP_FIT[4] + d * SLERP_FIT[5])
-    c = u - 0.5
-    return u + u * c * (u - 1.0) * (1.0 - d) * (a * c * c + b)
-
-
-DEFAULT_INTERPOLATION = DEFAULTS["interpolation"]  # chosen by crowd-bench error: see docs/BENCHMARKS.md
-# Agents side by side in one palette texture row: keeps textures under 4096 texels wide, a size every
-# GL 3.3+ driver we target accepts (GL_MAX_TEXTURE_SIZE is 16384 on llvmpipe, 32768 on NVIDIA).
-MAX_TEXTURE_WIDTH = 1 << 12
-MAX_HISTORY = SETTINGS["readback_latency"].high + 1  # palettes kept: the latest and one per frame of read-back latency
-
-
-class ProcessorError(ValueError):
-    """Bad processor input; the message is one line."""
-
-
-TEXEL_ROW_SHIFT = 12  # a texel code is x | y << 12: x < MAX_TEXTURE_WIDTH = 2^12, y < 2^20 palette rows
-MAX_PALETTE_ROWS = 1 << (32 - TEXEL_ROW_SHIFT)
-
-
-def palette_texel(agents, joints, row_offset, agents_per_row: int, joint_count: int) -> tuple[np.ndarray, np.ndarray]:
-    """(x, y) int64 texel of joint(s) `joints` of `agents` in a palette plane, in the ring slot that
-    starts at row `row_offset` (an int, or one per agent); y counts rows across layers. The one
-    statement of the palette layout."""
-    agents = np.asarray(agents, np.int64)
-    return (agents % agents_per_row) * joint_count + np.asarray(joints, np.int64), agents // agents_per_row + np.asarray(row_offset, np.int64)
-
-
-def palette_limits(ctx: moderngl.Context) -> tuple[int, int]:
-    """(texture rows a palette layer may have, layers an array texture may have) on this context."""
-    return int(ctx.info.get("GL_MAX_TEXTURE_SIZE", 16384)), int(ctx.info.get("GL_MAX_ARRAY_TEXTURE_LAYERS", 256))
-
-
-def texel_code(x, y) -> np.ndarray:
-    """uint32 code of palette texels (x, y), as shaders/palette.glsl reads it."""
-    return np.asarray(x, np.uint32) | (np.asarray(y, np.uint32) << np.uint32(TEXEL_ROW_SHIFT))
-
-
-def resolve_path(ctx: moderngl.Context, path: str, limit: int | None = None) -> str:
-    """The processor path "auto" takes on this context: compute where it has GL 4.3 and `limit` (the "gl"
-    setting's: crowd.gl.feature_level) lets the stages use it, else fragment. "compute" where they may not: ProcessorError."""
-    compute = has_compute(ctx, limit)
-    if path == "compute" and not compute:
-        raise ProcessorError(f"the compute path needs GL 4.3, this context has {ctx.version_code}{limit_note(ctx, limit)}")
-    return ("compute" if compute else "fragment") if path == "auto" else path
-
-
-def check_motion(motion, agents: int) -> np.ndarray:
-    """The foot lock's per-agent motion (N, 4) float32: ground step x, z and front x, z times the scale,
-    all finite, the front not 0."""
-    if motion is None:
-        raise ProcessorError("the foot lock needs each agent's motion (ground step x, z, front x, z times scale) with its layers")
-    m = np.ascontiguousarray(motion, np.float32)
-    if m.shape != (agents, 4):
-        raise ProcessorError(f"agent motion must be ({agents}, 4) (ground step x, z, front x, z times scale), got {np.shape(motion)}")
-    # Two reductions where every value is fine (min and max carry NaN and infinities); the row is found only for the message.
-    if m.size and not all(math.isfinite(v) for v in min_max(m)):
-        bad = int(np.flatnonzero(~np.all(np.isfinite(m), axis=1))[0])
-        raise ProcessorError(f"agent motion of agent {bad} is not finite: {m[bad].tolist()}")
-
-    def shortest(lo: int, hi: int) -> float:  # the shortest front's squared length in a span (crowd.spans)
-        front = m[lo:hi, 2] * m[lo:hi, 2]
-        front += m[lo:hi, 3] * m[lo:hi, 3]
-        return float(front.min()) if hi > lo else math.inf
-
-    if len(m) and not min(over_spans(shortest, len(m))) > 1e-24:
-        front = m[:, 2] * m[:, 2] + m[:, 3] * m[:, 3]
-        bad = int(np.flatnonzero(~(front > 1e-24))[0])
-        raise ProcessorError(f"agent {bad} has front {m[bad, 2:].tolist()} times its scale; the foot lock needs one of length > 0")
-    return m
-
-
-def check_interpolation(interpolation) -> str:
-    return SETTINGS["interpolation"].check(interpolation, ProcessorError)
-
-
-def _check_history(history) -> int:
-    if isinstance(history, bool) or not isinstance(history, (int, np.integer)) or not 1 <= history <= MAX_HISTORY:
-        raise ProcessorError(f"palette history must be a whole number from 1 to {MAX_HISTORY}, got {history!r}")
-    return int(history)
-
-
-def _translation(real: np.ndarray, dual: np.ndarray) -> np.ndarray:
-    """Translation of stored DQ keys (f16 keys are not exactly unit: dq_to_rt normalises first)."""
-    return tf.dq_to_rt(real, dual)[1]
-
-
-def _catmull_rom(p0, p1, p2, p3, u):
-    """Uniform Catmull-Rom between p1 and p2; u broadcasts against the keys' leading axes."""
-    return p1 + u * (0.5 * (p2 - p0) + u * ((p0 - 2.5 * p1 + 2.0 * p2 - 0.5 * p3) + u * (0.5 * (p3 - p0) + 1.5 * (p1 - p2))))
-
-
-def _sample_keys(texels, scales, table, clip, phase, interpolation):
-    """One layer's local transform of every joint, float64, as the shader samples it. Returns
-    (rotation or DQ real (N, J, 4), translation (N, J, 3) or DQ dual (N, J, 4), scale (N, J))."""
-    first, count, _, loop = table[clip].T
-    looping = loop > 0.5
-    phase = np.where(looping, phase - np.floor(phase), np.clip(phase, 0.0, 1.0))
-    f = phase * (count - 1.0)
-    i0 = np.clip(np.floor(f), 0.0, count - 2.0)
-    u = (f - i0)[:, None, None]
-    row = (first + i0).astype(np.int64)
-
-    def key(r):
-        s = np.ones(texels.shape[1] // 2) if scales is None else scales[r]
-        return texels[r, 0::2], texels[r, 1::2], s
-
-    (r1, d1, s1), (r2, d2, s2) = key(row), key(row + 1)
-    if interpolation == "dq_lerp":
-        r = r1 + (r2 - r1) * u
-        d = d1 + (d2 - d1) * u
-        inv = 1.0 / np.linalg.norm(r, axis=-1, keepdims=True)
-        return r * inv, d * inv, s1 + (s2 - s1) * u[..., 0]
-    t1, t2 = _translation(r1, d1), _translation(r2, d2)
-    if interpolation in ("qt_lerp", "qt_corrected"):
-        w = corrected_weight(u, np.sum(r1 * r2, axis=-1, keepdims=True)) if interpolation == "qt_corrected" else u
-        q = r1 + (r2 - r1) * w
-        return q / np.linalg.norm(q, axis=-1, keepdims=True), t1 + (t2 - t1) * u, s1 + (s2 - s1) * u[..., 0]
-    # qt_cubic: the outer keys wrap around a loop (its closing frame repeats frame 0, so frame 0's
-    # predecessor is frame count - 2 and the closing frame's successor is frame 1) and are extrapolated
-    # linearly at the ends of a one-shot clip.
-    first_row = first.astype(np.int64)
-    last = count.astype(np.int64) - 1
-    at_start, at_end = row == first_row, row + 1 == first_row + last
-    prev_row = np.where(at_start & looping, first_row + last - 1, np.maximum(row - 1, first_row))
-    next_row = np.where(at_end & looping, first_row + 1, np.minimum(row + 2, first_row + last))
-    r0, d0, s0 = key(prev_row)
-    r3, d3, s3 = key(next_row)
-    t0, t3 = _translation(r0, d0), _translation(r3, d3)
-    r0 = np.where(np.sum(r0 * r1, axis=-1, keepdims=True) < 0.0, -r0, r0)
-    r3 = np.where(np.sum(r3 * r2, axis=-1, keepdims=True) < 0.0, -r3, r3)
-    ext_start = (at_start & ~looping)[:, None, None]
-    ext_end = (at_end & ~looping)[:, None, None]
-    r0, t0 = np.where(ext_start, 2.0 * r1 - r2, r0), np.where(ext_start, 2.0 * t1 - t2, t0)
-    r3, t3 = np.where(ext_end, 2.0 * r2 - r1, r3), np.where(ext_end, 2.0 * t2 - t1, t3)
-    s0 = np.where(ext_start[..., 0], 2.0 * s1 - s2, s0)
-    s3 = np.where(ext_end[..., 0], 2.0 * s2 - s1, s3)
-    q = _catmull_rom(r0, r1, r2, r3, u)
-    return q / np.linalg.norm(q, axis=-1, keepdims=True), _catmull_rom(t0, t1, t2, t3, u), _catmull_rom(s0, s1, s2, s3, u[..., 0])
-
-
-def reference_palette(bake: AnimationBake, layers, masks=None, interpolation: str = DEFAULT_INTERPOLATION,
-                      foot_lock: lock.FootLockTwin | None = None, motion=None, dt: float = 0.0) -> np.ndarray:
-    """Float64 model of the processor on the same baked keys: (N, J, 3, 4) skinning matrix rows.
-
-    The bake's own error against the source clips is measured elsewhere (crowd.anim.accuracy, issue 7's
-    report); this function isolates what the GPU adds: float32 arithmetic. With `foot_lock` (the twin
-    of a processor built with legs) the frame's `motion` and `dt` advance its state as a run does.
-    """
-    interpolation = check_interpolation(interpolation)
-    masks = validate_masks(masks, bake.joint_count)
-    layers = validate_layers(layers, len(bake.clips), 0 if masks is None else masks.shape[0], np.shape(layers)[1]).astype(np.float64)
-    n, lcount, _ = layers.shape
-    jc = bake.joint_count
-    texels = bake.texels.astype(np.float64)
-    scales = None if bake.scale is None else bake.scale.astype(np.float64)
-    table = bake.clip_table.astype(np.float64)
-    qt = interpolation != "dq_lerp"
-    real = np.zeros((lcount, n, jc, 4))
-    second = np.zeros((lcount, n, jc, 3 if qt else 4))  # translation (QT) or dual part (DQ)
-    scale = np.zeros((lcount, n, jc))
-    weight = np.zeros((lcount, n, jc))
-    # Raw weights, compared with S: the shaders scale them by a power of two near 1 / S, which changes no
-    # result (power_of_two_below in processor_common.glsl), and float64 does not underflow at float32's
-    # smallest weights.
-    layer_sum = np.maximum(layers[:, :, WEIGHT], 0.0).sum(axis=1)[:, None]  # (N, 1)
-    for l in range(lcount):
-        clip = layers[:, l, CLIP].astype(np.int64)
-        real[l], second[l], scale[l] = _sample_keys(texels, scales, table, clip, layers[:, l, PHASE], interpolation)
-        w = np.repeat(np.maximum(layers[:, l, WEIGHT], 0.0)[:, None], jc, axis=1)
-        mask = layers[:, l, MASK].astype(np.int64)
-        if masks is not None:
-            w = np.where(mask[:, None] >= 0, w * masks[np.maximum(mask, 0)].astype(np.float64), w)
-        weight[l] = w
-    real = np.where(weight[..., None] > 0, real, 0.0)
-    second = np.where(weight[..., None] > 0, second, 0.0)
-    scale = np.where(weight > 0, scale, 0.0)
-    anchor = np.argmax(weight > 0, axis=0)  # the first layer with a weight above 0, as the shader's scan finds it
-    ref = np.take_along_axis(real, anchor[None, ..., None], axis=0)[0]
-    signed = aligned_sign(real, ref[None]) * weight
-    r = np.sum(signed[..., None] * real, axis=0)
-    cancelled = (np.linalg.norm(r, axis=-1) < CANCELLED_NORM * layer_sum)[..., None]
-    r = np.where(cancelled, ref, r)
-    total = weight.sum(axis=0)
-    low = (total <= 0.0) | (total < REST_THRESHOLD * layer_sum)
-    safe = np.where(low, 1.0, total)
-    s = np.sum(weight * scale, axis=0) / safe
-    rest_r = texels[bake.rest_row, 0::2]
-    rest_d = texels[bake.rest_row, 1::2]
-    rest_s = np.ones(jc) if scales is None else scales[bake.rest_row]
-    r = np.where(low[..., None], rest_r[None], r)
-    s = np.where(low, rest_s[None], s)
-    if qt:
-        t = np.sum(weight[..., None] * second, axis=0) / safe[..., None]
-        t = np.where(low[..., None], _translation(rest_r, rest_d)[None], t)
-        r = r / np.linalg.norm(r, axis=-1, keepdims=True)
-        local = tf.trs_to_mat4(t, r, np.repeat(s[..., None], 3, -1))
-    else:
-        d = np.sum(signed[..., None] * second, axis=0)
-        d = np.where(cancelled, np.take_along_axis(second, anchor[None, ..., None], axis=0)[0], d)
-        d = np.where(low[..., None], rest_d[None], d)
-        local = tf.dq_to_mat4(r, d, s)
-    if foot_lock is not None:
-        local = foot_lock.apply(local, bake.parents, motion, dt)
-    glob = np.empty_like(local)
-    for j, p in enumerate(bake.parents):
-        glob[:, j] = local[:, j] if p < 0 else glob[:, p] @ local[:, j]
-    return (glob @ bake.inverse_bind()[None])[:, :, :3, :]
-
-
-def palette_joint_positions(palette_rows: np.ndarray, inverse_bind: np.ndarray) -> np.ndarray:
-    """Model-space joint positions from skinning matrix rows (N, J, 3, 4): skin × bind, translation."""
-    bind = np.linalg.inv(np.asarray(inverse_bind, dtype=np.float64))
-    rows = np.asarray(palette_rows, dtype=np.float64)
-    return np.einsum("njrc,jc->njr", rows, bind[:, :, 3])
-
-
-@dataclass(frozen=True)
-class PalettePart:
-    """One character's block of a palette ring slot: its agents (first_agent .. first_agent + count - 1),
-    agents_per_row of them side by side in a texture row, each `width` texels wide (`slots` texels before
-    its `joints`: its impostor key where impostors are drawn (crowd.draw.impostors), then its morph pairs
-    where `morph` (crowd.anim.morph)), from row first_row."""
-
-    first_agent: int
-    count: int
-    joints: int
-    agents_per_row: int
-    first_row: int
-    slots: int = 0
-    morph: bool = False  # the texel before joint 0 holds the agent's morph pairs
-
-    @property
-    def key(self) -> bool:
-        """Whether the agent's first texel holds its impostor key (the clip and phase its impostor shows)."""
-        return self.slots > int(self.morph)
-
-    @property
-    def rows(self) -> int:
-        return math.ceil(self.count / self.agents_per_row)
-
-    @property
-    def width(self) -> int:
-        return self.slots + self.joints
-
-
-@dataclass(frozen=True)
-class PaletteLayout:
-    """Where each agent's skinning matrices live in a palette ring slot: every character of the cast has
-    a block of rows of its own, laid out for its own joint count (no texel spent on a larger skeleton's
-    joints), one after the other in the cast's order. The one statement of the layout: the processor
-    writes by it, the instance records and the read-back address by it (``texel``)."""
-
-    parts: tuple[PalettePart, ...]
-
-    @staticmethod
-    def make(joint_counts, counts, slots=None, morphs=None) -> "PaletteLayout":
-        """`slots`: each character's texels before an agent's joints (None: none); `morphs`: whether the
-        last of them holds morph pairs (None: wherever there is a slot)."""
-        parts, agent, row = [], 0, 0
-        slots = slots or [0] * len(joint_counts)
-        morphs = morphs if morphs is not None else [s > 0 for s in slots]
-        for joints, count, s, m in zip(joint_counts, counts, slots, morphs):
-            part = PalettePart(agent, int(count), int(joints), max(1, MAX_TEXTURE_WIDTH // (int(joints) + int(s))), row, int(s), bool(m))
-            parts.append(part)
-            agent += part.count
-            row += part.rows
-        return PaletteLayout(tuple(parts))
-
-    @property
-    def agents(self) -> int:
-        return sum(p.count for p in self.parts)
-
-    @property
-    def rows(self) -> int:
-        """Palette rows one ring slot holds."""
-        return sum(p.rows for p in self.parts)
-
-    @property
-    def width(self) -> int:
-        """Texels a palette row has: the widest character's (constant for a cast, whatever its counts)."""
-        return max(p.agents_per_row * p.width for p in self.parts)
-
-    @property
-    def counts(self) -> tuple[int, ...]:
-        return tuple(p.count for p in self.parts)
-
-    def part_of(self, agents) -> np.ndarray:
-        """Index of the part (character) of each of `agents`."""
-        firsts = np.array([p.first_agent + p.count for p in self.parts[:-1]], np.int64)
-        return np.searchsorted(firsts, np.asarray(agents, np.int64), side="right")
-
-    def texel(self, agents, joints, row_offset=0) -> tuple[np.ndarray, np.ndarray]:
-        """(x, y) int64 palette texel of joint(s) `joints` of `agents` (global numbers) in the ring slot
-        that starts at row `row_offset` (an int, or one per agent); y counts rows across layers."""
-        agents = np.asarray(agents, np.int64)
-        if len(self.parts) == 1:
-            p = self.parts[0]
-            x, y = palette_texel(agents, np.asarray(joints, np.int64) + p.slots, row_offset, p.agents_per_row, p.width)
-            return x, y + p.first_row
-        k = self.part_of(agents)
-        table = np.array([(p.first_agent, p.agents_per_row, p.width, p.first_row, p.slots) for p in self.parts], np.int64)
-        first, per_row, width, first_row, slots = (table[k, c] for c in range(5))
-        local = agents - first
-        return ((local % per_row) * width + slots + np.asarray(joints, np.int64),
-                first_row + local // per_row + np.asarray(row_offset, np.int64))
-
-    def agents_at(self, x, y) -> np.ndarray:
-        """The agents whose joints' texels (x, y) are, y counted from their ring slot's first row: the
-        inverse of ``texel`` (tests and benchmarks read the lists back by it)."""
-        x, y = np.asarray(x, np.int64), np.asarray(y, np.int64)
-        table = np.array([(p.first_agent, p.agents_per_row, p.width, p.first_row) for p in self.parts], np.int64)
-        k = np.searchsorted(table[:, 3], y, side="right") - 1
-        return table[k, 0] + (y - table[k, 3]) * table[k, 1] + x // table[k, 2]
-
-
-class _Part:
-    """One character's share of the processor: its bake's textures, program and foot-lock state."""
-
-    def __init__(self, bake: AnimationBake, masks, legs, key: bool = False):
-        self.bake = bake
-        self.masks = masks
-        self.legs = legs
-        self.key = bool(key)  # an impostor key texel first (crowd.draw.impostors)
-        self.morph = bake.morphs is not None  # a texel of morph pairs before an agent's joints
-        self.slots = int(self.key) + int(self.morph)
-        # Morph weights held from the panel: (M,) float32, -1 where not held, and whose (crowd.anim.morph.ALL_HELD,
-        # NOT_HELD, or an agent's number among the character's).
-        self.held = None if bake.morphs is None else np.full(bake.morphs.count, -1.0, np.float32)
-        self.held_agent = NOT_HELD
-        self.held_written = None  # the held weights the texture holds
-        self.program = None
-        self.textures: dict = {}
-        self.lock_state = self.lock_motion = None
-        self.quad = self.quad_vao = None
-        self.locals_program = self.locals_vao = None  # the fragment path's first draw (LOCALS_PASS) and its quads
-        self.quad_vertices = 0
-
-
-class AnimationProcessor(GLStage):
+# The character programs, the layers' upload and the read-backs live in modules of their own (processor_programs,
+# layer_upload, processor_readback), mixed in here: every GL object they make or read is this class's.
+class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadback):
     """Owns every character's bake textures, the layers texture and the palette planes, and releases them.
 
     A crowd of several characters (``bakes`` a sequence) is processed one character at a time, each over
@@ -444,7 +94,7 @@ class AnimationProcessor(GLStage):
         value for one bake, a sequence of them for several). `impostor_keys`: per character, whether its
         agents' rows start with the key their impostors are drawn by (None: no character's do)."""
         self._own: dict[str, list] = {"animation": [], "palette": [], "layers": [], "locals": [], "processor_quad": [], "foot_lock": [], "morphs": []}
-        self.parts: list[_Part] = []
+        self.parts: list[ProcessorPart] = []
         self._programs: dict[str, moderngl.Program] = {}
         single = isinstance(bakes, AnimationBake)
         bakes = [bakes] if single else list(bakes)
@@ -473,7 +123,7 @@ class AnimationProcessor(GLStage):
         self.path = path
         self.layer_count = layer_count
         self.interpolation = check_interpolation(interpolation)
-        self.history = _check_history(history)
+        self.history = check_history(history)
         # The layers texture's own layout: agents side by side, LAYERS texels each, whatever their skeleton.
         self.layer_agents_per_row = MAX_TEXTURE_WIDTH // layer_count
         self.runs = 0  # runs since the palette was last (re)allocated: slots older than this hold nothing
@@ -488,7 +138,7 @@ class AnimationProcessor(GLStage):
         if len(keys) != len(bakes):
             raise ProcessorError(f"impostor keys for {len(keys)} characters, the processor has {len(bakes)} bakes")
         for bake, m, l, key in zip(bakes, masks, legs, keys):
-            part = _Part(bake, validate_masks(m, bake.joint_count), l, key)
+            part = ProcessorPart(bake, validate_masks(m, bake.joint_count), l, key)
             self.parts.append(part)
             self._make_part(part)
         self.layout = self._layout([0] * len(self.parts))
@@ -517,88 +167,6 @@ class AnimationProcessor(GLStage):
         return self.parts[0].textures["u_anim"]
 
     # -- resources
-
-    def _make_part(self, part: _Part) -> None:
-        """A character's textures and program (programs with the same source are shared)."""
-        bake, jc = part.bake, part.bake.joint_count
-        compressed = bake.packed is not None
-        dtype = "f2" if bake.precision == "f16" else "f4"
-        anim_rows = bake.gpu_texels
-        t = part.textures
-        t["u_anim"] = self._texture("animation", (2 * jc, anim_rows.shape[0]), 4, anim_rows, dtype)
-        if bake.scale is not None:
-            t["u_anim_scale"] = self._texture("animation", (jc, bake.rows), 1, bake.scale, dtype)
-        if compressed:
-            words = bake.packed.word_texture
-            t["u_keys"] = self._texture("animation", (words.shape[1], words.shape[0]), 1, words, "u4")
-            headers = bake.packed.header_texture
-            t["u_tracks"] = self._texture("animation", (4 * jc, headers.shape[0]), 4, headers, "u4")
-        t["u_parents"] = self._texture("animation", (jc, 1), 1, bake.parents.astype(np.int32), "i4")
-        t["u_clips"] = self._texture("animation", (len(bake.clips), 1), 4, bake.clip_table, "f4")
-        if part.masks is not None:
-            t["u_masks"] = self._texture("animation", (jc, part.masks.shape[0]), 1, part.masks, "f4")
-        defines = {"LAYERS": self.layer_count, "REST_THRESHOLD": f"{REST_THRESHOLD:.1e}", "CANCELLED_NORM": f"{CANCELLED_NORM:.1e}",
-                   "MAX_JOINTS": MAX_JOINTS, "ROW_SLOTS": part.slots}
-        if part.key:
-            defines["IMPOSTOR_KEY"] = 1
-        morphs = bake.morphs
-        if morphs is not None:  # the morph weight tracks (crowd.anim.morph): only where the scene moves a target
-            if len(morphs.clip_rows) != len(bake.clips):
-                raise ProcessorError(f"the morph bake has {len(morphs.clip_rows)} clips, the joint bake {len(bake.clips)}")
-            t["u_morph_tracks"] = self._texture("morphs", (morphs.count, morphs.tracks.shape[0]), 1, morphs.tracks, "f4")
-            t["u_morph_clips"] = self._texture("morphs", (len(bake.clips), 1), 2, morphs.clip_rows.astype(np.int32), "i4")
-            t["u_morph_variation"] = self._texture("morphs", (morphs.count, 1), 2, morphs.variation, "f4")
-            t["u_morph_held"] = self._texture("morphs", (morphs.count, 1), 1, part.held, "f4")
-            part.held_written = part.held
-            defines.update(MORPHS=1, MORPH_COUNT=morphs.count, MORPH_PAIRS=MORPH_PAIRS, ACTIVE_WEIGHT=f"{ACTIVE_WEIGHT!r}",
-                           MAX_MORPH_WEIGHT=f"{MAX_MORPH_WEIGHT!r}")
-        if bake.scale is not None:
-            defines["HAS_SCALE"] = 1
-        if compressed:
-            defines["COMPRESSED"] = 1
-            defines["PER_KEY"] = f"{PER_KEY}u"
-        if part.masks is not None:
-            defines["HAS_MASKS"] = 1
-        if part.legs is not None:
-            defines.update(FOOT_LOCK=1, LEG_COUNT=len(part.legs), CORRECTION_EPS=f"{lock.CORRECTION_EPS:.1e}",
-                           **{name: repr(float(getattr(lock, name))) for name in ("CONTACT_M", "STEP_SHIFT_M", "STEP_TWIST_RAD", "HOLD_SHIFT_M",
-                                                                                  "HOLD_TWIST_RAD", "STEP_LIFT_M", "RESET_M", "RESET_RAD",
-                                                                                  "MIN_FORWARD_HORIZONTAL")})
-        if self.interpolation != "dq_lerp":
-            defines["INTERPOLATION_QT"] = 1
-        if self.interpolation == "qt_cubic":
-            defines["INTERPOLATION_CUBIC"] = 1
-        if self.interpolation == "qt_corrected":
-            defines["INTERPOLATION_CORRECTED"] = 1
-            defines["SLERP_FIT_A"] = "vec3({:.12f}, {:.12f}, {:.12f})".format(*SLERP_FIT[:3])
-            defines["SLERP_FIT_B"] = "vec3({:.12f}, {:.12f}, {:.12f})".format(*SLERP_FIT[3:])
-        if self.path == "compute":
-            source = load_shader("processor.comp.glsl", defines)
-            if source not in self._programs:
-                self._programs[source] = self.ctx.compute_shader(source)
-        else:
-            for pass_defines in ({**defines, "LOCALS_PASS": 1}, defines):
-                source = load_shader("processor.frag.glsl", pass_defines)
-                if source not in self._programs:
-                    self._programs[source] = self.ctx.program(vertex_shader=load_shader("processor.vert.glsl"),
-                                                              geometry_shader=load_shader("processor.geom.glsl"), fragment_shader=source)
-                if "LOCALS_PASS" in pass_defines:
-                    part.locals_program = self._programs[source]
-        part.program = self._programs[source]
-        stride = part.slots + jc
-        if stride > GROUP_SIZE:
-            raise ProcessorError(f"{jc} joints and a morph slot need {stride} invocations an agent; a work group has {GROUP_SIZE}")
-        part.uniforms = {"u_joints": jc, "u_stride": stride, "u_agents_per_group": GROUP_SIZE // stride, "u_rest_row": anim_rows.shape[0] - 1,
-                         "u_rest_scale_row": bake.rest_row, "u_layer_agents_per_row": self.layer_agents_per_row}
-        if morphs is not None:
-            part.uniforms.update(u_morph_seed=morphs.seed, u_character=self.parts.index(part))
-        if compressed:
-            part.uniforms["u_key_width"] = words.shape[1]
-        if part.legs is not None:
-            part.leg_bytes = {"u_leg_joints": np.ascontiguousarray(part.legs.joints, np.int32).tobytes(),
-                              "u_leg_toe": np.ascontiguousarray(part.legs.toe, np.int32).tobytes(),
-                              "u_leg_forward": np.ascontiguousarray(part.legs.forward, np.float32).tobytes(),
-                              "u_leg_lowest": np.ascontiguousarray(part.legs.lowest, np.float32).tobytes()}
 
     def _texture(self, group, size, components, data, dtype):
         tex = self.ctx.texture(size, components, None if data is None else np.ascontiguousarray(data).tobytes(), dtype=dtype)
@@ -634,7 +202,7 @@ class AnimationProcessor(GLStage):
 
     def set_history(self, history: int) -> None:
         """Keep `history` palettes (1 to MAX_HISTORY); the planes are reallocated, so older runs are lost."""
-        history = _check_history(history)
+        history = check_history(history)
         if history != self.history:
             self.history = history
             self._allocate(self.layout.counts)
@@ -866,75 +434,6 @@ class AnimationProcessor(GLStage):
 
     # -- the pass
 
-    def upload(self, layers, motion=None, dt: float = 0.0) -> None:
-        """Validate and upload this frame's layers (N, L, 4), or a sequence of blocks of consecutive
-        agents that together are N (the crowd's, then the player's: no copy to join them); N must equal
-        the agent count, and each character's agents' clips and masks are its own bake's (a character's
-        agents lie in one block). With the foot lock, also each agent's `motion` (N, 4): its ground step
-        since the last run (x, z, metres, from float64 positions) and its front (x, z) times its scale,
-        and the frame's simulated seconds `dt`."""
-        blocks = [np.asarray(b) for b in layers] if isinstance(layers, (list, tuple)) else [np.asarray(layers)]
-        if len(blocks) == 1 and len(self.parts) == 1:
-            p = self.parts[0]
-            blocks = [validate_layers(blocks[0], len(p.bake.clips), 0 if p.masks is None else p.masks.shape[0], self.layer_count)]
-        else:
-            if any(b.ndim != 3 for b in blocks):
-                raise ProcessorError(f"layers must be (agents, {self.layer_count}, 4) arrays, got {[b.shape for b in blocks]}")
-            blocks = [b if b.dtype == np.float32 and b.flags.c_contiguous else np.ascontiguousarray(b, np.float32) for b in blocks]
-            starts = np.cumsum([0] + [len(b) for b in blocks])
-            if starts[-1] != self.agents:
-                raise ProcessorError(f"layers are for {int(starts[-1])} agents, the processor holds {self.agents}")
-            for k, (p, part) in enumerate(zip(self.parts, self.layout.parts)):
-                if not part.count:
-                    continue
-                b = int(np.searchsorted(starts, part.first_agent, side="right")) - 1
-                if part.first_agent + part.count > starts[b + 1]:
-                    raise ProcessorError(f"character {k}'s agents span two blocks of layers; a character's lie in one")
-                rows = blocks[b][part.first_agent - starts[b]:part.first_agent - starts[b] + part.count]
-                try:
-                    validate_layers(rows, len(p.bake.clips), 0 if p.masks is None else p.masks.shape[0], self.layer_count)
-                except FrameError as exc:
-                    raise FrameError(f"character {k}: {exc}") from None
-        if sum(len(b) for b in blocks) != self.agents:
-            raise ProcessorError(f"layers are for {sum(len(b) for b in blocks)} agents, the processor holds {self.agents}")
-        if self.legs is not None:
-            m = check_motion(motion, self.agents)
-            if not (isinstance(dt, (int, float, np.floating)) and math.isfinite(dt) and dt >= 0):
-                raise ProcessorError(f"the foot lock needs a frame time >= 0 seconds, got {dt!r}")
-            self._lock_dt = float(dt)
-            for p, block in zip(self.parts, self.layout.parts):
-                if p.lock_motion is not None and block.count:
-                    # A fresh store for each frame's motion: the runs still queued read the last one.
-                    part_motion = m[block.first_agent:block.first_agent + block.count]
-                    p.lock_motion.orphan(part_motion.nbytes)
-                    p.lock_motion.write(part_motion)
-        first = 0
-        for block in blocks:
-            self._write_layers(block, first)
-            first += len(block)
-
-    def _write_layers(self, a: np.ndarray, first: int) -> None:
-        """Layers of agents first .. first + len(a) - 1 into the layers texture: a partial first row, whole
-        texture rows straight from the array (no padded copy), then a partial last row."""
-        per_row, n = self.layer_agents_per_row, len(a)
-        k = self.layer_count
-        done = 0
-        head = min((-first) % per_row, n)
-        if head:
-            row, x = divmod(first, per_row)
-            self.layers_texture.write(np.ascontiguousarray(a[:head]), viewport=(x * k, row, head * k, 1))
-            done = head
-        full = (n - done) // per_row
-        if full:
-            rows = a[done:done + full * per_row]
-            unpack = self._layer_unpack
-            unpack.orphan(unpack.size)  # fresh storage: the copy still queued from the last frame keeps its own
-            unpack.write(rows)
-            self.layers_texture.write(unpack, viewport=(0, (first + done) // per_row, per_row * k, full))
-            done += full * per_row
-        if done < n:
-            self.layers_texture.write(np.ascontiguousarray(a[done:]), viewport=(0, (first + done) // per_row, (n - done) * k, 1))
-
     def run(self) -> bool:
         """Write every agent's palette row: one dispatch per character with agents (the fragment path: two
         draws, its locals pass and its compose pass, processor.frag.glsl). Returns
@@ -972,7 +471,7 @@ class AnimationProcessor(GLStage):
         self.runs += 1
         return True
 
-    def _draw_part(self, part: _Part, block, slot: int, prog) -> None:
+    def _draw_part(self, part: ProcessorPart, block, slot: int, prog) -> None:
         """One character's dispatch (compute) or draw (fragment: `prog` is its locals pass or its compose
         pass) over its block of the ring slot `slot`."""
         for unit, name in enumerate(("u_anim", "u_parents", "u_clips")):
@@ -1024,14 +523,6 @@ class AnimationProcessor(GLStage):
             if part.lock_state is not None:
                 part.lock_state.clear()
 
-    def read_lock_state(self, character: int = 0) -> np.ndarray:
-        """(N, legs, 4) float32 foot-lock state of one character's agents (synchronous: tests only): engaged
-        legs (hold x, z, yaw, 1), free ones (the correction carried x, z, yaw, 0)."""
-        part, block = self.parts[character], self.layout.parts[character]
-        if part.lock_state is None:
-            return np.zeros((0, 0 if part.legs is None else len(part.legs), 4), np.float32)
-        return np.frombuffer(part.lock_state.read(), np.float32).reshape(block.count, len(part.legs), 4)
-
     def hold_morphs(self, character: int, weights, agent: int) -> None:
         """Hold morph weights of one character from the next run: `weights` (M,), a weight in [0, 1] per
         target held, -1 where the clips and variation decide; `agent` its agent's number among the
@@ -1063,71 +554,6 @@ class AnimationProcessor(GLStage):
         for prog in programs:
             if "u_palette_rows" in prog:
                 prog["u_palette_rows"] = self.layer_rows
-
-    def read_palette(self, age: int = 0) -> np.ndarray:
-        """(N, J, 3, 4) float32 skinning matrix rows of the palette written `age` runs ago, read back
-        synchronously (tests and stats only); J is the largest skeleton's, and a smaller character's
-        agents have zeros past their own joints."""
-        n = self.agents
-        jmax = max(p.bake.joint_count for p in self.parts)
-        if n == 0:
-            return np.zeros((0, jmax, 3, 4), np.float32)
-        first = self.row_offset(age) if self.runs else 0
-        planes = self._read_planes()
-        out = np.zeros((n, jmax, 3, 4), np.float32)
-        for block in self.layout.parts:
-            if not block.count:
-                continue
-            rows, k, jc, w = block.rows, block.agents_per_row, block.joints, block.width
-            y0 = first + block.first_row
-            for r, plane in enumerate(planes):
-                out[block.first_agent:block.first_agent + block.count, :jc, r] = \
-                    plane[y0:y0 + rows, :k * w].reshape(rows * k, w, 4)[:block.count, block.slots:]
-        return out
-
-    def read_morph_pairs(self, character: int = 0, age: int = 0) -> np.ndarray:
-        """(N, MORPH_PAIRS, 2) float32 (target, weight) pairs of one character's agents, from the palette
-        written `age` runs ago (synchronous: tests only); (N, 0, 2) for a character without morphs."""
-        block = self.layout.parts[character]
-        if not block.morph or not block.count:
-            return np.zeros((block.count, 0, 2), np.float32)
-        first = self.row_offset(age) if self.runs else 0
-        rows, k, w = block.rows, block.agents_per_row, block.width
-        y0 = first + block.first_row
-        texels = [plane[y0:y0 + rows, :k * w].reshape(rows * k, w, 4)[:block.count, block.slots - 1] for plane in self._read_planes()]
-        return np.concatenate(texels, axis=1).reshape(block.count, MORPH_PAIRS, 2)
-
-    def read_impostor_keys(self, character: int = 0, age: int = 0) -> np.ndarray:
-        """(N, 4) float32 impostor keys of one character's agents (clip, phase of the heaviest layer, 0, 0),
-        from the palette written `age` runs ago (synchronous: tests only); (N, 0) without keys."""
-        block = self.layout.parts[character]
-        if not block.key or not block.count:
-            return np.zeros((block.count, 0), np.float32)
-        first = self.row_offset(age) if self.runs else 0
-        rows, k, w = block.rows, block.agents_per_row, block.width
-        y0 = first + block.first_row
-        return self._read_planes()[0][y0:y0 + rows, :k * w].reshape(rows * k, w, 4)[:block.count, 0].copy()
-
-    def _read_planes(self) -> list[np.ndarray]:
-        """The three planes, every palette of the history, as (palette rows, width, 4) float32 (synchronous)."""
-        return [np.frombuffer(p.read(), np.float32).reshape(p.layers * p.height, p.width, 4) for p in self.planes]
-
-    def read_rows(self, agents: np.ndarray, joint, row_offsets: np.ndarray) -> np.ndarray:
-        """(K, 3, 4) float32 skinning matrix rows of one joint (or one per agent) of some agents, each from
-        the palette starting at its row offset (synchronous: tests and stats only)."""
-        x, y = self.layout.texel(agents, joint, row_offsets)
-        return np.stack([plane[y, x] for plane in self._read_planes()], axis=1)
-
-    def nan_rows(self) -> int:
-        """Agents whose palette row holds NaN or Inf (each character's own joints)."""
-        pal = self.read_palette()
-        if not len(pal):
-            return 0
-        bad = 0
-        for block in self.layout.parts:
-            rows = pal[block.first_agent:block.first_agent + block.count, :block.joints]
-            bad += int(np.count_nonzero(~np.all(np.isfinite(rows), axis=(1, 2, 3))))
-        return bad
 
     def gpu_bytes(self) -> dict[str, int]:
         return {group: gpu_bytes(objs) for group, objs in self._own.items()}

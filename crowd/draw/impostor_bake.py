@@ -12,7 +12,9 @@ import moderngl
 import numpy as np
 
 from ..anim.bake import AnimationBake
-from ..anim.processor import AnimationProcessor, reference_palette, resolve_path
+from ..anim.palette_reference import reference_palette
+from ..anim.processor import AnimationProcessor
+from ..anim.processor_inputs import resolve_path
 from ..asset.model import Character
 from ..frame import CLIP, MASK, PHASE, WEIGHT, Camera, Instances, empty_layers
 from ..cache import cache_dir

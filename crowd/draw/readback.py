@@ -30,7 +30,7 @@ import numpy as np
 
 from ..gl import Fence, GLStage, gpu_bytes, load_shader
 from ..settings import SETTINGS
-from ..anim.processor import texel_code
+from ..anim.palette_layout import texel_code
 
 RING = SETTINGS["readback_latency"].high  # one slot per frame of the longest read-back latency
 ENTRIES_PER_ROW = 1024  # gather texture: 3 x 1024 texels wide, one row per 1,024 entries

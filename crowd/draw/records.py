@@ -15,7 +15,7 @@ import ctypes
 import moderngl
 import numpy as np
 
-from ..anim.processor import PaletteLayout, texel_code
+from ..anim.palette_layout import PaletteLayout, texel_code
 from ..frame import Instances
 from ..gl import GLStage, current_context_function
 from ..spans import over_spans

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field, replace
 import moderngl
 import numpy as np
 
-from ..anim.processor import PaletteLayout
+from ..anim.palette_layout import PaletteLayout
 from ..asset.model import Character
 from ..asset.town import TILE
 from ..asset.vertex_cache import best_triangle_order
