@@ -69,7 +69,7 @@ def main(argv=None) -> int:
     from crowd.asset.gltf.reader import GltfImportError
     from crowd.frame import FrameError
     from crowd.pipeline_config import PipelineError
-    from crowd.anim.processor import ProcessorError
+    from crowd.anim.processor_inputs import ProcessorError
     from crowd.draw.readback import ReadbackError
     from crowd.draw.render import RenderError
     from crowd.anim.roles import RoleError, parse_overrides

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from crowd.anim.bake import BakeError
-from crowd.anim.processor import ProcessorError
+from crowd.anim.processor_inputs import ProcessorError
 from crowd.pipeline_config import PipelineError
 from crowd.scene import SceneError
 from crowd.session import CrowdSession, SessionError

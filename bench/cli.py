@@ -767,7 +767,7 @@ def main(argv=None) -> int:
     from crowd.gl import GLUnavailable
     from crowd.asset.gltf.reader import GltfImportError
     from crowd.pipeline_config import PipelineError
-    from crowd.anim.processor import ProcessorError
+    from crowd.anim.processor_inputs import ProcessorError
     from crowd.draw.readback import ReadbackError
     from crowd.draw.weapons import WeaponError
     from crowd.frame import FrameError

@@ -3,7 +3,7 @@ extreme cases, measured on the GPU against the float64 reference.
 
 Each configuration is a bake rate (10, 15, 30, 60 fps or each clip's source rate), a storage (f32,
 f16, or compressed at an error bound: "compressed@0.5" is 0.5 mm, bench.stability.parse_storage) and
-an interpolation (crowd.anim.processor.INTERPOLATIONS). For each one:
+an interpolation (crowd.anim.processor_inputs.INTERPOLATIONS). For each one:
 
 - error: crowd.anim.accuracy's 3 cm shell error of the GPU processor's palette against the float64
   reference, over every clip of the built-in zombie and of each ``--model``: every clip alone at
@@ -168,7 +168,8 @@ def run(args) -> int:
     from crowd.gl import describe, headless_context
     from crowd.asset.gltf import load_character
     from crowd.frame import MAX_LAYERS
-    from crowd.anim.processor import INTERPOLATIONS, AnimationProcessor
+    from crowd.anim.processor import AnimationProcessor
+    from crowd.anim.processor_inputs import INTERPOLATIONS
     from crowd.settings import DEFAULTS
     from crowd.progress import steps
     from .stability import bake_storage, parse_storage, run_cases

@@ -44,7 +44,7 @@ def _locked(bake, legs, processor=None):
     """A palette for ``_slide`` with the foot lock: frame after frame through `processor` (one agent, the
     GPU's lock, reset first), or through the float64 twins of the processor and the lock."""
     from crowd.anim.foot_lock import FootLockTwin
-    from crowd.anim.processor import reference_palette
+    from crowd.anim.palette_reference import reference_palette
 
     def palette(layers, walked, dt):
         twin = FootLockTwin(legs, 1)
@@ -160,7 +160,7 @@ def crowd_breakdown(character, bake, motion, agents: int, steps: int = 300, dt: 
     locked = None
     if foot_lock:
         from crowd.anim.foot_lock import FootLockTwin, bake_legs
-        from crowd.anim.processor import reference_palette
+        from crowd.anim.palette_reference import reference_palette
 
         twin = FootLockTwin(bake_legs(skeleton, bake), picked.size)
         masks = upper_body_mask(skeleton)

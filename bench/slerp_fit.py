@@ -1,4 +1,4 @@
-"""Fit qt_corrected's nlerp weight (crowd.anim.processor.SLERP_FIT) and print its error against slerp.
+"""Fit qt_corrected's nlerp weight (crowd.anim.palette_reference.SLERP_FIT) and print its error against slerp.
 
 The corrected weight is u' = u + u (u - 1/2) (u - 1) (1 - d) (A(d) (u - 1/2)^2 + B(d)), with d the
 keys' dot product and A, B quadratics: linear in their six coefficients, so a weighted least-squares

@@ -30,7 +30,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .lighting import LIGHTING
 from .spans import min_max, over_spans
 
 CLIP, PHASE, WEIGHT, MASK = range(4)  # the columns of one layer
@@ -355,9 +354,3 @@ class Camera:
         if self.fog_reach is not None and not (0.0 < float(self.fog_reach) < math.inf):
             raise FrameError(f"camera fog reach must be a positive number of metres or None, got {self.fog_reach}")
         return self
-
-    def fog_density(self) -> float:
-        """The exponential fog's density per metre for this view (shaders/lighting.glsl)."""
-        if self.fog_reach is None:
-            return float(LIGHTING["u_fog_density"])
-        return -math.log(0.05) / float(self.fog_reach)

@@ -16,7 +16,8 @@ from hypothesis import strategies as st
 
 import gltf_factory
 from conftest import ROOT
-from crowd.anim.processor import AnimationProcessor, reference_palette
+from crowd.anim.processor import AnimationProcessor
+from crowd.anim.palette_reference import reference_palette
 from crowd.anim.roles import bake_roles, match_roles
 from crowd.asset.gltf import load_character
 from crowd.frame import CLIP, MASK, PHASE, WEIGHT, FrameError, Instances, cast_counts, cast_firsts, cast_moves, move_agents

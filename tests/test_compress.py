@@ -9,7 +9,8 @@ from crowd import transforms as tf
 from crowd.anim import accuracy
 from crowd.anim.bake import BakeError, bake
 from crowd.anim.compress import KEY_SHARE, MAX_BITS, PER_KEY, STREAM_PAD_WORDS, _pack, _Track, dropped_component
-from crowd.anim.processor import AnimationProcessor, reference_palette
+from crowd.anim.processor import AnimationProcessor
+from crowd.anim.palette_reference import reference_palette
 from crowd.asset.model import Channel, Clip, Skeleton
 from crowd.frame import CLIP, MAX_LAYERS, PHASE, WEIGHT, empty_layers
 

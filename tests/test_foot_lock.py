@@ -15,7 +15,9 @@ from hypothesis import given, settings, strategies as st
 from crowd import transforms as tf
 from crowd.anim import foot_lock as fl
 from crowd.anim.foot_skate import foot_joints, joint_positions, measure, to_world
-from crowd.anim.processor import AnimationProcessor, ProcessorError, reference_palette
+from crowd.anim.processor import AnimationProcessor
+from crowd.anim.palette_reference import reference_palette
+from crowd.anim.processor_inputs import ProcessorError
 from crowd.anim.roles import bake_roles, match_roles
 from crowd.asset.model import Skeleton
 from crowd.asset.pose import rest_pose

@@ -37,7 +37,8 @@ from hypothesis import strategies as st
 from conftest import shared_files
 from gltf_factory import make_gltf
 from crowd.anim.bake import MAX_ROWS, BakeError, bake
-from crowd.anim.processor import INTERPOLATIONS, reference_palette
+from crowd.anim.palette_reference import reference_palette
+from crowd.anim.processor_inputs import INTERPOLATIONS
 from crowd.asset import gltf
 from crowd.asset.gltf import load_character
 from crowd.asset.gltf.reader import GltfImportError

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from crowd.anim import reference
-from crowd.anim.processor import MAX_JOINTS as PROCESSOR_MAX_JOINTS
+from crowd.anim.processor_programs import MAX_JOINTS as PROCESSOR_MAX_JOINTS
 from crowd.asset import gltf
 from crowd.asset.gltf import skins
 from crowd.asset.gltf import load_character
@@ -173,7 +173,7 @@ def test_more_joints_than_the_processor_draws_are_refused_in_one_line(tmp_path, 
     # The importer allows up to 65,536 joints (a vertex's uint16); the processor draws 256 and says so.
     from crowd.pipeline import CrowdPipeline
     from crowd.pipeline_config import PipelineConfig
-    from crowd.anim.processor import ProcessorError
+    from crowd.anim.processor_inputs import ProcessorError
 
     path = make_gltf(tmp_path)
     doc = json.loads(path.read_text())

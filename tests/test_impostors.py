@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from crowd.anim.bake import bake
-from crowd.anim.processor import AnimationProcessor, reference_palette
+from crowd.anim.processor import AnimationProcessor
+from crowd.anim.palette_reference import reference_palette
 from crowd.anim.roles import clips_used, match_roles
 from crowd.asset.gltf import load_character
 from crowd.draw.impostor_bake import bake_atlas, load_atlas

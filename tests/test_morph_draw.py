@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from crowd.anim.morph import active_pairs, reference_weights
-from crowd.anim.processor import AnimationProcessor, reference_palette
+from crowd.anim.processor import AnimationProcessor
+from crowd.anim.palette_reference import reference_palette
 from crowd.draw.morph import NORMAL_RANGE, SNORM, pack_deltas, position_step, unpack_deltas
 from crowd.draw.cull_lists import entry_agents
 from crowd.draw.packing import WEIGHT_STEP

@@ -11,7 +11,9 @@ import pytest
 from crowd.anim.bake import bake
 from crowd.anim.morph import (ACTIVE_WEIGHT, MORPH_PAIRS, MorphError, active_pairs, bake_morphs, reference_weights,
                               variation_offsets)
-from crowd.anim.processor import AnimationProcessor, ProcessorError, reference_palette
+from crowd.anim.processor import AnimationProcessor
+from crowd.anim.palette_reference import reference_palette
+from crowd.anim.processor_inputs import ProcessorError
 from crowd.asset.gltf import load_character
 from crowd.asset.model import MorphChannel
 from crowd.asset.pose import sample_morph_weights

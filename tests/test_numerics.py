@@ -20,7 +20,8 @@ import pytest
 from crowd import transforms as tf
 from crowd.anim import reference
 from crowd.anim.bake import bake
-from crowd.anim.processor import AnimationProcessor, palette_joint_positions, reference_palette
+from crowd.anim.processor import AnimationProcessor
+from crowd.anim.palette_reference import palette_joint_positions, reference_palette
 from crowd.asset.model import Channel, Clip, Skeleton
 from crowd.frame import CLIP, MASK, PHASE, WEIGHT, FrameError, ForcedClip, LayerOverrides, empty_layers, validate_layers
 

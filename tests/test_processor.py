@@ -17,14 +17,9 @@ import pytest
 from crowd.anim import reference
 from crowd.anim.bake import ClipInfo, bake
 from crowd.frame import CLIP, MASK, PHASE, WEIGHT, FrameError, empty_layers
-from crowd.anim.processor import (
-    DEFAULT_INTERPOLATION,
-    INTERPOLATIONS,
-    AnimationProcessor,
-    ProcessorError,
-    palette_joint_positions,
-    reference_palette,
-)
+from crowd.anim.processor import AnimationProcessor
+from crowd.anim.palette_reference import palette_joint_positions, reference_palette
+from crowd.anim.processor_inputs import DEFAULT_INTERPOLATION, INTERPOLATIONS, ProcessorError
 from bench.stability import chain_character
 
 PATHS = ("compute", "fragment")
@@ -371,7 +366,7 @@ def test_auto_path_follows_the_context(gl_context, zombie_bake):
 
 def _slerp_angle_error(u, d):
     """Rotation angle (rad) between qt_corrected's nlerp at weight u and slerp, for keys with dot d."""
-    from crowd.anim.processor import corrected_weight
+    from crowd.anim.palette_reference import corrected_weight
 
     half = np.arccos(d)
     w = corrected_weight(u, d)
@@ -397,7 +392,7 @@ def _search_max(lo_d: float, hi_d: float) -> float:
 
 
 def test_corrected_nlerp_tracks_slerp():
-    """qt_corrected (crowd.anim.processor.SLERP_FIT, bench/slerp_fit.py): the largest rotation error
+    """qt_corrected (crowd.anim.palette_reference.SLERP_FIT, bench/slerp_fit.py): the largest rotation error
     against slerp, searched for, within the bounds the code states, and far below plain nlerp's."""
     assert _search_max(0.95, 1.0) < 7e-7  # keys up to 36 degrees apart: float32's own rounding
     assert _search_max(0.0, 1.0) < 1.2e-3  # keys up to a half turn apart (nlerp: 0.14 rad)
@@ -406,7 +401,7 @@ def test_corrected_nlerp_tracks_slerp():
         half = np.arccos(d)
         nlerp = 2.0 * np.abs(np.arctan2(u * np.sin(half), 1.0 - u + u * np.cos(half)) - u * half).max()
         assert _slerp_angle_error(u, d).max() < nlerp / 100
-    from crowd.anim.processor import corrected_weight
+    from crowd.anim.palette_reference import corrected_weight
 
     d = np.linspace(0.0, 1.0, 11)  # the keys themselves, and the middle, are where nlerp already is exact
     assert np.all(corrected_weight(0.0, d) == 0.0) and np.all(corrected_weight(1.0, d) == 1.0)

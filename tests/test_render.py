@@ -14,7 +14,8 @@ import numpy as np
 from crowd.anim.bake import bake
 from crowd.gl import load_shader
 from crowd.frame import CLIP, PHASE, WEIGHT, empty_layers
-from crowd.anim.processor import AnimationProcessor, reference_palette
+from crowd.anim.processor import AnimationProcessor
+from crowd.anim.palette_reference import reference_palette
 from crowd.draw.cull_lists import entry_agents
 from crowd.draw.packing import VERTEX_DTYPE, VERTEX_FORMAT, WEIGHT_STEP, pack_vertices, read_by, unpack_weights
 from crowd.draw.records import use_records_unit

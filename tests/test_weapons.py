@@ -17,7 +17,8 @@ from crowd.sim.ai import DYING, AIConfig
 from bench.common import random_layers
 from crowd.pipeline import CrowdPipeline
 from crowd.pipeline_config import PipelineConfig, PipelineError
-from crowd.anim.processor import AnimationProcessor, reference_palette
+from crowd.anim.processor import AnimationProcessor
+from crowd.anim.palette_reference import reference_palette
 from crowd.draw.readback import ENTRIES_PER_ROW, ReadbackError, SocketReadback
 from crowd.anim.roles import bake_roles, match_roles
 from crowd.gl import Offscreen

@@ -5,7 +5,8 @@ import pytest
 from conftest import khronos_issues
 from crowd.anim import reference
 from crowd.asset.gltf_write import glb_bytes
-from crowd.asset.zombie import ASSET_PATH, SOCKET_JOINT, build_character
+from crowd.asset.zombie import ASSET_PATH, build_character
+from crowd.asset.rig import SOCKET_JOINT
 
 REQUIRED_JOINTS = {"hips", "spine", "chest", "neck", "head"} | {
     f"{p}_{s}" for p in ("upper_arm", "forearm", "hand", "thigh", "shin", "foot") for s in "lr"}

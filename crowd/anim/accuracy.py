@@ -32,7 +32,8 @@ from . import reference
 from ..asset.model import Clip, Skeleton
 from .bake import AnimationBake
 from ..frame import CLIP, MASK, MAX_LAYERS, PHASE, WEIGHT, empty_layers
-from .processor import DEFAULT_INTERPOLATION, AnimationProcessor
+from .processor import AnimationProcessor
+from .processor_inputs import DEFAULT_INTERPOLATION
 from .shell import SHELL_M, shell_error, shell_points  # noqa: F401  (part of this module's contract)
 
 # The maximum search over one clip's phase (ClipMaxima). Seeds: 240 per second of clip, 8 between two

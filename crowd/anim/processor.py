@@ -61,21 +61,14 @@ from ..settings import SETTINGS
 from . import foot_lock as lock
 from .bake import AnimationBake
 from .layer_upload import LayerUpload
-from .palette_layout import (MAX_PALETTE_ROWS, MAX_TEXTURE_WIDTH, TEXEL_ROW_SHIFT, PaletteLayout, PalettePart, palette_limits,
-                             palette_texel, texel_code)
-from .palette_reference import SLERP_FIT, corrected_weight, palette_joint_positions, reference_palette
-from .processor_inputs import (DEFAULT_INTERPOLATION, INTERPOLATIONS, MAX_HISTORY, ProcessorError, check_history, check_interpolation,
-                               check_motion, resolve_path)
+from .palette_layout import MAX_PALETTE_ROWS, MAX_TEXTURE_WIDTH, PaletteLayout, palette_limits
+from .processor_inputs import DEFAULT_INTERPOLATION, ProcessorError, check_history, check_interpolation, resolve_path
 from .processor_programs import GROUP_SIZE, MAX_JOINTS, CharacterPrograms, ProcessorPart
 from .processor_readback import ProcessorReadback
 
 LOCALS_UNITS = (12, 13, 14)  # the fragment path's scratch of blended locals, read by its compose pass
 
 # Every name importers have found here stays importable from here, wherever it now lives.
-__all__ = ["DEFAULT_INTERPOLATION", "GROUP_SIZE", "INTERPOLATIONS", "LOCALS_UNITS", "MAX_HISTORY", "MAX_JOINTS", "MAX_PALETTE_ROWS",
-           "MAX_TEXTURE_WIDTH", "SLERP_FIT", "TEXEL_ROW_SHIFT", "AnimationProcessor", "PaletteLayout", "PalettePart", "ProcessorError",
-           "check_interpolation", "check_motion", "corrected_weight", "palette_joint_positions", "palette_limits", "palette_texel",
-           "reference_palette", "resolve_path", "texel_code"]
 
 
 # The character programs, the layers' upload and the read-backs live in modules of their own (processor_programs,

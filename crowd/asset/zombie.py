@@ -27,22 +27,14 @@ from pathlib import Path
 import numpy as np
 
 from ..resources import ASSET_DIR
-from .clip_keys import SOURCE_FPS, build_clips
-from .mesh_builder import LOD_DIVISORS
+from .clip_keys import build_clips
 from .model import Character
-from .morph_targets import MORPH_TARGETS, with_targets
-from .palette import BLOOD, ZOMBIE_PALETTE, Palette
-from .pose_angles import TAU
-from .remodel import remodel
-from .rig import JOINT_NAMES, SOCKET_JOINT, SOCKET_ROTATION, ZOMBIE_BODY, Body, build_skeleton
-from .zombie_clips import CLIP_SPECS, RUN_GAIT, SHAMBLE_GAIT, SNARL
+from .morph_targets import MORPH_TARGETS
+from .rig import SOCKET_JOINT, build_skeleton
 from .zombie_meshes import build_meshes
 from .zombie_weapons import build_props
 
 # The generator's names stay importable from here, where callers have always found them.
-__all__ = ["ASSET_PATH", "BLOOD", "CLIP_SPECS", "JOINT_NAMES", "LOD_DIVISORS", "MORPH_TARGETS", "RUN_GAIT", "SHAMBLE_GAIT", "SNARL",
-           "SOCKET_JOINT", "SOCKET_ROTATION", "SOURCE_FPS", "TAU", "ZOMBIE_BODY", "ZOMBIE_PALETTE", "Body", "Palette", "build_character",
-           "build_clips", "build_meshes", "build_props", "build_skeleton", "main", "remodel", "with_targets"]
 
 ASSET_PATH = ASSET_DIR / "zombie.glb"
 

@@ -40,7 +40,7 @@ from ..asset.town import TILE
 from ..asset.vertex_cache import best_triangle_order
 from ..frame import Camera, Instances
 from ..gl import GLStage, gpu_bytes, has_compute, load_shader
-from ..lighting import FOG_COLOR, LIGHTING, SUN_DIR
+from ..lighting import FOG_COLOR, LIGHTING, SUN_DIR, fog_density
 from ..settings import DEFAULTS, SETTINGS
 from .cpu_cull import CpuCull
 from .cull_lists import ALL, MOVING, STILL, DrawSpec, ListError, ListPlan
@@ -648,7 +648,7 @@ class CrowdRenderer(GLStage):
         top = float(np.max(self.bounds[:, 1] + self.bounds[:, 3])) * (float(np.max(instances.scale)) if some else 1.0)
         lo, hi = np.asarray(box[0], np.float64).copy(), np.asarray(box[1], np.float64).copy()
         hi[1] = max(hi[1], lo[1] + top)  # as tall as an agent's bound
-        return cascades(camera, self.sun_dir, (lo, hi), self.shadow_size, camera.fog_density())
+        return cascades(camera, self.sun_dir, (lo, hi), self.shadow_size, fog_density(camera.fog_reach))
 
     def shadow_tiles(self, view: "FrameView"):
         """(cascade, light matrix) for each cascade, the shadow framebuffer's viewport on its tile."""
@@ -689,7 +689,7 @@ class CrowdRenderer(GLStage):
             if name in prog:
                 prog[name] = value
         if "u_fog_density" in prog:
-            prog["u_fog_density"] = view.camera.fog_density()
+            prog["u_fog_density"] = fog_density(view.camera.fog_reach)
         if self.shadows and "u_light_view_proj" in prog:
             prog["u_light_view_proj"].write(b"".join(gl_bytes(m) for m in view.shadow.view_proj))
             prog["u_shadow_texel"].write(view.shadow.texel_m.tobytes())
