@@ -62,7 +62,7 @@ def _show(value) -> str:
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
 
-    from crowd.sim.ai import AIError
+    from crowd.sim.config import AIError
     from crowd.anim.bake import BakeError
     from crowd.gl import GLUnavailable, has_display
     from crowd.asset.gltf import BUILT_IN, is_built_in

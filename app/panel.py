@@ -18,7 +18,7 @@ from crowd.pipeline_config import PipelineError
 from crowd.scene import SceneError
 from crowd.session import CrowdSession, SessionError
 from crowd.settings import SETTINGS, SOURCE_RATE
-from crowd.sim.ai import AIError
+from crowd.sim.config import AIError
 from crowd.stats import weapon_stats
 
 # Widget ranges and choices come from the settings schema, where each setting's bounds are declared.

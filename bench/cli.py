@@ -762,7 +762,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    from crowd.sim.ai import AIError
+    from crowd.sim.config import AIError
     from crowd.anim.bake import BakeError
     from crowd.gl import GLUnavailable
     from crowd.asset.gltf.reader import GltfImportError

@@ -3,7 +3,7 @@ natural speed, for the idle/walk/run blends at speeds from 0 to the run speed, a
 speeds, searched for: below the walk's slowest playback (idle fading in) and from there to the run.
 
 Each case is one agent walking straight at a steady speed for ``--seconds``, animated as the AI
-animates it (crowd.sim.ai.locomotion_layers: the blend weights from its speed and one phase advanced by
+animates it (crowd.sim.locomotion.locomotion_layers: the blend weights from its speed and one phase advanced by
 speed over the blended stride). Its feet are measured twice, from the same layers: through the GPU
 processor's palette (what is drawn) and through the float64 reference (the clips themselves), so a
 slide that the reference shows too is in the clips and the blending, not in the bake.
@@ -32,7 +32,7 @@ def _slide(skeleton, clips, feet, names, motion, speed: float, frames: int, dt: 
     a locked one: ``_locked``), or the reference's."""
     from crowd.anim import accuracy
     from crowd.anim.foot_skate import joint_positions, measure, to_world
-    from crowd.sim.ai import locomotion_layers
+    from crowd.sim.locomotion import locomotion_layers
 
     layers, walked = locomotion_layers(motion, speed, frames, dt)
     matrices = accuracy.truth(skeleton, clips, layers) if palette is None else palette(layers, walked, dt)
@@ -199,7 +199,7 @@ def run(args) -> int:
     from crowd.anim.roles import bake_roles, match_roles
     from crowd.asset.gltf import load_character
     from crowd.gl import describe, headless_context
-    from crowd.sim.ai import motion_for
+    from crowd.sim.motion import motion_for
     from crowd.anim.foot_skate import CONTACT_M, SKATE_SPEED_M_S
 
     from .common import device_cpu

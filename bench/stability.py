@@ -240,11 +240,11 @@ def phase_near_one(ctx, character, interpolation, fps, precision) -> dict:
 
 
 def ten_hours(ctx, character, interpolation, fps, precision, hours: float = 10.0) -> dict:
-    """The AI keeps each agent's phase as a wrapped float64 (crowd.sim.ai.advance_phase). Step it as the
+    """The AI keeps each agent's phase as a wrapped float64 (crowd.sim.locomotion.advance_phase). Step it as the
     AI does for `hours` of 1/60 s substeps, at each looping clip's rate, and compare the pose with the
     pose at the exact phase (rational arithmetic). The naive float32 clock (seconds summed per step,
     phase = time / duration) is measured alongside, as the detail says."""
-    from crowd.sim.ai import advance_phase
+    from crowd.sim.locomotion import advance_phase
 
     h = 1.0 / 60.0
     steps = int(round(hours * 3600.0 / h))

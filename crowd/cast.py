@@ -25,7 +25,7 @@ from .asset.lod import with_generated_lods
 from .asset.model import Character, cast_weapons
 from .pipeline_config import CharacterSpec, PipelineError
 from .settings import SETTINGS
-from .sim.ai import Motion, motion_for, upper_body_mask
+from .sim.motion import Motion, motion_for, upper_body_mask
 from .sim.player import ROLES as SURVIVOR_ROLES
 from .sim.player import SurvivorMotion, survivor_motion
 from .stages import CastPart

@@ -117,7 +117,7 @@ def validate_layers(layers, clip_count: int, mask_count: int, layer_count: int) 
     # a float64 phase rounds to within 9.5e-7 cycles. Refusing rather than carrying a float64 phase: the layers
     # are float32 by contract (the AI writes them in place, the layer texture is RGBA32F), so a producer
     # that sends 1e5 cycles has already rounded them and nothing here could restore the lost digits;
-    # wrapping in float64 is the producer's job (crowd.sim.ai.advance_phase, LayerOverrides.apply). The
+    # wrapping in float64 is the producer's job (crowd.sim.locomotion.advance_phase, LayerOverrides.apply). The
     # limit holds for one-shot clips too: the loop flag can change at run time (set_clip_loop).
     far = np.abs(a[..., PHASE]) >= PHASE_LIMIT
     if np.any(far):
@@ -247,7 +247,7 @@ class LayerOverrides:
 
     def forced_phase(self, time: float, duration: float, speed: float, loop: bool) -> float:
         """The forced clip's phase at the AI's clock `time`, wrapped (looping) or clamped (one-shot) in
-        float64, as crowd.sim.ai.advance_phase keeps the AI's own phases. Unwrapped, the float32 layer
+        float64, as crowd.sim.locomotion.advance_phase keeps the AI's own phases. Unwrapped, the float32 layer
         would round 10 hours of a 0.7 s run (51,429 cycles) to the nearest 2^-8 cycle, 4.4 mm off the
         float64 pose (457 mm after 1000 hours, and refused by validate_layers from 32 cycles on);
         wrapped first, the float32 phase is within 3e-8 cycles of the float64 one."""

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .settings import DEFAULTS
-from .sim.ai import AIConfig
+from .sim.config import AIConfig
 
 
 class PipelineError(ValueError):

@@ -16,7 +16,7 @@ only those are baked), the agent count and seed, the AI's settings, the features
                    speeds or loops
     [features]     the ``features`` settings (weapons, readback_latency, shadows, culling, occlusion,
                    lod_distances = [d1, d2, d3], processor, cull)
-    [ai]           the ``ai`` settings (crowd.sim.ai.AIConfig), e.g. runner_share = 0.3
+    [ai]           the ``ai`` settings (crowd.sim.config.AIConfig), e.g. runner_share = 0.3
     [camera]       eye = [x, y, z], target = [x, y, z], fov_y (degrees); absent: the default view
 
 The settings, their bounds and defaults are crowd.settings' (declared once, for the command line and
@@ -44,7 +44,7 @@ from .frame import MAX_CAST, Camera
 from .asset.gltf import is_built_in
 from .pipeline_config import CharacterSpec, PipelineConfig
 from .settings import DEFAULTS, SCENE_GROUPS, SETTINGS, group
-from .sim.ai import AIConfig, AIError
+from .sim.config import AIConfig, AIError
 
 
 class SceneError(ValueError):

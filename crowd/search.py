@@ -1,4 +1,4 @@
-"""A one-dimensional search the AI and the measuring tools share (crowd.sim.ai.stride_from_feet,
+"""A one-dimensional search the AI and the measuring tools share (crowd.sim.motion.stride_from_feet,
 bench.skate_report.worst_speed): golden-section search for the top of a function that rises and then
 falls over an interval (unimodal)."""
 

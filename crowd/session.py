@@ -29,7 +29,7 @@ from .pipeline import CrowdPipeline
 from .pipeline_config import PipelineError
 from .scene import CameraSetting, Scene, SceneError, save_scene
 from .settings import SETTINGS, group
-from .sim.ai import LAYERS, STATE_NAMES, AIError
+from .sim.config import LAYERS, STATE_NAMES, AIError
 from .sim.player import HEALTH, PlayerError
 
 AI_SETTINGS = group("ai")

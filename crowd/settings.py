@@ -9,7 +9,7 @@ from 0 to 1000000, got -1"), prefixed by where the value came from when the call
 This module sits below every stage and imports none of them.
 
 Groups, which are also the scene file's tables: ``scene`` (what runs), ``clips`` (the bake),
-``features`` (what is drawn), ``ai`` (the crowd's behaviour, ``crowd.sim.ai.AIConfig``), ``session``
+``features`` (what is drawn), ``ai`` (the crowd's behaviour, ``crowd.sim.config.AIConfig``), ``session``
 (live controls of a running crowd: not in scene files) and ``run`` (command-line only: how long, how big).
 """
 
@@ -257,7 +257,7 @@ _ALL = (
             "GL 4.3), feedback (a transform-feedback pass per list and indirect draws, GL 4.0: macOS) or cpu (numpy); "
             "auto: gpu where GL 4.3 exists, else feedback where GL 4.0 does, else cpu", label="cull path",
             choices=("auto", "gpu", "feedback", "cpu")),
-    # the crowd's behaviour (crowd.sim.ai.AIConfig)
+    # the crowd's behaviour (crowd.sim.config.AIConfig)
     _ai("substep", 1 / 60, "seconds, the longest simulation substep", low=0, open_low=True),
     _ai("max_dt", 0.25, "seconds: a longer frame is simulated as this long (the game slows, it does not explode)", low=0, high=10, open_low=True),
     _ai("notice_radius", 14.0, "metres at which a zombie notices the player", low=0, open_low=True),

@@ -28,7 +28,7 @@ MAX_MORPHS = 1024
 
 
 # Feet: the joints the foot-skate measure watches (crowd.anim.foot_skate) and the AI turns agents about
-# (crowd.sim.ai), found by name, and the height above its lowest point within which one is on the ground.
+# (crowd.sim.motion), found by name, and the height above its lowest point within which one is on the ground.
 FOOT_WORDS = ("foot", "ankle", "toe", "ball")
 CONTACT_M = 0.03
 

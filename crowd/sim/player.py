@@ -26,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..frame import CLIP, MASK, PHASE, WEIGHT
-from .ai import LAYERS, MAX_ACTION_WEIGHT, advance_phase
+from .locomotion import advance_phase
+from .outputs import MAX_ACTION_WEIGHT
 
 ROLES = ("idle", "run", "strafe_left", "strafe_right", "strike", "hit")
 HEALTH = 100

@@ -1,0 +1,101 @@
+"""Spawning: new agents anywhere in the world, with their traits (start, resize), or at an edge of it
+(respawn); and the random draws keyed by agent and substep (respawns, wander targets), the same
+whichever process steps an agent."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .config import NO_ACTION, WANDER
+from .obstacles import CLEARANCE
+
+TINTS = np.array([[150, 170, 130], [170, 150, 130], [130, 150, 160], [180, 180, 160], [140, 160, 120], [160, 130, 140]], np.uint8)
+_RESPAWN, _WANDER = 1, 2  # what a keyed draw is for (see CrowdAI._draws)
+_MASK64 = (1 << 64) - 1
+
+
+class SpawnMixin:
+    """CrowdAI's part that spawns agents and draws their keyed random numbers."""
+
+    @staticmethod
+    def ids(local: np.ndarray) -> np.ndarray:
+        """The crowd's own agent numbers (an ``_Agents`` maps its local ones)."""
+        return local
+
+    def _draws(self, ids: np.ndarray, purpose: int, count: int) -> np.ndarray:
+        """(count, len(ids)) uniform numbers in [0, 1) for agents `ids`, keyed by (seed, agent, substep,
+        purpose): the same for an agent whichever process steps it and whatever others draw, which a
+        sequential generator cannot give. A counter-based generator: splitmix64's finaliser over the key
+        (written here: numpy's Philox draws streams, not one number per key for many keys at once)."""
+        base = (self.seed * 0x9E3779B97F4A7C15 + self.substeps * 0xD1B54A32D192ED03 + purpose * 0xAEF17502108EF2D9) & _MASK64
+        key = np.asarray(ids).astype(np.uint64) * np.uint64(0xBF58476D1CE4E5B9) ^ np.uint64(base)
+        out = np.empty((count, key.size))
+        for row in range(count):
+            z = key + np.uint64(((row + 1) * 0x9E3779B97F4A7C15) & _MASK64)
+            z ^= z >> np.uint64(30)
+            z *= np.uint64(0xBF58476D1CE4E5B9)
+            z ^= z >> np.uint64(27)
+            z *= np.uint64(0x94D049BB133111EB)
+            z ^= z >> np.uint64(31)
+            out[row] = (z >> np.uint64(11)) * (1.0 / (1 << 53))
+        return out
+
+    def _spawn(self, a, idx: np.ndarray, anywhere: bool) -> None:
+        """New agents `idx` of `a` (the crowd itself, or the agents of one think): anywhere in the world
+        (start, resize) or on its edges (respawn). Traits are drawn at first spawn only, so a respawned
+        agent keeps its look, speed and weapon."""
+        k = len(idx)
+        if not k:
+            return
+        self._respawns += k  # an agent that comes back to life is in no pair of the neighbour list: the step rebuilds it
+        a.spawned_step[idx] = self.steps
+        cfg, rng, h = self.config, self.rng, self.half_extent
+        if anywhere:
+            pos = rng.uniform(-h, h, (k, 2))
+            if self.obstacles is not None:  # on the streets: places in or by an obstacle are drawn again
+                for _ in range(32):
+                    blocked = np.flatnonzero(self.obstacles.distance(self.origin[0] + pos[:, 0], self.origin[1] + pos[:, 1]) < CLEARANCE + 0.1)
+                    if not blocked.size:
+                        break
+                    pos[blocked] = rng.uniform(-h, h, (blocked.size, 2))
+            yaw = rng.uniform(-math.pi, math.pi, k)
+            a.phase[idx] = rng.uniform(0.0, 1.0, k)
+            a.speed_factor[idx] = rng.uniform(cfg.speed_min, cfg.speed_max, k)
+            a.reaction[idx] = rng.uniform(cfg.reaction_min, cfg.reaction_max, k)
+            a.runner[idx] = rng.uniform(0, 1, k) < cfg.runner_share
+            a.scale[idx] = rng.uniform(0.92, 1.08, k)
+            a.tint[idx, :3] = TINTS[rng.integers(0, len(TINTS), k)]
+            a.tint[idx, 3] = 255
+            # Each agent's traits from its own character: its head choices, weapons and speeds.
+            kind = a.kind[idx] if len(self.motions) > 1 else 0
+            heads = np.array([max(m.head_count, 1) for m in self.motions])[kind]
+            weapons = np.array([m.weapon_count for m in self.motions])[kind]
+            a.head[idx] = rng.integers(0, heads, k)
+            armed = (rng.uniform(0, 1, k) < cfg.armed_share) & (weapons > 0)
+            a.weapon[idx] = np.where(armed, np.array([m.weapon_first for m in self.motions])[kind] + rng.integers(0, np.maximum(weapons, 1), k), -1)
+            a.walk_top[idx] = self._walk_speed[kind] * a.speed_factor[idx]
+            a.chase_top[idx] = np.where(a.runner[idx], self._run_speed[kind], self._walk_speed[kind]) * a.speed_factor[idx]
+        else:  # while stepping: draws keyed by agent and substep, so any split of the crowd gives the same ones
+            draw = self._draws(a.ids(idx), _RESPAWN, 3)
+            side = np.minimum((draw[0] * 4.0).astype(np.int64), 3)
+            along = -h + 2.0 * h * draw[1]
+            edge = np.where(side % 2 == 0, -1.0, 1.0) * (h - 0.5)
+            pos = np.where((side < 2)[:, None], np.stack([edge, along], axis=1), np.stack([along, edge], axis=1))
+            yaw = np.arctan2(-pos[:, 0], -pos[:, 1])  # face the middle
+        a.x[idx] = self.origin[0] + pos[:, 0]
+        a.z[idx] = self.origin[1] + pos[:, 1]
+        if self.obstacles is not None:  # (an edge of the world that runs through a building)
+            a.x[idx], a.z[idx] = self.keep_out(a.x[idx], a.z[idx])
+        a.hx[idx], a.hz[idx] = np.sin(yaw), np.cos(yaw)
+        a.vx[idx] = a.vz[idx] = 0.0
+        a.tx[idx], a.tz[idx] = a.x[idx], a.z[idx]
+        a.state[idx] = WANDER
+        a.state_time[idx] = 0.0
+        a.aware[idx] = 0.0
+        a.pause[idx] = rng.uniform(0.0, 2.0, k) if anywhere else 2.0 * draw[2]
+        a.health[idx] = int(cfg.health)
+        a.action[idx] = NO_ACTION
+        a.action_time[idx] = 0.0
+        a.cooldown[idx] = 0.0
