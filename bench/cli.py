@@ -166,7 +166,9 @@ def bench_ai(args) -> int:
     """Steps a crowd around a scripted player for a warm-up, then times steps. The separation's share is
     the AI's own count of the time it spent there (``CrowdAI.separation_seconds``), so the table says
     what bounds a step."""
-    from crowd.sim.ai import AIConfig, CrowdAI, PlayerScript, motion_for
+    from crowd.sim.ai import CrowdAI, PlayerScript
+    from crowd.sim.config import AIConfig
+    from crowd.sim.motion import motion_for
     from crowd.sim.agent_pool import available_cores
     from crowd.asset.gltf import load_character
     from crowd.anim.roles import bake_roles, match_roles

@@ -141,7 +141,9 @@ def crowd_breakdown(character, bake, motion, agents: int, steps: int = 300, dt: 
     every step; without, the source clips' (the reference)."""
     from crowd.anim import accuracy
     from crowd.anim.foot_skate import contact_steps, foot_joints, joint_positions, to_world
-    from crowd.sim.ai import CHASE, WANDER, CrowdAI, upper_body_mask
+    from crowd.sim.ai import CrowdAI
+    from crowd.sim.config import CHASE, WANDER
+    from crowd.sim.motion import upper_body_mask
 
     skeleton = character.skeleton
     feet = foot_joints(skeleton)

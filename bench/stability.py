@@ -282,7 +282,9 @@ def dt_spikes(ctx, character, interpolation, fps, precision, agents: int = 200) 
     """The crowd AI through frame times of 0, 1 µs, 0.25 s, 3 s and 10,000 s between normal frames.
     The AI clamps a frame to max_dt and substeps it, so each spike must move no agent farther than its
     top speed allows, keep every invariant, and give poses as accurate as any other frame."""
-    from crowd.sim.ai import AIConfig, CrowdAI, motion_for, upper_body_mask
+    from crowd.sim.ai import CrowdAI
+    from crowd.sim.config import AIConfig
+    from crowd.sim.motion import motion_for, upper_body_mask
     from crowd.anim.roles import bake_roles, match_roles
 
     roles, _ = match_roles(character.clips)

@@ -17,7 +17,8 @@ from .asset.model import Character, cast_weapons
 from .draw.impostors import HELD_GROUP
 from .draw.render import CrowdRenderer
 from .frame import Instances, cast_firsts
-from .sim.ai import DYING, CrowdAI
+from .sim.ai import CrowdAI
+from .sim.config import DYING
 from .sim.player import Survivor
 from .spans import over_spans
 

@@ -21,7 +21,8 @@ from .cast import bake_member, character_motion, make_atlases, player_motion
 from .gl import GL_LIMITS
 from .pipeline_config import PipelineConfig, PipelineError
 from .settings import SETTINGS
-from .sim.ai import LAYERS, AIConfig, CrowdAI
+from .sim.ai import CrowdAI
+from .sim.config import LAYERS, AIConfig
 from .stages import CastPart, StageSpec, build_processor, build_readback, build_renderer, build_weapons
 from .stages import build_town as build_town_stage
 

@@ -57,7 +57,9 @@ from .live_settings import LiveSettings
 from .pipeline_config import PipelineConfig, PipelineError
 from .progress import bar
 from .settings import SETTINGS
-from .sim.ai import LAYERS, CrowdAI, Motion, PlayerScript
+from .sim.ai import CrowdAI, PlayerScript
+from .sim.config import LAYERS
+from .sim.motion import Motion
 from .sim.player import STRIKE_REACH, Survivor
 from .stages import CastPart, Stages
 from .timing import PassTimer, SampleRing

@@ -11,7 +11,10 @@ import numpy as np
 import pytest
 
 from crowd.anim.roles import bake_roles, match_roles
-from crowd.sim.ai import MIN_RANGE, AIConfig, AIError, CrowdAI, PlayerScript, motion_for
+from crowd.sim.ai import CrowdAI, PlayerScript
+from crowd.sim.config import AIConfig, AIError
+from crowd.sim.motion import motion_for
+from crowd.sim.workers import MIN_RANGE
 
 STEP = 1.0 / 30.0  # two substeps a step, as the headless loop steps
 AGENTS = 6 * MIN_RANGE  # enough for six ranges
@@ -213,7 +216,7 @@ def test_a_crowd_in_the_town_is_the_same_for_any_worker_count(motion, created_bl
     processes, while the player runs through cells (fields made and published again and again), and the
     published field is the one made at once."""
     from crowd.asset.town import build_town
-    from crowd.sim.ai import flow_field
+    from crowd.sim.obstacles import flow_field
 
     obstacles = build_town().obstacles()
     states, published = [], []

@@ -12,22 +12,10 @@ import math
 import numpy as np
 import pytest
 
-from crowd.sim.ai import (
-    ATTACK,
-    CHASE,
-    DEAD,
-    DYING,
-    HIT,
-    LAYERS,
-    WANDER,
-    AIConfig,
-    AIError,
-    CrowdAI,
-    FOOT_SAMPLES,
-    PlayerScript,
-    motion_for,
-    turn_about_planted_foot,
-)
+from crowd.sim.ai import CrowdAI, PlayerScript
+from crowd.sim.config import ATTACK, CHASE, DEAD, DYING, HIT, LAYERS, WANDER, AIConfig, AIError
+from crowd.sim.locomotion import turn_about_planted_foot
+from crowd.sim.motion import FOOT_SAMPLES, motion_for
 from crowd.frame import CLIP, MASK, PHASE, WEIGHT, validate_layers
 from crowd.anim.roles import bake_roles, match_roles
 

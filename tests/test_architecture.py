@@ -20,7 +20,7 @@ from crowd.pipeline_config import PipelineConfig
 from crowd.scene import Scene, SceneError, load_scene
 from crowd.session import CrowdSession, SessionError
 from crowd.settings import SCENE_GROUPS, SETTINGS, SettingError, group, parse
-from crowd.sim.ai import AIConfig
+from crowd.sim.config import AIConfig
 from crowd.smoke import FIXED_DT
 
 SIZE = (64, 36)

@@ -13,7 +13,8 @@ from crowd.asset.gltf import load_character
 from crowd.asset.gltf_write import glb_bytes
 from crowd.asset.model import foot_joints
 from crowd.anim import accuracy
-from crowd.sim.ai import locomotion_layers, motion_for
+from crowd.sim.locomotion import locomotion_layers
+from crowd.sim.motion import motion_for
 
 
 @pytest.fixture(scope="module")

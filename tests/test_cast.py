@@ -25,7 +25,9 @@ from crowd.gl import Offscreen, has_compute
 from crowd.pipeline import CrowdPipeline
 from crowd.pipeline_config import CharacterSpec, PipelineConfig
 from crowd.scene import Scene, SceneError, load_scene, save_scene
-from crowd.sim.ai import AIConfig, CrowdAI, motion_for
+from crowd.sim.ai import CrowdAI
+from crowd.sim.config import AIConfig
+from crowd.sim.motion import motion_for
 
 PATHS = ("compute", "fragment")
 

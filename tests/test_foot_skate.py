@@ -143,7 +143,8 @@ def _zombie_walk(zombie, speed: float, seconds: float = 3.2, rate: float = 120.0
     """The float64 reference's foot skate of a character (the built-in zombie) walking straight at
     `speed`, animated as the AI animates it (with `motion`, or the character's own)."""
     from crowd.anim.roles import bake_roles, match_roles
-    from crowd.sim.ai import locomotion_layers, motion_for
+    from crowd.sim.locomotion import locomotion_layers
+    from crowd.sim.motion import motion_for
 
     roles, _ = match_roles(zombie.clips)
     baked = bake_roles(zombie, roles)
@@ -185,7 +186,7 @@ def test_a_slow_walk_is_the_walk_played_slower(zombie):
 def test_a_bigger_zombie_takes_longer_strides(zombie):
     """Agents are drawn at their own size, and their strides with them: the phase's rate divides by the
     scaled stride (a 1.08 zombie at the same speed steps 1.08 times slower)."""
-    from crowd.sim.ai import phase_rate
+    from crowd.sim.locomotion import phase_rate
 
     motion, _, _ = _zombie_walk(zombie, 0.0, seconds=0.1)
     speed, walk = np.array([motion.walk_speed]), np.array([motion.walk_speed])
@@ -199,7 +200,7 @@ def test_a_crowd_walking_straight_does_not_slide(zombie):
     left, docs/ACCURACY.md)."""
     from bench.skate_report import CROWD_CASES, crowd_breakdown
     from crowd.anim.roles import bake_roles, match_roles
-    from crowd.sim.ai import motion_for
+    from crowd.sim.motion import motion_for
 
     roles, _ = match_roles(zombie.clips)
     baked = bake_roles(zombie, roles)
@@ -214,7 +215,7 @@ def test_a_crowd_walking_straight_does_not_slide(zombie):
 def test_a_stride_measured_from_the_feet_is_the_stride_they_walk(zombie):
     """stride_from_feet: the stride that leaves the least slide per metre. On the built-in clips, whose
     feet are planted by construction, it finds the strides they were built with."""
-    from crowd.sim.ai import stride_from_feet
+    from crowd.sim.motion import stride_from_feet
 
     for name in ("shamble", "run"):
         clip = zombie.clip(name)
@@ -228,7 +229,7 @@ def test_an_imported_walk_without_a_stride_gets_one_from_its_feet():
     from conftest import shared
     from crowd.anim.roles import bake_roles, match_roles
     from crowd.asset.gltf import load_character
-    from crowd.sim.ai import DEFAULT_RUN_SPEED, DEFAULT_WALK_SPEED, Motion, motion_for
+    from crowd.sim.motion import DEFAULT_RUN_SPEED, DEFAULT_WALK_SPEED, Motion, motion_for
 
     character = load_character(shared("Quaternius_Zombie_Basic.gltf"))
     roles, _ = match_roles(character.clips)

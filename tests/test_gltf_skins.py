@@ -193,7 +193,7 @@ def test_more_joints_than_the_processor_draws_are_refused_in_one_line(tmp_path, 
 
 def test_a_merged_character_draws(tmp_path, gl_context):
     from crowd.pipeline_config import PipelineConfig
-    from crowd.sim.ai import AIConfig
+    from crowd.sim.config import AIConfig
     from crowd.smoke import run_headless
 
     path = make_gltf(tmp_path)

@@ -13,7 +13,7 @@ from crowd.asset.gltf import load_character
 from crowd.gl import Offscreen, has_compute
 from crowd.pipeline import CrowdPipeline
 from crowd.pipeline_config import CharacterSpec, PipelineConfig
-from crowd.sim.ai import AIConfig
+from crowd.sim.config import AIConfig
 from gltf_factory import modular_gltf
 
 SIZE = (320, 180)

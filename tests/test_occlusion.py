@@ -8,7 +8,7 @@ from crowd.frame import Camera
 from crowd.gl import Offscreen
 from crowd.pipeline import CrowdPipeline
 from crowd.pipeline_config import PipelineConfig
-from crowd.sim.ai import AIConfig
+from crowd.sim.config import AIConfig
 
 SIZE = (320, 180)
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from crowd.sim.ai import HIT, AIConfig
+from crowd.sim.config import HIT, AIConfig
 from crowd.frame import CLIP, PHASE, WEIGHT
 from crowd.scene import CharacterEntry, Scene, load_scene
 from crowd.session import CrowdSession, SessionError

@@ -19,7 +19,7 @@ from crowd.frame import CLIP, MASK, PHASE, WEIGHT, validate_layers
 from crowd.gl import Offscreen
 from crowd.pipeline import CrowdPipeline
 from crowd.pipeline_config import CharacterSpec, PipelineConfig
-from crowd.sim.ai import AIConfig
+from crowd.sim.config import AIConfig
 from crowd.sim.player import HEALTH, HIT, NONE, ROLES, STRIKE, PlayerError, Survivor, survivor_motion
 
 

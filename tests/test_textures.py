@@ -24,7 +24,7 @@ from crowd.draw.materials import MaterialTextures
 from crowd.draw.texture_codec import srgb_to_linear
 from crowd.draw.texture_layers import layer_size, linear_layer
 from crowd.pipeline_config import PipelineConfig
-from crowd.sim.ai import AIConfig
+from crowd.sim.config import AIConfig
 from crowd.smoke import run_headless
 
 SIZE = (320, 180)

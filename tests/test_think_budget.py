@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from crowd.anim.roles import bake_roles, match_roles
-from crowd.sim.ai import HIT, WANDER, AIConfig, AIError, CrowdAI, motion_for
+from crowd.sim.ai import CrowdAI
+from crowd.sim.config import HIT, WANDER, AIConfig, AIError
+from crowd.sim.motion import motion_for
 
 STEP = 1.0 / 60.0
 

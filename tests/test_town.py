@@ -15,7 +15,10 @@ from crowd.gl import Offscreen, has_compute
 from crowd.pipeline import CrowdPipeline
 from crowd.pipeline_config import PipelineConfig
 from crowd.scene import Scene
-from crowd.sim.ai import CLEARANCE, AIConfig, CrowdAI, PlayerScript, motion_for
+from crowd.sim.ai import CrowdAI, PlayerScript
+from crowd.sim.config import AIConfig
+from crowd.sim.motion import motion_for
+from crowd.sim.obstacles import CLEARANCE
 
 
 @pytest.fixture(scope="module")

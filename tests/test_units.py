@@ -13,7 +13,7 @@ from crowd.asset.gltf_write import write_glb
 from crowd.asset.units import HUMAN_HEIGHTS, TARGET_HEIGHT, scale_character, standing_height, to_crowd_units
 from crowd.pipeline import CrowdPipeline
 from crowd.pipeline_config import PipelineConfig, PipelineError
-from crowd.sim.ai import AIConfig
+from crowd.sim.config import AIConfig
 from crowd.smoke import run_headless
 
 SIZE = (320, 180)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from crowd.sim.ai import DYING, AIConfig
+from crowd.sim.config import DYING, AIConfig
 from bench.common import random_layers
 from crowd.pipeline import CrowdPipeline
 from crowd.pipeline_config import PipelineConfig, PipelineError

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import app.window as window_module
 from crowd.scene import Scene
-from crowd.sim.ai import AIConfig
+from crowd.sim.config import AIConfig
 
 frames = {"n": 0}
 render_frame = window_module.render_frame

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from app.window import open_window, render_frame
-from crowd.sim.ai import AIConfig
+from crowd.sim.config import AIConfig
 from crowd.scene import Scene
 
 out = Path(sys.argv[1])

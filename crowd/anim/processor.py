@@ -7,7 +7,7 @@ input ``layers``: float32 (N, L, 4) with L = the processor's layer count (1..4);
   - clip: index into the bake's clips (integer valued);
   - phase: within ±32 cycles, where float32 holds it to 1e-6 cycles (validate_layers refuses the rest,
     in one line, rather than round it); looping clips wrap it into [0, 1), one-shot clips clamp it to
-    [0, 1]. Producers wrap in float64 first (crowd.sim.ai.advance_phase, LayerOverrides.apply);
+    [0, 1]. Producers wrap in float64 first (crowd.sim.locomotion.advance_phase, LayerOverrides.apply);
   - weight: finite, at most MAX_WEIGHT; negative weights count as 0; weights need not sum to 1;
   - mask: -1 for the whole body, else a row of the processor's joint masks (factor per joint in [0, 1]).
   Per joint, as crowd.anim.reference.blend (its docstring says why each rule), with S the sum of the

@@ -39,34 +39,17 @@ import numpy as np
 
 from ..frame import FrameError, cast_counts, cast_firsts, cast_moves
 from .agent_pool import PARAMS, AgentPool, SharedArrays
-from .config import (ACT_ATTACK, ACT_DEATH, ACT_HIT, ACTION_ROLES, ATTACK, CHASE, DEAD, DYING, HIT, LAYERS, NO_ACTION, STATE_NAMES,
-                     WANDER, AIConfig, AIError)
-from .locomotion import (_KIND_FIELDS, _AgentMotion, advance_phase, blended_stride, locomotion_layers, locomotion_weights, phase_rate,
-                         turn_about_planted_foot)
-from .motion import (DEFAULT_RUN_SPEED, DEFAULT_WALK_SPEED, FOOT_SAMPLES, RUN_OVER_WALK, WALK_SLOWEST, Motion, motion_for, pivot_table,
-                     stride_from_feet, upper_body_mask)
-from .obstacles import (_FLOW_ARRAYS, CLEARANCE, FLOW_BLOCKED, FLOW_CELL, FLOW_CELLS, FLOW_DIRECT, FLOW_WORK, ObstaclesMixin, flow_field,
-                        flow_field_work)
-from .outputs import LAYER_RUN, MAX_ACTION_WEIGHT, OutputsMixin
-from .separation import SEPARATION_CELL_CAP, SeparationMixin
-from .spawn import TINTS, SpawnMixin
+from .config import ACT_DEATH, ACT_HIT, ACTION_ROLES, CHASE, DYING, HIT, LAYERS, NO_ACTION, WANDER, AIConfig, AIError
+from .locomotion import _KIND_FIELDS, _AgentMotion
+from .motion import Motion
+from .obstacles import _FLOW_ARRAYS, FLOW_CELLS, ObstaclesMixin
+from .outputs import OutputsMixin
+from .separation import SeparationMixin
+from .spawn import SpawnMixin
 from .think import ThinkMixin
 from .think_budget import ThinkBudgetMixin
-from .workers import (APPLY, FINISH, HEADINGS, MAX_FOCUS, MIN_RANGE, P_BLOCK, P_FOCUS, P_FOCUS_COUNT, P_GAIN, P_H, P_HAVE_PAIRS,
-                      P_N, P_PLAYER, P_RANGES, P_REBUILD, P_SIDE, P_STEPS, P_SUBSTEPS, P_TIME, PUSH, THINK, WRITE_LAYERS, WorkersMixin)
-
-__all__ = [  # CrowdAI and PlayerScript, and the public names of its parts that importers take from here
-    "LAYERS", "WANDER", "CHASE", "ATTACK", "HIT", "DYING", "DEAD", "STATE_NAMES", "NO_ACTION", "ACT_ATTACK", "ACT_HIT", "ACT_DEATH",
-    "ACTION_ROLES", "AIConfig", "AIError",
-    "DEFAULT_WALK_SPEED", "DEFAULT_RUN_SPEED", "RUN_OVER_WALK", "FOOT_SAMPLES", "WALK_SLOWEST", "Motion", "motion_for", "pivot_table",
-    "stride_from_feet", "upper_body_mask",
-    "advance_phase", "blended_stride", "locomotion_layers", "locomotion_weights", "phase_rate", "turn_about_planted_foot",
-    "CLEARANCE", "FLOW_BLOCKED", "FLOW_CELL", "FLOW_CELLS", "FLOW_DIRECT", "FLOW_WORK", "flow_field", "flow_field_work",
-    "LAYER_RUN", "MAX_ACTION_WEIGHT", "SEPARATION_CELL_CAP", "TINTS", "PlayerScript",
-    "MIN_RANGE", "THINK", "PUSH", "APPLY", "FINISH", "WRITE_LAYERS", "HEADINGS", "P_H", "P_TIME", "P_SUBSTEPS", "P_STEPS", "P_PLAYER",
-    "P_RANGES", "P_N", "P_BLOCK", "P_GAIN", "P_HAVE_PAIRS", "P_REBUILD", "P_SIDE", "P_FOCUS_COUNT", "P_FOCUS", "MAX_FOCUS",
-    "CrowdAI",
-]
+from .workers import (APPLY, FINISH, MAX_FOCUS, P_BLOCK, P_FOCUS, P_FOCUS_COUNT, P_GAIN, P_H, P_HAVE_PAIRS, P_PLAYER, P_REBUILD, P_STEPS,
+                      P_SUBSTEPS, P_TIME, PUSH, THINK, WorkersMixin)
 
 
 class PlayerScript:
