@@ -752,9 +752,11 @@ def build_parser() -> argparse.ArgumentParser:
     from .peers import add_parsers as add_peers_parsers
     from .skate_report import add_parsers as add_skate_parsers
     from .storage_cost import add_parsers as add_storage_cost_parsers
+    from .rounds_report import add_parsers as add_rounds_parsers
     from .texture_report import add_parsers as add_texture_parsers
 
     add_parsers(sub)
+    add_rounds_parsers(sub)
     add_skate_parsers(sub)
     add_storage_cost_parsers(sub)
     add_texture_parsers(sub)

@@ -60,7 +60,8 @@ from .settings import SETTINGS
 from .sim.ai import CrowdAI, PlayerScript
 from .sim.config import LAYERS
 from .sim.motion import Motion
-from .sim.player import STRIKE_REACH, Survivor
+from .sim.player import Survivor
+from .sim.rounds import move_survivor, settle
 from .stages import CastPart, Stages
 from .timing import PassTimer, SampleRing
 
@@ -284,11 +285,7 @@ class CrowdPipeline(LiveSettings, GLStage):
                 self.player_script.update(self.ai, survivor)
             landed = False
             if survivor is not None:  # the player's character moves first: the zombies chase where it is now
-                half = self.ai.half_extent
-                landed = survivor.step(dt, (self.ai.origin - half, self.ai.origin + half))
-                if self.obstacles is not None:  # it does not walk through walls either
-                    survivor.collide(self.ai.keep_out, self.obstacles)
-                self.ai.player = survivor.position.copy()
+                landed = move_survivor(self.ai, survivor, dt, self.obstacles)
             self.ai.focus = (np.asarray(self.camera.eye, np.float64)[[0, 2]],)  # zombies near the camera think every substep
             steps_before = self.ai.steps
             self.ai.step(dt)
@@ -429,12 +426,7 @@ class CrowdPipeline(LiveSettings, GLStage):
         swing landed (on the nearest zombie within its reach), and a new round where its health ran out.
         Returns the step from which agents count as new (a new round makes them all new)."""
         s, ai = self.survivor, self.ai
-        s.hurt(ai.player_hits_taken - self._blows_seen)
-        self._blows_seen = ai.player_hits_taken
-        if landed:
-            target = ai.nearest_alive(s.position, STRIKE_REACH)
-            if target >= 0:
-                s.kills += ai.hit([target])
+        self._blows_seen = settle(ai, s, landed, self._blows_seen)
         if not s.down:
             return steps_before
         s.new_round(ai.origin)  # the next round: a new crowd, the survivor back in the middle

@@ -262,6 +262,10 @@ _ALL = (
     _ai("max_dt", 0.25, "seconds: a longer frame is simulated as this long (the game slows, it does not explode)", low=0, high=10, open_low=True),
     _ai("notice_radius", 14.0, "metres at which a zombie notices the player", low=0, open_low=True),
     _ai("forget_radius", 24.0, "metres at which a chasing zombie gives up (at least notice_radius)", low=0, open_low=True),
+    _ai("alert_rate", 0.3, "m/s: how fast the notice and forget radii grow as a round goes on (up to think_radius), so more of "
+        "the horde notices the player; 0: they stay", low=0, high=100),
+    _ai("start_clear", 25.0, "metres around the player kept free of zombies where a crowd starts: a round begins with the horde at "
+        "a distance (it keeps its density outside; 0: zombies anywhere)", low=0, high=10_000),
     _ai("reaction_min", 0.2, "seconds, shortest delay between noticing the player and chasing", low=0),
     _ai("reaction_max", 1.2, "seconds, longest such delay (at least reaction_min)", low=0),
     _ai("attack_reach", 1.2, "metres from the player at which a zombie attacks", low=0, open_low=True),

@@ -51,7 +51,9 @@ def survivor_stats(survivor) -> dict | None:
         return None
     return {"health": survivor.health, "kills": survivor.kills, "round": survivor.rounds, "round_s": round(survivor.round_time, 3),
             "best_s": round(max(survivor.best_time, survivor.round_time), 3), "blows_taken": survivor.blows,
-            "position": [round(float(v), 4) for v in survivor.position]}
+            "position": [round(float(v), 4) for v in survivor.position],
+            # Every round of the run: the ended ones, then this one (its end "playing").
+            "rounds": [*survivor.history, survivor.round_record()]}
 
 
 def pipeline_stats(pipeline) -> dict:

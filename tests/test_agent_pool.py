@@ -60,9 +60,10 @@ def _state(ai: CrowdAI) -> dict:
 
 def _run(motion, workers: int, think_every: int, steps: int = 90, switch_to: int | None = None) -> dict:
     # A small world and short corpse times, so the player's strikes kill and the dead respawn (both draw
-    # keyed random numbers), and a focus point, as the pipeline sets the camera.
+    # keyed random numbers), the crowd around the player from the start, and a focus point, as the
+    # pipeline sets the camera.
     config = AIConfig(workers=workers, think_every=think_every, think_from=0, health=1, corpse_time=0.5,
-                      area_per_agent=2.0)
+                      area_per_agent=2.0, start_clear=0.0)
     ai = CrowdAI(AGENTS, 5, motion, config)
     try:
         script = PlayerScript(ai.half_extent * 0.3, strike_every=0.1)

@@ -255,7 +255,7 @@ def test_hit_death_lie_still_and_respawn_at_an_edge(motion):
 
 
 def test_attack_plays_on_the_upper_body_with_cross_fades(motion):
-    ai = CrowdAI(1, 13, motion, AIConfig(crossfade=0.25))
+    ai = CrowdAI(1, 13, motion, AIConfig(crossfade=0.25, start_clear=0.0))
     ai.player = np.array([500.0, 500.0])
     ai._start(np.array([0]), ATTACK, 1)
     shares = []

@@ -54,9 +54,12 @@ from .workers import (APPLY, FINISH, MAX_FOCUS, P_BLOCK, P_FOCUS, P_FOCUS_COUNT,
 
 class PlayerScript:
     """The headless player: walks a circle through the crowd and strikes the nearest zombie in reach at
-    a steady rhythm. Deterministic: it depends on time only."""
+    a steady rhythm; a survivor faces the nearest zombie within WATCH_M as it goes, as a player keeps
+    the threat in front. Deterministic: it depends on time and the crowd only."""
 
-    def __init__(self, radius: float, speed: float = 1.6, strike_every: float = 0.9, strike_reach: float = 2.0):
+    WATCH_M = 4.0
+
+    def __init__(self, radius: float, speed: float = 2.4, strike_every: float = 0.9, strike_reach: float = 2.0):
         self.radius = float(radius)
         self.speed = float(speed)
         self.strike_every = float(strike_every)
@@ -71,7 +74,15 @@ class PlayerScript:
         angle = t * self.speed / max(self.radius, 1e-3)
         point = ai.origin + self.radius * np.array([math.cos(angle), math.sin(angle)])
         if survivor is not None:
-            survivor.walk_to(point)
+            near = ai.nearest_alive(survivor.position, self.WATCH_M)
+            if near < 0:
+                survivor.walk_to(point)
+            else:  # on along the circle, facing the zombie (a walk to a point would face where it goes)
+                to = point - survivor.position
+                dist = float(np.hypot(*to))
+                threat = np.array([ai.x[near], ai.z[near]]) - survivor.position
+                survivor.command(to / dist * min(dist, 1.0) if dist > 0.05 else (0.0, 0.0),
+                                 threat if float(np.hypot(*threat)) > 1e-6 else None)
         else:
             ai.player = point
         while t >= self._next_strike:
@@ -318,6 +329,16 @@ class CrowdAI(SpawnMixin, ThinkMixin, ThinkBudgetMixin, SeparationMixin, Obstacl
         d[~self.alive()] = np.inf
         i = int(np.argmin(d))
         return i if d[i] <= reach else -1
+
+    def alive_in_front(self, point, reach: float, front) -> np.ndarray:
+        """Indices of the living agents within `reach` of a ground point (x, z), on the side `front`
+        (x, z) faces: what a swing there sweeps."""
+        if not self.n:
+            return np.zeros(0, np.int64)
+        px, pz = (float(v) for v in point)
+        fx, fz = (float(v) for v in front)
+        dx, dz = self.x - px, self.z - pz
+        return np.flatnonzero((dx * dx + dz * dz <= reach * reach) & (dx * fx + dz * fz >= 0.0) & self.alive())
 
     def hit(self, agents) -> int:
         """The player strikes these agents: the last hit kills (where there is a death clip), others

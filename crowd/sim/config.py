@@ -16,6 +16,10 @@ STATE_NAMES = ("wander", "chase", "attack", "hit", "dying", "dead")
 # Actions (int8): which clip layer 3 plays.
 NO_ACTION, ACT_ATTACK, ACT_HIT, ACT_DEATH = range(4)
 ACTION_ROLES = (None, "attack", "hit", "death")
+# A zombie's blow lands this far through its attack clip, on a player then within attack_reach times
+# BLOW_REACH (the swing carries the arm a little past where it began): a player who moves away dodges it.
+ATTACK_IMPACT = 0.5
+BLOW_REACH = 1.25
 
 
 class AIError(ValueError):
@@ -34,6 +38,8 @@ class AIConfig:
     max_dt: float = _AI['max_dt']
     notice_radius: float = _AI['notice_radius']
     forget_radius: float = _AI['forget_radius']
+    alert_rate: float = _AI['alert_rate']
+    start_clear: float = _AI['start_clear']
     reaction_min: float = _AI['reaction_min']
     reaction_max: float = _AI['reaction_max']
     attack_reach: float = _AI['attack_reach']
@@ -61,6 +67,11 @@ class AIConfig:
     think_from: int = _AI['think_from']
     workers: int = _AI['workers']
 
+    def alert(self, time: float) -> float:
+        """Metres the notice and forget radii have grown `time` seconds into a round (alert_rate), at most
+        to think_radius: a zombie that may notice the player still thinks every substep."""
+        return min(self.alert_rate * max(float(time), 0.0), max(self.think_radius - self.notice_radius, 0.0))
+
     def validate(self) -> "AIConfig":
         for name, setting in group("ai").items():
             setting.check(getattr(self, name), AIError)
@@ -77,7 +88,8 @@ class AIConfig:
 
     def half_extent_for(self, agents: int, free_share: float = 1.0) -> float:
         """The world's half width for a crowd: area_per_agent of open ground each, on a ground of which
-        `free_share` is open (the rest buildings and cars)."""
+        `free_share` is open (the rest buildings and cars), and the start_clear disc besides."""
         if self.half_extent > 0:
             return float(self.half_extent)
-        return max(self.min_half_extent, 0.5 * math.sqrt(agents * self.area_per_agent / free_share))
+        clear = math.pi * self.start_clear ** 2 if agents else 0.0  # the disc kept free at the start: the horde keeps its density around it
+        return max(self.min_half_extent, 0.5 * math.sqrt(agents * self.area_per_agent / free_share + clear))

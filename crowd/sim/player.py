@@ -15,7 +15,8 @@ shared by the locomotion clips, advanced by the speed along the clip that carrie
 that clip's stride, as the crowd's is.
 
 A round: health starts at HEALTH; each zombie blow takes BLOW_DAMAGE and plays the flinch. At 0 the round
-is over (``down``); ``new_round()`` starts the next one, keeping the best time survived so far.
+is over (``down``); ``new_round()`` starts the next one, keeping the best time survived so far and the
+ended round's record in ``history`` (crowd.sim.rounds plays them).
 """
 
 from __future__ import annotations
@@ -32,6 +33,10 @@ from .outputs import MAX_ACTION_WEIGHT
 ROLES = ("idle", "run", "strafe_left", "strafe_right", "strike", "hit")
 HEALTH = 100
 BLOW_DAMAGE = 10  # a zombie's landed attack
+# Health comes back at REGEN_RATE a second once no blow has landed for REGEN_DELAY seconds: a player who
+# gets clear of the horde recovers, one who stands in it does not.
+REGEN_DELAY = 4.0
+REGEN_RATE = 5.0
 STRIKE_REACH = 2.0  # metres: the bat reaches a zombie this close in front
 STRAFE_SPEED = 1.2  # m/s side-stepping (the strafe clips played faster than their own 0.75 m/s)
 BACK_SHARE = 0.5  # backing off, as a share of the run speed
@@ -88,6 +93,9 @@ class Survivor:
         self.best_time = 0.0
         self.rounds = 1
         self.blows = 0  # zombie blows taken this round
+        self.since_blow = 0.0  # seconds since the last blow landed (regeneration waits for REGEN_DELAY of them)
+        self._health = float(HEALTH)  # health with the fraction regeneration has added (health is its whole part)
+        self.history: list[dict] = []  # each ended round: its number, length, kills, blows taken and how it ended
         self._move = np.zeros(2)
         self._face: np.ndarray | None = None
         self._target: np.ndarray | None = None
@@ -121,18 +129,29 @@ class Survivor:
         if blows <= 0 or self.down:
             return
         self.blows += int(blows)
-        self.health = max(self.health - int(blows) * BLOW_DAMAGE, 0)
+        self._health = max(self._health - int(blows) * BLOW_DAMAGE, 0.0)
+        self.health = int(self._health)
+        self.since_blow = 0.0
         self.action, self.action_time, self._landed = HIT, 0.0, True
 
     @property
     def down(self) -> bool:
         return self.health <= 0
 
+    def round_record(self) -> dict:
+        """This round so far: its number, seconds, kills, blows taken, and "down" (health ran out) or
+        "playing" (it goes on)."""
+        return {"round": self.rounds, "length_s": round(self.round_time, 3), "kills": self.kills, "blows": self.blows,
+                "end": "down" if self.down else "playing"}
+
     def new_round(self, position) -> None:
-        """Health back, kills and the round's clock back to 0, at `position`; the best time is kept."""
+        """Health back, kills and the round's clock back to 0, at `position`; the best time is kept, and
+        the ended round's record."""
+        self.history.append(self.round_record())
         self.best_time = max(self.best_time, self.round_time)
         self.rounds += 1
         self.health, self.kills, self.round_time, self.blows = HEALTH, 0, 0.0, 0
+        self._health, self.since_blow = float(HEALTH), 0.0
         self.position = np.asarray(position, np.float64).copy()
         self.velocity[:] = 0.0
         self.action, self.action_time, self._landed = NONE, 0.0, False
@@ -159,6 +178,10 @@ class Survivor:
         m = self.motion
         if not self.down:
             self.round_time += dt
+            self.since_blow += dt
+            if self.since_blow >= REGEN_DELAY and self._health < HEALTH:
+                self._health = min(self._health + REGEN_RATE * dt, float(HEALTH))
+                self.health = int(self._health)
         move = self._move
         if self._target is not None:
             to = self._target - self.position

@@ -42,6 +42,14 @@ class SpawnMixin:
             out[row] = (z >> np.uint64(11)) * (1.0 / (1 << 53))
         return out
 
+    def _unfit_start(self, pos: np.ndarray) -> np.ndarray:
+        """Which start places (relative to the origin) lie in or by an obstacle, or within start_clear of the player."""
+        off = pos - (self.player - self.origin)
+        unfit = off[:, 0] * off[:, 0] + off[:, 1] * off[:, 1] < self.config.start_clear ** 2
+        if self.obstacles is not None:  # on the streets
+            unfit |= self.obstacles.distance(self.origin[0] + pos[:, 0], self.origin[1] + pos[:, 1]) < CLEARANCE + 0.1
+        return unfit
+
     def _spawn(self, a, idx: np.ndarray, anywhere: bool) -> None:
         """New agents `idx` of `a` (the crowd itself, or the agents of one think): anywhere in the world
         (start, resize) or on its edges (respawn). Traits are drawn at first spawn only, so a respawned
@@ -54,12 +62,11 @@ class SpawnMixin:
         cfg, rng, h = self.config, self.rng, self.half_extent
         if anywhere:
             pos = rng.uniform(-h, h, (k, 2))
-            if self.obstacles is not None:  # on the streets: places in or by an obstacle are drawn again
-                for _ in range(32):
-                    blocked = np.flatnonzero(self.obstacles.distance(self.origin[0] + pos[:, 0], self.origin[1] + pos[:, 1]) < CLEARANCE + 0.1)
-                    if not blocked.size:
-                        break
-                    pos[blocked] = rng.uniform(-h, h, (blocked.size, 2))
+            for _ in range(32):  # places in or by an obstacle, or too near the player, are drawn again
+                unfit = np.flatnonzero(self._unfit_start(pos))
+                if not unfit.size:
+                    break
+                pos[unfit] = rng.uniform(-h, h, (unfit.size, 2))
             yaw = rng.uniform(-math.pi, math.pi, k)
             a.phase[idx] = rng.uniform(0.0, 1.0, k)
             a.speed_factor[idx] = rng.uniform(cfg.speed_min, cfg.speed_max, k)

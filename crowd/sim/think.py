@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from .config import ACT_ATTACK, ATTACK, CHASE, DEAD, DYING, HIT, NO_ACTION, WANDER
+from .config import ACT_ATTACK, ATTACK, ATTACK_IMPACT, BLOW_REACH, CHASE, DEAD, DYING, HIT, NO_ACTION, WANDER
 from .locomotion import advance_phase, blended_stride, locomotion_weights, phase_rate, turn_about_planted_foot
 from .spawn import _WANDER
 
@@ -126,7 +126,15 @@ class ThinkMixin:
         a.cooldown -= h
 
         # Transitions; events are rare, so they work on index lists.
-        done = np.flatnonzero(a.action_time >= self.action_length(a.action, self._kind_of(a)))
+        length = self.action_length(a.action, self._kind_of(a))
+        # A blow lands at its swing's impact, on a player still within reach of it: one who moves away dodges it.
+        swinging = np.flatnonzero(state == ATTACK)
+        if swinging.size:
+            impact = ATTACK_IMPACT * length[swinging]
+            t, step = a.action_time[swinging], (h[swinging] if np.ndim(h) else h)
+            lands = (t >= impact) & (t - step < impact) & (dist[swinging] < cfg.attack_reach * BLOW_REACH)
+            self.player_hits_taken += int(np.count_nonzero(lands))
+        done = np.flatnonzero(a.action_time >= length)
         if done.size:
             s = state[done]
             back = done[(s == ATTACK) | (s == HIT)]
@@ -138,13 +146,14 @@ class ThinkMixin:
             a.state_time[died] = 0.0
         respawn = np.flatnonzero((a.state_time >= cfg.corpse_time) & (state == DEAD))
         self._spawn(a, respawn, anywhere=False)
-        near = dist < cfg.notice_radius
+        grown = cfg.alert(self.time)
+        near = dist < cfg.notice_radius + grown
         a.aware += h
         a.aware[~near] = 0.0
         wandering = state == WANDER
-        notice = np.flatnonzero(wandering & (a.aware >= a.reaction))
+        notice = np.flatnonzero(wandering & near & (a.aware >= a.reaction))  # (near: a reaction of 0 notices nobody far)
         state[notice] = CHASE
-        lost = np.flatnonzero((dist > cfg.forget_radius) & (state == CHASE))
+        lost = np.flatnonzero((dist > cfg.forget_radius + grown) & (state == CHASE))
         state[lost] = WANDER
         if np.any(self._role_clip["attack"] >= 0):
             ready = (dist < cfg.attack_reach) & (a.cooldown <= 0.0) & (state == CHASE)
@@ -152,7 +161,6 @@ class ThinkMixin:
                 ready &= self._role_clip["attack"][a.kind] >= 0  # characters without an attack clip do not strike
             strike = np.flatnonzero(ready & (h > 0.0) if np.ndim(h) else ready)  # agents given no time strike nobody
             self._start(strike, ATTACK, ACT_ATTACK, a)
-            self.player_hits_taken += int(strike.size)
 
         # Desired velocity: wanderers walk slowly to their target, chasers to the player, the rest stand.
         chasing = state == CHASE
