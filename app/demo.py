@@ -25,6 +25,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--scene", type=Path, default=None, help="a scene file (TOML; see scenes/); flags given as well override it")
     p.add_argument("--screenshot", type=Path, default=None, help="PNG of the last frame (headless default out/demo.png)")
     p.add_argument("--stats", type=Path, default=None, help="JSON of frame and pass timings")
+    p.add_argument("--clip", type=Path, default=None, help="headless: the run's last 90 frames (3 s) as an animated .webp or "
+                                                           ".gif (each frame is read back, so timings include that)")
     p.add_argument("--panel", action="store_true", help="headless: draw the frame as the window does: the panel, the HUD and "
                                                         "the camera behind the survivor (the window always does)")
     p.add_argument("--model", default=None, help="one character for the whole crowd: a skinned .glb/.gltf, or a built-in's name "
@@ -111,8 +113,10 @@ def main(argv=None) -> int:
 
                 overlay = HeadlessPanel.factory(scene, follow=True)
             view = SETTINGS["view"].default if args.view is None else parse("view", args.view, SceneError, "--view")
+            if args.clip is not None and args.clip.suffix.lower() not in (".webp", ".gif"):
+                raise SceneError(f"--clip {args.clip}: a clip is written as .webp or .gif")
             stats = run_headless(scene.pipeline_config(), args.frames, size, args.screenshot, args.stats,
-                                 camera=scene.camera_for(size[0] / size[1]) or view, overlay=overlay)
+                                 camera=scene.camera_for(size[0] / size[1]) or view, overlay=overlay, clip=args.clip)
     except (AIError, GltfImportError, BakeError, PipelineError, ProcessorError, RenderError, RoleError, GLUnavailable,
             ReadbackError, WeaponError, SceneError, SettingError, FrameError) as exc:
         print(f"crowd-demo: {exc}", file=sys.stderr)
@@ -134,8 +138,8 @@ def main(argv=None) -> int:
         print(f"weapons: {w['drawn']} drawn, read back {w['latency_frames']} frames late (pose lag {w['pose_lag_ms']} ms: "
               f"{w['latency_frames']} frames x their simulated frame time); {error}; read-back wait median "
               f"{stats['readback_wait_ms']['median']} ms, max {stats['readback_wait_ms']['max']} ms, {w['stalls']} stalls")
-    if args.screenshot or args.stats:
-        print("wrote " + " and ".join(str(p) for p in (args.screenshot, args.stats) if p))
+    if args.screenshot or args.stats or stats.get("clip_bytes"):
+        print("wrote " + " and ".join(str(p) for p in (args.screenshot, args.stats, args.clip if stats.get("clip_bytes") else None) if p))
     return 0
 
 

@@ -20,6 +20,7 @@ FOG_FAR_M = -math.log(0.05) / LIGHTING["u_fog_density"]
 # Agents from which a newcomer's first view is the horizon view: below, the horde around the player fills
 # the picture; from here, that picture looks the same at any size, and the scale is what there is to see.
 HORIZON_AGENTS = 10_000
+HORIZON_HEIGHT_M = 60.0  # the horizon view's highest eye: higher, the near zombies are specks too
 
 
 def view_camera(view: str, ai: CrowdAI, aspect: float, town: bool) -> Camera:
@@ -48,17 +49,19 @@ def default_camera(ai: CrowdAI, aspect: float, town: bool) -> Camera:
 
 
 def horizon_camera(ai: CrowdAI, aspect: float, town: bool) -> Camera:
-    """The horde's scale: from high over its near edge, looking across it to its far side, which the
-    picture's upper part reaches. On the plane the fog is thinned to end there, so the crowd thins into
-    the distance instead of into grey; in a town the buildings hide the far streets, and its fog stays."""
+    """The horde's scale: from over its near edge, looking across it to its far side, the fog thinned to
+    end there, so the crowd thins into the distance instead of into grey (a bigger horde reaches further
+    and holds more in the picture). In a town, from over the roofs into its streets."""
     half = max(ai.half_extent, VIEW_RADIUS_M)
     centre = np.array([ai.origin[0], 0.0, ai.origin[1]])
-    height = max(12.0, (0.3 if town else 0.12) * half)  # in a town, over the roofs into the streets
-    eye = centre + np.array([0.0, height, 1.1 * half])
-    target = centre + np.array([0.0, 0.0, 0.55 * half])  # pitched so the far side sits high in the picture, under a band of sky
+    height = min(max(12.0, (0.3 if town else 0.12) * half), HORIZON_HEIGHT_M)
+    eye = centre + np.array([0.0, height, half + 0.25 * height])  # just outside the near edge: the picture's foot is in the horde
+    # Pitched down by atan(1/3) (at most: a smaller horde is looked at from nearer its middle), so the
+    # near zombies fill the lower picture and the far side sits high in it, under a band of sky.
+    target = eye + np.array([0.0, -height, -min(3.0 * height, 0.55 * half)])
     far_side = float(np.linalg.norm(eye - (centre + np.array([half, 0.0, -half]))))
     return Camera(eye=eye, target=target, aspect=aspect, near=max(0.1, 0.25 * height), far=far_side * 1.05,
-                  fog_reach=None if town else max(FOG_FAR_M, far_side))
+                  fog_reach=max(FOG_FAR_M, far_side))
 
 
 def overview_camera(ai: CrowdAI, aspect: float, town: bool) -> Camera:

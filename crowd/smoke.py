@@ -22,13 +22,14 @@ from pathlib import Path
 import moderngl
 
 from .gl import Fence, Offscreen, headless_context
-from .images import write_png
+from .images import write_animation, write_png
 from .progress import bar
 from .pipeline import CrowdPipeline
 from .pipeline_config import PipelineConfig
 from .stats import collect_stats, write_stats
 
 FIXED_DT = 1.0 / 30.0  # headless frames advance a fixed step, so a seed gives the same pictures
+CLIP_FRAMES = 90  # a clip's frames: the run's last 3 seconds
 FRAMES_IN_FLIGHT = 2  # how far a double-buffered swap chain lets the CPU run ahead of the GPU
 
 
@@ -56,10 +57,13 @@ def paced_frames(ctx: moderngl.Context, frame, count: int, in_flight: int = FRAM
 
 
 def run_headless(config: PipelineConfig, frames: int, size: tuple[int, int], screenshot: Path | None = None,
-                 stats_path: Path | None = None, ctx: moderngl.Context | None = None, camera=None, overlay=None) -> dict:
+                 stats_path: Path | None = None, ctx: moderngl.Context | None = None, camera=None, overlay=None,
+                 clip: Path | None = None) -> dict:
     """`camera`: a Camera, or the name of one of the crowd's views (crowd.cameras.view_camera; None: "auto").
     `overlay`: drawn over every frame, as a window draws its panel: called as overlay(ctx, pipeline, size)
-    once the pipeline exists, it gives a GL stage with draw(framebuffer, dt), released when the run ends."""
+    once the pipeline exists, it gives a GL stage with draw(framebuffer, dt), released when the run ends.
+    `clip`: the run's last CLIP_FRAMES frames written there as an animated WebP or GIF (crowd.images; each
+    frame is read back, so the run's timings then include that)."""
     own_ctx = ctx is None
     ctx = ctx or headless_context()
     try:
@@ -69,10 +73,14 @@ def run_headless(config: PipelineConfig, frames: int, size: tuple[int, int], scr
             with (overlay(ctx, pipeline, size) if overlay is not None else nullcontext()) as drawn_over, \
                     bar(frames, f"{config.agents:,} agents", "frame") as shown:  # on a terminal only (crowd.progress)
 
+                frames_seen = deque(maxlen=CLIP_FRAMES)
+
                 def frame():
                     pipeline.frame(target.framebuffer, FIXED_DT)
                     if drawn_over is not None:
                         drawn_over.draw(target.framebuffer, FIXED_DT)
+                    if clip is not None:
+                        frames_seen.append(target.image())
                     shown.update(1)
 
                 period_ms = paced_frames(ctx, frame, frames // 2)
@@ -92,6 +100,8 @@ def run_headless(config: PipelineConfig, frames: int, size: tuple[int, int], scr
         stats["gpu_bytes"]["framebuffer"] = size[0] * size[1] * 8
         if screenshot is not None:
             write_png(screenshot, image)
+        if clip is not None:
+            stats["clip_bytes"] = write_animation(clip, list(frames_seen), 1.0 / FIXED_DT)
         if stats_path is not None:
             write_stats(stats_path, stats)
         stats["_image"] = image  # for callers in Python (tests); never written to the JSON

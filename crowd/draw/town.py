@@ -79,10 +79,10 @@ class TownRenderer(GLStage):
     # -- per frame
 
     @staticmethod
-    def _districts(eye: np.ndarray) -> tuple[int, int, int, int]:
-        """The district indices (x from, z from, x to, z to) within SIGHT_M of the eye."""
-        lo = np.floor((eye[[0, 2]] - SIGHT_M) / PERIOD).astype(np.int64)
-        hi = np.floor((eye[[0, 2]] + SIGHT_M) / PERIOD).astype(np.int64)
+    def _districts(eye: np.ndarray, sight: float = SIGHT_M) -> tuple[int, int, int, int]:
+        """The district indices (x from, z from, x to, z to) within `sight` metres of the eye."""
+        lo = np.floor((eye[[0, 2]] - sight) / PERIOD).astype(np.int64)
+        hi = np.floor((eye[[0, 2]] + sight) / PERIOD).astype(np.int64)
         return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
 
     @staticmethod
@@ -97,11 +97,11 @@ class TownRenderer(GLStage):
         out[..., 1] += offsets[:, 1, None]
         return out.reshape(-1, 4)
 
-    def _place(self, eye: np.ndarray) -> dict:
+    def _place(self, eye: np.ndarray, sight: float = SIGHT_M) -> dict:
         """Every piece's placements in sight, piece after piece, with their radii and records' constant fields.
         They change only when the eye crosses into another district's reach, so they are kept until then
         (placing and packing them each frame was most of the stage's CPU time)."""
-        districts = self._districts(eye)
+        districts = self._districts(eye, sight)
         if self._placed_for is not None and self._placed_for["districts"] == districts:
             return self._placed_for
         parts = [self._placed(districts, piece["piece"]) for piece in self._pieces]
@@ -135,7 +135,7 @@ class TownRenderer(GLStage):
         All pieces' placements are culled together (districts first, then the placements of those in
         view), then uploaded piece by piece."""
         eye = np.asarray(view.camera.eye, np.float64)
-        placed = self._place(eye)
+        placed = self._place(eye, max(SIGHT_M, view.camera.fog_reach or 0.0))  # a thinned fog sees further (the horizon view)
         records, radius, bounds = placed["records"], placed["radius"], placed["bounds"]
         rel = np.empty((len(records), 3))
         rel[:, 0], rel[:, 1], rel[:, 2] = placed["xz"][:, 0] - eye[0], -eye[1], placed["xz"][:, 1] - eye[2]
