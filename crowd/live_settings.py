@@ -217,6 +217,8 @@ class LiveSettings:
         self.config = config
 
     def set_ai_config(self, config: AIConfig) -> None:
+        if self.survivor is None:  # (no round to start: the crowd spawns anywhere, as when it was built)
+            config = dataclasses.replace(config, start_clear=0.0)
         self.ai.set_config(config)
         self.config = dataclasses.replace(self.config, ai=self.ai.config)
 

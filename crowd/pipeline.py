@@ -117,7 +117,9 @@ class CrowdPipeline(LiveSettings, GLStage):
             self.cast[k].motion = character_motion(self.cast, k)
         # The town's obstacles, which the crowd steers around (the town's meshes are the town stage's).
         self.obstacles = build_town().obstacles() if config.town else None
-        self.ai = CrowdAI(config.agents, config.seed, [m.motion for m in self.cast[:self.crowd_cast]], config.ai, config.origin,
+        # The clear start is a round's: a crowd with no survivor to play starts anywhere.
+        ai_config = config.ai if config.survivor else dataclasses.replace(config.ai, start_clear=0.0)
+        self.ai = CrowdAI(config.agents, config.seed, [m.motion for m in self.cast[:self.crowd_cast]], ai_config, config.origin,
                           shares=[s.share for s in specs], obstacles=self.obstacles)
         self.survivor: Survivor | None = None
         self._survivor_layers = np.zeros((1, LAYERS, 4), np.float32)

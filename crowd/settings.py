@@ -265,7 +265,7 @@ _ALL = (
     _ai("alert_rate", 0.3, "m/s: how fast the notice and forget radii grow as a round goes on (up to think_radius), so more of "
         "the horde notices the player; 0: they stay", low=0, high=100),
     _ai("start_clear", 25.0, "metres around the player kept free of zombies where a crowd starts: a round begins with the horde at "
-        "a distance (it keeps its density outside; 0: zombies anywhere)", low=0, high=10_000),
+        "a distance (it keeps its density outside; 0, or a crowd with no survivor: zombies anywhere)", low=0, high=10_000),
     _ai("reaction_min", 0.2, "seconds, shortest delay between noticing the player and chasing", low=0),
     _ai("reaction_max", 1.2, "seconds, longest such delay (at least reaction_min)", low=0),
     _ai("attack_reach", 1.2, "metres from the player at which a zombie attacks", low=0, open_low=True),

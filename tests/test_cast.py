@@ -211,7 +211,8 @@ def test_a_mixed_scene_of_three_draws_each_at_its_share(gl_context, chain_file, 
     if cull == "gpu" and not has_compute(gl_context):
         pytest.skip("no GL 4.3 here")
     cast = (CharacterSpec("zombie", 5.0), CharacterSpec("brute", 3.0), CharacterSpec(str(chain_file), 2.0))
-    config = PipelineConfig(agents=300, seed=4, characters=cast, cull=cull, ai=AIConfig(armed_share=1.0), survivor=False)
+    # No clear disc at the start: 300 agents spread over the overview's square, as the shares are counted in view.
+    config = PipelineConfig(agents=300, seed=4, characters=cast, cull=cull, ai=AIConfig(armed_share=1.0, start_clear=0.0), survivor=False)
     size = (480, 270)
     with Offscreen(gl_context, size) as target, CrowdPipeline(gl_context, config) as p:
         assert p.ai.cast == (150, 90, 60)

@@ -113,7 +113,7 @@ def test_a_thousand_agents_spawned_at_one_point_by_a_wall(town, motion, dt):
 
 def test_the_horde_spawns_on_the_streets(town, motion):
     o = town.obstacles()
-    ai = CrowdAI(20_000, 7, motion, AIConfig(workers=1, corpse_time=0.0, health=1), obstacles=o)
+    ai = CrowdAI(20_000, 7, motion, AIConfig(workers=1, corpse_time=0.0, health=1, start_clear=0.0), obstacles=o)
     assert o.distance(ai.x, ai.z).min() >= CLEARANCE + 0.1 - 1e-9  # spawned anywhere: on streets, sidewalks, yards
     assert ai.half_extent > 0.5 * math.sqrt(20_000 * AIConfig().area_per_agent)  # the world grows by the ground the town takes
     ai.hit(np.arange(0, 20_000, 3))  # killed: they respawn at the world's edges after their death and corpse_time
