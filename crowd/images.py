@@ -28,7 +28,7 @@ ANIMATIONS = (".webp", ".gif")
 
 
 def write_animation(path: Path, frames: list[np.ndarray], fps: float) -> int:
-    """(H, W, 3) uint8 frames as an animated WebP (lossy, quality 80) or GIF (a palette per frame), by
+    """(H, W, 3) uint8 frames as an animated WebP (lossy, quality 70) or GIF (a palette per frame), by
     `path`'s suffix, through a temporary file; returns its bytes."""
     from PIL import Image
 
@@ -39,7 +39,7 @@ def write_animation(path: Path, frames: list[np.ndarray], fps: float) -> int:
         raise ValueError(f"{path}: a clip needs at least one frame")
     images = [Image.fromarray(np.ascontiguousarray(f[..., :3])) for f in frames]
     buf = io.BytesIO()
-    options = {"quality": 80, "method": 4} if path.suffix.lower() == ".webp" else {"optimize": True}
+    options = {"quality": 70, "method": 6} if path.suffix.lower() == ".webp" else {"optimize": True}
     images[0].save(buf, format=path.suffix[1:].upper(), save_all=True, append_images=images[1:], duration=round(1000.0 / fps),
                    loop=0, **options)
     atomic_write_bytes(path, buf.getvalue())
