@@ -190,13 +190,12 @@ def bench_ai(args) -> int:
     cases = [(n, k, w, town) for n in [int(x) for x in args.agents.split(",")] for k in budgets for w in pools for town in towns]
     if args.town:
         from crowd.asset.town import build_town
-        from crowd.pipeline import TOWN_CIRCLE_M
 
         obstacles = build_town().obstacles()
     for n, think_every, workers, town in steps(cases, desc="ai", unit="case"):
         ai = CrowdAI(n, args.seed, motion, AIConfig(think_every=think_every, workers=workers), obstacles=obstacles if town else None)
         # The player's circle, as the headless loop walks it (in a town, round the crossing).
-        script = PlayerScript(min(ai.half_extent * 0.5, TOWN_CIRCLE_M) if town else ai.half_extent * 0.5)
+        script = PlayerScript.headless(ai)
         spent = []  # seconds of separation per timed step
         for _ in range(args.warmup):
             script.update(ai)

@@ -44,10 +44,7 @@ def first_round(scene, seed: int, seconds: float, player: str, dt: float = 1 / 3
         ai.player = survivor.position.copy()
         script = None
         if player == "scripted":  # the pipeline's headless player, on the same circle
-            from crowd.pipeline import TOWN_CIRCLE_M
-
-            radius = ai.half_extent * 0.5 if obstacles is None else min(ai.half_extent * 0.5, TOWN_CIRCLE_M)
-            script = PlayerScript(radius)
+            script = PlayerScript.headless(ai)
         seen = 0
         while not survivor.down and survivor.round_time < seconds:
             if script is not None:

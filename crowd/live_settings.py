@@ -216,10 +216,13 @@ class LiveSettings:
             self._set_palette_history(spec.history)
         self.config = config
 
+    def _crowd_ai_config(self, config: AIConfig, survivor: bool) -> AIConfig:
+        """The AI settings a crowd runs with: the clear start is a round's, so a crowd with no survivor to
+        play starts anywhere."""
+        return config if survivor else dataclasses.replace(config, start_clear=0.0)
+
     def set_ai_config(self, config: AIConfig) -> None:
-        if self.survivor is None:  # (no round to start: the crowd spawns anywhere, as when it was built)
-            config = dataclasses.replace(config, start_clear=0.0)
-        self.ai.set_config(config)
+        self.ai.set_config(self._crowd_ai_config(config, self.survivor is not None))
         self.config = dataclasses.replace(self.config, ai=self.ai.config)
 
     def rebake(self, fps: float | str, precision: str, interpolation: str | None = None, bound_mm: float | None = None) -> None:

@@ -66,7 +66,6 @@ from .stages import CastPart, Stages
 from .timing import PassTimer, SampleRing
 
 FOOT_SKATE_SAMPLE = 32  # agents whose feet are read back for the stats' foot_skate: 128 entries beside the sockets
-TOWN_CIRCLE_M = 9.0  # the headless player's circle in a town: round the crossing, clear of the buildings at its corners
 
 
 @dataclass
@@ -117,9 +116,8 @@ class CrowdPipeline(LiveSettings, GLStage):
             self.cast[k].motion = character_motion(self.cast, k)
         # The town's obstacles, which the crowd steers around (the town's meshes are the town stage's).
         self.obstacles = build_town().obstacles() if config.town else None
-        # The clear start is a round's: a crowd with no survivor to play starts anywhere.
-        ai_config = config.ai if config.survivor else dataclasses.replace(config.ai, start_clear=0.0)
-        self.ai = CrowdAI(config.agents, config.seed, [m.motion for m in self.cast[:self.crowd_cast]], ai_config, config.origin,
+        self.ai = CrowdAI(config.agents, config.seed, [m.motion for m in self.cast[:self.crowd_cast]],
+                          self._crowd_ai_config(config.ai, config.survivor), config.origin,
                           shares=[s.share for s in specs], obstacles=self.obstacles)
         self.survivor: Survivor | None = None
         self._survivor_layers = np.zeros((1, LAYERS, 4), np.float32)
@@ -127,9 +125,7 @@ class CrowdPipeline(LiveSettings, GLStage):
         if config.survivor:
             self.survivor = Survivor(player_motion(self.cast[-1]), self.ai.origin)
             self.ai.player = self.survivor.position.copy()
-        # The headless player's circle: through the horde, or in a town round the crossing at the centre, in its streets.
-        radius = self.ai.half_extent * 0.5 if self.obstacles is None else min(self.ai.half_extent * 0.5, TOWN_CIRCLE_M)
-        self.player_script = PlayerScript(radius) if config.scripted_player else None
+        self.player_script = PlayerScript.headless(self.ai) if config.scripted_player else None
         if self.player_script is not None:
             self.player_script.update(self.ai, self.survivor)  # where it starts (time 0: it moves, it strikes nothing yet)
         self.layers = np.empty((config.agents, LAYERS, 4), np.float32)  # this frame's layers, as processed

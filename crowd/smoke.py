@@ -73,13 +73,14 @@ def run_headless(config: PipelineConfig, frames: int, size: tuple[int, int], scr
             with (overlay(ctx, pipeline, size) if overlay is not None else nullcontext()) as drawn_over, \
                     bar(frames, f"{config.agents:,} agents", "frame") as shown:  # on a terminal only (crowd.progress)
 
-                frames_seen = deque(maxlen=CLIP_FRAMES)
+                frames_seen, done = [], [0]
 
                 def frame():
                     pipeline.frame(target.framebuffer, FIXED_DT)
                     if drawn_over is not None:
                         drawn_over.draw(target.framebuffer, FIXED_DT)
-                    if clip is not None:
+                    done[0] += 1
+                    if clip is not None and done[0] > frames - CLIP_FRAMES:  # only the frames the clip keeps are read back
                         frames_seen.append(target.image())
                     shown.update(1)
 
@@ -101,7 +102,7 @@ def run_headless(config: PipelineConfig, frames: int, size: tuple[int, int], scr
         if screenshot is not None:
             write_png(screenshot, image)
         if clip is not None:
-            stats["clip_bytes"] = write_animation(clip, list(frames_seen), 1.0 / FIXED_DT)
+            stats["clip_bytes"] = write_animation(clip, frames_seen, 1.0 / FIXED_DT)
         if stats_path is not None:
             write_stats(stats_path, stats)
         stats["_image"] = image  # for callers in Python (tests); never written to the JSON

@@ -86,8 +86,8 @@ def pipeline_stats(pipeline) -> dict:
         "gpu_bytes": p.gpu_bytes(),
         "last_frame": dict(p.renderer.last),
         # The last frame's agents in view, drawn as meshes and as impostors (one quad each).
-        "drawn": {"meshes": int(p.renderer.last["visible"]) - int(p.renderer.last.get("impostors", 0)),
-                  "impostors": int(p.renderer.last.get("impostors", 0))},
+        "drawn": {"meshes": int(p.renderer.last["visible"]) - int(p.renderer.last["impostors"]),
+                  "impostors": int(p.renderer.last["impostors"])},
         # How each base-colour texture is held ("bc1", or "rgba16f" where BC1's error is over the bound).
         "textures": [] if p.renderer.materials is None else [p.renderer.materials.storage[t] for t in sorted(p.renderer.materials.storage)],
         "weapons": weapon_stats(p),

@@ -52,6 +52,9 @@ from .workers import (APPLY, FINISH, MAX_FOCUS, P_BLOCK, P_FOCUS, P_FOCUS_COUNT,
                       P_SUBSTEPS, P_TIME, PUSH, THINK, WorkersMixin)
 
 
+TOWN_CIRCLE_M = 9.0  # the headless player's circle in a town: round the crossing, clear of the buildings at its corners
+
+
 class PlayerScript:
     """The headless player: walks a circle through the crowd and strikes the nearest zombie in reach at
     a steady rhythm; a survivor faces the nearest zombie within WATCH_M as it goes, as a player keeps
@@ -66,6 +69,13 @@ class PlayerScript:
         self.strike_reach = float(strike_reach)
         self._next_strike = self.strike_every
 
+    @classmethod
+    def headless(cls, ai: "CrowdAI") -> "PlayerScript":
+        """The headless loop's player in `ai`'s world: a circle half way to the edge through the horde, or in
+        a town round the crossing at the centre, in its streets."""
+        half = ai.half_extent * 0.5
+        return cls(half if ai.obstacles is None else min(half, TOWN_CIRCLE_M))
+
     def update(self, ai: "CrowdAI", survivor=None) -> None:
         """Move the player along its circle and strike on the beat: the AI's player point itself, or,
         with a `survivor` (crowd.sim.player), that character, told to run to the circle's point and to
@@ -75,14 +85,8 @@ class PlayerScript:
         point = ai.origin + self.radius * np.array([math.cos(angle), math.sin(angle)])
         if survivor is not None:
             near = ai.nearest_alive(survivor.position, self.WATCH_M)
-            if near < 0:
-                survivor.walk_to(point)
-            else:  # on along the circle, facing the zombie (a walk to a point would face where it goes)
-                to = point - survivor.position
-                dist = float(np.hypot(*to))
-                threat = np.array([ai.x[near], ai.z[near]]) - survivor.position
-                survivor.command(to / dist * min(dist, 1.0) if dist > 0.05 else (0.0, 0.0),
-                                 threat if float(np.hypot(*threat)) > 1e-6 else None)
+            threat = None if near < 0 else np.array([ai.x[near], ai.z[near]]) - survivor.position
+            survivor.walk_to(point, threat if threat is not None and float(np.hypot(*threat)) > 1e-6 else None)
         else:
             ai.player = point
         while t >= self._next_strike:

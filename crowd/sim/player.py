@@ -113,9 +113,10 @@ class Survivor:
         self._face = None if face is None else _unit(face, "face")
         self._target = None
 
-    def walk_to(self, point) -> None:
-        """Run to a ground point (x, z), facing where it runs, and stop there."""
-        self._target, self._face = _pair(point, "ground point must be a finite (x, z)"), None
+    def walk_to(self, point, face=None) -> None:
+        """Run to a ground point (x, z) and stop there, facing `face` (x, z) on the way, or where it runs."""
+        self._target = _pair(point, "ground point must be a finite (x, z)")
+        self._face = None if face is None else _unit(face, "face")
 
     def strike(self) -> bool:
         """Swing the bat, unless a swing is under way. Returns whether a swing started."""
