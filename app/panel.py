@@ -209,7 +209,9 @@ class Panel:
         changed, fade = imgui.slider_float("cross-fade (s)", s.ai_setting("crossfade"), *CROSSFADE.slider)
         if changed:
             self.apply("crossfade", fade)
-        counts = s.pipeline.ai.counts()
+        counts = s.pipeline.crowd_ai.counts()  # (a crowd on the GPU: its facts, N frames late)
+        p = s.pipeline
+        imgui.text_wrapped(f"AI on the {p.ai_path.upper()}" + (f" ({p.ai_note})" if p.ai_note else ""))
         if imgui.begin_table("states", 3):
             for name, count in counts.items():
                 imgui.table_next_column()

@@ -2,8 +2,9 @@
 
 - ``bake``: the bake's size and its joint-position error against the float64 reference, per clip and
   bake rate (CPU only: this is about the data, not the GPU).
-- ``ai``: CPU ms per crowd-AI step (one 1/60 s substep plus writing the processor's layers) against
-  agent count, on one core.
+- ``ai``: ms per crowd-AI step (one 1/60 s substep plus writing the processor's layers) against agent
+  count: the numpy AI on the CPU and the compute passes on the GPU, side by side (bench/ai_report.py).
+- ``circles``: FLAME GPU 2's circles workload on this project's GPU grid (bench/circles.py).
 - ``scale``: GPU ms of the animation processor and of the skinned instanced draw against agent count,
   with the unskinned instanced draw of the same meshes measured in the same run as the ceiling.
 - ``error``: the processor's error against its run time for every bake rate, storage and
@@ -34,6 +35,8 @@ import numpy as np
 
 from crowd.progress import steps
 
+from .ai_report import bench_agreement, bench_ai
+from .circles import bench_circles
 from .common import device_cpu, grid_crowd, random_layers
 
 
@@ -162,77 +165,6 @@ def bench_scale(args) -> int:
     return 0
 
 
-def bench_ai(args) -> int:
-    """Steps a crowd around a scripted player for a warm-up, then times steps. The separation's share is
-    the AI's own count of the time it spent there (``CrowdAI.separation_seconds``), so the table says
-    what bounds a step."""
-    from crowd.sim.ai import CrowdAI, PlayerScript
-    from crowd.sim.config import AIConfig
-    from crowd.sim.motion import motion_for
-    from crowd.sim.agent_pool import available_cores
-    from crowd.asset.gltf import load_character
-    from crowd.anim.roles import bake_roles, match_roles
-    from crowd.allocator import keep_freed_memory
-
-    keep_freed_memory()  # as the frame loop runs (crowd.allocator)
-    character = load_character(args.model)
-    roles, _ = match_roles(character.clips)
-    baked = bake_roles(character, roles)
-    motion = motion_for(character, baked, roles)
-    device = device_cpu()
-    print(f"{device} | {available_cores()} cores to run on | median of {args.steps} steps after {args.warmup} warm-up steps of 1/60 s")
-    print(f"{'agents':>8} {'think every':>11} {'workers':>7} {'ms/step':>9} {'mean':>7} {'p95 ms':>8} {'separation':>11} {'list builds':>12} "
-          f"{'chasing':>8} {'exact':>6}")
-    rows = []
-    budgets = [int(k) for k in args.think_every.split(",")] if args.think_every else [AIConfig().think_every]
-    pools = [int(k) for k in args.workers.split(",")] if args.workers else [AIConfig().workers]
-    towns = [False, True] if args.town else [False]
-    cases = [(n, k, w, town) for n in [int(x) for x in args.agents.split(",")] for k in budgets for w in pools for town in towns]
-    if args.town:
-        from crowd.asset.town import build_town
-
-        obstacles = build_town().obstacles()
-    for n, think_every, workers, town in steps(cases, desc="ai", unit="case"):
-        ai = CrowdAI(n, args.seed, motion, AIConfig(think_every=think_every, workers=workers), obstacles=obstacles if town else None)
-        # The player's circle, as the headless loop walks it (in a town, round the crossing).
-        script = PlayerScript.headless(ai)
-        spent = []  # seconds of separation per timed step
-        for _ in range(args.warmup):
-            script.update(ai)
-            ai.step(1 / 60)
-        builds = ai.pair_builds
-        times = []
-        for _ in range(args.steps):
-            script.update(ai)
-            separation = ai.separation_seconds
-            t = time.perf_counter()
-            ai.step(1 / 60)
-            ai.write_layers()  # into the AI's own array, as the frame does
-            times.append(time.perf_counter() - t)
-            spent.append(ai.separation_seconds - separation)
-        faults = ai.check()
-        used = ai.ranges()
-        ai.close()
-        if faults:
-            print(f"crowd-bench: the AI broke an invariant at {n} agents: {'; '.join(faults)}", file=sys.stderr)
-            return 1
-        # The median step reuses the separation's neighbour list; the mean and p95 include its rebuilds.
-        row = {"agents": n, "ms_per_step": round(float(np.median(times)) * 1e3, 4), "mean_ms": round(float(np.mean(times)) * 1e3, 4),
-               "p95_ms": round(float(np.percentile(times, 95)) * 1e3, 4), "separation_ms": round(float(np.median(spent)) * 1e3, 4),
-               "separation_mean_ms": round(float(np.mean(spent)) * 1e3, 4),
-               "list_builds_per_step": round((ai.pair_builds - builds) / args.steps, 4), "states": ai.counts(),
-               "think_every": think_every, "budgeted": ai.budgeted(), "exact": ai.exact_count(), "workers": used, "town": town}
-        rows.append(row)
-        print(f"{n:>8} {think_every if ai.budgeted() else 1:>11} {used:>7} {row['ms_per_step']:>9.3f} {row['mean_ms']:>7.3f} {row['p95_ms']:>8.3f} "
-              f"{row['separation_ms']:>11.3f} {row['list_builds_per_step']:>12.3f} {row['states']['chase']:>8} {row['exact']:>6}"
-              + ("  town" if town else ""))
-    if args.json:
-        from crowd.files import atomic_write_bytes
-
-        atomic_write_bytes(Path(args.json), json.dumps({"device": device, "rows": rows}, indent=1).encode())
-    return 0
-
-
 def bench_frame(args) -> int:
     """The whole headless frame (AI, processor, culling, shadows, draws, weapons) as a window runs it.
     Period: `frames` frames issued back to back with one finish at the end, the CPU at most 2 frames
@@ -258,12 +190,13 @@ def bench_frame(args) -> int:
     info = describe(ctx)
     device = f"{info['gl_renderer']}, {info['gl_version']}; {device_cpu()}; moderngl {moderngl.__version__}"
     print(f"{device} | {size[0]}x{size[1]} | {args.frames} frames per period, {args.repeats} repeats")
-    print(f"{'agents':>15} {'period ms':>10} {'latency ms':>11} {'fps':>7}  biggest passes (median ms)")
+    print(f"{'agents':>15} {'ai':>4} {'period ms':>10} {'latency ms':>11} {'fps':>7} {'call ms':>7} {'GPU sum':>8}  biggest passes (median ms)")
     rows = []
     with Offscreen(ctx, size) as target:
-        cases = [(n, panel) for n in [int(x) for x in args.agents.split(",")] for panel in ((False, True) if args.panel else (False,))]
-        for n, panel in steps(cases, desc="frame", unit="case"):
-            config = scene.with_overrides(agents=n, workers=args.workers).pipeline_config()
+        cases = [(n, panel, path) for n in [int(x) for x in args.agents.split(",")] for panel in ((False, True) if args.panel else (False,))
+                 for path in args.ai_path.split(",")]
+        for n, panel, path in steps(cases, desc="frame", unit="case"):
+            config = scene.with_overrides(agents=n, workers=args.workers, ai_path=path).pipeline_config()
             with CrowdPipeline(ctx, config) as pipeline, \
                     (HeadlessPanel(ctx, pipeline, size, scene) if panel else contextlib.nullcontext()) as overlay:
                 pipeline.camera = scene.camera_for(size[0] / size[1]) or pipeline.overview_camera(size[0] / size[1])
@@ -276,9 +209,17 @@ def bench_frame(args) -> int:
                 for _ in range(args.warmup):
                     frame()
                 ctx.finish()
-                periods, latencies, intervals = [], [], []
+                periods, latencies, intervals, cpu, calls = [], [], [], [], []
+
+                def timed_frame():  # the CPU's own time issuing a frame (waits on the GPU are outside it)
+                    c = time.perf_counter()
+                    frame()
+                    calls.append((time.perf_counter() - c) * 1e3)
+
                 for _ in range(args.repeats):
-                    paced = paced_frames(ctx, frame, args.frames)
+                    c0 = time.thread_time()
+                    paced = paced_frames(ctx, timed_frame, args.frames)
+                    cpu.append((time.thread_time() - c0) * 1e3 / args.frames)  # the main thread's CPU time a frame
                     periods.append(sum(paced) / len(paced))
                     intervals += paced
                     for _ in range(max(1, args.frames // 2)):
@@ -296,14 +237,18 @@ def bench_frame(args) -> int:
                 memory = pipeline.gpu_bytes()
                 cull = pipeline.renderer.cull_path
                 ai_processes = pipeline.ai.ranges()
-            row = {"agents": n, "panel": panel, "cull": cull, "ai_processes": ai_processes, "drawn": drawn, "weapons": weapons, "gpu_bytes": memory, "period_ms": round(float(np.median(periods)), 3), "periods_ms": [round(p, 3) for p in periods],
+                ai_path, bytes_ = pipeline.ai_path, pipeline.frame_bytes()
+            gpu_sum = sum(v for k, v in passes.items() if pipeline.timer.clock.get(k) == "gpu")
+            row = {"agents": n, "panel": panel, "ai_path": ai_path, **bytes_, "cpu_ms": round(float(np.median(cpu)), 3),
+                   "frame_call_ms": round(float(np.median(calls)), 3), "gpu_passes_sum_ms": round(float(gpu_sum), 3),
+                   "gpu_passes_alone_sum_ms": round(float(sum(alone.values())), 3), "cull": cull, "ai_processes": ai_processes, "drawn": drawn, "weapons": weapons, "gpu_bytes": memory, "period_ms": round(float(np.median(periods)), 3), "periods_ms": [round(p, 3) for p in periods],
                    "frame_period_ms": {"p50": round(float(np.percentile(intervals, 50)), 3), "p95": round(float(np.percentile(intervals, 95)), 3),
                                        "max": round(float(np.max(intervals)), 3)},
                    "latency_ms": round(float(np.median(latencies)), 3), "passes_ms": passes, "gpu_passes_alone_ms": alone}
             rows.append(row)
             top = sorted(passes.items(), key=lambda kv: -kv[1])[:4]
-            print(f"{n:>8}{' +panel' if panel else '':7} {row['period_ms']:>10.2f} {row['latency_ms']:>11.2f} {1e3 / row['period_ms']:>7.1f}  "
-                  + ", ".join(f"{k} {v:.2f}" for k, v in top))
+            print(f"{n:>8}{' +panel' if panel else '':7} {ai_path:>4} {row['period_ms']:>10.2f} {row['latency_ms']:>11.2f} {1e3 / row['period_ms']:>7.1f} "
+                  f"{row['frame_call_ms']:>7.2f} {row['gpu_passes_sum_ms']:>8.2f}  " + ", ".join(f"{k} {v:.2f}" for k, v in top))
     if args.json:
         from crowd.files import atomic_write_bytes
 
@@ -676,8 +621,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", default=None,
                    help="comma-separated process counts to compare (1: this process only; 0: one per core; default: the setting's)")
     p.add_argument("--town", action="store_true", help="each case twice: on open ground, and in the built-in town (its obstacles)")
+    p.add_argument("--path", default="cpu", help="comma-separated AI paths: cpu (numpy), gpu (compute passes, GL 4.3), side by side")
     p.add_argument("--json", type=Path, help='write the results as JSON to this file')
     p.set_defaults(run=bench_ai)
+    p = sub.add_parser("ai-agreement", help="the GPU AI against the numpy AI: one substep per agent, and 600 substeps in aggregate")
+    p.add_argument("--model", type=Path, help="a .glb/.gltf (default: the built-in zombie)")
+    p.add_argument("--agents", type=int, default=1500, help="agents")
+    p.add_argument("--seeds", type=int, default=8, help="seeds of the one-substep comparison")
+    p.add_argument("--json", type=Path, help="write the results as JSON to this file")
+    p.set_defaults(run=bench_agreement)
+    p = sub.add_parser("circles", help="FLAME GPU 2's circles workload on this project's GPU grid: ms a step, and whether two runs agree bit for bit")
+    p.add_argument("--agents", type=int, default=1_000_000, help="agents")
+    p.add_argument("--steps", type=int, default=200, help="steps a run")
+    p.add_argument("--read", type=float, default=204.0, help="neighbours read an agent a step (sets the density)")
+    p.add_argument("--json", type=Path, help="write the results as JSON to this file")
+    p.set_defaults(run=bench_circles)
     p = sub.add_parser("frame", help="the whole headless frame: period (frames back to back, one finish) and latency (a finish per frame)")
     p.add_argument("--agents", default="1000,10000,100000,1000000", help="comma-separated agent counts (1,000,000 takes minutes on llvmpipe)")
     p.add_argument("--scene", type=Path, help="a scene file (default: the default scene)")
@@ -687,6 +645,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--warmup", type=int, default=10, help="frames before measuring (shaders compile, buffers grow)")
     p.add_argument("--dt", type=float, default=None,
                    help="simulated seconds a frame (default: the headless loop's 1/30 s, two AI substeps; 1/60 is what a 60 fps window steps)")
+    p.add_argument("--ai-path", default="auto", help="comma-separated AI paths to run each count on, side by side (auto, gpu, cpu)")
     p.add_argument("--workers", type=int, default=None,
                    help="processes that step the AI (the workers setting: 1 this process only, 0 one per core; default: the scene's)")
     p.add_argument("--panel", action="store_true",

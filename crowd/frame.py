@@ -277,6 +277,34 @@ class LayerOverrides:
             layers[agents, layer, WEIGHT] = weight
 
 
+# -- the sim stage's output on the GPU
+
+
+@dataclass
+class SimFrame:
+    """What the GPU AI (crowd.sim.gpu) hands the later stages in a frame, in place of ``Instances`` and
+    the layers: its state buffers (GPU buffers by name, laid out as crowd.sim.gpu.state says), the agent
+    rows they hold (`agents`, each character's block in `cast`), and the rows the stages draw (`rows`:
+    the crowd's and, after them, the survivor's, whose instance comes from the CPU in `extra`). Nothing in
+    it is read by the CPU; the read-back facts arrive apart (crowd.sim.gpu.facts)."""
+
+    agents: int
+    cast: tuple
+    buffers: dict  # name -> GPU buffer of the AI's state (crowd.sim.gpu.state.FIELDS)
+    origin: np.ndarray  # float64 (x, z): the positions in the buffers are relative to it
+    steps: int  # the AI's step() count: an agent whose spawned_step is above a frame's count was not there then
+    extra: "Instances | None" = None  # the survivor's row, drawn after the crowd's
+    max_scale: float = 1.0  # the largest agent scale (the shadows' reach upward)
+
+    @property
+    def rows(self) -> int:
+        return self.agents + (0 if self.extra is None else len(self.extra))
+
+    def counts(self) -> tuple:
+        """Agents of each character the stages draw: the crowd's blocks, then the survivor's."""
+        return tuple(self.cast) + (() if self.extra is None else (len(self.extra),))
+
+
 # -- instances and the camera
 
 

@@ -307,6 +307,36 @@ class Fence:
             self._sync = None
 
 
+class FencedSlots:
+    """Which frame each slot of a read-back ring holds and the fence that says the GPU is done with it:
+    a frame's slot is read only once its own copy is done, never while the GPU still writes it."""
+
+    def __init__(self, slots: int):
+        self._frames = [-1] * slots
+        self._fences: list[Fence | None] = [None] * slots
+
+    def mark(self, frame: int) -> None:
+        """Frame `frame`'s commands for its slot are queued: fence them."""
+        k = frame % len(self._frames)
+        if self._fences[k] is not None:
+            self._fences[k].release()
+        self._fences[k], self._frames[k] = Fence(), frame
+
+    def ready(self, frame: int) -> bool:
+        """Whether frame `frame`'s slot holds that frame, done (never waits)."""
+        k = frame % len(self._frames)
+        return frame >= 0 and self._frames[k] == frame and self._fences[k] is not None and self._fences[k].signaled()
+
+    def forget(self) -> None:
+        self._frames = [-1] * len(self._frames)
+
+    def release(self) -> None:
+        for fence in self._fences:
+            if fence is not None:
+                fence.release()
+        self._fences = [None] * len(self._fences)
+
+
 class Offscreen(GLStage):
     """A colour and depth framebuffer of one size: where headless frames, benchmarks and tests draw."""
 

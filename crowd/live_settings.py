@@ -9,6 +9,8 @@ config, the cast, the stages, the AI, the palette sync); it is not built on its 
 
 from __future__ import annotations
 
+import contextlib
+
 import dataclasses
 import math
 
@@ -222,8 +224,20 @@ class LiveSettings:
         return config if survivor else dataclasses.replace(config, start_clear=0.0)
 
     def set_ai_config(self, config: AIConfig) -> None:
+        # (A crowd on the GPU reads the settings as uniforms, each step: nothing of it to read back.)
         self.ai.set_config(self._crowd_ai_config(config, self.survivor is not None))
         self.config = dataclasses.replace(self.config, ai=self.ai.config)
+
+    @contextlib.contextmanager
+    def _numpy_ai(self):
+        """A change made through the numpy AI to a crowd that lives on the GPU: it is read back first and
+        handed to the GPU again after (an event, not a frame: a resize, new settings, new clips)."""
+        crowd = getattr(self, "gpu_crowd", None)
+        if crowd is not None:
+            crowd.store()
+        yield
+        if crowd is not None:
+            crowd.load(self.ai)
 
     def rebake(self, fps: float | str, precision: str, interpolation: str | None = None, bound_mm: float | None = None) -> None:
         """Bake the scene's clips again at another rate, precision or compression bound, or process them
@@ -260,9 +274,10 @@ class LiveSettings:
         bake = bakes[0]
         self.config = dataclasses.replace(self.config, bake_fps=bake.fps, precision=bake.precision, interpolation=interpolation,
                                           compression_bound_mm=bake.bound_mm)
-        for k, member in enumerate(self.cast[:self.crowd_cast]):
-            member.motion = character_motion(self.cast, k)
-            self.ai.set_motion(member.motion, k)
+        with self._numpy_ai():
+            for k, member in enumerate(self.cast[:self.crowd_cast]):
+                member.motion = character_motion(self.cast, k)
+                self.ai.set_motion(member.motion, k)
         if self.survivor is not None:
             self.survivor.motion = player_motion(self.cast[-1])
 
@@ -308,7 +323,8 @@ class LiveSettings:
         motion = character_motion(self.cast, int(character), speeds)  # checks the range
         member.clip_speed = {k: v for k, v in speeds.items() if v != 1.0}
         member.motion = motion
-        self.ai.set_motion(motion, int(character))
+        with self._numpy_ai():
+            self.ai.set_motion(motion, int(character))
 
     def set_clip_loop(self, name: str, loop: bool, character: int = 0) -> None:
         member = self.member(character)
@@ -318,6 +334,9 @@ class LiveSettings:
         agents = SETTINGS["agents"].check(agents, PipelineError)
         before = self.ai.n
         self.ai.resize(agents)
+        if self.gpu_crowd is not None:  # the kept agents copied on the GPU, the new ones sent
+            self.gpu_crowd.gpu.resize_from(self.ai)
+        self._crowd_since = self.frames
         moves = list(self.ai.moved)  # each character keeps its first agents, at its block's new place
         if self.survivor is not None:
             moves.append((before, agents, 1))  # the survivor's row follows the crowd's
@@ -346,6 +365,9 @@ class LiveSettings:
             self.ai.player = self.survivor.position.copy()
         self._blows_seen = 0
         old.close()
+        if self.gpu_crowd is not None:
+            self.gpu_crowd.load(self.ai)
+        self._crowd_since = self.frames
         self.foot_skate.reset()
         self.processor.reset_lock()  # other agents now: nothing held is theirs
         self.lock_steps.reset()

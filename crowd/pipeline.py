@@ -41,6 +41,7 @@ from .anim.bake import AnimationBake
 from .anim.foot_lock import bake_legs
 from .anim.foot_skate import FootSkateMonitor
 from .anim.morph import NOT_HELD
+from .anim.palette_layout import texel_code
 from .anim.palette_reference import palette_joint_positions
 from .anim.processor import AnimationProcessor
 from .asset.model import Character
@@ -51,8 +52,10 @@ from .draw.render import CrowdRenderer, FrameView, view_proj
 from .draw.sync import PaletteSync
 from .draw.town import TownRenderer
 from .draw.weapons import AgentFrames, WeaponRenderer
+from .asset.model import cast_weapons
 from .frame import Camera, FrameError, Instances, LayerOverrides, cast_counts
-from .gl import GLStage
+from .gl import GL_LIMITS, GLStage, feature_level, has_compute
+from .gpu_crowd import GpuCrowd
 from .live_settings import LiveSettings
 from .pipeline_config import PipelineConfig, PipelineError
 from .progress import bar
@@ -84,6 +87,11 @@ class CrowdPipeline(LiveSettings, GLStage):
         keep_freed_memory()  # the frame's numpy temporaries reuse memory instead of faulting it in anew (crowd.allocator)
         self.stages = Stages()  # nothing yet: a failure before the build below releases nothing
         self.ai: CrowdAI | None = None  # likewise: its worker processes start with a big enough crowd's first step
+        self.gpu_crowd: GpuCrowd | None = None  # the crowd on the GPU (ai_path), beside the numpy AI it was made from
+        self.ai_note: str | None = None  # why "auto" left the crowd on the numpy AI (or moved it there)
+        self._steps_at: dict[int, int] = {}  # frame -> the AI's step count when it began (the GPU path's palette sync)
+        self._crowd_since = 0  # the frame since which the crowd's agents are where they are (a new crowd, a resize)
+        self.selected = -1  # the agent the panel follows (its row comes back with the facts on the GPU path)
         self.timer = PassTimer(ctx)
         SETTINGS["agents"].check(config.agents, PipelineError)
         SETTINGS["gl"].check(config.gl, PipelineError)
@@ -128,7 +136,7 @@ class CrowdPipeline(LiveSettings, GLStage):
         self.player_script = PlayerScript.headless(self.ai) if config.scripted_player else None
         if self.player_script is not None:
             self.player_script.update(self.ai, self.survivor)  # where it starts (time 0: it moves, it strikes nothing yet)
-        self.layers = np.empty((config.agents, LAYERS, 4), np.float32)  # this frame's layers, as processed
+        self._layers = np.empty((config.agents, LAYERS, 4), np.float32)  # this frame's layers, as processed (the numpy AI's)
         started.update(1)
         started.set_description("starting the crowd: the GPU stages")
         self.impostor_notes: list[str] = []  # one line each: what making the atlases said (a rebuilt cache)
@@ -136,6 +144,7 @@ class CrowdPipeline(LiveSettings, GLStage):
         # Leave out what the scene does not need: no weapons, no socket, or nobody armed → no read-back
         # stage, no gather pass, no weapon meshes, and one palette instead of a ring.
         self.stages = Stages.build(ctx, self._parts(), self._spec(self._armed(config)), self.counts)
+        self._start_gpu_ai(ctx, config)
         started.update(1)
         self.sync = PaletteSync(self.processor.history, self.rows)
         # The running crowd's foot skate: FOOT_SKATE_SAMPLE agents' foot joints ride on the socket read-back.
@@ -151,6 +160,58 @@ class CrowdPipeline(LiveSettings, GLStage):
         self.morph_holds: dict[int, tuple[np.ndarray, int]] = {}
         self.last = FrameState()
         self.camera = self.default_camera(16 / 9)
+
+    # -- where the AI runs
+
+    def gpu_ai_refusal(self, ctx: moderngl.Context, config: PipelineConfig) -> str | None:
+        """Why the crowd cannot live on the GPU in this pipeline (one line), or None."""
+        limit = GL_LIMITS[config.gl]
+        if not has_compute(ctx, limit):
+            return f"the GPU AI needs GL 4.3 compute shaders, and this context runs GL {feature_level(ctx, limit) / 100:.1f}"
+        if self.renderer.cull_path != "gpu":
+            return f"the GPU AI's records are packed for the GPU cull path, and this crowd is culled on the {self.renderer.cull_path} path"
+        return None
+
+    def _start_gpu_ai(self, ctx: moderngl.Context, config: PipelineConfig) -> None:
+        """The crowd on the GPU where the ai_path setting asks for it and it can run: "gpu" refuses a
+        pipeline it cannot run in, "auto" falls back to the numpy AI and says why (``ai_note``)."""
+        path = SETTINGS["ai_path"].check(config.ai_path, PipelineError)
+        why = None if path == "cpu" else self.gpu_ai_refusal(ctx, config)
+        if path == "gpu" and why is not None:
+            raise PipelineError(f"ai_path gpu: {why}")
+        self.ai_note = why if path == "auto" else None
+        if path != "cpu" and why is None:
+            self.gpu_crowd = GpuCrowd(ctx, self.ai, self.latency)
+            self.renderer.gpu_records(cast_weapons([m.character for m in self.cast[:self.crowd_cast]])[0])
+            self._survivor_ground = None if self.survivor is None else self.survivor.position.copy()
+
+    def _gpu_path_holds(self) -> bool:
+        """Whether the crowd stays on the GPU after the live changes since the last frame: a change it
+        cannot run with (the CPU cull path, weapons on) moves it to the numpy AI for good, and says why; a
+        new renderer is told to pack its records from the GPU."""
+        why = self.gpu_ai_refusal(self.ctx, self.config)
+        if why is not None:
+            self.gpu_crowd.store()
+            self.gpu_crowd.release()
+            self.gpu_crowd = None
+            self.ai_note = f"moved to the numpy AI: {why}"
+            self.lock_steps.reset()
+            return False
+        if self.renderer.gpu_record_pass is None:
+            self.renderer.gpu_records(cast_weapons([m.character for m in self.cast[:self.crowd_cast]])[0])
+        if self.weapons is not None:
+            self.gpu_crowd.arm(self.weapons.socket_joints, [lod >= 0 for lod in self.renderer.impostor_lods])
+        self.renderer.gpu_record_pass.sent_bytes = 0
+        return True
+
+    @property
+    def ai_path(self) -> str:
+        return "cpu" if self.gpu_crowd is None else "gpu"
+
+    @property
+    def crowd_ai(self):
+        """The crowd the player's script and the session act on: the numpy AI, or the GPU's (crowd.gpu_crowd)."""
+        return self.ai if self.gpu_crowd is None else self.gpu_crowd
 
     # -- the cast
 
@@ -278,6 +339,8 @@ class CrowdPipeline(LiveSettings, GLStage):
             overrides.validate(len(self.member(forced.character if forced is not None else 0).bake.clips), LAYERS)
         sim_time, ai_before = self.ai.time, self.ai
         survivor = self.survivor
+        if self.gpu_crowd is not None and self._gpu_path_holds():
+            return self._frame_gpu(framebuffer, dt, overrides, sim_time, ai_before)
         with t.cpu("ai"):
             if self.player_script is not None:
                 self.player_script.update(self.ai, survivor)
@@ -290,7 +353,7 @@ class CrowdPipeline(LiveSettings, GLStage):
             if survivor is not None:
                 steps_before = self._survivor_events(landed, steps_before)
             instances = self.instances()
-            self.layers = layers = self.ai.write_layers()  # the AI's own array: no copy (its workers write it)
+            self._layers = layers = self.ai.write_layers()  # the AI's own array: no copy (its workers write it)
             if overrides:
                 overrides.apply(layers, self.ai.time, *self._forced_clip(overrides), within=self._block(overrides))
             blocks = layers
@@ -317,19 +380,8 @@ class CrowdPipeline(LiveSettings, GLStage):
                 self.processor.upload(blocks, self.lock_steps.since_last_run(self.ai, survivor, self.rows), stepped)
             else:
                 self.processor.upload(blocks)
-        for k, part in enumerate(self.processor.parts):
-            if part.held is not None:
-                self.processor.hold_morphs(k, *self.morph_holds.get(k, (np.full(len(part.held), -1.0), NOT_HELD)))
+        self._process(f)
         rows = self.rows
-        if rows:
-            with t.gpu("process"):
-                self.processor.run()
-            self._run("process")
-            if any(part.key for part in self.processor.layout.parts):
-                self._run("impostors")  # (the keys in the process pass; the quads in the shadow and draw passes)
-            if any(part.morph for part in self.processor.layout.parts):
-                self._run("morph_weights")  # (in the process pass; the draws add the deltas: gpu_bytes' "morphs")
-            self.sync.processed(f, fresh=self.processor.runs == 1)  # a new palette: the frames kept before it are gone
         agent_weapon = weapon_of_agent(self.ai, [m.character for m in self.cast], survivor)
         if self.readback is not None and rows:
             armed = placed_weapons(self.ai, self.renderer, self.camera.eye, agent_weapon, instances, len(self.cast) - 1)  # an impostor's weapon is not placed
@@ -346,6 +398,115 @@ class CrowdPipeline(LiveSettings, GLStage):
                                      instances.scale[sampled], self.ai.time)
         # Each body's palette: frame F - N where the weapon read-back is from that frame, else this one.
         row_offset = self.sync.row_offsets(None if read is None else read.frame, self.processor.row_offset) if rows else 0
+        return self._render(framebuffer, f, instances, row_offset, read, agent_weapon)
+
+    def _process(self, f: int) -> None:
+        """The processor's pass over this frame's uploaded input (with the morph weights the panel holds)."""
+        t = self.timer
+        for k, part in enumerate(self.processor.parts):
+            if part.held is not None:
+                self.processor.hold_morphs(k, *self.morph_holds.get(k, (np.full(len(part.held), -1.0), NOT_HELD)))
+        rows = self.rows
+        if rows:
+            with t.gpu("process"):
+                self.processor.run()
+            self._run("process")
+            if any(part.key for part in self.processor.layout.parts):
+                self._run("impostors")  # (the keys in the process pass; the quads in the shadow and draw passes)
+            if any(part.morph for part in self.processor.layout.parts):
+                self._run("morph_weights")  # (in the process pass; the draws add the deltas: gpu_bytes' "morphs")
+            self.sync.processed(f, fresh=self.processor.runs == 1)  # a new palette: the frames kept before it are gone
+
+    def _frame_gpu(self, framebuffer: moderngl.Framebuffer, dt: float, overrides, sim_time: float, ai_before) -> FrameState:
+        """``frame`` with the crowd on the GPU (crowd.gpu_crowd): the player, the survivor's row and a
+        person's overrides go in, the facts of frame F - N come back, and every agent's step, layers,
+        foot-lock motion and record are written on the GPU."""
+        t, f, survivor, crowd = self.timer, self.frames, self.survivor, self.gpu_crowd
+        self._steps_at[f] = self.ai.steps  # an agent spawned in this frame's step has this spawned_step
+        for old in [k for k in self._steps_at if k < f - RING]:
+            del self._steps_at[old]
+        with t.cpu("ai"):
+            crowd.fetch(f)
+        read, fallen = self._fetch_sockets(f, crowd)
+        with t.cpu("ai"):
+            if self.player_script is not None:
+                self.player_script.update(crowd, survivor)
+            landed = move_survivor(self.ai, survivor, dt, self.obstacles) if survivor is not None else False
+            crowd.step(dt)
+            if survivor is not None:
+                self._blows_seen = crowd.settle(survivor, landed, self._blows_seen)
+                if survivor.down:
+                    survivor.new_round(self.ai.origin)
+                    self._new_crowd(self.config.seed + survivor.rounds - 1)
+                    crowd = self.gpu_crowd
+            crowd.capture(f, survivor, self.selected)
+        self._run("ai")
+        self._pose_lag.append(float(min(dt, self.ai.config.max_dt)))
+        with t.cpu("upload"):
+            stepped = self.ai.time - sim_time if self.ai is ai_before else min(float(dt), self.ai.config.max_dt)
+            layers = motion = None
+            if survivor is not None:
+                layers = survivor.write_layers(self._survivor_layers)
+                if self.processor.legs is not None:
+                    motion = np.array([[*(survivor.position - self._survivor_ground), *survivor.heading]], np.float32)
+                    self._survivor_ground = survivor.position.copy()
+            clip, within = (self._forced_clip(overrides), self._block(overrides)) if overrides else ((1.0, 1.0, True), None)
+            crowd.upload(self.processor, layers, motion, overrides, self.ai.time, clip, within, stepped)
+        self._process(f)
+        rows = self.rows
+        latest = self.processor.row_offset(0) if rows else 0
+        extra = None
+        if survivor is not None:
+            extra = Instances(np.array([[survivor.position[0], 0.0, survivor.position[1]]]), np.array([survivor.yaw], np.float32),
+                              np.ones(1, np.float32), np.full((1, 4), 255, np.uint8), {})
+        sim = crowd.gpu.frame_output(extra)
+        row_offset, agent_weapon = (latest, latest, -1), None
+        if self.weapons is not None and crowd.sockets is not None and rows:
+            agent_weapon = weapon_of_agent(self.ai, [m.character for m in self.cast], survivor)  # (a trait: the numpy AI's array holds it)
+            self._gather_sockets(f, sim, crowd, survivor, agent_weapon)
+            age = None if read is None else self.sync.age(read.frame)
+            if age is not None:  # each body from the read-back's palette, but agents born after it from this frame's
+                row_offset = (self.processor.row_offset(age), latest, self._steps_at[read.frame])
+        return self._render(framebuffer, f, sim, row_offset, read, agent_weapon, fallen)
+
+    def _fetch_sockets(self, f: int, crowd) -> tuple:
+        """Frame F - N's weapon sockets (and who was down then) with the crowd on the GPU, read first in the
+        frame as the numpy path reads its own: (read or None, the agents down, as a flag per row)."""
+        if self.weapons is None or crowd.sockets is None:
+            return None, None
+        with self.timer.cpu("readback"):
+            got = crowd.sockets.fetch(f - self.latency)
+            if got is not None and got[0].frame < self._crowd_since:  # gathered from a crowd since replaced or resized
+                got = None
+        self._run("readback")
+        read, down = (None, None) if got is None else got
+        if read is not None:
+            self.readback_waits.append(read.wait_ms)
+        fallen = np.zeros(self.rows, bool)
+        if down is not None:
+            fallen[down[down < self.rows]] = True
+        return read, fallen
+
+    def _gather_sockets(self, f: int, sim, crowd, survivor, weapon: np.ndarray) -> None:
+        """This frame's socket gather queued (crowd.draw.gpu_sockets), after the processor's pass; `weapon`:
+        each row's weapon (crowd.agent_rows.weapon_of_agent)."""
+        texel_base = self.renderer.gpu_record_pass.texel_base(self.processor.layout, self.ai.n)
+        extra = None
+        if survivor is not None and weapon[-1] >= 0:
+            x, y = self.processor.layout.texel(np.array([self.ai.n]), 0, self.processor.row_offset(0))
+            extra = (int(weapon[-1]), int(texel_code(x, y)[0]))
+        reach = self.renderer.impostor_distance + self.renderer.lod_fade + float(self.renderer.bounds[:, 3].max()) * 2.0
+        with self.timer.gpu("gather"):
+            crowd.sockets.gather(f, sim, self.processor, texel_base, int(texel_code(0, self.processor.row_offset(0))), self.camera.eye,
+                                 reach, extra)
+        self._run("gather")
+
+    def _render(self, framebuffer: moderngl.Framebuffer, f: int, instances, row_offset, read, agent_weapon, fallen=None) -> FrameState:
+        """The frame after its processor pass: cull and LOD, weapons, shadows, draws, ground, depth pyramid.
+        A crowd on the GPU (`instances` a SimFrame) says who is down in `fallen` and has no agent frames:
+        its weapons are placed by the GPU cull from the records."""
+        t, survivor, rows = self.timer, self.survivor, self.rows
+        on_gpu = self.gpu_crowd is not None
         with t.cpu("cull_lod"):
             # The CPU path culls and packs here; the GPU path packs and uploads every agent's record and
             # then dispatches the cull ("cull": its GPU time; a query around the upload would also count
@@ -368,16 +529,20 @@ class CrowdPipeline(LiveSettings, GLStage):
         agent_frames = None
         if self.weapons is not None:
             with t.cpu("attach"):
-                agent_frames = AgentFrames(instances.position, instances.yaw, instances.scale, self.camera.eye)
+                if agent_weapon is None:
+                    agent_weapon = weapon_of_agent(self.ai, [m.character for m in self.cast], survivor)
+                if not on_gpu:
+                    agent_frames = AgentFrames(instances.position, instances.yaw, instances.scale, self.camera.eye)
+                    fallen = ~self.ai.alive() if survivor is None else np.append(~self.ai.alive(), False)
                 gpu = self.renderer.gpu
-                fallen = ~self.ai.alive() if survivor is None else np.append(~self.ai.alive(), False)
                 # (An agent drawn as its impostor alone holds its weapon in its impostor: none placed for it.)
                 shown, casting = (view.visible, view.casting) if view.held is None or view.visible is None else \
                     (view.visible & ~view.held, None if view.casting is None else view.casting & ~view.held[None])
                 # (the GPU paths' visibility: the compute cull's buffers, or the feedback cull's texture)
                 visibility = (gpu.visible, gpu.agents_buffer) if gpu is not None else \
                     self.renderer.feedback.visible if self.renderer.feedback is not None else None
-                self.weapons.attach(self.sync.synced(read, rows), agent_frames, agent_weapon, shown, visibility, casting, view.lod, fallen=fallen)
+                synced = self.sync.synced(read, rows, row_offset[2] if on_gpu else None)
+                self.weapons.attach(synced, agent_frames, agent_weapon, shown, visibility, casting, view.lod, fallen=fallen)
             self._run("attach")
         self.last = FrameState(f, view, read, row_offset, agent_frames)
         framebuffer.use()
@@ -478,14 +643,23 @@ class CrowdPipeline(LiveSettings, GLStage):
         if self.weapons is None or not self.weapons.last["weapons"]:
             return None
         agents, weapon, _ = self.weapons.drawn
+        offset = self.last.row_offset
+        if self.gpu_crowd is not None:  # (a crowd on the GPU read back whole: tests and stats only)
+            slot, latest, limit = offset
+            born = np.append(self.gpu_crowd.store().spawned_step, 0)[: self.rows]
+            offset = np.where((limit >= 0) & (born > limit), latest, slot)
         if body == "drawn":
-            offsets = np.broadcast_to(np.asarray(self.last.row_offset, np.int64), (self.rows,))[agents]
+            offsets = np.broadcast_to(np.asarray(offset, np.int64), (self.rows,))[agents]
         else:
             offsets = np.full(len(agents), self.processor.row_offset(0), np.int64)
         rows = self.processor.read_rows(agents, self.weapons.socket_joints[weapon], offsets).astype(np.float64)
         socket_model = np.einsum("kij,kj->ki", rows, self.weapons.socket_bind[weapon][:, :, 3])
-        hand = self.last.agent_frames.points(agents, socket_model)
-        return float(np.max(np.linalg.norm(hand - self.weapons.grip_points(self.last.agent_frames), axis=1)) * 1e3)
+        frames = self.last.agent_frames
+        if frames is None and self.gpu_crowd is not None:
+            drawn = self.instances()
+            frames = AgentFrames(drawn.position, drawn.yaw, drawn.scale, self.camera.eye)
+        hand = frames.points(agents, socket_model)
+        return float(np.max(np.linalg.norm(hand - self.weapons.grip_points(frames), axis=1)) * 1e3)
 
     def project(self, world: np.ndarray, size: tuple[int, int]) -> np.ndarray:
         """Pixel (x, y from the top-left) of world points (P, 3) in this frame's camera."""
@@ -507,8 +681,43 @@ class CrowdPipeline(LiveSettings, GLStage):
         ground = np.stack([self.ai.x[block], np.zeros(len(yaw)), self.ai.z[block]], axis=1)
         return ground + self.ai.scale[block, None].astype(np.float64) * rotated
 
+    @property
+    def layers(self) -> np.ndarray:
+        """The crowd's layers as this frame processed them (N, 4, 4); a crowd on the GPU reads them back,
+        waiting for the GPU (tests, stats: never in a frame; the panel reads one row, ``layer_row``)."""
+        if self.gpu_crowd is None:
+            return self._layers
+        return self.gpu_crowd.read_layers(0, self.ai.n)
+
+    @layers.setter
+    def layers(self, value: np.ndarray) -> None:
+        self._layers = value
+
+    def layer_row(self, agent: int) -> np.ndarray:
+        """One agent's layers as this frame processed them (4, 4)."""
+        if self.gpu_crowd is None:
+            return self._layers[agent]
+        return self.gpu_crowd.read_layers(agent, agent + 1)[0]
+
+    def frame_bytes(self) -> dict[str, int]:
+        """Bytes the CPU sent to the GPU and read back in the last frame for its agents: on the GPU AI path
+        every write and read it makes (the survivor's row, overrides, counters, a blow's list); on the
+        numpy path the per-agent ones (layers, records, the foot lock's motion; the lists too on the CPU
+        cull path: not counted), and the weapons' read-back."""
+        if self.gpu_crowd is not None:
+            c = self.gpu_crowd
+            sockets = (c.sockets.sent_bytes, c.sockets.read_bytes) if c.sockets is not None and self.weapons is not None else (0, 0)
+            return {"upload_bytes": c.sent_bytes + c.gpu.sent_bytes + self.renderer.gpu_record_pass.sent_bytes + sockets[0],
+                    "readback_bytes": c.read_bytes + sockets[1]}
+        rows = self.rows
+        lock = 16 * rows if self.processor.legs is not None else 0
+        read = self.last.read
+        return {"upload_bytes": 64 * rows + 32 * rows + lock, "readback_bytes": 0 if read is None else int(read.rows.nbytes)}
+
     def gpu_bytes(self) -> dict[str, int]:
         out = dict(self.processor.gpu_bytes())
+        if self.gpu_crowd is not None:
+            out.update(self.gpu_crowd.gpu_bytes())
         out.update(self.renderer.gpu_bytes())
         if self.readback is not None:
             out["readback"] = self.readback.gpu_bytes()
@@ -519,6 +728,8 @@ class CrowdPipeline(LiveSettings, GLStage):
         return out
 
     def release(self) -> None:
+        if self.gpu_crowd is not None:
+            self.gpu_crowd.release()
         if self.ai is not None:
             self.ai.close()
         self.timer.release()

@@ -40,6 +40,7 @@ class PipelineConfig:
     compression_bound_mm: float = DEFAULTS["compression_bound_mm"]  # the compressed bake's error bound (precision "compressed")
     interpolation: str = DEFAULTS["interpolation"]
     processor_path: str = DEFAULTS["processor"]
+    ai_path: str = DEFAULTS["ai_path"]  # "auto", "gpu" or "cpu": where the crowd AI runs (crowd.sim.gpu, or the numpy AI)
     shadows: bool = DEFAULTS["shadows"]
     culling: bool = DEFAULTS["culling"]
     occlusion: bool = DEFAULTS["occlusion"]  # against the previous frame's depth pyramid (the gpu cull path)

@@ -99,6 +99,7 @@ class Scene:
     lod_distances: tuple = DEFAULTS["lod_distances"]
     lod_error_px: float = DEFAULTS["lod_error_px"]
     processor: str = DEFAULTS["processor"]
+    ai_path: str = DEFAULTS["ai_path"]
     cull: str = DEFAULTS["cull"]
     gl: str = DEFAULTS["gl"]
     foot_lock: bool = DEFAULTS["foot_lock"]
@@ -177,7 +178,7 @@ class Scene:
 
     def pipeline_config(self) -> PipelineConfig:
         return PipelineConfig(agents=self.agents, seed=self.seed, characters=tuple(c.spec() for c in self.characters), bake_fps=self.bake_fps,
-                              precision=self.precision, compression_bound_mm=self.compression_bound_mm, interpolation=self.interpolation, processor_path=self.processor, shadows=self.shadows, culling=self.culling,
+                              precision=self.precision, compression_bound_mm=self.compression_bound_mm, interpolation=self.interpolation, processor_path=self.processor, ai_path=self.ai_path, shadows=self.shadows, culling=self.culling,
                               occlusion=self.occlusion, lod_distances=tuple(self.lod_distances), lod_error_px=self.lod_error_px, ai=self.ai, weapons=self.weapons,
                               readback_latency=self.readback_latency, cull=self.cull, gl=self.gl, foot_lock=self.foot_lock, morphs=self.morphs,
                               impostors=self.impostors, impostor_distance=self.impostor_distance, lod_fade=self.lod_fade, survivor=self.survivor, town=self.town)

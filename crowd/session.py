@@ -54,7 +54,7 @@ class CrowdSession(GLStage):
         self.scene = scene
         self.paused = False
         self.time_scale = 1.0
-        self.selected = -1
+        self._selected = -1
         self.overrides = LayerOverrides()  # clips forced and layer weights held: the frame applies them
         self.bake_error: dict | None = None  # the last measure_error(), until the next re-bake
         self._pending_steps = 0
@@ -386,6 +386,28 @@ class CrowdSession(GLStage):
 
     # -- every setting by name: what the schema test and scripted controls use
 
+    @property
+    def selected(self) -> int:
+        """The agent the panel follows (-1: none); the pipeline copies its row out where the crowd is on the GPU."""
+        return self._selected
+
+    @selected.setter
+    def selected(self, agent: int) -> None:
+        self._selected = int(agent)
+        if self.pipeline is not None:
+            self.pipeline.selected = self._selected
+
+    def _agent_row(self, a: int) -> dict | None:
+        """Agent `a`'s state as the panel and the markers show it: the numpy AI's arrays, or, for a crowd on
+        the GPU, the row the facts brought back N frames late (None until they do)."""
+        crowd = self.pipeline.gpu_crowd
+        if crowd is not None:
+            return crowd.agent_row(a)
+        ai = self.pipeline.ai
+        return {"agent": a, "x": float(ai.x[a]), "z": float(ai.z[a]), "vx": float(ai.vx[a]), "vz": float(ai.vz[a]),
+                "phase": float(ai.phase[a]), "scale": float(ai.scale[a]), "state": int(ai.state[a]), "action": int(ai.action[a]),
+                "health": int(ai.health[a])}
+
     def apply_setting(self, name: str, value) -> None:
         """Set one setting of crowd.settings by its name, through the control that owns it. Per-clip and
         per-layer ones (playback speed: use
@@ -402,7 +424,7 @@ class CrowdSession(GLStage):
             "morphs": self.set_morphs, "impostors": self.set_impostors, "impostor_distance": self.set_impostor_distance,
             "lod_fade": self.set_lod_fade, "lod_error_px": self.set_lod_error_px,
         }
-        if name in ("model_scale", "survivor", "town", "gl"):  # what the cast, its world and its GL paths are: set when the crowd is built
+        if name in ("model_scale", "survivor", "town", "gl", "ai_path"):  # what the cast, its world and its GL paths are: set when the crowd is built
             SETTINGS[name].check(value, SessionError)
             raise SessionError(f"{SETTINGS[name].words} is applied when the crowd is built: save the scene and run it again")
         if name in AI_SETTINGS:
@@ -433,6 +455,9 @@ class CrowdSession(GLStage):
         if not ai.n:
             return -1
         origin, d = self.ray(x, y, size)
+        if self.pipeline.gpu_crowd is not None:  # the same test as a GPU pass: 8 bytes read back for the click
+            self.selected = self.pipeline.gpu_crowd.gpu.pick(origin, d, PICK_RADIUS, PICK_HEIGHT)
+            return self.selected
         # Ray against vertical cylinders: solve in the ground plane, then check the height of the hit.
         ox, oz = origin[0] - ai.x, origin[2] - ai.z
         radius = PICK_RADIUS * ai.scale.astype(np.float64)
@@ -497,11 +522,8 @@ class CrowdSession(GLStage):
         if self.pipeline.survivor is not None:
             self.pipeline.survivor.strike()
             return -1
-        ai = self.pipeline.ai
-        target = ai.nearest_alive(ai.player, STRIKE_REACH)
-        if target >= 0:
-            ai.hit([target])
-        return target
+        ai = self.pipeline.crowd_ai
+        return ai.strike_nearest(ai.player, STRIKE_REACH)
 
     def hud(self) -> dict | None:
         """What the game's heads-up display shows of the survivor (None without one): health, kills, the
@@ -511,7 +533,10 @@ class CrowdSession(GLStage):
             return None
         ai = self.pipeline.ai
         r = ai.config.notice_radius
-        near = int(np.count_nonzero(((ai.x - s.position[0]) ** 2 + (ai.z - s.position[1]) ** 2 < r * r) & ai.alive())) if ai.n else 0
+        if self.pipeline.gpu_crowd is not None:
+            near = self.pipeline.gpu_crowd.near_player()
+        else:
+            near = int(np.count_nonzero(((ai.x - s.position[0]) ** 2 + (ai.z - s.position[1]) ** 2 < r * r) & ai.alive())) if ai.n else 0
         return {"health": s.health, "health_max": HEALTH, "kills": s.kills, "near": near, "round": s.rounds,
                 "time_s": s.round_time, "best_s": max(s.best_time, s.round_time)}
 
@@ -522,9 +547,10 @@ class CrowdSession(GLStage):
         points = [(ai.player[0], 0.0, ai.player[1])]
         radii = [0.6 if self.pipeline.survivor is None else 0.75]  # (around the survivor's feet)
         colors = [(0.9, 0.15, 0.1, 1.0)]
-        if 0 <= self.selected < ai.n:
-            points.append((ai.x[self.selected], 0.0, ai.z[self.selected]))
-            radii.append(0.55 * float(ai.scale[self.selected]))
+        row = self._agent_row(self.selected) if 0 <= self.selected < ai.n else None
+        if row is not None:
+            points.append((row["x"], 0.0, row["z"]))
+            radii.append(0.55 * row["scale"])
             colors.append((1.0, 0.85, 0.2, 1.0))
         return np.array(points), np.array(radii), np.array(colors)
 
@@ -536,7 +562,10 @@ class CrowdSession(GLStage):
         ai = self.pipeline.ai
         if not 0 <= a < ai.n:
             return None
-        layers = self.pipeline.layers[a]
+        row = self._agent_row(a)
+        if row is None:
+            return None
+        layers = self.pipeline.layer_row(a)
         character = self.character_of(a)
         names = self.clip_names(character)
         weapon = int(ai.weapon[a])
@@ -544,11 +573,11 @@ class CrowdSession(GLStage):
         return {
             "agent": a,
             "character": self.pipeline.cast[character].name,
-            "state": STATE_NAMES[int(ai.state[a])],
-            "position": (float(ai.x[a]), float(ai.z[a])),
-            "speed": float(math.hypot(ai.vx[a], ai.vz[a])),
-            "health": int(ai.health[a]),
-            "phase": float(ai.phase[a]),
+            "state": STATE_NAMES[row["state"]],
+            "position": (row["x"], row["z"]),
+            "speed": float(math.hypot(row["vx"], row["vz"])),
+            "health": row["health"],
+            "phase": row["phase"],
             "layers": [{"clip": names[int(l[CLIP])], "phase": float(l[PHASE]), "weight": float(l[WEIGHT]), "mask": int(l[MASK])}
                        for l in layers],
             "weapon": weapons[weapon] if 0 <= weapon < len(weapons) else None,
@@ -568,7 +597,7 @@ class CrowdSession(GLStage):
             self.scene, characters=tuple(characters), agents=p.agents, seed=p.config.seed, bake_fps=p.bake.fps, precision=p.bake.precision,
             compression_bound_mm=p.bake.bound_mm, interpolation=p.processor.interpolation, ai=p.ai.config,
             weapons=p.config.weapons, readback_latency=p.latency, shadows=p.renderer.shadows, culling=p.renderer.culling, occlusion=p.config.occlusion,
-            lod_distances=tuple(p.renderer.lod_distances), processor=p.config.processor_path, cull=p.config.cull, gl=p.config.gl, foot_lock=p.config.foot_lock,
+            lod_distances=tuple(p.renderer.lod_distances), processor=p.config.processor_path, ai_path=p.config.ai_path, cull=p.config.cull, gl=p.config.gl, foot_lock=p.config.foot_lock,
             survivor=p.survivor is not None, town=p.town is not None, morphs=p.config.morphs, impostors=p.config.impostors,
             impostor_distance=p.config.impostor_distance, lod_fade=p.config.lod_fade, lod_error_px=p.config.lod_error_px,
             camera=CameraSetting(tuple(float(v) for v in cam.eye), tuple(float(v) for v in cam.target), float(cam.fov_y)))

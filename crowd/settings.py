@@ -248,6 +248,10 @@ _ALL = (
             "blends, and solves the leg to it (two-bone IK; the compute path only; docs/ACCURACY.md)"),
     Setting("processor", "features", "choice", "auto", "animation processor path: compute where GL 4.3 exists, else fragment",
             label="processor path", choices=("auto", "compute", "fragment")),
+    Setting("ai_path", "features", "choice", "auto",
+            "where the crowd AI runs: gpu (compute passes, GL 4.3: every agent's state stays on the GPU and nothing per agent "
+            "crosses to the CPU in a frame), cpu (the numpy AI, the GPU's float64 reference), auto: gpu where it can run "
+            "(compute and the gpu cull path), else cpu", label="AI path", choices=("auto", "gpu", "cpu")),
     Setting("gl", "features", "choice", "auto",
             "the GL features the frame may use: auto (all the context has) or 4.1 (what macOS offers: no compute shaders, "
             "storage buffers or image load/store, so the fragment processor, the transform-feedback cull, morph deltas in textures, no foot "

@@ -43,7 +43,8 @@ def weapon_stats(pipeline) -> dict:
             "armed": int(np.count_nonzero(pipeline.ai.armed())), "placed": pipeline.weapons.last["weapons"],
             "dropped": pipeline.weapons.last["dropped"], "drawn": pipeline.weapons.last["drawn"],  # drawn: in hand and on the ground
             "triangles": pipeline.weapons.last["triangles"],
-            "gathered": pipeline.readback.last_count, "stalls": pipeline.readback_stalls, "reads": pipeline.readback_waits.total}
+            "gathered": pipeline.readback.last_count if pipeline.gpu_crowd is None or pipeline.gpu_crowd.sockets is None
+            else pipeline.gpu_crowd.sockets.last_count, "stalls": pipeline.readback_stalls, "reads": pipeline.readback_waits.total}
 
 
 def survivor_stats(survivor) -> dict | None:
@@ -54,6 +55,19 @@ def survivor_stats(survivor) -> dict | None:
             "position": [round(float(v), 4) for v in survivor.position],
             # Every round of the run: the ended ones, then this one (its end "playing").
             "rounds": [*survivor.history, survivor.round_record()]}
+
+
+def ai_stats(p) -> dict:
+    """The crowd AI: where it ran (and why not on the GPU, where "auto" fell back), its states, faults and
+    notes, its think budget, and the bytes the CPU sent and read back in the last frame. A crowd on the
+    GPU is read back whole here (the end of a run: never in a frame) to be checked as the numpy AI is."""
+    ai = p.ai if p.gpu_crowd is None else p.gpu_crowd.store()
+    on_gpu = p.gpu_crowd is not None
+    return {"path": p.ai_path, "path_note": p.ai_note, "states": ai.counts(), "player_hits_taken": ai.player_hits_taken,
+            "faults": ai.check(), "notes": [note for m in p.cast if m.motion is not None for note in m.motion.notes],
+            # The think budget: whether this crowd uses it (the GPU's agents all think every substep), and how many do.
+            "think_budget": {"on": False, "exact": ai.n} if on_gpu else {"on": ai.budgeted(), "exact": ai.exact_count()},
+            **p.frame_bytes()}
 
 
 def pipeline_stats(pipeline) -> dict:
@@ -76,10 +90,7 @@ def pipeline_stats(pipeline) -> dict:
                  for m, count, visible in zip(p.cast, p.counts, p.renderer.last.get("cast_visible", [0] * len(p.cast)))],
         # The player's character: its health, score and round (None without one).
         "survivor": survivor_stats(p.survivor),
-        "ai": {"states": p.ai.counts(), "player_hits_taken": p.ai.player_hits_taken, "faults": p.ai.check(),
-               "notes": [note for m in p.cast if m.motion is not None for note in m.motion.notes],
-               # The think budget: whether this crowd uses it, and how many zombies think every substep.
-               "think_budget": {"on": p.ai.budgeted(), "exact": p.ai.exact_count()}},
+        "ai": ai_stats(p),
         "passes_ms": p.timer.medians(),
         "passes_clock": {k: p.timer.clock[k] for k in p.timer.order},
         "passes_run": list(p.passes_run),

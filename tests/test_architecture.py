@@ -52,7 +52,7 @@ def test_import_rules_catch_a_broken_rule(tmp_path):
                           "from importlinter.cli import lint_imports_command; lint_imports_command()"],
                          cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert out.returncode != 0
-    assert "The AI is plain numpy" in out.stdout and "BROKEN" in out.stdout
+    assert "The numpy AI is plain numpy" in out.stdout and "BROKEN" in out.stdout
 
 
 # -- one settings schema

@@ -202,6 +202,8 @@ def _tinted(pipeline, colors):
     first = cast_firsts(pipeline.ai.cast)
     for k, color in enumerate(colors):
         pipeline.ai.tint[first[k]:first[k + 1], :3] = color
+    if pipeline.gpu_crowd is not None:  # a crowd on the GPU takes the numpy AI's state again (before its first frame: the same)
+        pipeline.gpu_crowd.load(pipeline.ai)
 
 
 @pytest.mark.parametrize("cull", ["gpu", "cpu", "feedback"])
@@ -371,7 +373,7 @@ def test_a_cast_of_many_armed_characters_draws_every_weapon_on_the_gpu_paths(gl_
     drawn = {}
     for path in ("cpu", cull):
         config = PipelineConfig(agents=360, seed=6, characters=cast, cull=path, gl="4.1" if cull == "feedback" else "auto",
-                                ai=AIConfig(armed_share=1.0), survivor=False, impostors="off")
+                                ai=AIConfig(armed_share=1.0), survivor=False, impostors="off", ai_path="cpu")  # (one crowd on every path)
         with Offscreen(gl_context, (160, 90)) as target, CrowdPipeline(gl_context, config) as p:
             assert len(p.weapons.names) == 27
             p.camera = p.overview_camera(16 / 9)

@@ -109,7 +109,7 @@ def test_the_running_crowd_s_feet_come_back_on_the_read_back_as_the_reference_pu
     from crowd.pipeline import CrowdPipeline
     from crowd.pipeline_config import PipelineConfig
 
-    with Offscreen(gl_context, (160, 90)) as target, CrowdPipeline(gl_context, PipelineConfig(agents=200, foot_lock=foot_lock)) as p:
+    with Offscreen(gl_context, (160, 90)) as target, CrowdPipeline(gl_context, PipelineConfig(agents=200, foot_lock=foot_lock, ai_path="cpu")) as p:
         if foot_lock and p.processor.legs is None:
             pytest.skip("the foot lock runs on the compute path (GL 4.3)")
         kept = {}

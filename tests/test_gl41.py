@@ -48,7 +48,7 @@ def test_the_41_path_draws_the_compute_paths_picture(compute_context):
     agree to a level of rounding, the weapons included (placed from the read-back ring on both)."""
     images = {}
     for gl in ("auto", "4.1"):
-        stats = run_headless(PipelineConfig(agents=80, seed=6, gl=gl, foot_lock=False), 6, SIZE, ctx=compute_context)
+        stats = run_headless(PipelineConfig(agents=80, seed=6, gl=gl, foot_lock=False, ai_path="cpu"), 6, SIZE, ctx=compute_context)
         assert stats["gl_features"] == (compute_context.version_code if gl == "auto" else 410)
         images[gl] = stats["_image"].astype(int)
     assert np.max(np.abs(images["auto"] - images["4.1"])) <= 1

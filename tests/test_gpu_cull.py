@@ -189,7 +189,7 @@ def test_switching_the_cull_path_live_leaks_nothing(gl_context):
 
 @pytest.mark.parametrize("features", [{}, {"culling": False}, {"shadows": False, "weapons": False}, {"agents": 1}])
 def test_the_picture_is_the_same_on_both_paths(gl_context, features):
-    config = {"agents": 120, "seed": 7, **features}
+    config = {"agents": 120, "seed": 7, **features, "ai_path": "cpu"}  # (the same crowd on both: the GPU AI needs the GPU cull)
     pictures = {path: run_headless(PipelineConfig(**config, cull=path), 3, SIZE, ctx=gl_context) for path in ("cpu", "gpu")}
     assert np.array_equal(pictures["cpu"]["_image"], pictures["gpu"]["_image"])
     # The GPU's counts trail by a frame or two; after 3 frames they are this crowd's.
@@ -247,7 +247,7 @@ def test_a_weapon_is_drawn_exactly_when_its_agent_is(gl_context):
     camera = Camera(eye=np.array([6.0, 1.7, 6.0]), target=np.array([14.0, 1.0, 2.0]), aspect=SIZE[0] / SIZE[1])
     drawn, pictures = {}, {}
     for path in ("cpu", "gpu"):
-        with CrowdPipeline(gl_context, PipelineConfig(agents=300, seed=3, cull=path)) as pipeline, Offscreen(gl_context, SIZE) as target:
+        with CrowdPipeline(gl_context, PipelineConfig(agents=300, seed=3, cull=path, ai_path="cpu")) as pipeline, Offscreen(gl_context, SIZE) as target:
             pipeline.camera = camera
             for _ in range(4):
                 pipeline.frame(target.framebuffer, FIXED_DT)

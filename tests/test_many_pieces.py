@@ -20,7 +20,7 @@ SIZE = (320, 180)
 
 
 def _frames(gl_context, path, cull: str):
-    config = PipelineConfig(agents=80, seed=3, characters=(CharacterSpec(str(path), 1.0),), cull=cull, gl="4.1" if cull == "feedback" else "auto",
+    config = PipelineConfig(agents=80, seed=3, characters=(CharacterSpec(str(path), 1.0),), cull=cull, ai_path="cpu", gl="4.1" if cull == "feedback" else "auto",
                             survivor=False, impostors="off", lod_distances=(12.0, 30.0, 60.0), ai=AIConfig(half_extent=10.0))
     with Offscreen(gl_context, SIZE) as target, CrowdPipeline(gl_context, config) as p:
         p.camera = p.overview_camera(SIZE[0] / SIZE[1])

@@ -21,9 +21,10 @@ def session(gl_context):
     made = []
 
     def make(**scene):
-        # The built-in zombie alone and no survivor (tests/test_cast.py has the mixed crowd's, test_survivor.py the game's).
+        # The built-in zombie alone and no survivor, on the numpy AI (tests/test_cast.py has the mixed crowd's, test_survivor.py the
+        # game's, test_gpu_pipeline.py the session on the GPU AI).
         one = {"characters": (CharacterEntry(),), "survivor": False}
-        s = CrowdSession(gl_context, Scene(**{"agents": 30, "shadows": False, "ai": AIConfig(half_extent=8.0), **one, **scene}), SIZE[0] / SIZE[1])
+        s = CrowdSession(gl_context, Scene(**{"agents": 30, "shadows": False, "ai": AIConfig(half_extent=8.0), "ai_path": "cpu", **one, **scene}), SIZE[0] / SIZE[1])
         target = Offscreen(gl_context, SIZE)
         fb = target.framebuffer
         made.append((s, target))

@@ -35,7 +35,7 @@ class Harness:
 
     def __init__(self, ctx, **config):
         ai = config.pop("ai", AIConfig(half_extent=9.0, armed_share=0.7))
-        self.pipeline = CrowdPipeline(ctx, PipelineConfig(ai=ai, **{"agents": 40, "seed": 5, "shadows": False, **config}))
+        self.pipeline = CrowdPipeline(ctx, PipelineConfig(ai=ai, **{"agents": 40, "seed": 5, "shadows": False, "ai_path": "cpu", **config}))
         self.target = Offscreen(ctx, SIZE)
         self.fb = self.target.framebuffer
         self.pipeline.camera = self.pipeline.default_camera(SIZE[0] / SIZE[1])

@@ -61,6 +61,36 @@ class LayerUpload:
             self._write_layers(block, first)
             first += len(block)
 
+    def layer_bytes(self) -> int:
+        """Bytes of the layers of every agent row padded to whole rows of the layers texture: the size of a
+        GPU buffer ``upload_from`` copies from."""
+        rows = math.ceil(self.agents / self.layer_agents_per_row)
+        return rows * self.layer_agents_per_row * self.layer_count * 16
+
+    def lock_motion_targets(self) -> list:
+        """(first agent, agents, buffer) of each character whose feet the lock holds: where a crowd on the
+        GPU writes its foot-lock motion (``upload``'s `motion`, the same (agents, 4) float32 rows)."""
+        if self.legs is None:
+            return []
+        return [(block.first_agent, block.count, p.lock_motion) for p, block in zip(self.parts, self.layout.parts)
+                if p.lock_motion is not None and block.count]
+
+    def upload_from(self, layers, dt: float = 0.0) -> None:
+        """This frame's layers from a GPU buffer the GPU wrote (a crowd on the GPU: crowd.frame's layers,
+        agent after agent, padded to whole texture rows, ``layer_bytes``), copied into the layers texture
+        on the GPU; the foot lock's motion is in its buffers already (``lock_motion_targets``), and `dt` is
+        the frame's simulated seconds. Nothing is checked per agent: the GPU AI writes each character's
+        clips from its own bake."""
+        need = self.layer_bytes()
+        if layers.size < need:
+            raise ProcessorError(f"a layer buffer of {layers.size} bytes; {self.agents} agents need {need}")
+        if self.legs is not None:
+            if not (isinstance(dt, (int, float, np.floating)) and math.isfinite(dt) and dt >= 0):
+                raise ProcessorError(f"the foot lock needs a frame time >= 0 seconds, got {dt!r}")
+            self._lock_dt = float(dt)
+        if self.agents:
+            self.layers_texture.write(layers, viewport=(0, 0, self.layer_agents_per_row * self.layer_count, self.layers_texture.height))
+
     def _write_layers(self, a: np.ndarray, first: int) -> None:
         """Layers of agents first .. first + len(a) - 1 into the layers texture: a partial first row, whole
         texture rows straight from the array (no padded copy), then a partial last row."""

@@ -52,6 +52,7 @@ class SocketRead:
     wait_ms: float  # time blocked on the fence
     copy_ms: float  # time mapping the buffer and copying it out
     stalled: bool  # the transfer had not finished when the CPU came to read it
+    born: np.ndarray | None = None  # a crowd on the GPU: each entry's spawn step (crowd.draw.gpu_sockets)
 
 
 @dataclass

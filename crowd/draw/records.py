@@ -79,7 +79,12 @@ class AgentRecords(GLStage):
 
     def write(self, records: np.ndarray) -> None:
         """This frame's records, in one write (the array itself: no copy)."""
-        n = len(records)
+        self.reserve(len(records))
+        if len(records):
+            self.buffer.write(records)
+
+    def reserve(self, n: int) -> None:
+        """A buffer of `n` records (the GPU writes them: crowd.draw.gpu_records), or RecordError."""
         if n > MAX_AGENTS:
             raise RecordError(f"{n:,} agents, more than the {MAX_AGENTS:,} a list entry can name")
         if 2 * n > self.max_texels:
@@ -89,8 +94,6 @@ class AgentRecords(GLStage):
         if self.buffer.size != size:  # exact: a smaller crowd frees what it no longer needs
             self.buffer.orphan(size)
             self._attach()
-        if n:
-            self.buffer.write(records)
         self.agents = n
 
     def bind(self) -> None:

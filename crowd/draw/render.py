@@ -38,13 +38,14 @@ from ..anim.palette_layout import PaletteLayout
 from ..asset.model import Character
 from ..asset.town import TILE
 from ..asset.vertex_cache import best_triangle_order
-from ..frame import Camera, Instances
+from ..frame import Camera, Instances, SimFrame
 from ..gl import GLStage, gpu_bytes, has_compute, load_shader
 from ..lighting import FOG_COLOR, LIGHTING, SUN_DIR, fog_density
 from ..settings import DEFAULTS, SETTINGS
 from .cpu_cull import CpuCull
 from .cull_lists import ALL, MOVING, STILL, DrawSpec, ListError, ListPlan
 from .feedback_cull import FeedbackCull, FeedbackCullError
+from .gpu_records import GpuRecordPass
 from .gpu_cull import CullCharacter, GpuCull, GpuCullError
 from .impostors import HELD_GROUP, HELD_NONE, ImpostorTextures, held_pieces
 from .materials import TEXTURE_UNIT, MaterialTextures
@@ -292,6 +293,7 @@ class CrowdRenderer(GLStage):
             raise RenderError(str(exc)) from None
         self.records = self._own("records", AgentRecords(self.ctx))
         self._packer = RecordPacker(self.plan, self.group_names)
+        self.gpu_record_pass: GpuRecordPass | None = None  # records packed from a crowd on the GPU (gpu_records)
         characters = self._cull_characters()
         cascades = CASCADES if self.shadows else 0
         try:
@@ -521,8 +523,16 @@ class CrowdRenderer(GLStage):
     def clear_color() -> tuple[float, float, float]:
         return tuple(c ** (1 / 2.2) for c in FOG_COLOR)
 
-    def prepare(self, camera: Camera, instances: Instances, row_offset=0, cull_now: bool = True, palette: PaletteLayout | None = None,
-                processor=None) -> "FrameView":
+    def gpu_records(self, weapon_first: list[int]) -> None:
+        """Pack records on the GPU from a crowd that lives there (crowd.frame.SimFrame), the GPU cull's
+        path only; `weapon_first`: each crowd character's first weapon among the cast's."""
+        if self.gpu is None:
+            raise RenderError("a crowd on the GPU needs the GPU cull path (cull gpu, GL 4.3)")
+        if self.gpu_record_pass is None:
+            self.gpu_record_pass = self._own("records", GpuRecordPass(self.ctx, self.plan, self.group_names, weapon_first))
+
+    def prepare(self, camera: Camera, instances: Instances | SimFrame, row_offset=0, cull_now: bool = True,
+                palette: PaletteLayout | None = None, processor=None) -> "FrameView":
         """Pack and write every agent's record; cull, pick LODs and fill the lists in numpy (the CPU path), or
         leave that to the GPU's cull (``cull()``; now, unless `cull_now` is False, so a caller can time the
         GPU's part alone). Returns what every later pass of this frame receives (the view and light matrices,
@@ -533,12 +543,17 @@ class CrowdRenderer(GLStage):
         passes read, run for this frame already; on the GPU path its morph pairs send agents moving no target
         to the plain twins (None: to the morph draws)."""
         camera.validate()
-        instances.validate(self.groups)
+        on_gpu = isinstance(instances, SimFrame)  # a crowd that lives on the GPU: `row_offset` is (slot, latest, born limit)
+        if on_gpu and self.gpu_record_pass is None:
+            raise RenderError("the renderer packs no records on the GPU: call gpu_records first")
+        if not on_gpu:
+            instances.validate(self.groups)
         counts = instances.counts()
         if len(counts) != len(self.cast):
             raise RenderError(f"instances of {len(counts)} characters, the renderer draws {len(self.cast)}")
         matrix = view_proj(camera)
-        shadow = self.light_cascades(camera, instances) if self.shadows else None
+        shadow = (self.light_cascades(camera, None, instances.max_scale) if on_gpu else self.light_cascades(camera, instances)) \
+            if self.shadows else None
         eye = np.asarray(camera.eye, np.float64)
         palette = palette or PaletteLayout.make([c.skeleton.joint_count for c in self.cast], counts)
         self.palette = palette  # the layout this frame's records address (tests and benchmarks read lists back by it)
@@ -546,9 +561,12 @@ class CrowdRenderer(GLStage):
             raise RenderError(f"the palette holds morph pairs for characters {[p.morph for p in palette.parts]}, the draw reads them for "
                               f"{list(self.morphs)}: build both from the same bakes")
         try:
-            self.records.write(self._packer.pack(instances, eye, row_offset, palette))
+            if on_gpu:
+                self.gpu_record_pass.run(instances, self.records, eye, palette, *row_offset)
+            else:
+                self.records.write(self._packer.pack(instances, eye, row_offset, palette))
             if self.cpu is None:
-                self._cull.upload(len(instances), counts)
+                self._cull.upload(instances.rows if on_gpu else len(instances), counts)
         except (RecordError, GpuCullError, FeedbackCullError) as exc:
             raise RenderError(f"{exc}") from None
         planes = frustum_planes(matrix)
@@ -637,15 +655,17 @@ class CrowdRenderer(GLStage):
             if count:
                 vao.render(moderngl.TRIANGLES, instances=count)
 
-    def light_cascades(self, camera: Camera, instances: Instances | None = None) -> Cascades:
+    def light_cascades(self, camera: Camera, instances: Instances | None = None, max_scale: float | None = None) -> Cascades:
         """The sun's shadow cascades for this camera (crowd.draw.shadows), over ``crowd_box`` where the
-        pipeline set it (the AI's world), else over the box `instances` stand in."""
+        pipeline set it (the AI's world), else over the box `instances` stand in; `max_scale`: the
+        largest agent scale, where no instances say it."""
         box = self.crowd_box
         some = instances is not None and len(instances) > 0
         if box is None:
             pos = instances.position if some else np.zeros((1, 3))
             box = (pos.min(axis=0), pos.max(axis=0))
-        top = float(np.max(self.bounds[:, 1] + self.bounds[:, 3])) * (float(np.max(instances.scale)) if some else 1.0)
+        scale = max_scale if max_scale is not None else float(np.max(instances.scale)) if some else 1.0
+        top = float(np.max(self.bounds[:, 1] + self.bounds[:, 3])) * scale
         lo, hi = np.asarray(box[0], np.float64).copy(), np.asarray(box[1], np.float64).copy()
         hi[1] = max(hi[1], lo[1] + top)  # as tall as an agent's bound
         return cascades(camera, self.sun_dir, (lo, hi), self.shadow_size, fog_density(camera.fog_reach))

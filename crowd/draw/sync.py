@@ -68,13 +68,17 @@ class PaletteSync:
             return latest
         return np.where(self.born <= read_frame, row_offset(age), latest).astype(np.uint32)
 
-    def synced(self, read, agents: int):
+    def synced(self, read, agents: int, born_limit: int | None = None):
         """`read` (a SocketRead) limited to agents still present whose body is drawn with the palette of
-        its frame; None when there is no read or that palette is gone."""
+        its frame; None when there is no read or that palette is gone. A crowd on the GPU says when its
+        entries were born itself (`read.born`, spawn steps; `born_limit` the step count its frame had)."""
         if read is None or read.frame not in self.frames:
             return None
         keep = read.agents < agents
-        keep[keep] = self.born[read.agents[keep]] <= read.frame
+        if born_limit is not None:
+            keep &= read.born <= born_limit
+        else:
+            keep[keep] = self.born[read.agents[keep]] <= read.frame
         if keep.all():  # the usual frame: nobody (re)spawned since the read, and no copy of its rows
             return read
         return dataclasses.replace(read, agents=read.agents[keep], joints=read.joints[keep], rows=read.rows[keep])

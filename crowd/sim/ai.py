@@ -84,8 +84,8 @@ class PlayerScript:
         angle = t * self.speed / max(self.radius, 1e-3)
         point = ai.origin + self.radius * np.array([math.cos(angle), math.sin(angle)])
         if survivor is not None:
-            near = ai.nearest_alive(survivor.position, self.WATCH_M)
-            threat = None if near < 0 else np.array([ai.x[near], ai.z[near]]) - survivor.position
+            near = ai.nearest_threat(survivor.position, self.WATCH_M)
+            threat = None if near is None else near - survivor.position
             survivor.walk_to(point, threat if threat is not None and float(np.hypot(*threat)) > 1e-6 else None)
         else:
             ai.player = point
@@ -94,9 +94,7 @@ class PlayerScript:
             if survivor is not None:
                 survivor.strike()
                 continue
-            target = ai.nearest_alive(ai.player, self.strike_reach)
-            if target >= 0:
-                ai.hit(np.array([target]))
+            ai.strike_nearest(ai.player, self.strike_reach)
 
 
 class CrowdAI(SpawnMixin, ThinkMixin, ThinkBudgetMixin, SeparationMixin, ObstaclesMixin, WorkersMixin, OutputsMixin):
@@ -333,6 +331,18 @@ class CrowdAI(SpawnMixin, ThinkMixin, ThinkBudgetMixin, SeparationMixin, Obstacl
         d[~self.alive()] = np.inf
         i = int(np.argmin(d))
         return i if d[i] <= reach else -1
+
+    def nearest_threat(self, point, reach: float) -> np.ndarray | None:
+        """Where the nearest living agent within `reach` of a ground point stands (x, z), or None."""
+        i = self.nearest_alive(point, reach)
+        return None if i < 0 else np.array([self.x[i], self.z[i]])
+
+    def strike_nearest(self, point, reach: float) -> int:
+        """The player's blow on the nearest living agent within `reach` of a ground point: returns it, or -1."""
+        target = self.nearest_alive(point, reach)
+        if target >= 0:
+            self.hit(np.array([target]))
+        return target
 
     def alive_in_front(self, point, reach: float, front) -> np.ndarray:
         """Indices of the living agents within `reach` of a ground point (x, z), on the side `front`

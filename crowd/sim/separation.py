@@ -77,10 +77,7 @@ class SeparationMixin:
         live = np.flatnonzero(self.state < DYING)
         everyone = live.size == self.n  # the usual case: plain arrays instead of gathers
         x, z = (self.x, self.z) if everyone else (self.x[live], self.z[live])
-        # At most about 4 cells an agent: a separation radius far below the spacing (a valid setting)
-        # must not ask for a grid of billions of cells; wider cells only find more candidates.
-        size = max(size, 2.0 * self.half_extent / math.sqrt(4.0 * live.size + 1.0))
-        side = int(math.ceil(2.0 * self.half_extent / size)) + 3  # spare cells around: no edge checks
+        size, side = grid_shape(self.half_extent, size, self.n)
         gx = np.minimum(np.maximum((x - (self.origin[0] - self.half_extent)) * (1.0 / size) + 1.0, 1.0), side - 2.0)
         gz = np.minimum(np.maximum((z - (self.origin[1] - self.half_extent)) * (1.0 / size) + 1.0, 1.0), side - 2.0)
         cell = gz.astype(np.int64) * side + gx.astype(np.int64)
@@ -127,6 +124,16 @@ class SeparationMixin:
         if self.ranges() != 1:
             raise AIError("the neighbour list is split over the workers' ranges")
         return self._range_list
+
+
+def grid_shape(half: float, size: float, agents: int) -> tuple[float, int]:
+    """(cell size, cells a side) of a grid over a world `half` wide each way for `agents` agents (the
+    living and the dead: the GPU's twin does not count them): at least `size` wide, so every pair closer
+    than `size` is in the same or next cells, but at most about 4 cells an agent (a separation radius far
+    below the spacing, a valid setting, must not ask for billions of cells; wider cells only find more
+    candidates), with a ring of spare cells round it so that no look at a neighbour cell needs an edge test."""
+    size = max(float(size), 2.0 * half / math.sqrt(4.0 * agents + 1.0))
+    return size, int(math.ceil(2.0 * half / size)) + 3
 
 
 def _overlap_push(i, j, dx, dz, dist, r: float):

@@ -165,6 +165,7 @@ class ThinkMixin:
         # Desired velocity: wanderers walk slowly to their target, chasers to the player, the rest stand.
         chasing = state == CHASE
         wandering = state == WANDER
+        a.pause -= h  # (everyone's, wandering or not: a per-agent rule, the same on the GPU)
         if wandering.any():
             self._wander(a, wandering, h)
         dx = np.where(chasing, to_px, a.tx - a.x)
@@ -282,7 +283,6 @@ class ThinkMixin:
                 v[out] = 0.0
 
     def _wander(self, a, wandering: np.ndarray, h) -> None:
-        a.pause -= h
         dx, dz = a.tx - a.x, a.tz - a.z
         idx = np.flatnonzero(wandering & (dx * dx + dz * dz < 0.16) & (a.pause <= 0.0))
         if idx.size:
