@@ -29,6 +29,7 @@ class GpuCrowd(GLStage):
         self._objects = GLObjects()
         self.ai = ai
         self.gpu = self._objects.add(GpuCrowdAI(ctx, ai))
+        self._hits_at_load = ai.player_hits_taken
         self.facts = self._objects.add(FactRing(ctx, 4 * COUNTER_WORDS))
         self.latency = int(latency)
         self._layers: moderngl.Buffer | None = None
@@ -37,10 +38,15 @@ class GpuCrowd(GLStage):
         self._kills_seen = 0
         self.sent_bytes = self.read_bytes = 0  # what the last frame sent and read back, for the stats
 
-    def arm(self, socket_joints, far_kinds: list[bool]) -> None:
-        """Read the weapons' sockets back from the GPU (the crowd has armed agents and draws weapons)."""
+    def arm(self, socket_joints, far_kinds: list[bool], feet=(), sample: int = 0) -> None:
+        """Read the weapons' sockets back from the GPU (the crowd has armed agents and draws weapons), and
+        the foot-skate sample's feet with them."""
+        if self.sockets is not None and self.sockets.far_kinds != list(far_kinds):  # (new impostors: other characters' far agents)
+            self._objects.remove(self.sockets)
+            self.sockets.release()
+            self.sockets = None
         if self.sockets is None:
-            self.sockets = self._objects.add(GpuSocketGather(self.ctx, socket_joints, far_kinds))
+            self.sockets = self._objects.add(GpuSocketGather(self.ctx, socket_joints, far_kinds, feet, sample))
 
     # -- the crowd in and out (a resize, a new crowd, new settings: events, not frames)
 
@@ -48,6 +54,7 @@ class GpuCrowd(GLStage):
         """Take over `ai`'s crowd (a new crowd, or the numpy AI after a change made to it)."""
         self.ai = ai
         self.gpu.load(ai)
+        self._hits_at_load = ai.player_hits_taken  # (the GPU counts the blows from 0 again)
         self.facts.forget()  # (the old crowd's totals must not be taken for the new one's: a new round's survivor would take them as blows)
         self.last, self._kills_seen = None, 0
 
@@ -121,7 +128,7 @@ class GpuCrowd(GLStage):
         self.read_bytes = self.facts.read_bytes
         if facts is not None:
             self.last = facts
-            self.ai.player_hits_taken = facts["blows"]  # (the numpy AI's count: crowd.sim.rounds.settle reads it)
+            self.ai.player_hits_taken = self._hits_at_load + facts["blows"]  # (the numpy AI's count: crowd.sim.rounds.settle reads it)
         return facts
 
     def settle(self, survivor: Survivor, landed: bool, blows_seen: int) -> int:

@@ -90,6 +90,7 @@ class CrowdPipeline(LiveSettings, GLStage):
         self.gpu_crowd: GpuCrowd | None = None  # the crowd on the GPU (ai_path), beside the numpy AI it was made from
         self.ai_note: str | None = None  # why "auto" left the crowd on the numpy AI (or moved it there)
         self._steps_at: dict[int, int] = {}  # frame -> the AI's step count when it began (the GPU path's palette sync)
+        self._time_at: dict[int, float] = {}  # frame -> the AI's clock after its step (the GPU path's foot-skate sample)
         self._crowd_since = 0  # the frame since which the crowd's agents are where they are (a new crowd, a resize)
         self.selected = -1  # the agent the panel follows (its row comes back with the facts on the GPU path)
         self.timer = PassTimer(ctx)
@@ -200,7 +201,8 @@ class CrowdPipeline(LiveSettings, GLStage):
         if self.renderer.gpu_record_pass is None:
             self.renderer.gpu_records(cast_weapons([m.character for m in self.cast[:self.crowd_cast]])[0])
         if self.weapons is not None:
-            self.gpu_crowd.arm(self.weapons.socket_joints, [lod >= 0 for lod in self.renderer.impostor_lods])
+            self.gpu_crowd.arm(self.weapons.socket_joints, [lod >= 0 for lod in self.renderer.impostor_lods], self.foot_skate.feet,
+                               FOOT_SKATE_SAMPLE)
         self.renderer.gpu_record_pass.sent_bytes = 0
         return True
 
@@ -440,6 +442,9 @@ class CrowdPipeline(LiveSettings, GLStage):
                     self._new_crowd(self.config.seed + survivor.rounds - 1)
                     crowd = self.gpu_crowd
             crowd.capture(f, survivor, self.selected)
+        self._time_at[f] = self.ai.time  # (the foot-skate sample's clock for this frame's gather)
+        for old in [k for k in self._time_at if k < f - RING]:
+            del self._time_at[old]
         self._run("ai")
         self._pose_lag.append(float(min(dt, self.ai.config.max_dt)))
         with t.cpu("upload"):
@@ -479,9 +484,15 @@ class CrowdPipeline(LiveSettings, GLStage):
             if got is not None and got[0].frame < self._crowd_since:  # gathered from a crowd since replaced or resized
                 got = None
         self._run("readback")
-        read, down = (None, None) if got is None else got
+        read, down, feet = (None, None, None) if got is None else got
         if read is not None:
             self.readback_waits.append(read.wait_ms)
+        if feet is not None:  # the sample's feet, composed with where their agents stood in that frame
+            agents, motion, heading, rows = feet
+            self.foot_skate.walking(agents)
+            ground = motion[:, :2].astype(np.float64) + self.ai.origin
+            self.foot_skate.sent(read.frame, agents, ground, np.arctan2(heading[:, 0], heading[:, 1]), heading[:, 3], self._time_at.get(read.frame, 0.0))
+            self.foot_skate.received(read.frame, rows)
         fallen = np.zeros(self.rows, bool)
         if down is not None:
             fallen[down[down < self.rows]] = True
@@ -496,9 +507,10 @@ class CrowdPipeline(LiveSettings, GLStage):
             x, y = self.processor.layout.texel(np.array([self.ai.n]), 0, self.processor.row_offset(0))
             extra = (int(weapon[-1]), int(texel_code(x, y)[0]))
         reach = self.renderer.impostor_distance + self.renderer.lod_fade + float(self.renderer.bounds[:, 3].max()) * 2.0
+        sampled = self.foot_skate.sampled(self.ai.cast[0])  # (the first character's agents, as on the numpy path)
         with self.timer.gpu("gather"):
             crowd.sockets.gather(f, sim, self.processor, texel_base, int(texel_code(0, self.processor.row_offset(0))), self.camera.eye,
-                                 reach, extra)
+                                 reach, extra, sampled)
         self._run("gather")
 
     def _render(self, framebuffer: moderngl.Framebuffer, f: int, instances, row_offset, read, agent_weapon, fallen=None) -> FrameState:

@@ -99,8 +99,8 @@ def test_standing_still_reports_no_slide_per_metre_but_a_speed():
     assert np.isnan(skate.slide_cm_per_m) and skate.slide_cm_per_s == pytest.approx(10.0)
 
 
-@pytest.mark.parametrize("foot_lock", [False, True])
-def test_the_running_crowd_s_feet_come_back_on_the_read_back_as_the_reference_puts_them(gl_context, foot_lock):
+@pytest.mark.parametrize("foot_lock, ai_path", [(False, "cpu"), (True, "cpu"), (True, "gpu")])
+def test_the_running_crowd_s_feet_come_back_on_the_read_back_as_the_reference_puts_them(gl_context, foot_lock, ai_path):
     """The stats' foot_skate: the sampled agents' feet, read back with the sockets (never waited for),
     are those of the frame they were read from, within 1 mm: where the float64 reference puts them for
     that frame's layers and transforms, and with the foot lock (whose state the reference does not
@@ -109,13 +109,15 @@ def test_the_running_crowd_s_feet_come_back_on_the_read_back_as_the_reference_pu
     from crowd.pipeline import CrowdPipeline
     from crowd.pipeline_config import PipelineConfig
 
-    with Offscreen(gl_context, (160, 90)) as target, CrowdPipeline(gl_context, PipelineConfig(agents=200, foot_lock=foot_lock, ai_path="cpu")) as p:
+    with Offscreen(gl_context, (160, 90)) as target, CrowdPipeline(gl_context, PipelineConfig(agents=200, foot_lock=foot_lock, ai_path=ai_path)) as p:
         if foot_lock and p.processor.legs is None:
             pytest.skip("the foot lock runs on the compute path (GL 4.3)")
+        assert p.ai_path == ai_path
         kept = {}
         for f in range(90):
             p.frame(target.framebuffer, 1.0 / 30.0)
-            instances = p.ai.instances()  # the frame's own: nothing moves after its AI step
+            ai = p.ai if p.gpu_crowd is None else p.gpu_crowd.store()  # (a crowd on the GPU read back whole: a test)
+            instances = ai.instances()  # the frame's own: nothing moves after its AI step
             palette = p.processor.read_palette() if foot_lock else None
             kept[f] = (p.layers.copy(), instances.position[:, [0, 2]].copy(), instances.yaw.copy(), instances.scale.copy(), palette)
         monitor = p.foot_skate

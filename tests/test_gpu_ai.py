@@ -295,3 +295,21 @@ def test_a_resize_on_the_gpu_copies_each_characters_kept_block(motion, gpu_ai):
                 assert np.array_equal(now[name][new:new + count], was[name][old:old + count]), name
         g.step(STEP)
         was = g.download()
+
+
+def test_a_pile_up_is_pushed_apart_as_the_numpy_ai_pushes_it(motion, gpu_ai):
+    """300 agents standing in a 4 m disc among 4,000: past the cap of candidates a row of cells, the
+    GPU's grid must hold the same candidates as the numpy twin's (its cells, in agent order)."""
+    ai = CrowdAI(4000, 1, motion, CONFIG)
+    rng = np.random.default_rng(0)
+    k = 300
+    radius, angle = 4.0 * np.sqrt(rng.uniform(0, 1, k)), rng.uniform(0, 2 * np.pi, k)
+    ai.x[:k], ai.z[:k] = ai.origin[0] + radius * np.cos(angle), ai.origin[1] + radius * np.sin(angle)
+    ai.vx[:] = ai.vz[:] = 0.0
+    ai.tx[:], ai.tz[:], ai.pause[:] = ai.x, ai.z, 5.0
+    ai.player = ai.origin + 500.0
+    g = gpu_ai(ai)
+    ai.step(STEP)
+    g.step(STEP)
+    s = g.download()
+    assert np.hypot(ai.x - s["x"], ai.z - s["z"]).max() < 1e-4

@@ -127,13 +127,21 @@ class FootSkateMonitor:
     def entries(self, agents: int, steady) -> tuple[np.ndarray, np.ndarray]:
         """(agents, joints) to gather this frame: the sampled agents that are in steady locomotion
         (`steady(indices)`: a bool for each) times the foot joints."""
-        if not self.feet or not self.sample or not agents:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        picked = np.unique(np.linspace(0, agents - 1, min(self.sample, agents)).astype(np.int64))
-        picked = picked[steady(picked)]
-        for a in set(self._tracks) - set(picked.tolist()):
-            del self._tracks[a]  # out of the sample, or no longer walking: its stretch ends here
+        picked = self.sampled(agents)
+        picked = picked[steady(picked)] if picked.size else picked
+        self.walking(picked)
         return np.repeat(picked, len(self.feet)), np.tile(np.asarray(self.feet, np.int64), picked.size)
+
+    def sampled(self, agents: int) -> np.ndarray:
+        """The sample's agents among `agents` (spread over them), walking or not; none without feet."""
+        if not self.feet or not self.sample or not agents:
+            return np.zeros(0, np.int64)
+        return np.unique(np.linspace(0, agents - 1, min(self.sample, agents)).astype(np.int64))
+
+    def walking(self, agents: np.ndarray) -> None:
+        """The sampled agents in steady locomotion now: the others' stretches end here."""
+        for a in set(self._tracks) - set(np.asarray(agents).tolist()):
+            del self._tracks[a]
 
     def sent(self, frame: int, agents: np.ndarray, ground: np.ndarray, yaw: np.ndarray, scale: np.ndarray, time: float) -> None:
         """The transforms of the agents whose feet were gathered in `frame` (one entry per agent)."""

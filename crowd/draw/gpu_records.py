@@ -77,7 +77,7 @@ class GpuRecordPass(GLStage):
             if "u_weapon_first" in p:
                 p["u_weapon_first"].write(np.array(self._weapon_first, np.int32).tobytes())
             p.run((n + GROUP - 1) // GROUP)
-            self.ctx.memory_barrier(SHADER_STORAGE | 0x100)  # (and texel fetches: the draws read records through a buffer texture)
+            self.ctx.memory_barrier(SHADER_STORAGE | 0x8)  # (and texel fetches: the draws read records through a buffer texture)
         if frame.extra is not None:
             row = self._extra_rows(frame, eye, palette, latest_offset)
             records.buffer.write(row.tobytes(), offset=n * RECORD_DTYPE.itemsize)

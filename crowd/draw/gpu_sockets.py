@@ -23,14 +23,24 @@ TEXEL_BASE, GATHERED = 17, 19
 ENTRY_DTYPE = np.dtype([("who", "<u4", 4), ("rows", "<f4", (3, 4))])
 HEADER = 16
 FIRST_CAPACITY = 1024
+FRAME_ENTRY, FOOT_ENTRY = 0xFFFFFFFF, 0xFFFF0000  # an entry's weapon word when it is a sampled agent's frame, or its foot joint k
 
 
 class GpuSocketGather(GLStage):
-    def __init__(self, ctx: moderngl.Context, socket_joints: np.ndarray, far_kinds: list[bool], palette_unit: int = 0):
+    def __init__(self, ctx: moderngl.Context, socket_joints: np.ndarray, far_kinds: list[bool], feet=(), sample: int = 0,
+                 palette_unit: int = 0):
+        """`feet`: the foot joints of the foot-skate sample (crowd.anim.foot_skate), of up to `sample` agents
+        a frame (none: no feet gathered)."""
         self.ctx = ctx
         self._objects = GLObjects()
         self.socket_joints = np.asarray(socket_joints, np.int32)
-        self.program = self._objects.add(ctx.compute_shader(load_shader("socket_gather.comp.glsl", {"WEAPONS": max(len(self.socket_joints), 1)})))
+        self.far_kinds = list(far_kinds)
+        self.feet = list(feet) if sample else []
+        self.sample = int(sample) if self.feet else 0
+        defines = {"WEAPONS": max(len(self.socket_joints), 1), **({"FEET": len(self.feet), "SAMPLE": self.sample} if self.feet else {})}
+        self.program = self._objects.add(ctx.compute_shader(load_shader("socket_gather.comp.glsl", defines)))
+        if self.feet:
+            self.program["u_feet"].write(np.asarray(self.feet, np.int32).tobytes())
         self.program["u_socket"].write(np.resize(self.socket_joints, max(len(self.socket_joints), 1)).astype(np.int32).tobytes())
         self.program["u_far_kinds"] = int(sum(1 << k for k, far in enumerate(far_kinds) if far))
         for plane in range(3):
@@ -59,15 +69,16 @@ class GpuSocketGather(GLStage):
         self._done.forget()
 
     def gather(self, frame: int, sim: SimFrame, processor, texel_base: moderngl.Buffer, row_code: int, eye: np.ndarray,
-               reach: float, extra: tuple[int, int] | None) -> None:
+               reach: float, extra: tuple[int, int] | None, sampled: np.ndarray | None = None) -> None:
         """Queue frame `frame`'s gather: `sim`'s armed agents within `reach` metres of `eye` (float64 world)
         where their character has impostors, every one where it has none; `row_code` the texel code of
-        this frame's palette slot; `extra` (weapon, joint 0's texel code) of the survivor's row."""
+        this frame's palette slot; `extra` (weapon, joint 0's texel code) of the survivor's row; `sampled`:
+        the foot-skate sample's agents this frame (those in steady locomotion send their feet)."""
         k = frame % RING
         slot = self._slots[k]
         slot.write(bytes(HEADER))
         self.sent_bytes = HEADER
-        for name in ("motion", "codes", "looks"):
+        for name in ("motion", "heading", "codes", "looks"):
             sim.buffers[name].bind_to_storage_buffer(FIELDS[name][0])
         texel_base.bind_to_storage_buffer(TEXEL_BASE)
         slot.bind_to_storage_buffer(GATHERED)
@@ -79,15 +90,23 @@ class GpuSocketGather(GLStage):
                             ("u_extra_weapon", -1 if extra is None else int(extra[0])), ("u_extra_code", 0 if extra is None else int(extra[1]))):
             if name in p:
                 p[name] = value
-        p.run((sim.agents + 1 + GROUP - 1) // GROUP)
-        self.ctx.memory_barrier(0x2000 | 0x1000)
+        samples = 0
+        if self.feet and sampled is not None and len(sampled):
+            samples = min(len(sampled), self.sample)
+            p["u_sample"].write(np.resize(np.asarray(sampled[:samples], np.int32), self.sample).tobytes())
+        if "u_samples" in p:
+            p["u_samples"] = samples
+        p.run((sim.agents + 1 + samples + GROUP - 1) // GROUP)
+        self.ctx.memory_barrier(0x2000 | 0x200)  # (storage writes, then a buffer copy of them)
         self.ctx.copy_buffer(self._staging[k], slot)
         self._done.mark(frame)
 
-    def fetch(self, frame: int) -> tuple[SocketRead, np.ndarray] | None:
-        """Frame `frame`'s read-back, sorted by agent (the atomics' order is not the same twice), and the
-        agents it found down (dying or dead, their weapon for the ground); None where that frame's slot
-        is not done, was overwritten or was never gathered. Never waits."""
+    def fetch(self, frame: int) -> tuple[SocketRead, np.ndarray, tuple | None] | None:
+        """Frame `frame`'s read-back, sorted by agent (the atomics' order is not the same twice), the
+        agents it found down (dying or dead, their weapon for the ground), and the foot-skate sample's
+        (agents, (k, 4) motion, (k, 4) heading, (k x feet, 3, 4) foot rows), those in steady locomotion,
+        or None; None where that frame's slot is not done, was overwritten or was never gathered. Never
+        waits."""
         self.read_bytes = 0
         if not self._done.ready(frame):
             return None
@@ -100,6 +119,14 @@ class GpuSocketGather(GLStage):
             return None
         entries = np.frombuffer(slot.read(ENTRY_DTYPE.itemsize * count, offset=HEADER), ENTRY_DTYPE) if count else np.zeros(0, ENTRY_DTYPE)
         self.read_bytes = 4 + entries.nbytes
+        kind = entries["who"][:, 1]
+        feet = None
+        if self.feet:
+            frames, foot = entries[kind == FRAME_ENTRY], entries[(kind >= FOOT_ENTRY) & (kind != FRAME_ENTRY)]
+            frames = frames[np.argsort(frames["who"][:, 0], kind="stable")]
+            foot = foot[np.lexsort((foot["who"][:, 1], foot["who"][:, 0]))]  # by agent, then foot joint
+            feet = (frames["who"][:, 0].astype(np.int64), frames["rows"][:, 0].copy(), frames["rows"][:, 1].copy(), foot["rows"].copy())
+            entries = entries[kind < FOOT_ENTRY]
         entries = entries[np.argsort(entries["who"][:, 0], kind="stable")]
         who = entries["who"].astype(np.int64)
         down = who[:, 2] >= 4  # (crowd.sim.config.DYING)
@@ -107,7 +134,7 @@ class GpuSocketGather(GLStage):
         weapons = who[up, 1]
         read = SocketRead(frame, who[up, 0], self.socket_joints[weapons].astype(np.int64), entries["rows"][up].copy(), 0.0,
                           (time.perf_counter() - started) * 1e3, False, born=who[up, 3])
-        return read, who[down, 0]
+        return read, who[down, 0], feet
 
     def gpu_bytes(self) -> int:
         return self._objects.gpu_bytes()

@@ -37,6 +37,8 @@ from ..separation import SEPARATION_CELL_CAP, grid_shape
 from ..spawn import _MASK64, _RESPAWN, _WANDER
 from .facts import facts_of
 from .grid import GROUP, SHADER_STORAGE, NeighbourGrid
+
+READ_BACK = SHADER_STORAGE | 0x200 | 0x80  # and buffer updates (copies, reads) and pixel-buffer reads (a texture's upload) of what a pass wrote
 from .state import FIELDS, SCRATCH_BINDING, kind_table, pack, pivot_table, unpack
 
 PIVOTS, LAYERS_OUT, COUNTERS = 9, 9, 8  # storage bindings beside the state's (the layers and the pivots are never bound together)
@@ -104,7 +106,7 @@ class GpuCrowdAI(GLStage):
         """The town's distance field (once) and an empty flow field; none of it without a town."""
         self.obstacles = obstacles
         if obstacles is None or getattr(self, "_field", None) is not None:
-            self._flow_cell = None
+            self._flow_cell, self._flow_corner = None, (0.0, 0.0, 0.0)  # (a new crowd goes straight at the player until its field is in)
             return
         field = np.ascontiguousarray(obstacles.field, np.float32)
         self._field = self._objects.add(self.ctx.buffer(field.tobytes()))
@@ -204,13 +206,14 @@ class GpuCrowdAI(GLStage):
         return self._state[name].read(16 * self.n) if self.n else b""
 
     def store(self, ai) -> None:
-        """Write the GPU's crowd into a numpy CrowdAI of the same agents (and its clock and counts)."""
+        """Write the GPU's crowd into a numpy CrowdAI of the same agents (and its clock and counts: the
+        blows landed, those at the load and the GPU's since)."""
         if ai.n != self.n:
             raise GpuAIError(f"a numpy AI of {ai.n} agents cannot hold the GPU's {self.n}")
         for name, array in self.download().items():
             getattr(ai, name)[...] = array
         ai.time, ai.steps, ai.substeps = self.time, self.steps, self.substeps
-        ai.player, ai.player_hits_taken = self.player.copy(), self.player_hits_taken
+        ai.player, ai.player_hits_taken = self.player.copy(), self.player_hits_taken + self.read_counters()["blows"]
         ai._pairs = False
         ai._stale = True
 
@@ -258,8 +261,7 @@ class GpuCrowdAI(GLStage):
 
     def _substep(self, h: float) -> None:
         self.time += h
-        if not self.n:
-            self.substeps += 1
+        if not self.n:  # (as the numpy twin: an empty crowd's substep draws nothing and counts nothing)
             return
         cfg, p = self.config, self._programs
         self._bind()
@@ -288,16 +290,16 @@ class GpuCrowdAI(GLStage):
         self._set(p["finish"], **common, u_cos_step=math.cos(step), u_sin_step=math.sin(step), u_plant_feet=bool(cfg.plant_feet))
         with self._timed("ai_finish"):
             p["finish"].run(groups)
-            self.ctx.memory_barrier(SHADER_STORAGE)
+            self.ctx.memory_barrier(READ_BACK)
         self.substeps += 1
 
     def _separate(self, h: float) -> None:
         """The grid of the living and each one's push from it (the finish pass adds it)."""
         cfg, groups = self.config, (self.n + GROUP - 1) // GROUP
         r = cfg.separation_radius
-        # Cells at least 2r wide (the numpy twin's, so that its cap of candidates a row means the same)
-        # and about one agent a cell: a sparse crowd's grid is not 4 cells an agent, which the scan pays for.
-        size, side = grid_shape(self.half_extent, max(2.0 * r, 2.0 * self.half_extent / math.sqrt(self.n)), self.n)
+        # The numpy twin's cells (2r, or wider where that would be over 4 cells an agent), so that its cap
+        # of candidates a row of cells means the same: wider cells would drop real neighbours in a pile-up.
+        size, side = grid_shape(self.half_extent, 2.0 * r, self.n)
         self.grid.build(self._state["motion"], self.n, (-self.half_extent, -self.half_extent), size, side, self.timer)
         self._bind()
         self._set(self._programs["separation"], u_side=side, u_cells=side * side, u_radius=r, u_gain=min(cfg.separation_stiffness * h, 1.0))
@@ -318,7 +320,7 @@ class GpuCrowdAI(GLStage):
         self._set(self._programs["layers"], u_n=self.n, u_first=int(first), u_fade_len=max(self.config.crossfade, 1e-6))
         with self._timed("ai_layers"):
             self._programs["layers"].run((self.n + GROUP - 1) // GROUP)
-            self.ctx.memory_barrier(SHADER_STORAGE | 0x1000)  # (and buffer updates: a texture may copy from it next)
+            self.ctx.memory_barrier(READ_BACK)  # (the processor's texture copies from it next)
 
     def layers(self) -> np.ndarray:
         """The layers as a numpy array (synchronous: tests)."""
@@ -335,7 +337,7 @@ class GpuCrowdAI(GLStage):
         self._bind()
         self._set(self._programs[name], u_n=self.n, **values)
         self._programs[name].run(max(groups, 1))
-        self.ctx.memory_barrier(SHADER_STORAGE)
+        self.ctx.memory_barrier(READ_BACK)
 
     def reset_counters(self) -> None:
         """Every count to zero (a new crowd), both nearest searches to none."""
@@ -448,7 +450,7 @@ class GpuCrowdAI(GLStage):
             buffer.bind_to_storage_buffer(LAYERS_OUT)
             self._set(p, u_n=self.n, u_first=int(first), u_count=int(count))
             p.run((count + GROUP - 1) // GROUP)
-        self.ctx.memory_barrier(SHADER_STORAGE)
+        self.ctx.memory_barrier(READ_BACK)
 
     def apply_overrides(self, layers: moderngl.Buffer, overrides, time: float, clip: tuple, within: slice | None) -> int:
         """A person's overrides (crowd.frame.LayerOverrides) on top of the layers in `layers`, on the GPU;
@@ -477,7 +479,7 @@ class GpuCrowdAI(GLStage):
         layers.bind_to_storage_buffer(LAYERS_OUT)
         self._set(self._programs["overrides"], **values)
         self._programs["overrides"].run((self.n + GROUP - 1) // GROUP)
-        self.ctx.memory_barrier(SHADER_STORAGE)
+        self.ctx.memory_barrier(READ_BACK)
         if not flags:
             return 0
         entries = np.array(sorted(flags.items()), np.int32)
@@ -487,7 +489,7 @@ class GpuCrowdAI(GLStage):
             buffer.bind_to_storage_buffer(ENTRIES)
             self._set(self._programs["override_list"], **values, u_entries=len(entries))
             self._programs["override_list"].run((len(entries) + GROUP - 1) // GROUP)
-            self.ctx.memory_barrier(SHADER_STORAGE | 0x1000)
+            self.ctx.memory_barrier(READ_BACK)
         finally:
             buffer.release()
         return entries.nbytes
