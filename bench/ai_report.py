@@ -214,6 +214,33 @@ def bench_cpu(args, motion, cases, obstacles) -> list | int:
 
 
 
+THRESHOLD_M = 1e-3  # an agent this near a radius a transition tests may fall either side of it in float32
+
+
+def near_threshold(ai, tolerance: float = THRESHOLD_M) -> np.ndarray:
+    """Agents of a numpy CrowdAI whose distance to the player is within `tolerance` of a radius one of its
+    transitions tests (notice, forget, reach, a blow's reach): where float32 and float64 may disagree."""
+    cfg = ai.config
+    d = np.hypot(ai.x - ai.player[0], ai.z - ai.player[1])
+    grown = cfg.alert(ai.time)
+    radii = (cfg.notice_radius + grown, cfg.forget_radius + grown, cfg.attack_reach, cfg.attack_reach * 1.25)
+    return np.any([np.abs(d - r) < tolerance for r in radii], axis=0)
+
+
+def crowd_figures(x, z, vx, vz, state, r: float) -> dict:
+    """A crowd's aggregates (all pairs: a few thousand agents): state counts, the living's mean speed,
+    overlap depth an agent (separation radius `r`), nearest-neighbour distance percentiles (5, 25, 50 %)."""
+    from crowd.sim.config import DYING
+
+    live = state < DYING
+    pos = np.stack([x[live], z[live]], 1)
+    d = np.sqrt(((pos[:, None] - pos[None]) ** 2).sum(-1))
+    np.fill_diagonal(d, np.inf)
+    overlap = np.maximum(r - d, 0.0)[np.triu_indices(len(pos), 1)]
+    return {"counts": np.bincount(state, minlength=6), "speed": float(np.hypot(vx, vz)[live].mean()),
+            "overlap": float(overlap.sum() / len(pos)), "nearest": np.percentile(d.min(1), [5, 25, 50])}
+
+
 def bench_agreement(args) -> int:
     """``crowd-bench ai-agreement``: the GPU AI against its float64 reference, the numpy AI. Per seed, from
     identical state a fight into (the player amid the crowd, blows dealt), one substep on each path: the
@@ -226,7 +253,7 @@ def bench_agreement(args) -> int:
     from crowd.asset.gltf import load_character
     from crowd.gl import describe, headless_context
     from crowd.sim.ai import CrowdAI
-    from crowd.sim.config import DYING, AIConfig
+    from crowd.sim.config import AIConfig
     from crowd.sim.gpu.ai import GpuCrowdAI
     from crowd.sim.motion import motion_for
 
@@ -251,10 +278,7 @@ def bench_agreement(args) -> int:
             ai.step(1 / 60)
             g.step(1 / 60)
             s = g.download()
-        d = np.hypot(ai.x - ai.player[0], ai.z - ai.player[1])
-        grown = config.alert(ai.time)
-        near = np.any([np.abs(d - r) < 1e-3 for r in (config.notice_radius + grown, config.forget_radius + grown, config.attack_reach,
-                                                        config.attack_reach * 1.25)], axis=0)
+        near = near_threshold(ai)
         free = ~near
         near_count += int(near.sum())
         agents += ai.n
@@ -278,14 +302,9 @@ def bench_agreement(args) -> int:
         if g is not None:
             g.store(ai)
             g.release()
-        live = ai.state < DYING
-        pos = np.stack([ai.x[live], ai.z[live]], 1)
-        dist = np.sqrt(((pos[:, None] - pos[None]) ** 2).sum(-1))
-        np.fill_diagonal(dist, np.inf)
-        r = config.separation_radius
-        figures[path] = {"states": ai.counts(), "mean_speed": round(float(np.hypot(ai.vx, ai.vz)[live].mean()), 4),
-                         "overlap_m_per_agent": round(float(np.maximum(r - dist, 0.0)[np.triu_indices(len(pos), 1)].sum() / len(pos)), 5),
-                         "nearest_p5_p25_p50": [round(float(v), 4) for v in np.percentile(dist.min(1), [5, 25, 50])],
+        got = crowd_figures(ai.x, ai.z, ai.vx, ai.vz, ai.state, config.separation_radius)
+        figures[path] = {"states": ai.counts(), "mean_speed": round(got["speed"], 4), "overlap_m_per_agent": round(got["overlap"], 5),
+                         "nearest_p5_p25_p50": [round(float(v), 4) for v in got["nearest"]],
                          "outside_world": int(np.count_nonzero((np.abs(ai.x - ai.origin[0]) > ai.half_extent) | (np.abs(ai.z - ai.origin[1]) > ai.half_extent)))}
         print(f"600 substeps, {path}: {figures[path]}")
     ctx.release()

@@ -89,8 +89,9 @@ class CrowdPipeline(LiveSettings, GLStage):
         self.ai: CrowdAI | None = None  # likewise: its worker processes start with a big enough crowd's first step
         self.gpu_crowd: GpuCrowd | None = None  # the crowd on the GPU (ai_path), beside the numpy AI it was made from
         self.ai_note: str | None = None  # why "auto" left the crowd on the numpy AI (or moved it there)
-        self._steps_at: dict[int, int] = {}  # frame -> the AI's step count when it began (the GPU path's palette sync)
-        self._time_at: dict[int, float] = {}  # frame -> the AI's clock after its step (the GPU path's foot-skate sample)
+        # frame -> (the AI's step count when it began, its clock after its step): the GPU path's palette sync
+        # (an agent spawned in that frame's step has that spawned_step) and its foot-skate sample
+        self._clock_at: dict[int, tuple[int, float]] = {}
         self._crowd_since = 0  # the frame since which the crowd's agents are where they are (a new crowd, a resize)
         self.selected = -1  # the agent the panel follows (its row comes back with the facts on the GPU path)
         self.timer = PassTimer(ctx)
@@ -183,7 +184,7 @@ class CrowdPipeline(LiveSettings, GLStage):
         self.ai_note = why if path == "auto" else None
         if path != "cpu" and why is None:
             self.gpu_crowd = GpuCrowd(ctx, self.ai, self.latency)
-            self.renderer.gpu_records(cast_weapons([m.character for m in self.cast[:self.crowd_cast]])[0])
+            self._records_from_gpu()
             self._survivor_ground = None if self.survivor is None else self.survivor.position.copy()
 
     def _gpu_path_holds(self) -> bool:
@@ -198,13 +199,17 @@ class CrowdPipeline(LiveSettings, GLStage):
             self.ai_note = f"moved to the numpy AI: {why}"
             self.lock_steps.reset()
             return False
-        if self.renderer.gpu_record_pass is None:
-            self.renderer.gpu_records(cast_weapons([m.character for m in self.cast[:self.crowd_cast]])[0])
+        self._records_from_gpu()
         if self.weapons is not None:
             self.gpu_crowd.arm(self.weapons.socket_joints, [lod >= 0 for lod in self.renderer.impostor_lods], self.foot_skate.feet,
                                FOOT_SKATE_SAMPLE)
         self.renderer.gpu_record_pass.sent_bytes = 0
         return True
+
+    def _records_from_gpu(self) -> None:
+        """The renderer (a new one after a live change too) packs its records from the GPU's crowd."""
+        if self.renderer.gpu_record_pass is None:
+            self.renderer.gpu_records(cast_weapons([m.character for m in self.cast[:self.crowd_cast]])[0])
 
     @property
     def ai_path(self) -> str:
@@ -424,9 +429,7 @@ class CrowdPipeline(LiveSettings, GLStage):
         person's overrides go in, the facts of frame F - N come back, and every agent's step, layers,
         foot-lock motion and record are written on the GPU."""
         t, f, survivor, crowd = self.timer, self.frames, self.survivor, self.gpu_crowd
-        self._steps_at[f] = self.ai.steps  # an agent spawned in this frame's step has this spawned_step
-        for old in [k for k in self._steps_at if k < f - RING]:
-            del self._steps_at[old]
+        steps_before = self.ai.steps
         with t.cpu("ai"):
             crowd.fetch(f)
         read, fallen = self._fetch_sockets(f, crowd)
@@ -442,9 +445,9 @@ class CrowdPipeline(LiveSettings, GLStage):
                     self._new_crowd(self.config.seed + survivor.rounds - 1)
                     crowd = self.gpu_crowd
             crowd.capture(f, survivor, self.selected)
-        self._time_at[f] = self.ai.time  # (the foot-skate sample's clock for this frame's gather)
-        for old in [k for k in self._time_at if k < f - RING]:
-            del self._time_at[old]
+        self._clock_at[f] = (steps_before if self.ai is ai_before else 0, self.ai.time)  # (a new round's crowd began at step 0)
+        for old in [k for k in self._clock_at if k < f - RING]:
+            del self._clock_at[old]
         self._run("ai")
         self._pose_lag.append(float(min(dt, self.ai.config.max_dt)))
         with t.cpu("upload"):
@@ -471,7 +474,7 @@ class CrowdPipeline(LiveSettings, GLStage):
             self._gather_sockets(f, sim, crowd, survivor, agent_weapon)
             age = None if read is None else self.sync.age(read.frame)
             if age is not None:  # each body from the read-back's palette, but agents born after it from this frame's
-                row_offset = (self.processor.row_offset(age), latest, self._steps_at[read.frame])
+                row_offset = (self.processor.row_offset(age), latest, self._clock_at[read.frame][0])
         return self._render(framebuffer, f, sim, row_offset, read, agent_weapon, fallen)
 
     def _fetch_sockets(self, f: int, crowd) -> tuple:
@@ -491,7 +494,7 @@ class CrowdPipeline(LiveSettings, GLStage):
             agents, motion, heading, rows = feet
             self.foot_skate.walking(agents)
             ground = motion[:, :2].astype(np.float64) + self.ai.origin
-            self.foot_skate.sent(read.frame, agents, ground, np.arctan2(heading[:, 0], heading[:, 1]), heading[:, 3], self._time_at.get(read.frame, 0.0))
+            self.foot_skate.sent(read.frame, agents, ground, np.arctan2(heading[:, 0], heading[:, 1]), heading[:, 3], self._clock_at.get(read.frame, (0, 0.0))[1])
             self.foot_skate.received(read.frame, rows)
         fallen = np.zeros(self.rows, bool)
         if down is not None:

@@ -9,6 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from bench.ai_report import crowd_figures, near_threshold
 from crowd.anim.roles import bake_roles, match_roles
 from crowd.sim.ai import CrowdAI
 from crowd.sim.config import ATTACK, CHASE, DEAD, DYING, HIT, WANDER, AIConfig
@@ -20,7 +21,6 @@ CONFIG = AIConfig(think_every=1, workers=1, start_clear=0.0)  # the GPU has no t
 # within 100 m (float32's step there: 7.6 µm).
 TOLERANCE = {"x": 2e-5, "z": 2e-5, "vx": 2e-5, "vz": 2e-5, "hx": 2e-5, "hz": 2e-5, "phase": 2e-5, "tx": 2e-5, "tz": 2e-5,
              "state_time": 1e-5, "action_time": 1e-5, "cooldown": 1e-5, "aware": 1e-5, "pause": 1e-5}
-NEAR_THRESHOLD_M = 1e-3  # an agent this near a radius (notice, forget, reach) may fall either side of it in float32
 
 
 @pytest.fixture(scope="module")
@@ -66,15 +66,6 @@ def one_substep_each(ai: CrowdAI, gpu_ai, warmup: int) -> tuple:
     return g, g.download(), ~near_threshold(ai)
 
 
-def near_threshold(ai: CrowdAI) -> np.ndarray:
-    """Agents whose distance to the player is within NEAR_THRESHOLD_M of a radius a transition tests."""
-    cfg = ai.config
-    d = np.hypot(ai.x - ai.player[0], ai.z - ai.player[1])
-    grown = cfg.alert(ai.time)
-    radii = (cfg.notice_radius + grown, cfg.forget_radius + grown, cfg.attack_reach, cfg.attack_reach * 1.25)
-    return np.any([np.abs(d - r) < NEAR_THRESHOLD_M for r in radii], axis=0)
-
-
 def test_one_substep_agrees_per_agent(motion, gpu_ai):
     ai = busy_crowd(motion)
     g = gpu_ai(ai)
@@ -93,18 +84,6 @@ def test_one_substep_agrees_per_agent(motion, gpu_ai):
     assert np.array_equal(ai.tint, s["tint"]) and np.array_equal(ai.weapon, s["weapon"]) and np.array_equal(ai.head, s["head"])
     layers = g.layers()
     assert np.abs(layers - ai.layers())[free].max() <= 1e-4
-
-
-def crowd_figures(x, z, vx, vz, state, r) -> dict:
-    """Aggregates of a crowd: state counts, mean speed of the living, mean overlap depth, nearest-neighbour percentiles."""
-    live = state < DYING
-    pos = np.stack([x[live], z[live]], 1)
-    d = np.sqrt(((pos[:, None] - pos[None]) ** 2).sum(-1))
-    np.fill_diagonal(d, np.inf)
-    nearest = d.min(1)
-    overlap = np.maximum(r - d, 0.0)[np.triu_indices(len(pos), 1)]
-    return {"counts": np.bincount(state, minlength=6), "speed": float(np.hypot(vx, vz)[live].mean()),
-            "overlap": float(overlap.sum() / len(pos)), "nearest": np.percentile(nearest, [5, 25, 50])}
 
 
 def test_600_substeps_agree_in_aggregate(motion, gpu_ai):
