@@ -31,7 +31,7 @@ uniform uint u_row_code;          // this frame's palette slot
 uniform vec3 u_eye;               // relative to the crowd's origin
 uniform float u_reach2;           // squared metres within which an impostor character's agents are meshes
 uniform int u_socket[WEAPONS];    // each weapon's socket joint
-uniform int u_far_kinds;          // bit k: character k has impostors (its far agents hold their weapon in the impostor)
+uniform int u_far[KINDS];         // 1 where a character has impostors (its far agents hold their weapon in the impostor)
 uniform int u_extra_weapon;       // the survivor's weapon (-1: none)
 uniform uint u_extra_code;        // its joint 0's texel code, this frame's slot
 #ifdef FEET
@@ -74,7 +74,7 @@ void main() {
         uvec4 look = looks_[i];
         if (look.z == 0u) return;
         ivec4 c = codes_[i];
-        if ((u_far_kinds & (1 << c.w)) != 0) {
+        if (u_far[c.w] != 0) {
             vec2 d = motion_[i].xy - u_eye.xz;
             if (d.x * d.x + u_eye.y * u_eye.y + d.y * d.y > u_reach2) return;
         }

@@ -292,3 +292,42 @@ def test_a_pile_up_is_pushed_apart_as_the_numpy_ai_pushes_it(motion, gpu_ai):
     g.step(STEP)
     s = g.download()
     assert np.hypot(ai.x - s["x"], ai.z - s["z"]).max() < 1e-4
+
+
+def test_the_gpu_socket_list_takes_any_number_of_characters(motion, compute_context):
+    """40 characters (past the 32 a bit mask would hold), only the 36th with impostors: its far agents
+    are left out of the sockets' list, everyone else's armed agents are in it."""
+    from crowd.draw.gpu_sockets import GpuSocketGather
+    from crowd.sim.gpu.ai import GpuCrowdAI
+
+    kinds = 40
+    armed = dataclasses.replace(motion, weapon_count=1)
+    ai = CrowdAI(800, 2, [armed] * kinds, dataclasses.replace(CONFIG, armed_share=1.0), shares=[1.0] * kinds)
+    ctx = compute_context
+
+    class Palette:  # three one-texel planes: the rows' values do not matter here, only who is listed
+        layer_rows = 1
+
+        def __init__(self):
+            self.planes = [ctx.texture_array((1, 1, 1), 4, dtype="f4") for _ in range(3)]
+
+        def bind_palette(self, unit, program):
+            for i, plane in enumerate(self.planes):
+                plane.use(unit + i)
+            program["u_palette_rows"] = 1
+
+    palette = Palette()
+    far = [k == 35 for k in range(kinds)]
+    with GpuCrowdAI(ctx, ai) as g, GpuSocketGather(ctx, np.zeros(kinds, np.int32), far) as gather:
+        texel_base = ctx.buffer(np.zeros(ai.n, np.uint32).tobytes())
+        eye = np.array([ai.origin[0], 1.7, ai.origin[1]])
+        gather.gather(0, g.frame_output(), palette, texel_base, 0, eye, 3.0, None)
+        ctx.finish()
+        read, down, _ = gather.fetch(0)
+        texel_base.release()
+    for plane in palette.planes:
+        plane.release()
+    d2 = (ai.x - eye[0]) ** 2 + eye[1] ** 2 + (ai.z - eye[2]) ** 2
+    expected = np.flatnonzero((ai.weapon >= 0) & ((ai.kind != 35) | (d2 <= 9.0)))
+    assert np.array_equal(np.sort(np.concatenate([read.agents, down])), expected)
+    assert np.count_nonzero(ai.kind[expected] == 35) < np.count_nonzero(ai.kind == 35)

@@ -37,12 +37,13 @@ class GpuSocketGather(GLStage):
         self.far_kinds = list(far_kinds)
         self.feet = list(feet) if sample else []
         self.sample = int(sample) if self.feet else 0
-        defines = {"WEAPONS": max(len(self.socket_joints), 1), **({"FEET": len(self.feet), "SAMPLE": self.sample} if self.feet else {})}
+        defines = {"WEAPONS": max(len(self.socket_joints), 1), "KINDS": max(len(self.far_kinds), 1),
+                   **({"FEET": len(self.feet), "SAMPLE": self.sample} if self.feet else {})}
         self.program = self._objects.add(ctx.compute_shader(load_shader("socket_gather.comp.glsl", defines)))
         if self.feet:
             self.program["u_feet"].write(np.asarray(self.feet, np.int32).tobytes())
         self.program["u_socket"].write(np.resize(self.socket_joints, max(len(self.socket_joints), 1)).astype(np.int32).tobytes())
-        self.program["u_far_kinds"] = int(sum(1 << k for k, far in enumerate(far_kinds) if far))
+        self.program["u_far"].write(np.resize(np.asarray(self.far_kinds, np.int32), max(len(self.far_kinds), 1)).tobytes())
         for plane in range(3):
             self.program[f"u_palette{plane}"] = palette_unit + plane
         self._unit = palette_unit
