@@ -151,18 +151,45 @@ def bench_gpu(args, motion, agents: list[int], town=None) -> tuple[list, str]:
             for _ in range(args.warmup + 2 * args.steps + min(args.steps, 50)):
                 step()
             same = g.raw() == final
+            new_crowd = _new_crowd_costs(ctx, g, args.seed + 1, motion, obstacles)
         layers.release()
         ai.close()
         row = {"path": "gpu", "town": obstacles is not None, "agents": n, "gpu_ms_per_step": round(float(np.median(gpu_ms)), 4),
                "period_ms": round(period * 1e3, 4), "cpu_ms_per_step": round(float(np.median(cpu)) * 1e3, 4), "states": counts,
-               "deterministic": same,
+               "deterministic": same, "new_crowd": new_crowd,
                "passes_ms": passes.medians()}
         rows.append(row)
         print(f"{n:>8}{' town' if obstacles is not None else '':5} {row['gpu_ms_per_step']:>12.4f} {row['period_ms']:>10.4f} {row['cpu_ms_per_step']:>7.3f} {str(same):>6} {counts['chase']:>8}  "
               + " ".join(f"{k} {v:.4f}" for k, v in row["passes_ms"].items()))
+        print(" " * 9 + "a new crowd: " + ", ".join(f"{k} {v}" for k, v in new_crowd.items()))
     query.release() if hasattr(query, "release") else None
     ctx.release()
     return rows, gpu
+
+
+def _new_crowd_costs(ctx, g, seed: int, motion, obstacles) -> dict:
+    """What a new round's crowd costs the frame it starts in, the GPU path's two ways of taking it: the
+    numpy AI's spawn (CPU ms, the traits the CPU keeps), and then either its rows sent (bytes, wall ms to
+    the GPU having them) or the GPU's own spawn from the same keyed draws (bytes, wall ms, GPU ms)."""
+    from crowd.sim.ai import CrowdAI
+    from crowd.sim.config import AIConfig
+
+    ctx.finish()
+    t = time.perf_counter()
+    ai = CrowdAI(g.n, seed, motion, AIConfig(think_every=1, workers=1), obstacles=obstacles)
+    out = {"numpy_spawn_ms": round((time.perf_counter() - t) * 1e3, 3)}
+    query = ctx.query(time=True)
+    for fresh in (False, True):
+        g.sent_bytes = 0
+        t = time.perf_counter()
+        with query:
+            g.load(ai, fresh=fresh)
+        ctx.finish()
+        key = "spawned" if fresh else "rows_sent"
+        out[f"{key}_bytes"], out[f"{key}_wall_ms"] = g.sent_bytes, round((time.perf_counter() - t) * 1e3, 3)
+        out[f"{key}_gpu_ms"] = round(query.elapsed * 1e-6, 4)
+    ai.close()
+    return out
 
 
 def bench_cpu(args, motion, cases, obstacles) -> list | int:

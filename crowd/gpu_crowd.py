@@ -24,11 +24,12 @@ LAYER_BYTES = 64  # an agent's four layers
 
 
 class GpuCrowd(GLStage):
-    def __init__(self, ctx: moderngl.Context, ai: CrowdAI, latency: int):
+    def __init__(self, ctx: moderngl.Context, ai: CrowdAI, latency: int, fresh: bool = False):
+        """`fresh`: `ai` is a crowd just spawned, whose agents the GPU spawns itself (GpuCrowdAI.load)."""
         self.ctx = ctx
         self._objects = GLObjects()
         self.ai = ai
-        self.gpu = self._objects.add(GpuCrowdAI(ctx, ai))
+        self.gpu = self._objects.add(GpuCrowdAI(ctx, ai, fresh))
         self._hits_at_load = ai.player_hits_taken
         self.facts = self._objects.add(FactRing(ctx, 4 * COUNTER_WORDS))
         self.latency = int(latency)
@@ -36,6 +37,7 @@ class GpuCrowd(GLStage):
         self.sockets: GpuSocketGather | None = None  # the weapons' read-back (arm)
         self.last: dict | None = None  # the newest facts read back
         self._kills_seen = 0
+        self._picks = 0  # pick requests so far (each answer names its request: crowd.sim.gpu.facts)
         self.sent_bytes = self.read_bytes = 0  # what the last frame sent and read back, for the stats
 
     def arm(self, socket_joints, far_kinds: list[bool], feet=(), sample: int = 0) -> None:
@@ -50,10 +52,11 @@ class GpuCrowd(GLStage):
 
     # -- the crowd in and out (a resize, a new crowd, new settings: events, not frames)
 
-    def load(self, ai: CrowdAI) -> None:
-        """Take over `ai`'s crowd (a new crowd, or the numpy AI after a change made to it)."""
+    def load(self, ai: CrowdAI, fresh: bool = False) -> None:
+        """Take over `ai`'s crowd: a new one (`fresh`: spawned on the GPU from the same draws), or the numpy
+        AI after a change made to it (its rows sent)."""
         self.ai = ai
-        self.gpu.load(ai)
+        self.gpu.load(ai, fresh)
         self._hits_at_load = ai.player_hits_taken  # (the GPU counts the blows from 0 again)
         self.facts.forget()  # (the old crowd's totals must not be taken for the new one's: a new round's survivor would take them as blows)
         self.last, self._kills_seen = None, 0
@@ -154,6 +157,19 @@ class GpuCrowd(GLStage):
         """Hit the nearest living zombie within reach on the GPU; which one comes back with the facts (-1 now)."""
         self.gpu.strike_nearest(point, reach)
         return -1
+
+    def pick(self, origin, direction, radius: float, height: float) -> int:
+        """Ask which agent a ray enters first (crowd.sim.gpu.ai.GpuCrowdAI.pick); returns the request's
+        number, whose answer ``picked`` gives once its frame's facts are in."""
+        self._picks += 1
+        self.gpu.pick(origin, direction, radius, height, self._picks)
+        return self._picks
+
+    def picked(self, request: int) -> int | None:
+        """The agent pick `request` found (-1: none), or None while its answer is not yet read back."""
+        if self.last is None or self.last["picked"][0] != request:
+            return None
+        return self.last["picked"][1]
 
     def near_player(self) -> int:
         """Living zombies within notice radius of the player, N frames ago."""

@@ -334,7 +334,7 @@ class LiveSettings:
         agents = SETTINGS["agents"].check(agents, PipelineError)
         before = self.ai.n
         self.ai.resize(agents)
-        if self.gpu_crowd is not None:  # the kept agents copied on the GPU, the new ones sent
+        if self.gpu_crowd is not None:  # the kept agents copied on the GPU, the new ones spawned there
             self.gpu_crowd.gpu.resize_from(self.ai)
         self._crowd_since = self.frames
         moves = list(self.ai.moved)  # each character keeps its first agents, at its block's new place
@@ -366,7 +366,7 @@ class LiveSettings:
         self._blows_seen = 0
         old.close()
         if self.gpu_crowd is not None:
-            self.gpu_crowd.load(self.ai)
+            self.gpu_crowd.load(self.ai, fresh=True)
         self._crowd_since = self.frames
         self.foot_skate.reset()
         self.processor.reset_lock()  # other agents now: nothing held is theirs

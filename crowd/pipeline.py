@@ -183,7 +183,7 @@ class CrowdPipeline(LiveSettings, GLStage):
             raise PipelineError(f"ai_path gpu: {why}")
         self.ai_note = why if path == "auto" else None
         if path != "cpu" and why is None:
-            self.gpu_crowd = GpuCrowd(ctx, self.ai, self.latency)
+            self.gpu_crowd = GpuCrowd(ctx, self.ai, self.latency, fresh=True)  # (a crowd just spawned: the GPU spawns it too)
             self._records_from_gpu()
             self._survivor_ground = None if self.survivor is None else self.survivor.position.copy()
 

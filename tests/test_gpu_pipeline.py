@@ -188,5 +188,14 @@ def test_picking_finds_the_agent_the_numpy_pick_finds(ctx):
         scene = Scene(agents=200, seed=3, town=False, weapons=False, ai_path=path, ai=AIConfig(think_every=1, start_clear=0.0, half_extent=12.0))
         with CrowdSession(ctx, scene, size[0] / size[1]) as session, Offscreen(ctx, size) as target:
             session.pipeline.frame(target.framebuffer, 1 / 30)
-            picks[path] = [session.pick(x, y, size) for x in range(20, 320, 37) for y in range(30, 180, 29)]
+            picks[path] = []
+            for x in range(20, 320, 37):
+                for y in range(30, 180, 29):
+                    answer, waited = session.pick(x, y, size), 0
+                    while answer is None:  # the GPU's answer comes with the facts, N frames later: nothing moves meanwhile
+                        session.frame(target.framebuffer, 0.0)
+                        waited += 1
+                        answer = None if session._pick is not None else session.selected
+                        assert waited <= session.pipeline.latency + 2
+                    picks[path].append(answer)
     assert picks["cpu"] == picks["gpu"] and sum(p >= 0 for p in picks["gpu"]) > 5

@@ -119,13 +119,13 @@ class CrowdAI(SpawnMixin, ThinkMixin, ThinkBudgetMixin, SeparationMixin, Obstacl
         self.cast = (0,) * len(motions)  # agents of each character, in the cast's order
         self._kind_fields = _KIND_FIELDS if len(motions) > 1 else ()
         self.seed = int(seed)
-        self.rng = np.random.default_rng(self.seed)
         origin = np.asarray(origin, np.float64)
         if origin.shape != (2,) or not np.all(np.isfinite(origin)):
             raise AIError("AI origin must be a finite (x, z) pair")
         self.origin = origin  # float64 centre of the world square
         self.time = 0.0
         self.player = origin.copy()
+        self.start_player = origin.copy()  # where the player stood at the last spawn anywhere (its clearance's centre)
         self.player_hits_taken = 0
         self.steps = 0  # step() calls so far; an agent's spawned_step is the step in which it (re)appeared
         self.pair_builds = 0  # how often the separation's neighbour list was rebuilt (benchmarks report it)

@@ -130,7 +130,7 @@ class WorkersMixin:
         """The AI in a worker process: arrays mapped from the main process's block by ``sync_worker``."""
         ai = cls.__new__(cls)
         ai._block = ai._grid_block = ai._pool = ai._range_list = None
-        ai._respawns, ai.player_hits_taken, ai.focus, ai.rng = 0, 0, (), None  # (a worker spawns only at edges: keyed draws)
+        ai._respawns, ai.player_hits_taken, ai.focus = 0, 0, ()  # (a worker spawns only at edges)
         ai.obstacles = None
         return ai
 

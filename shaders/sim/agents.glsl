@@ -37,6 +37,10 @@ layout(std430, binding = 8) buffer Counters {
     vec4 selected_motion;
     vec4 selected_heading;
     ivec4 selected_codes;
+    uint pick_t;         // a click's pick: the nearest hit along its ray (float bits), the lowest agent there,
+    uint picked;         // and the request it answers (kept until the next: any later frame's copy carries it)
+    uint pick_serial;
+    uint pad_;
 };
 
 const int WANDER = 0, CHASE = 1, ATTACK = 2, HIT = 3, DYING = 4, DEAD = 5;

@@ -88,9 +88,9 @@ void main() {
             float y = u_ray_origin.y + t * u_ray_dir.y;
             if (t > 0.0 && y >= 0.0 && y <= u_pick_height * scale) {
 #ifdef PICK_T
-                atomicMin(nearest_d[0], floatBitsToUint(t));
+                atomicMin(pick_t, floatBitsToUint(t));
 #else
-                if (floatBitsToUint(t) == nearest_d[0]) atomicMin(nearest_i[0], uint(i));
+                if (floatBitsToUint(t) == pick_t) atomicMin(picked, uint(i));
 #endif
             }
         }

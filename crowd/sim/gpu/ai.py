@@ -34,7 +34,7 @@ from ...frame import SimFrame
 from ..config import STATE_NAMES, AIError
 from ..obstacles import FLOW_CELLS
 from ..separation import SEPARATION_CELL_CAP, grid_shape
-from ..spawn import _MASK64, _RESPAWN, _WANDER
+from ..spawn import _ARMS, _LOOKS, _MASK64, _PLACE, _RESPAWN, _TRAITS, _WANDER, PLACE_TRIES, TINTS, draw_bound
 from .facts import facts_of
 from .grid import GROUP, SHADER_STORAGE, NeighbourGrid
 
@@ -42,8 +42,9 @@ READ_BACK = SHADER_STORAGE | 0x200 | 0x80  # and buffer updates (copies, reads) 
 from .state import FIELDS, SCRATCH_BINDING, kind_table, pack, pivot_table, unpack
 
 PIVOTS, LAYERS_OUT, COUNTERS = 9, 9, 8  # storage bindings beside the state's (the layers and the pivots are never bound together)
-COUNTER_WORDS = 32  # blows, respawns, kills, hurt, 8 state counts, 2 nearest distances, 2 nearest agents, where a look's nearest
-# stands, the count near a point, and a selected agent with its motion, heading and codes (shaders/sim/agents.glsl)
+COUNTER_WORDS = 36  # blows, respawns, kills, hurt, 8 state counts, 2 nearest distances, 2 nearest agents, where a look's nearest
+# stands, the count near a point, a selected agent with its motion, heading and codes, and a pick's answer (shaders/sim/agents.glsl)
+PICK_WORD = 32
 STRIKE, LOOK = 0, 1  # the two nearest searches' slots
 GROUND, ENTRIES = 10, 10  # the foot motion's ground points; the overrides' list
 FIELD, FLOW = 11, 12  # the town's distance field and flow field (the think and finish passes')
@@ -59,7 +60,7 @@ class GpuCrowdAI(GLStage):
     continues; ``store`` writes the GPU's crowd back into one. Scalars (time, substeps, the player, the
     world's size) stay on the CPU and go in as uniforms."""
 
-    def __init__(self, ctx: moderngl.Context, ai):
+    def __init__(self, ctx: moderngl.Context, ai, fresh: bool = False):
         if not has_compute(ctx):
             raise GpuAIError(f"the GPU AI needs GL 4.3 compute shaders; this context is GL {ctx.version_code // 100}.{ctx.version_code % 100 // 10}")
         self.ctx = ctx
@@ -69,12 +70,14 @@ class GpuCrowdAI(GLStage):
         self.sent_bytes = 0  # bytes written from the CPU since the caller last zeroed it (counters, a blow's list)
         self.timer = None  # something with .gpu(name), a context manager timing the passes inside (crowd.timing.PassTimer)
         self.n = 0
-        self.load(ai)
+        self.load(ai, fresh)
 
     # -- the crowd in and out
 
-    def load(self, ai) -> None:
-        """Take over the crowd of a numpy CrowdAI: its agents' state, its clock and its settings."""
+    def load(self, ai, fresh: bool = False) -> None:
+        """Take over the crowd of a numpy CrowdAI: its agents' state, its clock and its settings. `fresh`:
+        `ai` is a crowd just spawned (no step yet), whose agents the GPU spawns from the same keyed draws
+        instead of taking their rows from the CPU."""
         self._cpu = ai  # (the numpy AI: it makes the town's flow field, and keeps the player out of the buildings)
         self.motions, self.cast, self.origin = ai.motions, ai.cast, np.asarray(ai.origin, np.float64).copy()
         self.seed, self.time, self.steps, self.substeps = ai.seed, ai.time, ai.steps, ai.substeps
@@ -91,16 +94,52 @@ class GpuCrowdAI(GLStage):
             if old is not None:
                 self._objects.remove(old)
                 old.release()
-        self._kind_block = self._objects.add(self.ctx.buffer(kind_table(ai).tobytes()))
-        self._pivots = self._objects.add(self.ctx.buffer(pivot_table(ai.motions).tobytes()))
+        kinds_table, pivots = kind_table(ai), pivot_table(ai.motions)
+        self._kind_block = self._objects.add(self.ctx.buffer(kinds_table.tobytes()))
+        self._pivots = self._objects.add(self.ctx.buffer(pivots.tobytes()))
+        self.sent_bytes += kinds_table.nbytes + pivots.nbytes
         self._any_attack = any(m.clip["attack"] >= 0 for m in ai.motions)
         self._allocate(ai.n)
-        for name, block in pack(ai).items():
-            if ai.n:
-                self._state[name].write(block.tobytes())
-                if name == "motion":  # the foot lock's first run steps 0
-                    self._ground.write(np.ascontiguousarray(block[:, :2]).tobytes())
+        first = np.concatenate([[0], np.cumsum(ai.cast)])
+        if fresh:
+            self._spawn(ai, [(k, int(first[k]), count) for k, count in enumerate(ai.cast)])
+        else:
+            for name, block in pack(ai).items():
+                if ai.n:
+                    self._state[name].write(block.tobytes())
+                    self.sent_bytes += block.nbytes
+                    if name == "motion":  # the foot lock's first run steps 0
+                        self._ground.write(np.ascontiguousarray(block[:, :2]).tobytes())
+                        self.sent_bytes += 8 * ai.n
         self.reset_counters()
+
+    def _spawn(self, ai, runs) -> None:
+        """Agents spawned anywhere on the GPU as the numpy AI `ai` just spawned them (crowd.sim.spawn), for
+        `runs` of (character, first row, count): its seed, substep, step and start player are the keys."""
+        runs = [(k, first, count) for k, first, count in runs if count]
+        if not runs:
+            return
+        program, cfg = self._programs["spawn"], ai.config
+        self._bind()
+        self._ground.bind_to_storage_buffer(GROUND)
+        base = lambda purpose: self._base(purpose, ai.seed, ai.substeps)  # noqa: E731
+        values = dict(u_steps=ai.steps, u_health=int(cfg.health), u_half=self._half32(ai.half_extent),
+                      u_player=tuple(float(v) for v in ai.start_player - self.origin), u_start_clear=cfg.start_clear,
+                      u_base_traits=base(_TRAITS), u_base_looks=base(_LOOKS), u_base_arms=base(_ARMS),
+                      u_speed=(cfg.speed_min, cfg.speed_max), u_reaction=(cfg.reaction_min, cfg.reaction_max),
+                      u_runner_below=draw_bound(cfg.runner_share), u_armed_below=draw_bound(cfg.armed_share))
+        if self.obstacles is not None:
+            values.update(self._town_uniforms())
+            self._field.bind_to_storage_buffer(FIELD)
+        self._set(program, **values)
+        program["u_base_place"].value = [base(_PLACE + attempt) for attempt in range(PLACE_TRIES)]
+        program["u_tints"].value = [int(v) for v in np.concatenate([TINTS, np.full((len(TINTS), 1), 255, np.uint8)], axis=1).view(np.uint32)[:, 0]]
+        for k, first, count in runs:
+            m = ai.motions[k]
+            self._set(program, u_first=first, u_count=count, u_kind=k, u_heads=max(m.head_count, 1), u_weapons=m.weapon_count,
+                      u_weapon_first=m.weapon_first, u_walk_speed=m.walk_speed, u_run_speed=m.run_speed)
+            program.run((count + GROUP - 1) // GROUP)
+        self.ctx.memory_barrier(READ_BACK)
 
     def _load_town(self, obstacles) -> None:
         """The town's distance field (once) and an empty flow field; none of it without a town."""
@@ -128,14 +167,17 @@ class GpuCrowdAI(GLStage):
             self.sent_bytes += packed.nbytes
             self._flow_cell = ai._flow_cell
             self._flow_corner = (float(ai._flow_corner[0] - self.origin[0]), float(ai._flow_corner[1] - self.origin[1]), 1.0)
+        return self._town_uniforms()
+
+    def _town_uniforms(self) -> dict:
         period = self.obstacles.period
         return dict(u_origin_mod=tuple(float(v) for v in np.mod(self.origin, period)), u_period=period, u_cell=self.obstacles.cell,
                     u_field_n=self._field_n, u_flow_corner=self._flow_corner)
 
-    def resize_from(self, ai) -> int:
+    def resize_from(self, ai) -> None:
         """The crowd resized as the numpy AI `ai` just was (``CrowdAI.resize``: each character keeps its first
         agents, at its block's new place, ``ai.moved``): the kept agents' state copied on the GPU, the new
-        ones' from `ai`'s spawn. Returns the bytes sent (the new agents' rows)."""
+        ones spawned there from the keyed draws the numpy AI spawned them from."""
         old, old_ground = self._state, self._ground
         self._state, self._ground = {}, None  # (kept apart from _allocate's release)
         for buffer in (*old.values(), old_ground):
@@ -143,24 +185,16 @@ class GpuCrowdAI(GLStage):
         try:
             self._allocate(ai.n)
             first = np.concatenate([[0], np.cumsum(ai.cast)])
-            sent = 0
-            for k, (before, after, count) in enumerate(ai.moved):
+            for before, after, count in ai.moved:
                 if count:
                     for name, buffer in self._state.items():
                         self.ctx.copy_buffer(buffer, old[name], 16 * count, 16 * before, 16 * after)
                     self.ctx.copy_buffer(self._ground, old_ground, 8 * count, 8 * before, 8 * after)
-                fresh = slice(after + count, int(first[k + 1]))
-                if fresh.stop > fresh.start:
-                    for name, block in pack(ai, fresh).items():
-                        self._state[name].write(block.tobytes(), offset=16 * fresh.start)
-                        if name == "motion":
-                            self._ground.write(np.ascontiguousarray(block[:, :2]).tobytes(), offset=8 * fresh.start)
-                    sent += (fresh.stop - fresh.start) * (16 * len(FIELDS) + 8)
+            self.cast, self.half_extent, self.config = ai.cast, ai.half_extent, ai.config
+            self._spawn(ai, [(k, after + count, int(first[k + 1]) - after - count) for k, (_, after, count) in enumerate(ai.moved)])
         finally:
             for buffer in (*old.values(), old_ground):
                 buffer.release()
-        self.cast, self.half_extent, self.config = ai.cast, ai.half_extent, ai.config
-        return sent
 
     def _build_programs(self, kinds: int, town: bool = False) -> dict:
         for program in getattr(self, "_programs", {}).values():
@@ -169,6 +203,7 @@ class GpuCrowdAI(GLStage):
         defines = {"KINDS": kinds, "SEPARATION_CELL_CAP": SEPARATION_CELL_CAP, **({"TOWN": 1} if town else {})}
         shader = lambda name, **extra: self._objects.add(self.ctx.compute_shader(load_shader(name, {**defines, **extra})))  # noqa: E731
         programs = {"think": shader("sim/think.comp.glsl", THINK_A=1), "finish": shader("sim/think.comp.glsl", FINISH=1),
+                    "spawn": shader("sim/spawn.comp.glsl", PLACE_TRIES=PLACE_TRIES, TINT_COUNT=len(TINTS)),
                     "separation": shader("sim/separation.comp.glsl"), "layers": shader("sim/outputs.comp.glsl", LAYERS=1)}
         for name in ("HIT_LIST", "NEAREST_D", "NEAREST_I", "HIT_NEAREST", "LOOK_AT", "SWEEP", "COUNT", "PICK_T", "PICK_I"):
             programs[name] = shader("sim/hit.comp.glsl", **{name: 1})
@@ -231,9 +266,10 @@ class GpuCrowdAI(GLStage):
             if name in program:
                 program[name].value = value
 
-    def _base(self, purpose: int) -> tuple[int, int]:
-        """The keyed draws' base for this substep and purpose, as (low, high) 32-bit halves."""
-        base = (self.seed * 0x9E3779B97F4A7C15 + self.substeps * 0xD1B54A32D192ED03 + purpose * 0xAEF17502108EF2D9) & _MASK64
+    def _base(self, purpose: int, seed: int | None = None, substeps: int | None = None) -> tuple[int, int]:
+        """The keyed draws' base for this substep (or `substeps`) and purpose, as (low, high) 32-bit halves."""
+        seed, substeps = self.seed if seed is None else seed, self.substeps if substeps is None else substeps
+        base = (seed * 0x9E3779B97F4A7C15 + substeps * 0xD1B54A32D192ED03 + purpose * 0xAEF17502108EF2D9) & _MASK64
         return base & 0xFFFFFFFF, base >> 32
 
     def step(self, dt: float) -> int:
@@ -250,11 +286,12 @@ class GpuCrowdAI(GLStage):
         self.steps += 1
         return count
 
-    def _half32(self) -> float:
+    def _half32(self, half_extent: float | None = None) -> float:
         """The world's half width as float32 no larger than the float64 one: an agent the GPU clamps to it is
         inside the world in float64 too."""
-        half = np.float32(self.half_extent)
-        return float(np.nextafter(half, np.float32(0)) if float(half) > self.half_extent else half)
+        exact = self.half_extent if half_extent is None else half_extent
+        half = np.float32(exact)
+        return float(np.nextafter(half, np.float32(0)) if float(half) > exact else half)
 
     def _timed(self, name: str):
         return self.timer.gpu(name) if self.timer is not None else contextlib.nullcontext()
@@ -345,6 +382,7 @@ class GpuCrowdAI(GLStage):
         words[12:14] = 0x7F800000  # nearest distances: +inf until a search finds one
         words[14:16] = 0xFFFFFFFF
         words[19] = 0xFFFFFFFF
+        words[PICK_WORD:PICK_WORD + 2] = 0x7F800000, 0xFFFFFFFF
         self._counters.write(words.tobytes())
         self.sent_bytes += words.nbytes
 
@@ -394,22 +432,20 @@ class GpuCrowdAI(GLStage):
         if self.n:
             self._hit_pass("LOOK_AT", 1, **self._nearest(LOOK, point, reach))
 
-    def pick(self, origin, direction, radius: float, height: float) -> int:
-        """The agent a ray (world origin, unit direction) enters first, through each agent's upright
-        cylinder of `radius` and `height` times its scale, or -1: 8 bytes read back at once (a click is
-        an event: it waits for the GPU once)."""
+    def pick(self, origin, direction, radius: float, height: float, serial: int) -> None:
+        """Find the agent a ray (world origin, unit direction) enters first, through each agent's upright
+        cylinder of `radius` and `height` times its scale: its answer to request `serial` is in the counters,
+        and so in the facts read back N frames later (``facts_of``'s "picked"). Nothing waits for it."""
+        self._counters.write(np.array([0x7F800000, 0xFFFFFFFF, serial], np.uint32).tobytes(), offset=4 * PICK_WORD)
+        self.sent_bytes += 12
         if not self.n:
-            return -1
-        self._counters.write(np.array([0x7F800000], np.uint32).tobytes(), offset=4 * 12)
-        self._counters.write(np.array([0xFFFFFFFF], np.uint32).tobytes(), offset=4 * 14)
+            return
         rel = np.asarray(origin, np.float64) - np.array([self.origin[0], 0.0, self.origin[1]])
         values = dict(u_ray_origin=tuple(float(v) for v in rel), u_ray_dir=tuple(float(v) for v in direction), u_pick_radius=float(radius),
                       u_pick_height=float(height))
         groups = (self.n + GROUP - 1) // GROUP
         self._hit_pass("PICK_T", groups, **values)
         self._hit_pass("PICK_I", groups, **values)
-        agent = int(np.frombuffer(self._counters.read(4, offset=4 * 14), np.uint32)[0])
-        return -1 if agent == 0xFFFFFFFF else agent
 
     def sweep(self, point, reach: float, front) -> None:
         """Hit every living agent within `reach` of a ground point on the side `front` faces (the numpy

@@ -26,10 +26,11 @@ def facts_of(data: bytes) -> dict:
         row = {"agent": int(words[19]), "x": float(motion[0]), "z": float(motion[1]), "vx": float(motion[2]), "vz": float(motion[3]),
                "phase": float(heading[2]), "scale": float(heading[3]), "state": int(codes[0]), "action": int(codes[1]),
                "health": int(codes[2])}
-    return {"near": int(words[18]), "selected": row,"blows": int(words[0]), "respawns": int(words[1]), "kills": int(words[2]), "hurt": int(words[3]),
+    return {"near": int(words[18]), "selected": row, "blows": int(words[0]), "respawns": int(words[1]), "kills": int(words[2]), "hurt": int(words[3]),
             "states": {name: int(words[4 + code]) for code, name in enumerate(STATE_NAMES)},
             "struck": int(words[14]) if words[14] != NONE else -1, "nearest": int(words[15]) if words[15] != NONE else -1,
-            "nearest_at": (float(at[0]), float(at[1]))}
+            "nearest_at": (float(at[0]), float(at[1])),
+            "picked": (int(words[34]), int(words[33]) if words[33] != NONE else -1)}  # (the request it answers, its agent)
 
 
 class FactRing(GLStage):
