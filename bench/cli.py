@@ -165,6 +165,9 @@ def bench_scale(args) -> int:
     return 0
 
 
+GL_COUNT_FRAMES = 10  # frames whose GL calls are counted (after the timed ones)
+
+
 def bench_frame(args) -> int:
     """The whole headless frame (AI, processor, culling, shadows, draws, weapons) as a window runs it.
     Period: `frames` frames issued back to back with one finish at the end, the CPU at most 2 frames
@@ -173,6 +176,7 @@ def bench_frame(args) -> int:
     pass medians come from the same frames (GPU passes from timer queries)."""
     import moderngl
 
+    from bench.gl_calls import counting_gl_calls
     from crowd.gl import Offscreen, describe, headless_context
     from crowd.pipeline import CrowdPipeline
     from crowd.scene import Scene, load_scene
@@ -190,7 +194,7 @@ def bench_frame(args) -> int:
     info = describe(ctx)
     device = f"{info['gl_renderer']}, {info['gl_version']}; {device_cpu()}; moderngl {moderngl.__version__}"
     print(f"{device} | {size[0]}x{size[1]} | {args.frames} frames per period, {args.repeats} repeats")
-    print(f"{'agents':>15} {'ai':>4} {'period ms':>10} {'latency ms':>11} {'fps':>7} {'call ms':>7} {'GPU sum':>8}  biggest passes (median ms)")
+    print(f"{'agents':>15} {'ai':>4} {'period ms':>10} {'latency ms':>11} {'fps':>7} {'call ms':>7} {'CPU ms':>7} {'GL calls':>8} {'GPU sum':>8}  biggest passes (median ms)")
     rows = []
     with Offscreen(ctx, size) as target:
         cases = [(n, panel, path) for n in [int(x) for x in args.agents.split(",")] for panel in ((False, True) if args.panel else (False,))
@@ -227,6 +231,11 @@ def bench_frame(args) -> int:
                         frame()
                         ctx.finish()
                         latencies.append((time.perf_counter() - t0) * 1e3)
+                frame_cpu = float(np.median(pipeline.cpu_ms.recent(args.frames * args.repeats)))  # (the timed frames' own CPU inside frame())
+                with counting_gl_calls() as gl:  # (after the timed frames: the counting costs CPU itself)
+                    for _ in range(GL_COUNT_FRAMES):
+                        frame()
+                gl_calls = {k: round(v / GL_COUNT_FRAMES, 2) for k, v in gl.most_common()}
                 pipeline.timer.end_frame(drain=True)
                 passes = pipeline.timer.medians()
                 ctx.finish()
@@ -240,6 +249,7 @@ def bench_frame(args) -> int:
                 ai_path, bytes_ = pipeline.ai_path, pipeline.frame_bytes()
             gpu_sum = sum(v for k, v in passes.items() if pipeline.timer.clock.get(k) == "gpu")
             row = {"agents": n, "panel": panel, "ai_path": ai_path, **bytes_, "cpu_ms": round(float(np.median(cpu)), 3),
+                   "frame_cpu_ms": round(frame_cpu, 3), "gl_calls": round(sum(gl_calls.values()), 1), "gl_calls_by_kind": gl_calls,
                    "frame_call_ms": round(float(np.median(calls)), 3), "gpu_passes_sum_ms": round(float(gpu_sum), 3),
                    "gpu_passes_alone_sum_ms": round(float(sum(alone.values())), 3), "cull": cull, "ai_processes": ai_processes, "drawn": drawn, "weapons": weapons, "gpu_bytes": memory, "period_ms": round(float(np.median(periods)), 3), "periods_ms": [round(p, 3) for p in periods],
                    "frame_period_ms": {"p50": round(float(np.percentile(intervals, 50)), 3), "p95": round(float(np.percentile(intervals, 95)), 3),
@@ -248,7 +258,8 @@ def bench_frame(args) -> int:
             rows.append(row)
             top = sorted(passes.items(), key=lambda kv: -kv[1])[:4]
             print(f"{n:>8}{' +panel' if panel else '':7} {ai_path:>4} {row['period_ms']:>10.2f} {row['latency_ms']:>11.2f} {1e3 / row['period_ms']:>7.1f} "
-                  f"{row['frame_call_ms']:>7.2f} {row['gpu_passes_sum_ms']:>8.2f}  " + ", ".join(f"{k} {v:.2f}" for k, v in top))
+                  f"{row['frame_call_ms']:>7.2f} {row['frame_cpu_ms']:>7.2f} {row['gl_calls']:>8.0f} {row['gpu_passes_sum_ms']:>8.2f}  "
+                  + ", ".join(f"{k} {v:.2f}" for k, v in top))
     if args.json:
         from crowd.files import atomic_write_bytes
 

@@ -79,6 +79,24 @@ class GLUnavailable(RuntimeError):
 GL_LIMITS = {"auto": None, "4.1": 410}  # the "gl" setting's choices: the highest GL version whose features the stages use
 
 
+_CACHED = (int, float, bool, tuple)  # values compared by ==: a numpy array is written every time
+
+
+def set_uniforms(program, **values) -> None:
+    """Write `program`'s uniforms `values`, leaving out those it lacks (compiled out) and those that hold
+    the value last written through here: a frame's constants cost no GL call after their first frame.
+    A uniform set through here must be set only through here (the cache would not see another write)."""
+    written = getattr(program, "_crowd_written", None)
+    if written is None:
+        written = program._crowd_written = {}
+    for name, value in values.items():
+        if type(value) in _CACHED and name in written and type(written[name]) is type(value) and written[name] == value:
+            continue
+        if name in program:
+            program[name].value = value
+            written[name] = value
+
+
 def feature_level(ctx, limit: int | None = None) -> int:
     """The GL version whose features the stages built on `ctx` use: the context's own, or `limit` where that
     is lower (the "gl" setting: the path a macOS 4.1 core context takes, forced on a context with more)."""

@@ -28,6 +28,7 @@ the first character's (the only one's in a crowd of one).
 from __future__ import annotations
 
 import dataclasses
+import time
 from collections import deque
 from dataclasses import dataclass
 
@@ -153,6 +154,7 @@ class CrowdPipeline(LiveSettings, GLStage):
         self.foot_skate = FootSkateMonitor(self.character.skeleton, FOOT_SKATE_SAMPLE)
         self._socket_entries: dict[int, int] = {}  # frame -> how many of its gathered entries are weapon sockets
         self.readback_waits = SampleRing()  # ms the CPU waited on each read-back
+        self.cpu_ms = SampleRing()  # the main thread's CPU ms inside each frame()
         self.readback_stalls = 0
         self._pose_lag: deque = deque(maxlen=RING + 1)  # simulated seconds of the last frames
         self.frames = 0
@@ -338,7 +340,15 @@ class CrowdPipeline(LiveSettings, GLStage):
 
     def frame(self, framebuffer: moderngl.Framebuffer, dt: float, overrides: LayerOverrides | None = None) -> FrameState:
         """Run one frame into `framebuffer`, the simulation advancing `dt` seconds; `overrides` (the
-        panel's forced clips and held weights) go on top of the AI's layers. Returns the frame's state."""
+        panel's forced clips and held weights) go on top of the AI's layers. Returns the frame's state.
+        The main thread's CPU time in it goes to ``cpu_ms`` (waits on the GPU or the OS are not in it)."""
+        start = time.thread_time()
+        try:
+            return self._frame(framebuffer, dt, overrides)
+        finally:
+            self.cpu_ms.append((time.thread_time() - start) * 1e3)
+
+    def _frame(self, framebuffer: moderngl.Framebuffer, dt: float, overrides: LayerOverrides | None) -> FrameState:
         t = self.timer
         f = self.frames
         if overrides:

@@ -92,6 +92,8 @@ def pipeline_stats(pipeline) -> dict:
         "survivor": survivor_stats(p.survivor),
         "ai": ai_stats(p),
         "passes_ms": p.timer.medians(),
+        # The main thread's CPU ms inside frame(), median of the last 120 frames (the frame's fixed cost where the GPU is not the bound).
+        "cpu_ms": _round(float(np.median(p.cpu_ms.recent(120)))) if len(p.cpu_ms) else None,
         "passes_clock": {k: p.timer.clock[k] for k in p.timer.order},
         "passes_run": list(p.passes_run),
         "gpu_bytes": p.gpu_bytes(),

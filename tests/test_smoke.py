@@ -56,6 +56,7 @@ def test_zero_and_one_agent(tmp_path, gl_context, agents):
     stats = run_headless(PipelineConfig(agents=agents, lod_fade=0.0), 3, SIZE, tmp_path / "a.png", tmp_path / "a.json", ctx=gl_context)
     saved = json.loads((tmp_path / "a.json").read_text())
     assert saved["agents"] == agents and saved["nan_count"] == 0
+    assert saved["cpu_ms"] > 0  # the main thread's CPU time a frame, 0 agents too
     assert ("process" in saved["passes_run"]) == (agents > 0)
     assert ("draw" in saved["passes_run"]) == (agents > 0)
     assert (saved["gpu_bytes"]["palette"] > 0) == (agents > 0)

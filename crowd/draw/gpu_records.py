@@ -9,7 +9,7 @@ import numpy as np
 
 from ..anim.palette_layout import PaletteLayout, texel_code
 from ..frame import SimFrame
-from ..gl import GLObjects, GLStage, load_shader
+from ..gl import GLObjects, GLStage, load_shader, set_uniforms
 from ..sim.gpu.state import FIELDS
 from .cull_lists import CHARACTER_SHIFT, RECORD_DTYPE, ListPlan
 from .impostors import HELD_GROUP
@@ -71,9 +71,7 @@ class GpuRecordPass(GLStage):
             values = {"u_n": n, "u_eye": tuple(float(v) for v in rel), "u_row_code": int(texel_code(0, row_offset)),
                       "u_latest_code": int(texel_code(0, latest_offset)), "u_born_limit": int(born_limit),
                       "u_head_shift": self._shift("head"), "u_held_shift": self._shift(HELD_GROUP)}
-            for name, value in values.items():
-                if name in p:
-                    p[name].value = value
+            set_uniforms(p, **values)
             if "u_weapon_first" in p:
                 p["u_weapon_first"].write(np.array(self._weapon_first, np.int32).tobytes())
             p.run((n + GROUP - 1) // GROUP)

@@ -29,7 +29,7 @@ import math
 import moderngl
 import numpy as np
 
-from ...gl import GLObjects, GLStage, has_compute, load_shader
+from ...gl import GLObjects, GLStage, has_compute, load_shader, set_uniforms
 from ...frame import SimFrame
 from ..config import STATE_NAMES, AIError
 from ..obstacles import FLOW_CELLS
@@ -262,9 +262,7 @@ class GpuCrowdAI(GLStage):
         self._kind_block.bind_to_uniform_block(0)
 
     def _set(self, program, **values) -> None:
-        for name, value in values.items():
-            if name in program:
-                program[name].value = value
+        set_uniforms(program, **values)
 
     def _base(self, purpose: int, seed: int | None = None, substeps: int | None = None) -> tuple[int, int]:
         """The keyed draws' base for this substep (or `substeps`) and purpose, as (low, high) 32-bit halves."""

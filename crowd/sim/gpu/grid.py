@@ -15,7 +15,7 @@ import contextlib
 import moderngl
 import numpy as np
 
-from ...gl import GLObjects, GLStage, load_shader
+from ...gl import GLObjects, GLStage, load_shader, set_uniforms
 
 GROUP = 256
 SHADER_STORAGE = 0x2000  # GL_SHADER_STORAGE_BARRIER_BIT
@@ -68,10 +68,7 @@ class NeighbourGrid(GLStage):
         points.bind_to_storage_buffer(0)
         self.cells, self.side = cells, side
         for program in self._programs.values():
-            for name, value in (("u_n", n), ("u_cells", cells), ("u_side", side), ("u_corner", corner),
-                                ("u_inv_size", 1.0 / size), ("u_blocks", blocks)):
-                if name in program:
-                    program[name].value = value
+            set_uniforms(program, u_n=n, u_cells=cells, u_side=side, u_corner=corner, u_inv_size=1.0 / size, u_blocks=blocks)
         agents = (n + GROUP - 1) // GROUP
         for name, groups in (("COUNT", agents), ("SCAN_LOCAL", blocks), ("SCAN_BLOCKS", 1), ("SCAN_ADD", blocks), ("SCATTER", agents),
                              ("ORDER", blocks)):
