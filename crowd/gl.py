@@ -79,6 +79,12 @@ class GLUnavailable(RuntimeError):
 GL_LIMITS = {"auto": None, "4.1": 410}  # the "gl" setting's choices: the highest GL version whose features the stages use
 
 
+def has_uniform(program, name: str) -> bool:
+    """Whether `program` has uniform (or block) `name`: a dict look-up (moderngl's ``name in program`` walks
+    every member, 2,400 walks a frame when it was written so)."""
+    return program.get(name, None) is not None
+
+
 _CACHED = (int, float, bool, tuple)  # values compared by ==: a numpy array is written every time
 
 
@@ -92,7 +98,7 @@ def set_uniforms(program, **values) -> None:
     for name, value in values.items():
         if type(value) in _CACHED and name in written and type(written[name]) is type(value) and written[name] == value:
             continue
-        if name in program:
+        if has_uniform(program, name):
             program[name].value = value
             written[name] = value
 

@@ -56,7 +56,7 @@ import moderngl
 import numpy as np
 
 from ..frame import MAX_LAYERS, validate_masks
-from ..gl import GLStage, gpu_bytes
+from ..gl import GLStage, gpu_bytes, has_uniform, set_uniforms
 from ..settings import SETTINGS
 from . import foot_lock as lock
 from .bake import AnimationBake
@@ -67,6 +67,10 @@ from .processor_programs import GROUP_SIZE, MAX_JOINTS, CharacterPrograms, Proce
 from .processor_readback import ProcessorReadback
 
 LOCALS_UNITS = (12, 13, 14)  # the fragment path's scratch of blended locals, read by its compose pass
+# Each sampler's texture unit (those a program compiled out are left out when written).
+TEXTURE_UNITS = {"u_anim": 0, "u_parents": 1, "u_clips": 2, "u_layers": 3, "u_anim_scale": 4, "u_masks": 5, "u_keys": 6, "u_tracks": 7,
+                 "u_morph_tracks": 8, "u_morph_clips": 9, "u_morph_variation": 10, "u_morph_held": 11,
+                 **dict(zip(("u_locals0", "u_locals1", "u_locals2"), LOCALS_UNITS))}
 
 # Every name importers have found here stays importable from here, wherever it now lives.
 
@@ -166,11 +170,6 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
         tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self._own[group].append(tex)
         return tex
-
-    @staticmethod
-    def _set(program, name, value):
-        if name in program:
-            program[name] = value
 
     def _release_group(self, group):
         for obj in self._own[group]:
@@ -473,32 +472,25 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
                            (10, "u_morph_variation"), (11, "u_morph_held")):
             if name in part.textures:
                 part.textures[name].use(unit)
-        for name, unit in (("u_anim", 0), ("u_parents", 1), ("u_clips", 2), ("u_layers", 3), ("u_anim_scale", 4), ("u_masks", 5),
-                           ("u_keys", 6), ("u_tracks", 7), ("u_morph_tracks", 8), ("u_morph_clips", 9), ("u_morph_variation", 10),
-                           ("u_morph_held", 11), *zip(("u_locals0", "u_locals1", "u_locals2"), LOCALS_UNITS)):
-            self._set(prog, name, unit)
-        for name, value in part.uniforms.items():
-            self._set(prog, name, value)
-        self._set(prog, "u_row_offset", slot * self.slot_rows() + block.first_row)
-        # (The locals pass writes the scratch, one slot deep: its layers count from 0.)
-        self._set(prog, "u_first_layer", 0 if prog is part.locals_program else slot * self.slot_layers)
-        self._set(prog, "u_palette_rows", self.layer_rows)
-        self._set(prog, "u_agents", block.count)
-        self._set(prog, "u_first_agent", block.first_agent)
-        self._set(prog, "u_first_row", block.first_row)
-        self._set(prog, "u_agents_per_row", block.agents_per_row)
+        # One call: the units, the part's constants and the dispatch's rows, each written where it changed
+        # since the program's last write (two characters of one source share a program).
+        values = {**TEXTURE_UNITS, **part.uniforms, "u_row_offset": slot * self.slot_rows() + block.first_row,
+                  # (The locals pass writes the scratch, one slot deep: its layers count from 0.)
+                  "u_first_layer": 0 if prog is part.locals_program else slot * self.slot_layers, "u_palette_rows": self.layer_rows,
+                  "u_agents": block.count, "u_first_agent": block.first_agent, "u_first_row": block.first_row,
+                  "u_agents_per_row": block.agents_per_row}
         if part.held is not None:
             if part.held_written is not part.held:  # (hold_morphs makes a new array: written once a change)
                 part.textures["u_morph_held"].write(part.held.tobytes())
                 part.held_written = part.held
-            self._set(prog, "u_morph_held_agent", part.held_agent)
+            values["u_morph_held_agent"] = part.held_agent
         if part.legs is not None:
             for name, data in part.leg_bytes.items():
                 prog[name].write(data)
             part.lock_state.bind_to_storage_buffer(0)
             part.lock_motion.bind_to_storage_buffer(1)
-            self._set(prog, "u_lock_decay", math.exp(-self._lock_dt / lock.RELEASE_S))
-            self._set(prog, "u_step_advance", self._lock_dt / lock.STEP_S)
+            values.update(u_lock_decay=math.exp(-self._lock_dt / lock.RELEASE_S), u_step_advance=self._lock_dt / lock.STEP_S)
+        set_uniforms(prog, **values)
         if self.path == "compute":
             groups = math.ceil(block.count / (GROUP_SIZE // block.width))
             gx = min(groups, 32768)
@@ -545,7 +537,7 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
         for i, plane in enumerate(self.planes):
             plane.use(first_unit + i)
         for prog in programs:
-            if "u_palette_rows" in prog:
+            if has_uniform(prog, "u_palette_rows"):
                 prog["u_palette_rows"] = self.layer_rows
 
     def gpu_bytes(self) -> dict[str, int]:

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..anim.palette_layout import PaletteLayout, texel_code
 from ..frame import SimFrame
-from ..gl import GLObjects, GLStage, load_shader, set_uniforms
+from ..gl import GLObjects, GLStage, has_uniform, load_shader, set_uniforms
 from ..sim.gpu.state import FIELDS
 from .cull_lists import CHARACTER_SHIFT, RECORD_DTYPE, ListPlan
 from .impostors import HELD_GROUP
@@ -72,7 +72,7 @@ class GpuRecordPass(GLStage):
                       "u_latest_code": int(texel_code(0, latest_offset)), "u_born_limit": int(born_limit),
                       "u_head_shift": self._shift("head"), "u_held_shift": self._shift(HELD_GROUP)}
             set_uniforms(p, **values)
-            if "u_weapon_first" in p:
+            if has_uniform(p, "u_weapon_first"):
                 p["u_weapon_first"].write(np.array(self._weapon_first, np.int32).tobytes())
             p.run((n + GROUP - 1) // GROUP)
             self.ctx.memory_barrier(SHADER_STORAGE | 0x8)  # (and texel fetches: the draws read records through a buffer texture)

@@ -14,7 +14,7 @@ import moderngl
 import numpy as np
 
 from ..frame import SimFrame
-from ..gl import FencedSlots, GLObjects, GLStage, load_shader
+from ..gl import FencedSlots, GLObjects, GLStage, has_uniform, load_shader
 from ..sim.gpu.state import FIELDS
 from .readback import RING, SocketRead
 
@@ -89,13 +89,13 @@ class GpuSocketGather(GLStage):
         for name, value in (("u_n", sim.agents), ("u_capacity", self.capacity), ("u_row_code", int(row_code)),
                             ("u_eye", tuple(float(v) for v in rel)), ("u_reach2", float(reach) ** 2),
                             ("u_extra_weapon", -1 if extra is None else int(extra[0])), ("u_extra_code", 0 if extra is None else int(extra[1]))):
-            if name in p:
+            if has_uniform(p, name):
                 p[name] = value
         samples = 0
         if self.feet and sampled is not None and len(sampled):
             samples = min(len(sampled), self.sample)
             p["u_sample"].write(np.resize(np.asarray(sampled[:samples], np.int32), self.sample).tobytes())
-        if "u_samples" in p:
+        if has_uniform(p, "u_samples"):
             p["u_samples"] = samples
         p.run((sim.agents + 1 + samples + GROUP - 1) // GROUP)
         self.ctx.memory_barrier(0x2000 | 0x200)  # (storage writes, then a buffer copy of them)

@@ -42,7 +42,7 @@ import numpy as np
 from ..anim.bake import AnimationBake
 from ..asset.model import Character
 from ..cache import CacheError, checksum, read_arrays, write_arrays
-from ..gl import GLObjects, GLStage
+from ..gl import GLObjects, GLStage, has_uniform
 
 FORMAT = 2  # the cache files' layout; a change makes every older file a miss (2: crowd.cache's checksum over every array)
 MAX_ELEVATIONS = 4  # impostor.vert.glsl's u_elevation
@@ -312,9 +312,9 @@ class ImpostorTextures(GLStage):
                   "u_key_offset": int(key_offset), "u_views": int(s.views), "u_elevations": len(s.elevations), "u_columns": s.columns,
                   "u_rows": int(self.atlas.rows)}
         for name, value in values.items():
-            if name in prog:
+            if has_uniform(prog, name):
                 prog[name] = value
-        if "u_elevation" in prog:
+        if has_uniform(prog, "u_elevation"):
             e = np.zeros(MAX_ELEVATIONS, np.float32)
             e[: len(s.elevations)] = np.radians(s.elevations)
             prog["u_elevation"].write(e.tobytes())

@@ -37,7 +37,7 @@ import moderngl
 import numpy as np
 
 from ..asset.model import MIPMAP_FILTERS, MIRRORED_REPEAT, REPEAT, Texture
-from ..gl import GLObjects, GLStage, current_context_function
+from ..gl import GLObjects, GLStage, current_context_function, has_uniform
 from .texture_layers import MAX_LAYER_SIZE, layer_size, linear_layer, plan_bc1
 
 TEXTURE_UNIT = 6  # units 0-2: the palette, 3: the shadow map; the processor's pass uses 0-5
@@ -197,9 +197,9 @@ class MaterialTextures(GLStage):
         array.use(TEXTURE_UNIT)
         self.samplers[texture].use(TEXTURE_UNIT)
         prog["u_layer"] = float(self.layers[texture])
-        if "u_uv_mirror" in prog:
+        if has_uniform(prog, "u_uv_mirror"):
             prog["u_uv_mirror"] = self.mirror[texture]
-        if "u_coarse_lod" in prog:
+        if has_uniform(prog, "u_coarse_lod"):
             coarse = storage == "bc1" and "coarse" in self.arrays
             prog["u_coarse_lod"] = self.coarse_lod if coarse else NEVER
             prog["u_albedo_size"] = tuple(float(x) for x in array.size[:2])

@@ -39,7 +39,7 @@ from ..asset.model import Character
 from ..asset.town import TILE
 from ..asset.vertex_cache import best_triangle_order
 from ..frame import Camera, Instances, SimFrame
-from ..gl import GLStage, gpu_bytes, has_compute, load_shader
+from ..gl import GLStage, gpu_bytes, has_compute, has_uniform, load_shader
 from ..lighting import FOG_COLOR, LIGHTING, SUN_DIR, fog_density
 from ..settings import DEFAULTS, SETTINGS
 from .cpu_cull import CpuCull
@@ -370,11 +370,11 @@ class CrowdRenderer(GLStage):
                     vdefs["MORPH_BUFFERS"] = 1
             prog = self.ctx.program(vertex_shader=load_shader("skin.vert.glsl", vdefs), fragment_shader=frag)
         for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
-            if name in prog:
+            if has_uniform(prog, name):
                 prog[name] = unit
-        if "u_shadow_map" in prog:
+        if has_uniform(prog, "u_shadow_map"):
             prog["u_shadow_map"] = 3
-        if "u_albedo" in prog:
+        if has_uniform(prog, "u_albedo"):
             prog["u_albedo"] = TEXTURE_UNIT
         use_records_unit(prog)
         self._programs[key] = self._own("programs", prog)
@@ -643,7 +643,7 @@ class CrowdRenderer(GLStage):
     def _render(self, index: int, draw: _Draw, kind: str, skinned: bool, cascade: int = 0) -> None:
         """One draw of a pass: the colour pass from the view's entries, the depth pass from `cascade`'s."""
         vao = self._vao(draw, kind, skinned, cascade, index)
-        if draw.morph and "u_morph_vertex_base" in vao.program:
+        if draw.morph and has_uniform(vao.program, "u_morph_vertex_base"):
             vao.program["u_morph_vertex_base"] = draw.morph_base
         if self.feedback is not None:
             self.feedback.draw(vao, index, cascade if kind == "depth" else None)
@@ -706,11 +706,11 @@ class CrowdRenderer(GLStage):
 
     def set_lighting(self, prog, view: "FrameView"):
         for name, value in LIGHTING.items():
-            if name in prog:
+            if has_uniform(prog, name):
                 prog[name] = value
-        if "u_fog_density" in prog:
+        if has_uniform(prog, "u_fog_density"):
             prog["u_fog_density"] = fog_density(view.camera.fog_reach)
-        if self.shadows and "u_light_view_proj" in prog:
+        if self.shadows and has_uniform(prog, "u_light_view_proj"):
             prog["u_light_view_proj"].write(b"".join(gl_bytes(m) for m in view.shadow.view_proj))
             prog["u_shadow_texel"].write(view.shadow.texel_m.tobytes())
             prog["u_shadow_bias"].write(view.shadow.depth_bias.tobytes())
@@ -770,7 +770,7 @@ class CrowdRenderer(GLStage):
                 processor.bind_palette(0, prog)
                 prog["u_bake_boxes"] = BAKE_BOXES_UNIT
                 for name, value in uniforms.items():
-                    if name in prog:
+                    if has_uniform(prog, name):
                         prog[name] = tuple(float(x) for x in value) if isinstance(value, np.ndarray) else value
                 for index, draw in enumerate(self.draws):
                     if draw.layout == layout and draw.count:

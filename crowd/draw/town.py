@@ -20,7 +20,7 @@ import moderngl
 import numpy as np
 
 from ..asset.town import PERIOD, TINTS, Town
-from ..gl import GLObjects, GLStage, load_shader
+from ..gl import GLObjects, GLStage, has_uniform, load_shader
 from .cpu_cull import sphere_visible
 from .packing import write_heading
 from .view import frustum_planes, gl_bytes
@@ -60,7 +60,7 @@ class TownRenderer(GLStage):
             "depth": self._objects.add(ctx.program(vertex_shader=load_shader("town.vert.glsl", {"DEPTH_ONLY": 1}),
                                                    fragment_shader=load_shader("depth.frag.glsl"))),
         }
-        if "u_shadow_map" in self._programs["color"]:
+        if has_uniform(self._programs["color"], "u_shadow_map"):
             self._programs["color"]["u_shadow_map"] = 3
         self.height = max(float(np.max(np.asarray(p.mesh.positions)[:, 1])) for p in town.pieces)  # the tallest roof
         self.last = {"instances": 0, "triangles": 0, "shadow_instances": 0, "draws": 0}

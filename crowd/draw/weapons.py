@@ -39,7 +39,7 @@ from __future__ import annotations
 import moderngl
 import numpy as np
 
-from ..gl import GLObjects, GLStage, load_shader
+from ..gl import GLObjects, GLStage, has_uniform, load_shader
 from .feedback_cull import STREAMS, FeedbackCounter, TransformFeedbacks, capture, stream_groups, stream_varyings
 from .gpu_cull import BUFFER_UPDATE, COMMAND, COMMAND_DTYPE, GROUP_SIZE, VERTEX_ATTRIB_ARRAY, CountRing
 from ..asset.model import Character, RigidMesh, cast_weapons
@@ -211,7 +211,7 @@ class WeaponRenderer(GLStage):
             "color": self._objects.add(ctx.program(vertex_shader=load_shader("weapon.vert.glsl"), fragment_shader=load_shader("skin.frag.glsl", defines))),
             "depth": self._objects.add(ctx.program(vertex_shader=load_shader("weapon.vert.glsl", {"DEPTH_ONLY": 1}), fragment_shader=load_shader("depth.frag.glsl"))),
         }
-        if "u_shadow_map" in self._programs["color"]:
+        if has_uniform(self._programs["color"], "u_shadow_map"):
             self._programs["color"]["u_shadow_map"] = 3
         self.drawn = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 4), np.float32))
         # Weapons lying on the ground (agents, weapon, rows in the fallen agent's model space) until their
