@@ -48,6 +48,8 @@ for _ in range(10):  # the survivor runs to the clicked point
 result["player_moved"] = float(abs(session.pipeline.ai.player - before).max())
 import numpy as np  # noqa: E402
 
+if session.pipeline.gpu_crowd is not None:  # a crowd on the GPU: where its agents stand now
+    ai = session.pipeline.gpu_crowd.store()
 chest = np.stack([ai.x, np.full(ai.n, 1.2), ai.z], axis=1)
 camera = session.pipeline.camera
 ahead = (chest - camera.eye) @ (np.asarray(camera.target) - camera.eye) > 0  # in front of the camera (the follow camera sees some)
@@ -57,6 +59,10 @@ near = int(np.flatnonzero(shown)[np.argmin(np.linalg.norm(chest[shown] - camera.
 x, y = session.pipeline.project(chest[near : near + 1], wnd.buffer_size)[0] / wnd.pixel_ratio
 window.on_mouse_press_event(x, y, wnd.mouse.left)
 window.on_mouse_release_event(x, y, wnd.mouse.left)
+for _ in range(6):  # a crowd on the GPU answers a pick with its facts, N frames later (nothing moves meanwhile)
+    if session.selected >= 0:
+        break
+    render_frame(window, 0.0)
 result["selected"], result["nearest"] = session.selected, near
 window.on_key_event(wnd.keys.P, wnd.keys.ACTION_PRESS, KeyModifiers())
 result["paused"] = session.paused
