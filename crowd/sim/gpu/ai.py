@@ -30,7 +30,7 @@ import moderngl
 import numpy as np
 
 from ...gl import GLObjects, GLStage, has_compute, load_shader, set_uniforms
-from ...frame import SimFrame
+from ...frame import SimFrame, cast_firsts
 from ..config import STATE_NAMES, AIError
 from ..obstacles import FLOW_CELLS
 from ..separation import SEPARATION_CELL_CAP, grid_shape
@@ -100,8 +100,8 @@ class GpuCrowdAI(GLStage):
         self.sent_bytes += kinds_table.nbytes + pivots.nbytes
         self._any_attack = any(m.clip["attack"] >= 0 for m in ai.motions)
         self._allocate(ai.n)
-        first = np.concatenate([[0], np.cumsum(ai.cast)])
         if fresh:
+            first = cast_firsts(ai.cast)
             self._spawn(ai, [(k, int(first[k]), count) for k, count in enumerate(ai.cast)])
         else:
             for name, block in pack(ai).items():
@@ -184,7 +184,7 @@ class GpuCrowdAI(GLStage):
             self._objects.remove(buffer)
         try:
             self._allocate(ai.n)
-            first = np.concatenate([[0], np.cumsum(ai.cast)])
+            first = cast_firsts(ai.cast)
             for before, after, count in ai.moved:
                 if count:
                     for name, buffer in self._state.items():
