@@ -236,6 +236,7 @@ def bench_frame(args) -> int:
                     for _ in range(GL_COUNT_FRAMES):
                         frame()
                 gl_calls = {k: round(v / GL_COUNT_FRAMES, 2) for k, v in gl.most_common()}
+                profile = _profile_frames(frame, args.profile) if args.profile else None
                 pipeline.timer.end_frame(drain=True)
                 passes = pipeline.timer.medians()
                 ctx.finish()
@@ -255,6 +256,8 @@ def bench_frame(args) -> int:
                    "frame_period_ms": {"p50": round(float(np.percentile(intervals, 50)), 3), "p95": round(float(np.percentile(intervals, 95)), 3),
                                        "max": round(float(np.max(intervals)), 3)},
                    "latency_ms": round(float(np.median(latencies)), 3), "passes_ms": passes, "gpu_passes_alone_ms": alone}
+            if profile is not None:
+                row["profile"] = profile
             rows.append(row)
             top = sorted(passes.items(), key=lambda kv: -kv[1])[:4]
             print(f"{n:>8}{' +panel' if panel else '':7} {ai_path:>4} {row['period_ms']:>10.2f} {row['latency_ms']:>11.2f} {1e3 / row['period_ms']:>7.1f} "
@@ -267,6 +270,25 @@ def bench_frame(args) -> int:
                                                         "dt_s": dt, "rows": rows}, indent=1).encode())
     ctx.release()
     return 0
+
+
+def _profile_frames(frame, count: int, top: int = 40) -> dict:
+    """cProfile over `count` frames (after the timed ones: the profiler slows Python down): the functions
+    with the most time of their own, ms a frame, and each one's time with its callees."""
+    import cProfile
+    import pstats
+
+    profiler = cProfile.Profile()
+    profiler.enable()
+    for _ in range(count):
+        frame()
+    profiler.disable()
+    stats = pstats.Stats(profiler).stats
+    rows = sorted(stats.items(), key=lambda kv: -kv[1][2])[:top]
+    return {"frames": count, "total_ms": round(sum(v[2] for v in stats.values()) * 1e3 / count, 3),
+            "by_own_ms": [{"function": f"{Path(file).name}:{line}({name})" if file != "~" else name, "calls": v[1] / count,
+                           "own_ms": round(v[2] * 1e3 / count, 4), "with_callees_ms": round(v[3] * 1e3 / count, 4)}
+                          for (file, line, name), v in rows]}
 
 
 def _replay_gpu_passes(ctx, pipeline, framebuffer, count: int) -> dict:
@@ -661,6 +683,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="processes that step the AI (the workers setting: 1 this process only, 0 one per core; default: the scene's)")
     p.add_argument("--panel", action="store_true",
                    help="each count twice: without, then with the panel and HUD drawn into the frame as the window draws them")
+    p.add_argument("--profile", type=int, default=0, metavar="FRAMES",
+                   help="after the timed frames, profile this many more with cProfile: each row gets its top functions (ms a frame)")
     p.add_argument("--json", type=Path, help="write the rows here")
     p.set_defaults(run=bench_frame)
     p = sub.add_parser("lod", help="silhouette IoU of each coarser LOD against LOD0 at its switch distance (float64, CPU)")

@@ -584,7 +584,7 @@ class CrowdPipeline(LiveSettings, GLStage):
             with t.gpu("draw"):
                 self.renderer.color_pass(framebuffer, view, self.processor)
             self._run("draw")
-        if self.weapons is not None and (self.weapons.last["weapons"] or self.weapons.last["dropped"]):
+        if self.weapons is not None and self.weapons.placed_any():
             with t.gpu("weapons"):
                 self.weapons.color_pass(framebuffer, view, self.renderer)
             self._run("weapons")

@@ -1,4 +1,7 @@
 #version 330 core
+#if !defined(DEPTH_ONLY) && defined(GL_ARB_conservative_depth)
+#extension GL_ARB_conservative_depth : enable
+#endif
 // Impostors (impostor.vert.glsl): the four atlas cells blended (two views by two frames), weighted by
 // their coverage; a texel less than half covered is left out. The colour pass lights the atlas's albedo
 // and normal as skin.frag.glsl lights a mesh (the same sun, sky, shadows and fog, the agent's tint), and
@@ -24,6 +27,9 @@ flat in vec4 v_tint;
 flat in uint v_fade;
 #include "lod_fade.glsl"
 out vec4 o_color;
+#ifdef GL_ARB_conservative_depth
+layout(depth_greater) out float gl_FragDepth;  // the quad lies nearer than the atlas's depths: the depth test stays early
+#endif
 #endif
 
 vec3 cell_coord(int cell) {

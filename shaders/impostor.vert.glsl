@@ -18,6 +18,9 @@ uniform int u_elevations;
 uniform float u_elevation[4];  // radians, ascending
 #ifdef DEPTH_ONLY
 uniform vec3 u_toward_light;  // unit, toward the sun
+#else
+uniform float u_focal_px;   // pixels a metre spans at a metre's depth (half the viewport's height over tan(fov / 2))
+uniform float u_blend_px;   // shorter than this on screen, an impostor shows its nearest cell (crowd.draw.impostors.BLEND_PX)
 #endif
 
 flat out ivec4 v_cells;     // frame * columns + column of the 4 cells: (view 0, frame 0), (1, 0), (0, 1), (1, 1)
@@ -74,15 +77,26 @@ void main() {
     v_cells = ivec4((first + f0) * columns + e * u_views + v0, (first + f0) * columns + e * u_views + v1,
                     (first + f1) * columns + e * u_views + v0, (first + f1) * columns + e * u_views + v1);
     v_blend = vec2(fract(azimuth), frame_t);
+#ifndef DEPTH_ONLY
+    vec4 centre = u_view_proj * vec4(agent.position_scale.xyz + vec3(0.0, box.y + 0.5 * box.z, 0.0), 1.0);
+    if (box.z * u_focal_px < u_blend_px * max(centre.w, 1e-6)) v_blend = floor(v_blend + 0.5);  // one weight 1, three 0: their fetches skipped
+#endif
     v_corner = in_corner;
     // The quad, facing `toward`, spans the clip's box: x across, y up from the agent's feet.
     vec3 right = vec3(toward.z, 0.0, -toward.x);
     right = dot(right, right) > 1e-8 ? normalize(right) : vec3(1.0, 0.0, 0.0);
     vec3 up = cross(toward, right);
     vec3 world = agent.position_scale.xyz + right * ((2.0 * in_corner.x - 1.0) * box.x) + up * (box.y + in_corner.y * box.z);
-    gl_Position = u_view_proj * vec4(world, 1.0);
 #ifndef DEPTH_ONLY
     v_world = world;
+    // Rasterised on a plane nearer the camera than any depth the atlas holds (with slack for the plane
+    // not facing the view ray squarely), at the same place on screen: the fragment's depth is never
+    // nearer than the rasterised one, so depth_greater keeps the early depth test (impostor.frag.glsl).
+    float plane = max(dot(-world, toward), 1e-3);
+    world *= max(plane - 1.25 * box.w - 0.05, 1e-3) / plane;
+#endif
+    gl_Position = u_view_proj * vec4(world, 1.0);
+#ifndef DEPTH_ONLY
     v_toward = toward;
     v_depth_range = box.w;
     v_heading = heading;

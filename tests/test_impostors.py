@@ -320,3 +320,20 @@ def test_auto_makes_impostors_by_the_triangles_the_far_meshes_would_draw(zombie)
     assert not needed(character, 19_999) and needed(character, 20_000)
     assert not needed(heavy, 3_999) and needed(heavy, 4_000)
     assert not needed(heavy, 100_000, half_extent=1.0)
+
+
+def test_small_impostors_show_their_nearest_cell_at_the_blends_error(gl_context, zombie, atlas, monkeypatch):
+    """An impostor shorter than BLEND_PX on screen skips the blend of four cells (two views by two frames)
+    for its nearest cell: at 150 m (15.6 pixels tall) the picture changes, and its error and flicker against
+    the supersampled mesh stay near the blend's (crowd-bench impostor --far measures both)."""
+    import crowd.draw.impostors as impostors
+    from bench.impostor_quality import far_aliasing
+
+    assert impostors.BLEND_PX > 15.6
+    (nearest,) = far_aliasing(gl_context, *zombie, atlas, distances=(150.0,), frames=4, size=24, supersample=4)
+    monkeypatch.setattr(impostors, "BLEND_PX", 0.0)
+    (blended,) = far_aliasing(gl_context, *zombie, atlas, distances=(150.0,), frames=4, size=24, supersample=4)
+    print(f"150 m: nearest cell {nearest}, four cells blended {blended}")
+    assert nearest["linear_error"] != blended["linear_error"]  # the nearest cell was drawn
+    assert nearest["linear_error"] <= 1.25 * blended["linear_error"] + 1.0
+    assert nearest["linear_flicker"] <= 1.5 * blended["linear_flicker"] + 1.0

@@ -46,6 +46,9 @@ from ..gl import GLObjects, GLStage, has_uniform
 
 FORMAT = 2  # the cache files' layout; a change makes every older file a miss (2: crowd.cache's checksum over every array)
 MAX_ELEVATIONS = 4  # impostor.vert.glsl's u_elevation
+# An impostor shorter than this on screen shows its nearest cell instead of blending four (two views by
+# two frames): the blend's eight atlas fetches a fragment were most of the colour pass at 1,000,000 agents.
+BLEND_PX = 24.0
 
 
 class ImpostorError(ValueError):
@@ -310,7 +313,7 @@ class ImpostorTextures(GLStage):
         self.clips.use(self.CLIPS_UNIT)
         values = {"u_atlas_albedo": self.ALBEDO_UNIT, "u_atlas_normal_depth": self.NORMAL_UNIT, "u_impostor_clips": self.CLIPS_UNIT,
                   "u_key_offset": int(key_offset), "u_views": int(s.views), "u_elevations": len(s.elevations), "u_columns": s.columns,
-                  "u_rows": int(self.atlas.rows)}
+                  "u_rows": int(self.atlas.rows), "u_blend_px": BLEND_PX}
         for name, value in values.items():
             if has_uniform(prog, name):
                 prog[name] = value

@@ -39,7 +39,7 @@ from ..asset.model import Character
 from ..asset.town import TILE
 from ..asset.vertex_cache import best_triangle_order
 from ..frame import Camera, Instances, SimFrame
-from ..gl import GLStage, gpu_bytes, has_compute, has_uniform, load_shader
+from ..gl import GLStage, gpu_bytes, has_compute, has_uniform, load_shader, set_uniforms
 from ..lighting import FOG_COLOR, LIGHTING, SUN_DIR, fog_density
 from ..settings import DEFAULTS, SETTINGS
 from .cpu_cull import CpuCull
@@ -200,8 +200,10 @@ class CrowdRenderer(GLStage):
         self.set_occlusion(occlusion)
         self.palette: PaletteLayout | None = None
         self._pending = None
-        self.last = {"triangles": 0, "instances": 0, "visible": 0, "draws": 0, "lod_counts": [0] * self.lod_count, "shadow_instances": 0,
-                     "cast_visible": [0] * len(self.cast), "impostors": 0}
+        self._last = {"triangles": 0, "instances": 0, "visible": 0, "draws": 0, "lod_counts": [0] * self.lod_count, "shadow_instances": 0,
+                      "cast_visible": [0] * len(self.cast), "impostors": 0}
+        self._counts_due = False  # the GPU paths' counts are read when ``last`` is, not every frame
+        self._cascades_made = (None, None)  # (what the last cascades were made from, them)
 
     def _build_draws(self, ctx: moderngl.Context, per_character: list, atlases: list) -> None:
         """One draw per (piece, LOD) of every character, its mesh packed; on the GPU path the untextured ones
@@ -572,7 +574,7 @@ class CrowdRenderer(GLStage):
         planes = frustum_planes(matrix)
         light = (None, None) if shadow is None else (np.stack([frustum_planes(m) for m in shadow.view_proj]), shadow.reach_m)
         if self.cpu is None:
-            self.refresh_counts()  # the newest frame the GPU has finished (none queued for 0 agents: 0)
+            self._counts_due = True  # (read when ``last`` is: the newest frame the GPU has finished)
             self._pending = (planes, light, eye)
             if cull_now:
                 self.cull(processor)
@@ -582,7 +584,7 @@ class CrowdRenderer(GLStage):
             draw.count = int(picks.counts[0, d])
             draw.shadow_counts = [int(c) for c in picks.counts[1:, d]]
         shown = picks.visible
-        self.last = {"triangles": int(sum(d.count * d.triangles for d in self.draws)), "instances": int(picks.counts[0].sum()),
+        self._last = {"triangles": int(sum(d.count * d.triangles for d in self.draws)), "instances": int(picks.counts[0].sum()),
                      "visible": int(shown.sum()), "draws": int(np.count_nonzero(picks.counts[0])),
                      "lod_counts": np.bincount(picks.lod[shown], minlength=self.lod_count).tolist(),
                      "shadow_instances": int(picks.counts[1:].sum()), "cast_visible": picks.cast_visible,
@@ -603,6 +605,15 @@ class CrowdRenderer(GLStage):
                          occlusion=None if self.pyramid is None else (self.pyramid, eye), palette=processor)
         return True
 
+    @property
+    def last(self) -> dict:
+        """What the last frame drew: triangles, instances, visible agents, draws, agents per LOD, shadow
+        instances, visible agents per character, impostors. On the GPU paths, the newest counts the GPU
+        has handed back (a frame or two old), read here rather than every frame."""
+        if self._counts_due:
+            self.refresh_counts()
+        return self._last
+
     def refresh_counts(self, wait: bool = False) -> None:
         """``last`` on the GPU paths: the newest counts the GPU has handed back (a frame or two old; `wait`
         finishes the frames queued: stats at the end of a run, tests). A no-op on the CPU path."""
@@ -619,7 +630,8 @@ class CrowdRenderer(GLStage):
         shadow = cull.shadow_counts(wait).astype(np.int64) if self.shadows else np.zeros((0, len(self.draws)), np.int64)
         for d, draw in enumerate(self.draws):
             draw.shadow_counts = [int(c) for c in shadow[:, d]]
-        self.last = {"triangles": int(sum(c * d.triangles for c, d in zip(counts, self.draws))), "instances": int(counts.sum()),
+        self._counts_due = False
+        self._last = {"triangles": int(sum(c * d.triangles for c, d in zip(counts, self.draws))), "instances": int(counts.sum()),
                      "visible": int(sum(lod_counts)), "draws": int(np.count_nonzero(counts)), "lod_counts": lod_counts,
                      "shadow_instances": int(shadow.sum()), "cast_visible": cast_visible, "impostors": impostors}
 
@@ -668,7 +680,12 @@ class CrowdRenderer(GLStage):
         top = float(np.max(self.bounds[:, 1] + self.bounds[:, 3])) * scale
         lo, hi = np.asarray(box[0], np.float64).copy(), np.asarray(box[1], np.float64).copy()
         hi[1] = max(hi[1], lo[1] + top)  # as tall as an agent's bound
-        return cascades(camera, self.sun_dir, (lo, hi), self.shadow_size, fog_density(camera.fog_reach))
+        # Made again only when what they are made from changed: a still camera's frames share them.
+        key = (np.asarray(camera.eye, np.float64).tobytes(), np.asarray(camera.target, np.float64).tobytes(), camera.fov_y, camera.near,
+               camera.far, camera.aspect, camera.fog_reach, np.asarray(self.sun_dir, np.float64).tobytes(), lo.tobytes(), hi.tobytes(), self.shadow_size)
+        if key != self._cascades_made[0]:
+            self._cascades_made = (key, cascades(camera, self.sun_dir, (lo, hi), self.shadow_size, fog_density(camera.fog_reach)))
+        return self._cascades_made[1]
 
     def shadow_tiles(self, view: "FrameView"):
         """(cascade, light matrix) for each cascade, the shadow framebuffer's viewport on its tile."""
@@ -705,15 +722,13 @@ class CrowdRenderer(GLStage):
         return True
 
     def set_lighting(self, prog, view: "FrameView"):
-        for name, value in LIGHTING.items():
-            if has_uniform(prog, name):
-                prog[name] = value
-        if has_uniform(prog, "u_fog_density"):
-            prog["u_fog_density"] = fog_density(view.camera.fog_reach)
+        set_uniforms(prog, **{**LIGHTING, "u_fog_density": fog_density(view.camera.fog_reach)})
         if self.shadows and has_uniform(prog, "u_light_view_proj"):
-            prog["u_light_view_proj"].write(b"".join(gl_bytes(m) for m in view.shadow.view_proj))
-            prog["u_shadow_texel"].write(view.shadow.texel_m.tobytes())
-            prog["u_shadow_bias"].write(view.shadow.depth_bias.tobytes())
+            if getattr(prog, "_crowd_cascades", None) is not view.shadow:  # (the cascades are made again only when they change)
+                prog["u_light_view_proj"].write(b"".join(gl_bytes(m) for m in view.shadow.view_proj))
+                prog["u_shadow_texel"].write(view.shadow.texel_m.tobytes())
+                prog["u_shadow_bias"].write(view.shadow.depth_bias.tobytes())
+                prog._crowd_cascades = view.shadow
             self.shadow_map.use(3)
 
     def color_pass(self, framebuffer, view: "FrameView", processor, skinned: bool = True) -> None:
@@ -739,6 +754,8 @@ class CrowdRenderer(GLStage):
                         if layout == "impostor" and skinned is not True:  # the unskinned ceiling binds no palette, so no keys
                             continue
                         self._bind_piece(draw, prog)
+                        if layout == "impostor":  # pixels a metre at one metre's depth: an impostor's height on screen
+                            set_uniforms(prog, u_focal_px=0.5 * framebuffer.viewport[3] / math.tan(math.radians(view.camera.fov_y) / 2.0))
                         self._render(index, draw, "color", skinned)
         finally:
             if self.materials is not None:  # a sampler object left on its unit would override what binds there next

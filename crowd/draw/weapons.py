@@ -219,7 +219,9 @@ class WeaponRenderer(GLStage):
         self.dropped = self._held_before = self.drawn
         # How far below its grip point each weapon reaches along its +Z, the axis a dropped weapon lies on.
         self._low_z = np.array([float(np.min(np.asarray(prop.lods[0].positions, np.float64)[:, 2])) for prop in props]) - self._grip_point[:, 2]
-        self.last = {"weapons": 0, "dropped": 0, "drawn": 0, "draws": 0, "triangles": 0}
+        self._last = {"weapons": 0, "dropped": 0, "drawn": 0, "draws": 0, "triangles": 0}
+        self._counts_due = False  # the GPU paths' counts are read when ``last`` is, not every frame
+        self._command_template = None
 
     def _vao(self, mesh: dict, kind: str, cascade: int = 0) -> moderngl.VertexArray:
         if (kind, cascade) not in mesh["vaos"]:
@@ -293,7 +295,7 @@ class WeaponRenderer(GLStage):
             agents, weapon, rows, agent_lod, instances, in_hand = (a[shown] for a in (agents, weapon, rows, agent_lod, instances, in_hand))
         self._upload_cpu(weapon, agent_lod, instances, "instances", "count")
         self.drawn = (agents[in_hand], weapon[in_hand], rows[in_hand])
-        self.last = {"weapons": int(np.count_nonzero(in_hand)), "dropped": len(self.dropped[0]), "drawn": int(len(agents)),
+        self._last = {"weapons": int(np.count_nonzero(in_hand)), "dropped": len(self.dropped[0]), "drawn": int(len(agents)),
                      "draws": sum(1 for m in self._meshes if m["count"]), "triangles": sum(m["count"] * m["triangles"] for m in self._meshes)}
         return len(agents)
 
@@ -373,10 +375,13 @@ class WeaponRenderer(GLStage):
                           (self._shadow_shown, shown * self.lod_count * (sets - 1))):
             if buf is not None and buf.size != max(size, INSTANCE_DTYPE.itemsize):
                 buf.orphan(max(size, INSTANCE_DTYPE.itemsize))
-        commands = np.zeros(len(self._meshes), COMMAND_DTYPE)
-        commands["count"] = [m["triangles"] * 3 for m in self._meshes]
-        commands["first_index"] = [m["first_index"] for m in self._meshes]
-        commands["base_vertex"] = [m["base_vertex"] for m in self._meshes]
+        if self._command_template is None:  # (what does not change from frame to frame, made once)
+            template = np.zeros(len(self._meshes), COMMAND_DTYPE)
+            template["count"] = [m["triangles"] * 3 for m in self._meshes]
+            template["first_index"] = [m["first_index"] for m in self._meshes]
+            template["base_vertex"] = [m["base_vertex"] for m in self._meshes]
+            self._command_template = template
+        commands = self._command_template.copy()
         lod = np.arange(len(self._meshes)) % self.lod_count
         commands["base_instance"] = lod * k + np.repeat(starts[:-1], self.lod_count)
         self._commands.write(commands.tobytes())
@@ -411,8 +416,8 @@ class WeaponRenderer(GLStage):
         else:
             self._ring.zero()
         self.drawn = (agents[:held], weapon[:held], rows[:held])
-        self.last = {"weapons": held, "dropped": k - held}
-        self.refresh_counts()
+        self._last.update(weapons=held, dropped=k - held)
+        self._counts_due = True
         return k
 
     def _attach_on_feedback(self, agents, weapon, rows, frames: AgentFrames, visible, held: int) -> int:
@@ -422,12 +427,12 @@ class WeaponRenderer(GLStage):
             raise WeaponError("the weapons' feedback cull needs the body cull's visibility texture")
         k = len(agents)
         self.drawn = (agents[:held], weapon[:held], rows[:held])
-        self.last = {"weapons": held, "dropped": k - held}
+        self._last.update(weapons=held, dropped=k - held)
         if not k:  # nothing to draw: the commands too, as the passes draw from them without knowing
             self._counter.zero()
             for mesh in self._meshes:
                 mesh["count"], mesh["shadow_counts"] = 0, [0] * CASCADES
-            self.refresh_counts()
+            self._counts_due = True
             return 0
         instances = frames.instances(agents, rows)
         instances["fields"][:, 0] = agents
@@ -469,8 +474,20 @@ class WeaponRenderer(GLStage):
         for d, mesh in enumerate(self._meshes):  # placed: the GPU draws the visible of them
             mesh["count"] = int(need[d // self.lod_count])
             mesh["shadow_counts"] = [mesh["count"]] * CASCADES
-        self.refresh_counts()
+        self._counts_due = True
         return k
+
+    @property
+    def last(self) -> dict:
+        """The last frame's weapons: placed in hand, dropped, drawn, draws, triangles (on the GPU paths the
+        last three from the newest counts the GPU has handed back, read here rather than every frame)."""
+        if self._counts_due:
+            self.refresh_counts()
+        return self._last
+
+    def placed_any(self) -> bool:
+        """Whether the last frame placed a weapon, in hand or on the ground (its colour pass has work)."""
+        return bool(self._last["weapons"] or self._last["dropped"])
 
     def refresh_counts(self, wait: bool = False) -> None:
         """On the GPU paths: what was drawn, from the newest counts handed back (`wait`: every queued frame's)."""
@@ -480,7 +497,8 @@ class WeaponRenderer(GLStage):
             counts = self._ring.read(wait).astype(np.int64)
         else:
             return
-        self.last.update(drawn=int(counts.sum()), draws=int(np.count_nonzero(counts)),
+        self._counts_due = False
+        self._last.update(drawn=int(counts.sum()), draws=int(np.count_nonzero(counts)),
                          triangles=int(sum(int(c) * m["triangles"] for c, m in zip(counts, self._meshes))))
 
     def casts_shadows(self) -> bool:
