@@ -48,6 +48,7 @@ from .anim.processor import AnimationProcessor
 from .asset.model import Character
 from .asset.town import build_town
 from .cast import CastMember, bake_member, character_motion, load_cast, player_motion
+from .draw.far_agents import FarAgents
 from .draw.readback import RING, SocketRead, SocketReadback
 from .draw.render import CrowdRenderer, FrameView, view_proj
 from .draw.sync import PaletteSync
@@ -150,6 +151,7 @@ class CrowdPipeline(LiveSettings, GLStage):
         self._start_gpu_ai(ctx, config)
         started.update(1)
         self.sync = PaletteSync(self.processor.history, self.rows)
+        self.far_agents = FarAgents()
         # The running crowd's foot skate: FOOT_SKATE_SAMPLE agents' foot joints ride on the socket read-back.
         self.foot_skate = FootSkateMonitor(self.character.skeleton, FOOT_SKATE_SAMPLE)
         self._socket_entries: dict[int, int] = {}  # frame -> how many of its gathered entries are weapon sockets
@@ -470,14 +472,15 @@ class CrowdPipeline(LiveSettings, GLStage):
                     self._survivor_ground = survivor.position.copy()
             clip, within = (self._forced_clip(overrides), self._block(overrides)) if overrides else ((1.0, 1.0, True), None)
             crowd.upload(self.processor, layers, motion, overrides, self.ai.time, clip, within, stepped)
-        self._process(f)
-        rows = self.rows
-        latest = self.processor.row_offset(0) if rows else 0
         extra = None
         if survivor is not None:
             extra = Instances(np.array([[survivor.position[0], 0.0, survivor.position[1]]]), np.array([survivor.yaw], np.float32),
                               np.ones(1, np.float32), np.full((1, 4), 255, np.uint8), {})
         sim = crowd.gpu.frame_output(extra)
+        self._far_keys(crowd, sim, dt)
+        self._process(f)
+        rows = self.rows
+        latest = self.processor.row_offset(0) if rows else 0
         row_offset, agent_weapon = (latest, latest, -1), None
         if self.weapons is not None and crowd.sockets is not None and rows:
             agent_weapon = weapon_of_agent(self.ai, [m.character for m in self.cast], survivor)  # (a trait: the numpy AI's array holds it)
@@ -486,6 +489,23 @@ class CrowdPipeline(LiveSettings, GLStage):
             if age is not None:  # each body from the read-back's palette, but agents born after it from this frame's
                 row_offset = (self.processor.row_offset(age), latest, self._clock_at[read.frame][0])
         return self._render(framebuffer, f, sim, row_offset, read, agent_weapon, fallen)
+
+    def _far_keys(self, crowd, sim, dt: float) -> None:
+        """Agents drawn only as impostors get their key alone from this frame's processor run; a cut
+        (crowd.draw.far_agents) drops the kept palettes first."""
+        r = self.renderer
+        if not any(part.key for part in self.processor.layout.parts) or self.processor.path != "compute":
+            return
+        offset = float(np.linalg.norm(r.bounds[:, :3], axis=1).max()) * sim.max_scale
+        beyond = self.far_agents.beyond(r.impostor_distance, r.lod_fade, offset)
+        top_speed = max(m.run_speed for m in self.ai.motions) * self.ai.config.speed_max * 1.5  # (pushes besides the gait)
+        eye = np.asarray(self.camera.eye, np.float64)
+        if self.far_agents.cut(eye, beyond, top_speed * min(float(dt), self.ai.config.max_dt)):
+            self.sync.reset()
+        # An armed character's impostor holds its weapon on its socket joint (crowd.draw.impostors.held_pieces).
+        kept = [[next(iter(m.character.sockets.values()))] if m.character.armed else None for m in self.cast]
+        self.processor.key_alone_beyond(crowd.gpu.places, crowd.gpu.looks, eye - np.array([crowd.gpu.origin[0], 0.0, crowd.gpu.origin[1]]),
+                                        beyond, self.ai.n, kept)
 
     def _fetch_sockets(self, f: int, crowd) -> tuple:
         """Frame F - N's weapon sockets (and who was down then) with the crowd on the GPU, read first in the

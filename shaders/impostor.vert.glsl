@@ -77,7 +77,9 @@ void main() {
     v_cells = ivec4((first + f0) * columns + e * u_views + v0, (first + f0) * columns + e * u_views + v1,
                     (first + f1) * columns + e * u_views + v0, (first + f1) * columns + e * u_views + v1);
     v_blend = vec2(fract(azimuth), frame_t);
-#ifndef DEPTH_ONLY
+#ifdef DEPTH_ONLY
+    v_blend = floor(v_blend + 0.5);  // a shadow map's texel spans many of the atlas's: the nearest cell's coverage
+#else
     vec4 centre = u_view_proj * vec4(agent.position_scale.xyz + vec3(0.0, box.y + 0.5 * box.z, 0.0), 1.0);
     if (box.z * u_focal_px < u_blend_px * max(centre.w, 1e-6)) v_blend = floor(v_blend + 0.5);  // one weight 1, three 0: their fetches skipped
 #endif

@@ -20,6 +20,30 @@ uniform int u_row_offset;    // first palette row (counted across layers) of thi
 uniform int u_palette_rows;  // texture rows per layer
 uniform int u_stride;        // texels an agent: ROW_SLOTS, then u_joints
 
+#ifdef IMPOSTOR_KEY
+// Agents drawn only as impostors get their key and nothing else: those of the crowd on the GPU whose
+// distance from the camera is past u_far_m (crowd.anim.processor.FarAgents says how far, and why safe).
+layout(std430, binding = 2) readonly buffer CrowdPlaces { vec4 crowd_place[]; };  // the GPU crowd's x, z (from its origin), vx, vz
+layout(std430, binding = 3) readonly buffer CrowdLooks { uvec4 crowd_look[]; };   // its tint, head, weapon + 1, spawned step
+uniform vec3 u_far_eye;  // the camera, from the crowd's origin
+uniform float u_far_m;   // 0: every agent's row whole
+uniform int u_far_rows;  // rows the crowd holds (the survivor's after them is always whole)
+uniform uint u_far_joints[8];  // a bit a joint: those a far armed agent still needs (its held weapon's socket and the socket's ancestors)
+
+bool far_keeps(int agent, int joint) {
+    return joint >= 0 && crowd_look[agent].z != 0u && ((u_far_joints[joint >> 5] >> uint(joint & 31)) & 1u) != 0u;
+}
+
+bool key_alone(int agent) {
+    if (u_far_m <= 0.0 || agent >= u_far_rows) return false;
+    vec3 d = vec3(crowd_place[agent].x, 0.0, crowd_place[agent].y) - u_far_eye;
+    return dot(d, d) > u_far_m * u_far_m;
+}
+#else
+bool key_alone(int agent) { return false; }
+bool far_keeps(int agent, int joint) { return false; }
+#endif
+
 shared vec4 s_local0[256];
 shared vec4 s_local1[256];
 shared vec4 s_local2[256];
@@ -36,7 +60,9 @@ void main() {
     int local = group * u_agents_per_group + slot;  // among this character's agents
     int agent = u_first_agent + local;
     bool working = slot < u_agents_per_group && local < u_agents;
-    if (working && joint >= 0) {
+    bool far = working && key_alone(agent);
+    bool skip = far && !far_keeps(agent, joint);  // (a kept joint's ancestors are kept: its chain reads only those)
+    if (working && !skip && joint >= 0) {
         Affine m = blended_local(agent, joint);
         s_local0[t] = m.r0;
         s_local1[t] = m.r1;
@@ -48,7 +74,10 @@ void main() {
     // The first leg's ankle invocation locks the agent's feet, leg after leg: it rewrites their locals,
     // which every invocation of the agent reads after the barrier (reached by all, working or not).
     if (working && joint == u_leg_joints[0].w) {
-        for (int leg = 0; leg < LEG_COUNT; ++leg) lock_leg(local, base, leg);
+        for (int leg = 0; leg < LEG_COUNT; ++leg) {
+            if (far) lock_state[local * LEG_COUNT + leg] = vec4(0.0);  // free, as a new agent's: it starts anew when near
+            else lock_leg(local, base, leg);
+        }
     }
     barrier();
 #endif
@@ -65,13 +94,18 @@ void main() {
 #endif
 #ifdef MORPHS
         vec2 pairs[MORPH_PAIRS];
-        morph_pairs(agent, local, pairs);
+        if (far) {  // no target moves: the cull routes it as a plain agent (cull.comp.glsl, moves_no_target)
+            for (int k = 0; k < MORPH_PAIRS; ++k) pairs[k] = vec2(0.0);
+        } else {
+            morph_pairs(agent, local, pairs);
+        }
         imageStore(u_palette0, texel, vec4(pairs[0], pairs[1]));
         imageStore(u_palette1, texel, vec4(pairs[2], pairs[3]));
         imageStore(u_palette2, texel, vec4(pairs[4], pairs[5]));
 #endif
         return;
     }
+    if (skip) return;
     Affine m = Affine(s_local0[t], s_local1[t], s_local2[t]);
     int p = parent_of(joint);
     for (int k = 0; k < MAX_JOINTS && p >= 0; ++k) {

@@ -54,6 +54,10 @@ void main() {
         int a = u_sample[i - u_n - 1];
         ivec4 c = codes_[a];
         if (c.y != 0 || (c.x != 0 && c.x != 1)) return;  // steady locomotion only: no action, wandering or chasing
+        if (u_far[c.w] != 0) {  // past the impostors' reach its row holds its key alone (processor.comp.glsl)
+            vec2 d = motion_[a].xy - u_eye.xz;
+            if (d.x * d.x + u_eye.y * u_eye.y + d.y * d.y > u_reach2) return;
+        }
         uint slot = atomicAdd(count_, uint(FEET + 1));
         uint born = looks_[a].w;
         if (slot < uint(u_capacity)) entries_[slot] = Entry(uvec4(uint(a), FRAME_ENTRY, uint(c.x), born), motion_[a], heading_[a], vec4(0.0));

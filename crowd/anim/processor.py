@@ -68,6 +68,7 @@ from .processor_readback import ProcessorReadback
 
 LOCALS_UNITS = (12, 13, 14)  # the fragment path's scratch of blended locals, read by its compose pass
 # Each sampler's texture unit (those a program compiled out are left out when written).
+FAR_PLACES, FAR_LOOKS = 2, 3  # processor.comp.glsl's storage bindings of the GPU crowd's places and looks (0 and 1: the foot lock's)
 TEXTURE_UNITS = {"u_anim": 0, "u_parents": 1, "u_clips": 2, "u_layers": 3, "u_anim_scale": 4, "u_masks": 5, "u_keys": 6, "u_tracks": 7,
                  "u_morph_tracks": 8, "u_morph_clips": 9, "u_morph_variation": 10, "u_morph_held": 11,
                  **dict(zip(("u_locals0", "u_locals1", "u_locals2"), LOCALS_UNITS))}
@@ -124,6 +125,7 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
         # The layers texture's own layout: agents side by side, LAYERS texels each, whatever their skeleton.
         self.layer_agents_per_row = MAX_TEXTURE_WIDTH // layer_count
         self.runs = 0  # runs since the palette was last (re)allocated: slots older than this hold nothing
+        self._far = None  # (places, eye, metres, rows) past which agents get their key alone (key_alone_beyond)
         self.layer_rows = 1  # texture rows per layer of the planes
         self.slot_layers = 1  # layers one ring slot spans
         self.layers_texture = None
@@ -490,6 +492,14 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
             part.lock_state.bind_to_storage_buffer(0)
             part.lock_motion.bind_to_storage_buffer(1)
             values.update(u_lock_decay=math.exp(-self._lock_dt / lock.RELEASE_S), u_step_advance=self._lock_dt / lock.STEP_S)
+        if block.key and self.path == "compute":
+            if self._far is None:
+                values["u_far_m"] = 0.0
+            else:
+                places, looks, eye, beyond, rows, masks = self._far
+                places.bind_to_storage_buffer(FAR_PLACES)
+                looks.bind_to_storage_buffer(FAR_LOOKS)
+                values.update(u_far_eye=eye, u_far_m=beyond, u_far_rows=rows, u_far_joints=masks[self.parts.index(part)])
         set_uniforms(prog, **values)
         if self.path == "compute":
             groups = math.ceil(block.count / (GROUP_SIZE // block.width))
@@ -497,6 +507,29 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
             prog.run(gx, math.ceil(groups / gx), 1)
         else:
             (part.locals_vao if prog is part.locals_program else part.quad_vao).render(moderngl.TRIANGLES, vertices=part.quad_vertices)
+
+    def key_alone_beyond(self, places: moderngl.Buffer | None, looks: moderngl.Buffer | None = None, eye=(0.0, 0.0, 0.0),
+                         beyond_m: float = 0.0, rows: int = 0, kept=()) -> None:
+        """From the next run, the agents among the first `rows` (those of a crowd on the GPU, `places` its
+        buffer of (x, z, vx, vz) from its origin, `looks` its (tint, head, weapon + 1, spawned step)) standing
+        farther than `beyond_m` metres from `eye` (from the same origin) get their impostor key alone
+        (crowd.draw.far_agents says when that is safe), and, those holding a weapon, the joints
+        `kept[character]` (indices, with their ancestors; none where absent) besides. None: every row whole.
+        Characters without impostors and the fragment path always write whole rows."""
+        if places is None or self.path != "compute":
+            self._far = None
+            return
+        masks = []
+        for k, part in enumerate(self.parts):
+            bits = np.zeros(MAX_JOINTS, bool)
+            parents = part.bake.parents
+            for joint in (kept[k] if k < len(kept) and kept[k] is not None else ()):
+                j = int(joint)
+                while j >= 0 and not bits[j]:
+                    bits[j] = True
+                    j = int(parents[j])
+            masks.append(tuple(int(w) for w in np.packbits(bits, bitorder="little").view(np.uint32)))
+        self._far = (places, looks, tuple(float(v) for v in eye), float(beyond_m), int(rows), masks)
 
     def process(self, layers, motion=None, dt: float = 0.0) -> bool:
         self.upload(layers, motion, dt)

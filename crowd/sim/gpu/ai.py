@@ -390,6 +390,17 @@ class GpuCrowdAI(GLStage):
         return facts_of(self._counters.read())
 
     @property
+    def places(self) -> moderngl.Buffer:
+        """The agents' (x, z, vx, vz) float32, from the origin (agents.glsl's Motion), for passes that
+        read where each one stands."""
+        return self._state["motion"]
+
+    @property
+    def looks(self) -> moderngl.Buffer:
+        """The agents' (tint, head, weapon + 1, spawned step) uint32 (agents.glsl's Looks)."""
+        return self._state["looks"]
+
+    @property
     def counters(self) -> moderngl.Buffer:
         return self._counters
 
