@@ -12,6 +12,7 @@ uniform mat4 u_view_proj;   // camera-relative
 #include "agent_instance.glsl"
 
 uniform sampler2D u_impostor_clips;  // (clips, 2): row 0 (first frame, frames, loop, 0), row 1 the clip's box
+uniform sampler2D u_cell_bounds;     // (columns, frames): the cell's covered rectangle (u0, v0, u1, v1), 0 to 1 of the cell
 uniform int u_key_offset;   // texels from an agent's key (its first texel) to its joint 0
 uniform int u_views;        // views around the up axis, at azimuth 2 pi k / u_views (k = 0 faces the agent's front)
 uniform int u_elevations;
@@ -78,17 +79,29 @@ void main() {
                     (first + f1) * columns + e * u_views + v0, (first + f1) * columns + e * u_views + v1);
     v_blend = vec2(fract(azimuth), frame_t);
 #ifdef DEPTH_ONLY
-    v_blend = floor(v_blend + 0.5);  // a shadow map's texel spans many of the atlas's: the nearest cell's coverage
+    bool nearest = true;  // a shadow map's texel spans many of the atlas's: the nearest cell's coverage
 #else
     vec4 centre = u_view_proj * vec4(agent.position_scale.xyz + vec3(0.0, box.y + 0.5 * box.z, 0.0), 1.0);
-    if (box.z * u_focal_px < u_blend_px * max(centre.w, 1e-6)) v_blend = floor(v_blend + 0.5);  // one weight 1, three 0: their fetches skipped
+    bool nearest = box.z * u_focal_px < u_blend_px * max(centre.w, 1e-6);
 #endif
-    v_corner = in_corner;
-    // The quad, facing `toward`, spans the clip's box: x across, y up from the agent's feet.
+    if (nearest) {  // one weight 1, three 0 (their fetches skipped), every cell that one
+        v_blend = floor(v_blend + 0.5);
+        v_cells = ivec4(v_cells[int(v_blend.x) + 2 * int(v_blend.y)]);
+    }
+    // The quad covers the covered rectangles of the cells it shows (of the clip's box, the rest is empty).
+    vec4 rect = vec4(1.0, 1.0, 0.0, 0.0);
+    for (int k = 0; k < 4; ++k) {
+        if (k > 0 && v_cells[k] == v_cells[0]) continue;
+        vec4 b = texelFetch(u_cell_bounds, ivec2(v_cells[k] % columns, v_cells[k] / columns), 0);
+        rect = vec4(min(rect.xy, b.xy), max(rect.zw, b.zw));
+    }
+    vec2 corner = mix(rect.xy, max(rect.zw, rect.xy), in_corner);
+    v_corner = corner;
+    // The quad, facing `toward`, in the clip's box: x across, y up from the agent's feet.
     vec3 right = vec3(toward.z, 0.0, -toward.x);
     right = dot(right, right) > 1e-8 ? normalize(right) : vec3(1.0, 0.0, 0.0);
     vec3 up = cross(toward, right);
-    vec3 world = agent.position_scale.xyz + right * ((2.0 * in_corner.x - 1.0) * box.x) + up * (box.y + in_corner.y * box.z);
+    vec3 world = agent.position_scale.xyz + right * ((2.0 * corner.x - 1.0) * box.x) + up * (box.y + corner.y * box.z);
 #ifndef DEPTH_ONLY
     v_world = world;
     // Rasterised on a plane nearer the camera than any depth the atlas holds (with slack for the plane

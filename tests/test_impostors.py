@@ -337,3 +337,43 @@ def test_small_impostors_show_their_nearest_cell_at_the_blends_error(gl_context,
     assert nearest["linear_error"] != blended["linear_error"]  # the nearest cell was drawn
     assert nearest["linear_error"] <= 1.25 * blended["linear_error"] + 1.0
     assert nearest["linear_flicker"] <= 1.5 * blended["linear_flicker"] + 1.0
+
+
+def test_each_cell_is_drawn_over_its_covered_rectangle_alone(gl_context, atlas, monkeypatch):
+    """The quad spans the covered texels of the cells it shows, with a texel of margin (the rest of the
+    clip's box is empty): every covered texel lies inside its cell's rectangle, the rectangles are a
+    fraction of the box, and the crowd's picture is the one full boxes draw, to rounding."""
+    from crowd.draw import impostors
+    from crowd.gl import Offscreen
+    from crowd.pipeline import CrowdPipeline
+    from crowd.pipeline_config import PipelineConfig
+
+    bounds = atlas.cell_bounds()
+    cw, ch = atlas.settings.cell
+    layers, height, width, _ = atlas.albedo.shape
+    cover = atlas.albedo[..., 3].reshape(layers * (height // ch), ch, width // cw, cw).transpose(0, 2, 1, 3)[: atlas.frames]
+    frame, column, y, x = np.nonzero(cover)
+    u, v = (x + 0.5) / cw, (y + 0.5) / ch
+    b = bounds[frame, column]
+    assert np.all((b[:, 0] < u) & (u < b[:, 2]) & (b[:, 1] < v) & (v < b[:, 3]))
+    share = float(np.mean((bounds[..., 2] - bounds[..., 0]) * (bounds[..., 3] - bounds[..., 1])))
+    assert 0.1 < share < 0.8, share
+
+    def picture(full: bool):
+        if full:
+            tight = impostors.ImpostorAtlas.cell_bounds
+            monkeypatch.setattr(impostors.ImpostorAtlas, "cell_bounds",
+                                lambda self: np.tile(np.array([0.0, 0.0, 1.0, 1.0], np.float32), tight(self).shape[:2] + (1,)))
+        size = (240, 135)
+        with Offscreen(gl_context, size) as target, CrowdPipeline(gl_context, PipelineConfig(agents=600, seed=2, impostors="on", weapons=False)) as p:
+            p.camera = p.default_camera(size[0] / size[1])
+            p.renderer.set_impostor_distance(4.0)
+            for _ in range(3):
+                p.frame(target.framebuffer, 1 / 30)
+            p.refresh_counts()
+            assert p.renderer.last["impostors"] > 100
+            return target.image().astype(int)
+
+    tight, full = picture(False), picture(True)
+    differ = np.abs(tight - full).max(axis=-1)
+    assert np.count_nonzero(differ > 8) <= 2 and np.count_nonzero(differ) <= 0.01 * differ.size

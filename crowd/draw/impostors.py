@@ -126,6 +126,26 @@ class ImpostorAtlas:
     def checksum(self) -> str:
         return checksum((self.clips, self.albedo, self.normal_depth))
 
+    def cell_bounds(self) -> np.ndarray:
+        """(frames, columns, 4) float32: the rectangle of each cell its covered texels lie in, with a texel
+        of margin each way, as (u0, v0, u1, v1) of the cell (0 to 1): the quad is drawn over it alone, the
+        clip's box's other texels being empty (a cell with nothing covered gets an empty rectangle)."""
+        cw, ch = (int(x) for x in self.settings.cell)
+        layers, height, width, _ = self.albedo.shape
+        rows, columns = height // ch, width // cw
+        covered = (self.albedo[..., 3] > 0).reshape(layers, rows, ch, columns, cw)
+        across, up = covered.any(axis=2), covered.any(axis=4)  # (layers, rows, columns, cw), (layers, rows, ch, columns)
+        up = up.transpose(0, 1, 3, 2)
+        out = np.zeros((layers * rows, columns, 4), np.float32)
+        for axis, texels, (lo, hi) in ((across, cw, (0, 2)), (up, ch, (1, 3))):
+            flat = axis.reshape(layers * rows, columns, texels)
+            seen = flat.any(axis=2)
+            first = np.argmax(flat, axis=2)
+            last = texels - 1 - np.argmax(flat[..., ::-1], axis=2)
+            out[..., lo] = np.where(seen, np.maximum(first - 1, 0) / texels, 0.5)
+            out[..., hi] = np.where(seen, np.minimum(last + 2, texels) / texels, 0.5)
+        return out[: self.frames]
+
 
 # -- baking
 
@@ -283,10 +303,10 @@ def read_atlas(path: Path) -> ImpostorAtlas:
 
 
 class ImpostorTextures(GLStage):
-    """One character's atlas on the GPU: two RGBA8 texture arrays and the clip table, bound for
-    impostor.vert.glsl and impostor.frag.glsl."""
+    """One character's atlas on the GPU: two RGBA8 texture arrays, the clip table and each cell's covered
+    rectangle, bound for impostor.vert.glsl and impostor.frag.glsl."""
 
-    ALBEDO_UNIT, NORMAL_UNIT, CLIPS_UNIT = 8, 9, 10  # after the palette (0-2), shadows (3), albedo (6) and pyramid (7)
+    ALBEDO_UNIT, NORMAL_UNIT, CLIPS_UNIT, BOUNDS_UNIT = 8, 9, 10, 11  # after the palette (0-2), shadows (3), albedo (6) and pyramid (7)
 
     def __init__(self, ctx: moderngl.Context, atlas: ImpostorAtlas):
         atlas.validate()
@@ -302,6 +322,9 @@ class ImpostorTextures(GLStage):
             self.clips = self._objects.add(ctx.texture((len(atlas.clip_names), 2), 4, np.ascontiguousarray(atlas.clips.transpose(1, 0, 2)).tobytes(),
                                                        dtype="f4"))
             self.clips.filter = (moderngl.NEAREST, moderngl.NEAREST)
+            bounds = atlas.cell_bounds()  # (frames, columns, 4): a texel (column, frame)
+            self.bounds = self._objects.add(ctx.texture((bounds.shape[1], bounds.shape[0]), 4, bounds.tobytes(), dtype="f4"))
+            self.bounds.filter = (moderngl.NEAREST, moderngl.NEAREST)
         except BaseException:
             self._objects.release()
             raise
@@ -311,7 +334,9 @@ class ImpostorTextures(GLStage):
         self.albedo.use(self.ALBEDO_UNIT)
         self.normal_depth.use(self.NORMAL_UNIT)
         self.clips.use(self.CLIPS_UNIT)
+        self.bounds.use(self.BOUNDS_UNIT)
         values = {"u_atlas_albedo": self.ALBEDO_UNIT, "u_atlas_normal_depth": self.NORMAL_UNIT, "u_impostor_clips": self.CLIPS_UNIT,
+                  "u_cell_bounds": self.BOUNDS_UNIT,
                   "u_key_offset": int(key_offset), "u_views": int(s.views), "u_elevations": len(s.elevations), "u_columns": s.columns,
                   "u_rows": int(self.atlas.rows), "u_blend_px": BLEND_PX}
         for name, value in values.items():
