@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +15,7 @@ from crowd.anim.bake import BakeError
 from crowd.anim.processor_inputs import ProcessorError
 from crowd.pipeline_config import PipelineError
 from crowd.scene import SceneError
+from crowd.timing import SampleRing
 from crowd.session import CrowdSession, SessionError
 from crowd.settings import SETTINGS, SOURCE_RATE
 from crowd.sim.config import AIError
@@ -52,7 +52,7 @@ class Panel:
         self.session = session
         self.scene_path = scene_path or Path("out/scene.toml")
         self.status = ""
-        self.frame_times: deque = deque(maxlen=2000)  # seconds; the plot shows the last HISTORY_SECONDS of them
+        self.frame_times = SampleRing(2000)  # seconds; the plot shows the last HISTORY_SECONDS of them
         self.visible = True
         bake = session.pipeline.bake
         self._source_rate = bake.fps == SOURCE_RATE
@@ -70,6 +70,7 @@ class Panel:
         self._to_open: set[str] = set()
         self._passes: list[tuple[str, str, float]] = []  # (pass, clock, median ms), as last worked out
         self._passes_at = -math.inf
+        self._frame_text, self._frame_text_at, self._plotted = "", -math.inf, 1
 
     # -- actions: the only way the panel changes anything
 
@@ -155,10 +156,16 @@ class Panel:
     def _draw_timing(self, imgui) -> None:
         from imgui_bundle import implot
 
-        times = np.asarray(self.frame_times, np.float64)
-        if times.size:
-            recent = times[-int(min(times.size, max(1, HISTORY_SECONDS / max(np.median(times[-60:]), 1e-4)))):]
-            imgui.text_wrapped(f"{1.0 / max(np.median(recent[-60:]), 1e-6):.0f} fps   frame {np.median(recent[-60:]) * 1e3:.2f} ms (median of 60)")
+        times = self.frame_times
+        if len(times):
+            now = time.perf_counter()
+            if now - self._frame_text_at >= REFRESH_SECONDS:  # (as the passes' medians below: a few times a second)
+                typical = float(np.median(times.recent(60)))
+                self._frame_text = f"{1.0 / max(typical, 1e-6):.0f} fps   frame {typical * 1e3:.2f} ms (median of 60)"
+                self._plotted = int(min(len(times), max(1, HISTORY_SECONDS / max(typical, 1e-4))))
+                self._frame_text_at = now
+            recent = times.recent(self._plotted)[::-1]
+            imgui.text_wrapped(self._frame_text)
             if implot.begin_plot("##frame time", imgui.ImVec2(-1, PLOT_HEIGHT), implot.Flags_.no_legend | implot.Flags_.no_mouse_text):
                 implot.setup_axes("", "ms", implot.AxisFlags_.no_tick_labels, implot.AxisFlags_.auto_fit)
                 implot.setup_axis_limits(implot.ImAxis_.x1, 0, len(recent), implot.Cond_.always)
