@@ -164,6 +164,7 @@ class CrowdPipeline(LiveSettings, GLStage):
         # Morph weights the panel holds, per character: (M,) weights (-1: not held) and whose (an agent's
         # number among the character's, or crowd.anim.morph.ALL_HELD); handed to each new processor.
         self.morph_holds: dict[int, tuple[np.ndarray, int]] = {}
+        self._holds_applied: dict = {}  # character -> (the processor, its part, the morph_holds entry) last handed to it
         self.last = FrameState()
         self.camera = self.default_camera(16 / 9)
 
@@ -423,8 +424,10 @@ class CrowdPipeline(LiveSettings, GLStage):
         """The processor's pass over this frame's uploaded input (with the morph weights the panel holds)."""
         t = self.timer
         for k, part in enumerate(self.processor.parts):
-            if part.held is not None:
-                self.processor.hold_morphs(k, *self.morph_holds.get(k, (np.full(len(part.held), -1.0), NOT_HELD)))
+            entry, applied = self.morph_holds.get(k), self._holds_applied.get(k, (None, None, None))
+            if part.held is not None and (applied[0] is not self.processor or applied[1] is not part or applied[2] is not entry):
+                self.processor.hold_morphs(k, *(entry or (np.full(len(part.held), -1.0), NOT_HELD)))
+                self._holds_applied[k] = (self.processor, part, entry)  # (a hold set is a new tuple)
         rows = self.rows
         if rows:
             with t.gpu("process"):

@@ -124,7 +124,7 @@ def build_readback(ctx: moderngl.Context, processor: AnimationProcessor, spec: S
 def build_town(ctx: moderngl.Context, spec: StageSpec) -> TownRenderer | None:
     from .asset.town import build_town as town
 
-    return TownRenderer(ctx, town(), spec.shadows) if spec.town else None
+    return TownRenderer(ctx, town(), spec.shadows, gpu_cull=cull_path(ctx, spec.cull, spec.gl_limit) == "gpu") if spec.town else None
 
 
 def build_weapons(ctx: moderngl.Context, cast, spec: StageSpec) -> WeaponRenderer | None:

@@ -1,7 +1,7 @@
 #version 330 core
 // The town (crowd/draw/town.py): buildings, cars, barriers and kerbs, one instanced draw per mesh. An
 // instance is a placement on the ground: its origin relative to the camera (float64 on the CPU, then
-// float32, as the crowd's) and its heading, which turns the mesh's +Z toward (sin, 0, cos) as an agent's
+// float32, as the crowd's; on the GPU cull path relative to the districts' anchor, u_anchor_rel added) and its heading, which turns the mesh's +Z toward (sin, 0, cos) as an agent's
 // does; its tint multiplies the vertex colours. Shares skin.frag.glsl and depth.frag.glsl with the crowd.
 //
 // Defines: DEPTH_ONLY (shadow pass: position only).
@@ -12,6 +12,7 @@ in vec3 i_position;     // the placement's origin, relative to the camera
 in uvec2 i_fields;      // x: cos, sin of the heading, snorm16 x2 | y: tint, RGBA8
 
 uniform mat4 u_view_proj;
+uniform vec3 u_anchor_rel;  // where i_position counts from, relative to the camera (0: i_position is camera-relative)
 
 #ifndef DEPTH_ONLY
 out vec3 v_world;
@@ -23,7 +24,7 @@ out vec4 v_color;
 
 void main() {
     vec2 heading = heading_cos_sin(i_fields.x);
-    vec3 world = i_position + turn_about_y(heading, in_position);
+    vec3 world = (u_anchor_rel + i_position) + turn_about_y(heading, in_position);
     gl_Position = u_view_proj * vec4(world, 1.0);
 #ifndef DEPTH_ONLY
     v_world = world;

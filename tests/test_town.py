@@ -219,3 +219,31 @@ def test_the_follow_camera_stays_out_of_buildings(town):
     open_ground = FollowControl(yaw=0.0)
     open_ground.apply(camera, (car.x, car.z - 3.0), walls)  # a car in the way: seen over
     assert np.linalg.norm(camera.eye - camera.target) == pytest.approx(open_ground.distance)
+
+
+def test_the_town_culled_on_the_gpu_draws_what_the_numpy_cull_draws(gl_context):
+    """Where the context runs compute shaders the town's placements are culled on the GPU: the same
+    placements in the view and each cascade and the same picture as the numpy cull, along a flight that
+    crosses districts (the GPU's buffers made again for the districts in sight) and looks up at nothing."""
+    from crowd.frame import Camera
+
+    if not has_compute(gl_context):
+        pytest.skip("the GPU cull needs GL 4.3 compute shaders")
+    size = (240, 135)
+    flight = [((x, 6.0, 40.0), (x + 30.0, 1.0, 10.0)) for x in (0.0, 150.0, 230.0, 420.0)] + [((0.0, 2.0, 0.0), (0.0, 300.0, 1.0))]
+    seen = {}
+    for cull in ("gpu", "cpu"):
+        scene = Scene(agents=40, town=True, cull=cull, ai_path="cpu")
+        with Offscreen(gl_context, size) as target, CrowdPipeline(gl_context, scene.pipeline_config()) as p:
+            assert p.town.gpu_cull == (cull == "gpu")
+            seen[cull] = []
+            for eye, target_point in flight:
+                p.camera = Camera(eye=np.array(eye), target=np.array(target_point), aspect=size[0] / size[1])
+                p.frame(target.framebuffer, 1 / 30)
+                seen[cull].append((dict(p.town.last), target.image().astype(int)))
+            gpu_bytes = p.gpu_bytes()["town"]
+        assert gpu_bytes > 0
+    for (gpu_last, gpu_image), (cpu_last, cpu_image) in zip(seen["gpu"], seen["cpu"]):
+        assert gpu_last == cpu_last
+        assert np.count_nonzero(np.abs(gpu_image - cpu_image).max(axis=-1) > 8) <= 0.001 * gpu_image[..., 0].size
+    assert any(last["instances"] > 20 for last, _ in seen["gpu"]) and seen["gpu"][-1][0]["instances"] < seen["gpu"][0][0]["instances"]

@@ -53,8 +53,9 @@ from .morph import MorphDeltas
 from .occlusion import DepthPyramid
 from .packing import LAYOUTS, pack_vertices, read_by, shared_buffers, uv_box, uv_layout
 from .records import AgentRecords, RecordError, RecordPacker, use_records_unit
-from .shadows import CASCADES, Cascades, cascades
-from .view import FrameView, frustum_planes, gl_bytes, view_proj
+from .shadows import CASCADES, Cascades
+from .drawn_counts import DrawnCounts
+from .view import CascadeCache, FrameView, frustum_planes, gl_bytes, view_proj
 
 IMPOSTOR_PIECE = "impostor"  # the piece name of a character's impostor draw (crowd.draw.impostors)
 ENTRY_FORMAT = ("1u/i", "i_entry")  # a list's entries, one an instance (shaders/agent_instance.glsl)
@@ -90,7 +91,7 @@ class _Draw:
     twin_of: "_Draw | None" = None  # the GPU path's plain twin of this morph draw
 
 
-class CrowdRenderer(GLStage):
+class CrowdRenderer(DrawnCounts, GLStage):
     """Owns the meshes, the agent records, the cull of its path, the programs, the shadow map and the ground
     of the crowd view."""
 
@@ -203,7 +204,7 @@ class CrowdRenderer(GLStage):
         self._last = {"triangles": 0, "instances": 0, "visible": 0, "draws": 0, "lod_counts": [0] * self.lod_count, "shadow_instances": 0,
                       "cast_visible": [0] * len(self.cast), "impostors": 0}
         self._counts_due = False  # the GPU paths' counts are read when ``last`` is, not every frame
-        self._cascades_made = (None, None)  # (what the last cascades were made from, them)
+        self._light = CascadeCache()
 
     def _build_draws(self, ctx: moderngl.Context, per_character: list, atlases: list) -> None:
         """One draw per (piece, LOD) of every character, its mesh packed; on the GPU path the untextured ones
@@ -572,7 +573,7 @@ class CrowdRenderer(GLStage):
         except (RecordError, GpuCullError, FeedbackCullError) as exc:
             raise RenderError(f"{exc}") from None
         planes = frustum_planes(matrix)
-        light = (None, None) if shadow is None else (np.stack([frustum_planes(m) for m in shadow.view_proj]), shadow.reach_m)
+        light = (None, None) if shadow is None else (self._light.planes(shadow), shadow.reach_m)
         if self.cpu is None:
             self._counts_due = True  # (read when ``last`` is: the newest frame the GPU has finished)
             self._pending = (planes, light, eye)
@@ -604,44 +605,6 @@ class CrowdRenderer(GLStage):
             self.gpu.run(planes, self.culling, shadow_planes, reach,
                          occlusion=None if self.pyramid is None else (self.pyramid, eye), palette=processor)
         return True
-
-    @property
-    def last(self) -> dict:
-        """What the last frame drew: triangles, instances, visible agents, draws, agents per LOD, shadow
-        instances, visible agents per character, impostors. On the GPU paths, the newest counts the GPU
-        has handed back (a frame or two old), read here rather than every frame."""
-        if self._counts_due:
-            self.refresh_counts()
-        return self._last
-
-    def refresh_counts(self, wait: bool = False) -> None:
-        """``last`` on the GPU paths: the newest counts the GPU has handed back (a frame or two old; `wait`
-        finishes the frames queued: stats at the end of a run, tests). A no-op on the CPU path."""
-        cull = self.gpu or self.feedback
-        if cull is None:
-            return
-        counts = cull.counts(wait).astype(np.int64)
-        agents = cull.agent_counts().astype(np.int64)  # (characters, LOD slots): each kept agent once
-        lod_counts = [int(x) for x in np.pad(agents.sum(axis=0), (0, self.lod_count))[: self.lod_count]]
-        cast_visible = [int(x) for x in agents.sum(axis=1)]
-        impostors = sum(int(agents[k, slot]) for k, slot in enumerate(self.impostor_lods) if 0 <= slot < agents.shape[1])
-        for draw, c in zip(self.draws, counts):
-            draw.count = int(c)
-        shadow = cull.shadow_counts(wait).astype(np.int64) if self.shadows else np.zeros((0, len(self.draws)), np.int64)
-        for d, draw in enumerate(self.draws):
-            draw.shadow_counts = [int(c) for c in shadow[:, d]]
-        self._counts_due = False
-        self._last = {"triangles": int(sum(c * d.triangles for c, d in zip(counts, self.draws))), "instances": int(counts.sum()),
-                     "visible": int(sum(lod_counts)), "draws": int(np.count_nonzero(counts)), "lod_counts": lod_counts,
-                     "shadow_instances": int(shadow.sum()), "cast_visible": cast_visible, "impostors": impostors}
-
-    def listed(self, index: int, cascade: int | None = None) -> np.ndarray:
-        """uint32 entries draw `index` drew in the view's pass (or `cascade`'s) of the last frame
-        (synchronous: tests and benchmarks; crowd.draw.cull_lists.entry_agents reads them)."""
-        if self.cpu is not None:
-            count = self.draws[index].count if cascade is None else self.draws[index].shadow_counts[cascade]
-            return np.frombuffer(self.cpu.buffer(index, cascade).read(), np.uint32)[:count].copy()
-        return self._cull.listed(index, cascade)
 
     @property
     def culls_on_gpu(self) -> bool:
@@ -680,12 +643,7 @@ class CrowdRenderer(GLStage):
         top = float(np.max(self.bounds[:, 1] + self.bounds[:, 3])) * scale
         lo, hi = np.asarray(box[0], np.float64).copy(), np.asarray(box[1], np.float64).copy()
         hi[1] = max(hi[1], lo[1] + top)  # as tall as an agent's bound
-        # Made again only when what they are made from changed: a still camera's frames share them.
-        key = (np.asarray(camera.eye, np.float64).tobytes(), np.asarray(camera.target, np.float64).tobytes(), camera.fov_y, camera.near,
-               camera.far, camera.aspect, camera.fog_reach, np.asarray(self.sun_dir, np.float64).tobytes(), lo.tobytes(), hi.tobytes(), self.shadow_size)
-        if key != self._cascades_made[0]:
-            self._cascades_made = (key, cascades(camera, self.sun_dir, (lo, hi), self.shadow_size, fog_density(camera.fog_reach)))
-        return self._cascades_made[1]
+        return self._light.cascades(camera, self.sun_dir, (lo, hi), self.shadow_size, fog_density(camera.fog_reach))
 
     def shadow_tiles(self, view: "FrameView"):
         """(cascade, light matrix) for each cascade, the shadow framebuffer's viewport on its tile."""

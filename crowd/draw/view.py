@@ -1,5 +1,6 @@
-"""The view a frame is drawn from: the camera-relative view-projection, its planes, and what
-``CrowdRenderer.prepare`` hands every later pass of the frame (``FrameView``)."""
+"""The view a frame is drawn from: the camera-relative view-projection, its planes, the sun's cascades
+kept while nothing they are made from moves (``CascadeCache``), and what ``CrowdRenderer.prepare`` hands
+every later pass of the frame (``FrameView``)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import numpy as np
 from pyglm import glm
 
 from ..frame import Camera
-from .shadows import Cascades
+from .shadows import Cascades, cascades
 
 
 def view_proj(camera: Camera) -> np.ndarray:
@@ -40,6 +41,30 @@ def frustum_planes(view_proj: np.ndarray) -> np.ndarray:
     m = np.asarray(view_proj, np.float64)
     planes = np.stack([m[3] + m[0], m[3] - m[0], m[3] + m[1], m[3] - m[1], m[3] + m[2], m[3] - m[2]])
     return planes / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+
+
+class CascadeCache:
+    """The sun's cascades (crowd.draw.shadows) and their frustum planes, made again only when the camera,
+    sun, crowd box, tile or fog changed: a still camera's frames share them (their float64 numpy is
+    small arrays, a third of a millisecond a frame in Python)."""
+
+    def __init__(self):
+        self._made = (None, None)  # (what the cascades were made from, them)
+        self._planes = (None, None)  # (the cascades, their planes)
+
+    def cascades(self, camera: Camera, sun_dir, box: tuple[np.ndarray, np.ndarray], tile: int, fog: float) -> Cascades:
+        key = (np.asarray(camera.eye, np.float64).tobytes(), np.asarray(camera.target, np.float64).tobytes(), camera.fov_y, camera.near,
+               camera.far, camera.aspect, np.asarray(sun_dir, np.float64).tobytes(), np.asarray(box[0], np.float64).tobytes(),
+               np.asarray(box[1], np.float64).tobytes(), int(tile), float(fog))
+        if key != self._made[0]:
+            self._made = (key, cascades(camera, sun_dir, box, tile, fog))
+        return self._made[1]
+
+    def planes(self, shadow: Cascades) -> np.ndarray:
+        """(cascades, 6, 4) frustum planes of `shadow`'s light matrices."""
+        if self._planes[0] is not shadow:
+            self._planes = (shadow, np.stack([frustum_planes(m) for m in shadow.view_proj]))
+        return self._planes[1]
 
 
 def gl_bytes(matrix: np.ndarray) -> bytes:

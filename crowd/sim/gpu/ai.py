@@ -368,8 +368,10 @@ class GpuCrowdAI(GLStage):
 
     # -- the player's blows
 
-    def _hit_pass(self, name: str, groups: int, **values) -> None:
-        self._bind()
+    def _hit_pass(self, name: str, groups: int, bind: bool = True, **values) -> None:
+        """One pass over the crowd's buffers; `bind` False: straight after another such pass (bound)."""
+        if bind:
+            self._bind()
         self._set(self._programs[name], u_n=self.n, **values)
         self._programs[name].run(max(groups, 1))
         self.ctx.memory_barrier(READ_BACK)
@@ -425,21 +427,21 @@ class GpuCrowdAI(GLStage):
         values = dict(u_point=tuple(float(v) for v in np.asarray(point, np.float64) - self.origin), u_reach=float(reach), u_search=search)
         groups = (self.n + GROUP - 1) // GROUP
         self._hit_pass("NEAREST_D", groups, **values)
-        self._hit_pass("NEAREST_I", groups, **values)
+        self._hit_pass("NEAREST_I", groups, bind=False, **values)
         return values
 
     def strike_nearest(self, point, reach: float) -> None:
         """Hit the nearest living agent within `reach` of a ground point (x, z), on the GPU (the numpy
         twin: ``hit([nearest_alive(point, reach)])``); which one, if any, comes back in the counters."""
         if self.n:
-            self._hit_pass("HIT_NEAREST", 1, **self._nearest(STRIKE, point, reach))
+            self._hit_pass("HIT_NEAREST", 1, bind=False, **self._nearest(STRIKE, point, reach))
 
     def look(self, point, reach: float) -> None:
         """Find the nearest living agent within `reach` of a ground point and note where it stands (the
         numpy twin: ``nearest_alive``): a survivor keeps the nearest threat in front; it comes back in
         the counters."""
         if self.n:
-            self._hit_pass("LOOK_AT", 1, **self._nearest(LOOK, point, reach))
+            self._hit_pass("LOOK_AT", 1, bind=False, **self._nearest(LOOK, point, reach))
 
     def pick(self, origin, direction, radius: float, height: float, serial: int) -> None:
         """Find the agent a ray (world origin, unit direction) enters first, through each agent's upright
@@ -454,7 +456,7 @@ class GpuCrowdAI(GLStage):
                       u_pick_height=float(height))
         groups = (self.n + GROUP - 1) // GROUP
         self._hit_pass("PICK_T", groups, **values)
-        self._hit_pass("PICK_I", groups, **values)
+        self._hit_pass("PICK_I", groups, bind=False, **values)
 
     def sweep(self, point, reach: float, front) -> None:
         """Hit every living agent within `reach` of a ground point on the side `front` faces (the numpy
