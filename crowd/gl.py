@@ -85,13 +85,14 @@ def has_uniform(program, name: str) -> bool:
     return program.get(name, None) is not None
 
 
-_CACHED = (int, float, bool, tuple)  # values compared by ==: a numpy array is written every time
+_CACHED = (int, float, bool, tuple, bytes)  # values compared by ==: a numpy array is written every time
 
 
 def set_uniforms(program, **values) -> None:
     """Write `program`'s uniforms `values`, leaving out those it lacks (compiled out) and those that hold
     the value last written through here: a frame's constants cost no GL call after their first frame.
-    A uniform set through here must be set only through here (the cache would not see another write)."""
+    A bytes value is the uniform's raw data (an array's). A uniform set through here must be set only
+    through here (the cache would not see another write)."""
     written = getattr(program, "_crowd_written", None)
     if written is None:
         written = program._crowd_written = {}
@@ -99,7 +100,10 @@ def set_uniforms(program, **values) -> None:
         if type(value) in _CACHED and name in written and type(written[name]) is type(value) and written[name] == value:
             continue
         if has_uniform(program, name):
-            program[name].value = value
+            if type(value) is bytes:
+                program[name].write(value)
+            else:
+                program[name].value = value
             written[name] = value
 
 

@@ -123,7 +123,7 @@ def test_the_running_crowd_s_feet_come_back_on_the_read_back_as_the_reference_pu
         monitor = p.foot_skate
         clips = [p.character.clip(c.name) for c in p.bake.clips]
         checked = 0
-        for agent, track in monitor._tracks.items():
+        for agent, track in monitor.tracks().items():
             frame, _, ground, world = track[-1]
             layers, positions, yaw, scale, palette = kept[frame]
             if palette is None:

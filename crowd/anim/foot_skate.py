@@ -117,12 +117,17 @@ class FootSkateMonitor:
         self._inverse_bind = skeleton.inverse_bind[self.feet]
         self.sample, self.window, self.min_walk_m = int(sample), int(window), float(min_walk_m)
         self._sent: dict[int, tuple] = {}  # frame -> (agents, ground (k, 2), yaw (k,), scale (k,), time)
-        self._tracks: dict[int, deque] = {}  # agent -> (frame, time, ground (2,), feet world (K, 3)), oldest first
+        # The last `window` frames read, each whole: (frame, time, agents (k,), ground (k, 2), feet world (k, K, 3)),
+        # oldest first; and where each sampled agent's stretch began. A frame is kept as its arrays, not
+        # split per agent: the windows are cut out of them only when the summary is asked for.
+        self._frames: deque = deque(maxlen=self.window)
+        self._since: dict[int, int] = {}
 
     def reset(self) -> None:
         """Forget every window (a new crowd: the same agent numbers are other agents now)."""
         self._sent.clear()
-        self._tracks.clear()
+        self._frames.clear()
+        self._since.clear()
 
     def entries(self, agents: int, steady) -> tuple[np.ndarray, np.ndarray]:
         """(agents, joints) to gather this frame: the sampled agents that are in steady locomotion
@@ -140,8 +145,8 @@ class FootSkateMonitor:
 
     def walking(self, agents: np.ndarray) -> None:
         """The sampled agents in steady locomotion now: the others' stretches end here."""
-        for a in set(self._tracks) - set(np.asarray(agents).tolist()):
-            del self._tracks[a]
+        for a in set(self._since) - set(np.asarray(agents).tolist()):
+            del self._since[a]
 
     def sent(self, frame: int, agents: np.ndarray, ground: np.ndarray, yaw: np.ndarray, scale: np.ndarray, time: float) -> None:
         """The transforms of the agents whose feet were gathered in `frame` (one entry per agent)."""
@@ -158,18 +163,28 @@ class FootSkateMonitor:
         k = len(self.feet)
         model = palette_joint_positions(np.asarray(rows).reshape(len(agents), k, 3, 4), self._inverse_bind)
         world = to_world(model, ground, yaw, scale[:, None])
-        for i, a in enumerate(agents.tolist()):
-            track = self._tracks.setdefault(a, deque(maxlen=self.window))
-            if track and track[-1][0] != frame - 1:
-                track.clear()  # a frame missing: the stretch starts again
-            track.append((frame, t, ground[i].copy(), world[i].copy()))  # copies: a view would keep the frame's whole array alive
+        # An agent continues its stretch only from the frame before (a frame missing: it starts again).
+        before = set(self._frames[-1][2].tolist()) if self._frames and self._frames[-1][0] == frame - 1 else set()
+        for a in agents.tolist():
+            if a not in before or a not in self._since:
+                self._since[a] = frame
+        self._frames.append((frame, t, np.asarray(agents), np.asarray(ground, np.float64), world))
+
+    def tracks(self) -> dict[int, list]:
+        """Each sampled agent's window: (frame, time, ground (2,), feet world (K, 3)), oldest first."""
+        out: dict[int, list] = {a: [] for a in self._since}
+        for frame, t, agents, ground, world in self._frames:
+            for i, a in enumerate(agents.tolist()):
+                if a in out and frame >= self._since[a]:
+                    out[a].append((frame, t, ground[i], world[i]))
+        return {a: track for a, track in out.items() if track}
 
     def summary(self) -> dict | None:
         """The crowd's foot skate over the sampled agents' windows that walked at least min_walk_m:
         mean and worst slide (cm per metre walked), and the share of contact steps over the speed
         threshold; None while no window has walked that far."""
         results = []
-        for track in self._tracks.values():
+        for track in self.tracks().values():
             if len(track) < 3:
                 continue
             t = np.array([e[1] for e in track])

@@ -56,7 +56,7 @@ import moderngl
 import numpy as np
 
 from ..frame import MAX_LAYERS, validate_masks
-from ..gl import GLStage, gpu_bytes, has_uniform, set_uniforms
+from ..gl import GLStage, gpu_bytes, set_uniforms
 from ..settings import SETTINGS
 from . import foot_lock as lock
 from .bake import AnimationBake
@@ -487,8 +487,7 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
                 part.held_written = part.held
             values["u_morph_held_agent"] = part.held_agent
         if part.legs is not None:
-            for name, data in part.leg_bytes.items():
-                prog[name].write(data)
+            values.update(part.leg_bytes)  # (characters of one skeleton share them: written once)
             part.lock_state.bind_to_storage_buffer(0)
             part.lock_motion.bind_to_storage_buffer(1)
             values.update(u_lock_decay=math.exp(-self._lock_dt / lock.RELEASE_S), u_step_advance=self._lock_dt / lock.STEP_S)
@@ -570,8 +569,7 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
         for i, plane in enumerate(self.planes):
             plane.use(first_unit + i)
         for prog in programs:
-            if has_uniform(prog, "u_palette_rows"):
-                prog["u_palette_rows"] = self.layer_rows
+            set_uniforms(prog, u_palette_rows=self.layer_rows)
 
     def gpu_bytes(self) -> dict[str, int]:
         return {group: gpu_bytes(objs) for group, objs in self._own.items()}

@@ -666,7 +666,7 @@ class CrowdRenderer(DrawnCounts, GLStage):
                 processor.bind_palette(0, prog)
                 if morph:
                     self.morph.bind(prog)
-                prog["u_view_proj"].write(gl_bytes(matrix))
+                set_uniforms(prog, u_view_proj=gl_bytes(matrix))
                 if layout == "" and self.merged:
                     self._render_merged("depth", True, k, morph)
                     continue
@@ -702,7 +702,7 @@ class CrowdRenderer(DrawnCounts, GLStage):
                     processor.bind_palette(0, prog)
                 if morph:
                     self.morph.bind(prog)
-                prog["u_view_proj"].write(gl_bytes(view.view_proj))
+                set_uniforms(prog, u_view_proj=gl_bytes(view.view_proj))
                 self.set_lighting(prog, view)
                 if layout == "" and self.merged:
                     self._render_merged("color", skinned, morph=morph)
@@ -759,7 +759,7 @@ class CrowdRenderer(DrawnCounts, GLStage):
         framebuffer.use()
         self.ctx.enable(moderngl.DEPTH_TEST)
         prog = self._program("ground", False)
-        prog["u_view_proj"].write(gl_bytes(view.view_proj))
+        set_uniforms(prog, u_view_proj=gl_bytes(view.view_proj))
         eye = np.asarray(view.camera.eye, np.float64)
         period = TILE if self.town else 1000.0  # (a whole number of metres: the 1 m grid stays where it is)
         prog["u_eye"] = (float(np.mod(eye[0], period)), float(eye[1]), float(np.mod(eye[2], period)))

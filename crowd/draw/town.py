@@ -270,7 +270,7 @@ class TownRenderer(GLStage):
         prog = self._programs["depth"]
         set_uniforms(prog, u_anchor_rel=self._anchor_rel)
         for k, matrix in renderer.shadow_tiles(view):
-            prog["u_view_proj"].write(gl_bytes(matrix))
+            set_uniforms(prog, u_view_proj=gl_bytes(matrix))
             for i, piece in enumerate(self._pieces):
                 if self.gpu_cull:
                     if piece["piece"].casts_shadow and self._gpu is not None and self._gpu["count"]:
@@ -285,7 +285,7 @@ class TownRenderer(GLStage):
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE)
         prog = self._programs["color"]
-        prog["u_view_proj"].write(gl_bytes(view.view_proj))
+        set_uniforms(prog, u_view_proj=gl_bytes(view.view_proj))
         set_uniforms(prog, u_anchor_rel=self._anchor_rel)
         renderer.set_lighting(prog, view)
         for i, piece in enumerate(self._pieces):

@@ -39,7 +39,7 @@ from __future__ import annotations
 import moderngl
 import numpy as np
 
-from ..gl import GLObjects, GLStage, has_uniform, load_shader
+from ..gl import GLObjects, GLStage, has_uniform, load_shader, set_uniforms
 from .feedback_cull import STREAMS, FeedbackCounter, TransformFeedbacks, capture, stream_groups, stream_varyings
 from .gpu_cull import BUFFER_UPDATE, COMMAND, COMMAND_DTYPE, GROUP_SIZE, VERTEX_ATTRIB_ARRAY, CountRing
 from ..asset.model import Character, RigidMesh, cast_weapons
@@ -544,7 +544,7 @@ class WeaponRenderer(GLStage):
         """Into each shadow cascade's tile (``renderer.shadow_tiles``), after the crowd's shadow pass."""
         prog = self._programs["depth"]
         for k, matrix in renderer.shadow_tiles(view):
-            prog["u_view_proj"].write(gl_bytes(matrix))
+            set_uniforms(prog, u_view_proj=gl_bytes(matrix))
             self._render_pass("depth", k)
 
     def color_pass(self, framebuffer, view, renderer) -> None:
@@ -552,7 +552,7 @@ class WeaponRenderer(GLStage):
         framebuffer.use()
         self.ctx.enable(moderngl.DEPTH_TEST)
         prog = self._programs["color"]
-        prog["u_view_proj"].write(gl_bytes(view.view_proj))
+        set_uniforms(prog, u_view_proj=gl_bytes(view.view_proj))
         renderer.set_lighting(prog, view)
         self._render_pass("color")
 
