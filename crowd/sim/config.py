@@ -26,6 +26,9 @@ class AIError(ValueError):
     """Bad AI input; the message is one line."""
 
 
+# A step up to this share longer than the substep takes one substep: a 60 Hz window's frames (16.7 ms give
+# or take the display's jitter) took one substep and then two by turns, twice the AI's work on every other frame.
+SUBSTEP_SLACK = 0.05
 _AI = {name: setting.default for name, setting in group("ai").items()}
 
 
@@ -66,6 +69,11 @@ class AIConfig:
     think_radius: float = _AI['think_radius']
     think_from: int = _AI['think_from']
     workers: int = _AI['workers']
+
+    def substeps_for(self, dt: float) -> int:
+        """Equal substeps a step of `dt` seconds (clamped to max_dt already) is made of: as few as keep each
+        at most `substep`, give or take SUBSTEP_SLACK of it (none for dt = 0)."""
+        return max(1, math.ceil(dt / self.substep - SUBSTEP_SLACK)) if dt > 0.0 else 0
 
     def alert(self, time: float) -> float:
         """Metres the notice and forget radii have grown `time` seconds into a round (alert_rate), at most

@@ -278,7 +278,7 @@ class GpuCrowdAI(GLStage):
         dt = min(float(dt), self.config.max_dt)
         if self.obstacles is not None:  # a player put in a building is chased to the street beside it (the numpy AI's rule)
             self.player = np.concatenate(self._cpu.keep_out(self.player[:1], self.player[1:]))
-        count = max(1, math.ceil(dt / self.config.substep - 1e-9)) if dt > 0.0 else 0
+        count = self.config.substeps_for(dt)
         for _ in range(count):
             self._substep(dt / count)
         self.steps += 1
