@@ -262,7 +262,7 @@ _ALL = (
             "auto: gpu where GL 4.3 exists, else feedback where GL 4.0 does, else cpu", label="cull path",
             choices=("auto", "gpu", "feedback", "cpu")),
     # the crowd's behaviour (crowd.sim.config.AIConfig)
-    _ai("substep", 1 / 60, "seconds, the longest simulation substep (a frame up to 5 % longer takes one)", low=0, open_low=True),
+    _ai("substep", 1 / 60, "seconds, the longest simulation substep (a frame up to 5 percent longer takes one)", low=0, open_low=True),
     _ai("max_dt", 0.25, "seconds: a longer frame is simulated as this long (the game slows, it does not explode)", low=0, high=10, open_low=True),
     _ai("notice_radius", 14.0, "metres at which a zombie notices the player", low=0, open_low=True),
     _ai("forget_radius", 24.0, "metres at which a chasing zombie gives up (at least notice_radius)", low=0, open_low=True),
