@@ -446,7 +446,7 @@ def bench_soak(args) -> int:
         print("no sample taken: the run ended before its warm-up did")
     else:
         print(f"after {result['warmup']} frames, {len(result['samples'])} samples: resident memory {rss['first']} MB to {rss['last']} MB "
-              f"(drift {100 * rss['drift']:+.2f} %; range {rss['min']} to {rss['max']} MB, spread {100 * rss['spread']:.2f} %; "
+              f"(drift {100 * rss['drift']:+.2f} %, growth {100 * rss['growth']:+.2f} %; range {rss['min']} to {rss['max']} MB, spread {100 * rss['spread']:.2f} %; "
               f"untrimmed drift {100 * result['rss_untrimmed_mb']['drift']:+.2f} %, spread {100 * result['rss_untrimmed_mb']['spread']:.2f} %); "
               f"GL objects {gl['first']:.0f} to {gl['last']:.0f} (drift {100 * gl['drift']:+.2f} %, spread {100 * gl['spread']:.2f} %)")
     print(f"faults {len(result['faults'])}")

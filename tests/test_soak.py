@@ -21,8 +21,10 @@ def test_a_short_soak_holds_memory_and_gl_objects_and_logs_no_fault(gl_context, 
     assert result["faults"] == []
     assert len(result["samples"]) == 17 and result["samples"][-1]["agents"] == 300 and result["rounds"] >= 3
     # A leak grows: memory may fall back past the warm-up (glibc handing freed frames back to the system:
-    # -3.6 % and -6.3 % in two runs once meshes merged and the cull's lists shrank) but may not rise.
-    assert result["rss_mb"]["drift"] <= 0.02, result["rss_mb"]
+    # -3.6 % and -6.3 % in two runs once meshes merged and the cull's lists shrank) but may not rise. The
+    # resident memory swings between two levels on llvmpipe (bench.soak says so), so the floor and ceiling
+    # of the samples are what may not rise, not their quartiles' medians (-5.9 % and +3.8 % on one tree).
+    assert result["rss_mb"]["growth"] <= 0.02, result["rss_mb"]
     assert result["gl_objects"]["spread"] <= 0.02, result["gl_objects"]
 
 
