@@ -67,8 +67,8 @@ from .processor_programs import GROUP_SIZE, MAX_JOINTS, CharacterPrograms, Proce
 from .processor_readback import ProcessorReadback
 
 LOCALS_UNITS = (12, 13, 14)  # the fragment path's scratch of blended locals, read by its compose pass
-# Each sampler's texture unit (those a program compiled out are left out when written).
 FAR_PLACES, FAR_LOOKS = 2, 3  # processor.comp.glsl's storage bindings of the GPU crowd's places and looks (0 and 1: the foot lock's)
+# Each sampler's texture unit (those a program compiled out are left out when written).
 TEXTURE_UNITS = {"u_anim": 0, "u_parents": 1, "u_clips": 2, "u_layers": 3, "u_anim_scale": 4, "u_masks": 5, "u_keys": 6, "u_tracks": 7,
                  "u_morph_tracks": 8, "u_morph_clips": 9, "u_morph_variation": 10, "u_morph_held": 11,
                  **dict(zip(("u_locals0", "u_locals1", "u_locals2"), LOCALS_UNITS))}
@@ -125,7 +125,8 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
         # The layers texture's own layout: agents side by side, LAYERS texels each, whatever their skeleton.
         self.layer_agents_per_row = MAX_TEXTURE_WIDTH // layer_count
         self.runs = 0  # runs since the palette was last (re)allocated: slots older than this hold nothing
-        self._far = None  # (places, eye, metres, rows) past which agents get their key alone (key_alone_beyond)
+        self._far = None  # (places, looks, eye, metres, rows, joint masks): past it agents get their key alone (key_alone_beyond)
+        self._far_masks = (None, [])  # (the kept joints, each character's mask of them and their ancestors)
         self.layer_rows = 1  # texture rows per layer of the planes
         self.slot_layers = 1  # layers one ring slot spans
         self.layers_texture = None
@@ -518,17 +519,20 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
         if places is None or self.path != "compute":
             self._far = None
             return
-        masks = []
-        for k, part in enumerate(self.parts):
-            bits = np.zeros(MAX_JOINTS, bool)
-            parents = part.bake.parents
-            for joint in (kept[k] if k < len(kept) and kept[k] is not None else ()):
-                j = int(joint)
-                while j >= 0 and not bits[j]:
-                    bits[j] = True
-                    j = int(parents[j])
-            masks.append(tuple(int(w) for w in np.packbits(bits, bitorder="little").view(np.uint32)))
-        self._far = (places, looks, tuple(float(v) for v in eye), float(beyond_m), int(rows), masks)
+        key = tuple(None if joints is None else tuple(int(j) for j in joints) for joints in kept)
+        if self._far_masks[0] != key:  # (the same every frame but for a new cast: made once)
+            masks = []
+            for k, part in enumerate(self.parts):
+                bits = np.zeros(MAX_JOINTS, bool)
+                parents = part.bake.parents
+                for joint in (key[k] if k < len(key) and key[k] is not None else ()):
+                    j = joint
+                    while j >= 0 and not bits[j]:
+                        bits[j] = True
+                        j = int(parents[j])
+                masks.append(tuple(int(w) for w in np.packbits(bits, bitorder="little").view(np.uint32)))
+            self._far_masks = (key, masks)
+        self._far = (places, looks, tuple(float(v) for v in eye), float(beyond_m), int(rows), self._far_masks[1])
 
     def process(self, layers, motion=None, dt: float = 0.0) -> bool:
         self.upload(layers, motion, dt)

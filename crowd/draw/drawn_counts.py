@@ -7,18 +7,21 @@ from __future__ import annotations
 import numpy as np
 
 
-class DrawnCounts:
-    """A base of CrowdRenderer: its ``last``, ``refresh_counts`` and ``listed`` (``_last``, ``_counts_due``,
-    the culls and the draws are the renderer's)."""
+class CountsWhenAsked:
+    """A stage's ``last`` (its ``_last``) where the GPU hands counts back a frame or two late: a frame sets
+    ``_counts_due`` and ``refresh_counts()`` reads them when ``last`` is read, not every frame."""
 
     @property
     def last(self) -> dict:
-        """What the last frame drew: triangles, instances, visible agents, draws, agents per LOD, shadow
-        instances, visible agents per character, impostors. On the GPU paths, the newest counts the GPU
-        has handed back (a frame or two old), read here rather than every frame."""
         if self._counts_due:
             self.refresh_counts()
         return self._last
+
+
+class DrawnCounts(CountsWhenAsked):
+    """A base of CrowdRenderer: its ``last`` (what the last frame drew: triangles, instances, visible agents,
+    draws, agents per LOD, shadow instances, visible agents per character, impostors), ``refresh_counts``
+    and ``listed`` (``_last``, ``_counts_due``, the culls and the draws are the renderer's)."""
 
     def refresh_counts(self, wait: bool = False) -> None:
         """``last`` on the GPU paths: the newest counts the GPU has handed back (a frame or two old; `wait`

@@ -49,7 +49,3 @@ class FarAgents:
             or beyond_m > self._beyond
         self._eye, self._beyond = eye.copy(), float(beyond_m)
         return cut
-
-    def forget(self) -> None:
-        """The next frame is a cut (a new crowd, another bake)."""
-        self._eye, self._beyond = None, math.inf

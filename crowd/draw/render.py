@@ -682,11 +682,8 @@ class CrowdRenderer(DrawnCounts, GLStage):
     def set_lighting(self, prog, view: "FrameView"):
         set_uniforms(prog, **{**LIGHTING, "u_fog_density": fog_density(view.camera.fog_reach)})
         if self.shadows and has_uniform(prog, "u_light_view_proj"):
-            if getattr(prog, "_crowd_cascades", None) is not view.shadow:  # (the cascades are made again only when they change)
-                prog["u_light_view_proj"].write(b"".join(gl_bytes(m) for m in view.shadow.view_proj))
-                prog["u_shadow_texel"].write(view.shadow.texel_m.tobytes())
-                prog["u_shadow_bias"].write(view.shadow.depth_bias.tobytes())
-                prog._crowd_cascades = view.shadow
+            set_uniforms(prog, u_light_view_proj=b"".join(gl_bytes(m) for m in view.shadow.view_proj),
+                         u_shadow_texel=view.shadow.texel_m.tobytes(), u_shadow_bias=view.shadow.depth_bias.tobytes())
             self.shadow_map.use(3)
 
     def color_pass(self, framebuffer, view: "FrameView", processor, skinned: bool = True) -> None:

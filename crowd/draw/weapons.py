@@ -40,6 +40,7 @@ import moderngl
 import numpy as np
 
 from ..gl import GLObjects, GLStage, has_uniform, load_shader, set_uniforms
+from .drawn_counts import CountsWhenAsked
 from .feedback_cull import STREAMS, FeedbackCounter, TransformFeedbacks, capture, stream_groups, stream_varyings
 from .gpu_cull import BUFFER_UPDATE, COMMAND, COMMAND_DTYPE, GROUP_SIZE, VERTEX_ATTRIB_ARRAY, CountRing
 from ..asset.model import Character, RigidMesh, cast_weapons
@@ -109,8 +110,9 @@ def pack_rigid(mesh: RigidMesh, to_socket: np.ndarray) -> np.ndarray:
     return v
 
 
-class WeaponRenderer(GLStage):
-    """Owns the weapon meshes, their instance buffers and programs."""
+class WeaponRenderer(CountsWhenAsked, GLStage):
+    """Owns the weapon meshes, their instance buffers and programs. ``last``: the last frame's weapons placed
+    in hand, dropped, drawn, draws and triangles (on the GPU paths the last three as the GPU hands them back)."""
 
     def __init__(self, ctx: moderngl.Context, characters, shadows: bool, gpu_cull: bool = False, feedback_cull: bool = False):
         """`characters`: one Character, or the cast's; every prop of every character that has a socket is
@@ -476,14 +478,6 @@ class WeaponRenderer(GLStage):
             mesh["shadow_counts"] = [mesh["count"]] * CASCADES
         self._counts_due = True
         return k
-
-    @property
-    def last(self) -> dict:
-        """The last frame's weapons: placed in hand, dropped, drawn, draws, triangles (on the GPU paths the
-        last three from the newest counts the GPU has handed back, read here rather than every frame)."""
-        if self._counts_due:
-            self.refresh_counts()
-        return self._last
 
     def placed_any(self) -> bool:
         """Whether the last frame placed a weapon, in hand or on the ground (its colour pass has work)."""
