@@ -22,8 +22,13 @@ uniform sampler2D u_clips;       // clip table (C, 1): first row, frame count, f
 #ifdef HAS_MASKS
 uniform sampler2D u_masks;       // (J, M): per-joint weight factor of mask m
 #endif
+#ifdef LAYERS_BUFFER
+// The compute path reads the layers where the AI (or the upload) wrote them: no copy into a texture.
+layout(std430, binding = LAYERS_BUFFER) readonly buffer LayersIn { vec4 layers_in[]; };  // agent * LAYERS + layer: clip, phase, weight, mask
+#else
 uniform sampler2D u_layers;      // (LAYERS * u_layer_agents_per_row, rows): clip, phase, weight, mask per layer
 uniform int u_layer_agents_per_row;  // agents side by side in a row of u_layers
+#endif
 uniform int u_joints;            // this character's joints
 uniform int u_agents;            // this character's agents, u_first_agent on (a dispatch or draw per character)
 uniform int u_first_agent;
@@ -323,11 +328,17 @@ float power_of_two_below(float s) {
 // times S, the sum of every layer's max(weight, 0), takes the rest pose.
 // An agent's layers (clip, phase, weight, mask) and S, the sum of their max(weight, 0).
 float agent_layers(int agent, out vec4 layer[LAYERS]) {
+#ifndef LAYERS_BUFFER
     int base_x = (agent % u_layer_agents_per_row) * LAYERS;
     int y = agent / u_layer_agents_per_row;
+#endif
     float layer_sum = 0.0;
     for (int l = 0; l < LAYERS; ++l) {
+#ifdef LAYERS_BUFFER
+        layer[l] = layers_in[agent * LAYERS + l];
+#else
         layer[l] = texelFetch(u_layers, ivec2(base_x + l, y), 0);
+#endif
         layer_sum += max(layer[l].z, 0.0);
     }
     return layer_sum;

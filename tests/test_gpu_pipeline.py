@@ -70,12 +70,7 @@ def test_overrides_play_on_the_gpu_as_on_the_cpu(ctx):
         for path in ("cpu", "gpu"):
             with Offscreen(ctx, SIZE) as target, CrowdPipeline(ctx, PipelineConfig(agents=50, seed=1, ai_path=path, **UNARMED)) as p:
                 p.frame(target.framebuffer, 1 / 30, overrides)
-                layers[path] = p.processor.read_layers() if hasattr(p.processor, "read_layers") else None
-                if layers[path] is None:
-                    texture = p.processor.layers_texture
-                    per_row = p.processor.layer_agents_per_row
-                    data = np.frombuffer(texture.read(), np.float32).reshape(texture.height, per_row, 4, 4)
-                    layers[path] = data.reshape(-1, 4, 4)[:50]
+                layers[path] = p.processor.read_layers()[:50]
         assert np.abs(layers["cpu"] - layers["gpu"]).max() < 1e-3
 
 

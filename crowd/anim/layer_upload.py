@@ -1,5 +1,6 @@
-"""Each frame's input to the processor: the agents' layers, validated, written into the layers texture
-(whole rows through its pixel-unpack buffer), and the foot lock's motion and frame time."""
+"""Each frame's input to the processor: the agents' layers, validated, written where the processor reads
+them (the compute path's buffer; the fragment path's texture, whole rows through its pixel-unpack buffer),
+and the foot lock's motion and frame time."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from .processor_inputs import ProcessorError, check_motion
 
 
 class LayerUpload:
-    """AnimationProcessor's upload into the layers texture and the foot-lock buffers it owns."""
+    """AnimationProcessor's upload into the layers it reads and the foot-lock buffers it owns."""
 
     def upload(self, layers, motion=None, dt: float = 0.0) -> None:
         """Validate and upload this frame's layers (N, L, 4), or a sequence of blocks of consecutive
@@ -56,10 +57,29 @@ class LayerUpload:
                     part_motion = m[block.first_agent:block.first_agent + block.count]
                     p.lock_motion.orphan(part_motion.nbytes)
                     p.lock_motion.write(part_motion)
+        if self.path == "compute" and self.agents:
+            buffer = self._layers_source = self._own_layers()
+            buffer.orphan(buffer.size)  # fresh storage: the run still queued from the last frame reads its own
         first = 0
         for block in blocks:
             self._write_layers(block, first)
             first += len(block)
+
+    def _own_layers(self):
+        """The compute path's own layer buffer (zeros: weight 0, the rest pose), made at its first use."""
+        if self._layer_buffer is None:
+            self._layer_buffer = self.ctx.buffer(bytes(max(self._layer_rows * self.layer_agents_per_row * self.layer_count * 16, 16)))
+            self._own["layers"].append(self._layer_buffer)
+        return self._layer_buffer
+
+    def read_layers(self) -> np.ndarray:
+        """The (agents, LAYERS, 4) layers the next run reads (synchronous: tests)."""
+        if self.path == "compute":
+            source = self._layers_source if self._layers_source is not None else self._own_layers()
+            data = np.frombuffer(source.read(size=self.agents * self.layer_count * 16), np.float32)
+        else:
+            data = np.frombuffer(self.layers_texture.read(), np.float32)
+        return data[:self.agents * self.layer_count * 4].reshape(self.agents, self.layer_count, 4).copy()
 
     def layer_bytes(self) -> int:
         """Bytes of the layers of every agent row padded to whole rows of the layers texture: the size of a
@@ -77,8 +97,9 @@ class LayerUpload:
 
     def upload_from(self, layers, dt: float = 0.0) -> None:
         """This frame's layers from a GPU buffer the GPU wrote (a crowd on the GPU: crowd.frame's layers,
-        agent after agent, padded to whole texture rows, ``layer_bytes``), copied into the layers texture
-        on the GPU; the foot lock's motion is in its buffers already (``lock_motion_targets``), and `dt` is
+        agent after agent, padded to whole texture rows, ``layer_bytes``): the compute path's next run reads
+        it where it lies (it must live until then), the fragment path copies it into its texture on the
+        GPU. The foot lock's motion is in its buffers already (``lock_motion_targets``), and `dt` is
         the frame's simulated seconds. Nothing is checked per agent: the GPU AI writes each character's
         clips from its own bake."""
         need = self.layer_bytes()
@@ -88,7 +109,9 @@ class LayerUpload:
             if not (isinstance(dt, (int, float, np.floating)) and math.isfinite(dt) and dt >= 0):
                 raise ProcessorError(f"the foot lock needs a frame time >= 0 seconds, got {dt!r}")
             self._lock_dt = float(dt)
-        if self.agents:
+        if self.path == "compute":
+            self._layers_source = layers  # read where it lies: no copy
+        elif self.agents:
             self.layers_texture.write(layers, viewport=(0, 0, self.layer_agents_per_row * self.layer_count, self.layers_texture.height))
 
     def _write_layers(self, a: np.ndarray, first: int) -> None:
@@ -96,6 +119,10 @@ class LayerUpload:
         texture rows straight from the array (no padded copy), then a partial last row."""
         per_row, n = self.layer_agents_per_row, len(a)
         k = self.layer_count
+        if self.path == "compute":
+            if n:
+                self._layer_buffer.write(np.ascontiguousarray(a), offset=first * k * 16)
+            return
         done = 0
         head = min((-first) % per_row, n)
         if head:

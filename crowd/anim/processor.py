@@ -63,7 +63,7 @@ from .bake import AnimationBake
 from .layer_upload import LayerUpload
 from .palette_layout import MAX_PALETTE_ROWS, MAX_TEXTURE_WIDTH, PaletteLayout, palette_limits
 from .processor_inputs import DEFAULT_INTERPOLATION, ProcessorError, check_history, check_interpolation, resolve_path
-from .processor_programs import GROUP_SIZE, MAX_JOINTS, CharacterPrograms, ProcessorPart
+from .processor_programs import GROUP_SIZE, LAYERS_IN, MAX_JOINTS, CharacterPrograms, ProcessorPart
 from .processor_readback import ProcessorReadback
 
 LOCALS_UNITS = (12, 13, 14)  # the fragment path's scratch of blended locals, read by its compose pass
@@ -129,8 +129,11 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
         self._far_masks = (None, [])  # (the kept joints, each character's mask of them and their ancestors)
         self.layer_rows = 1  # texture rows per layer of the planes
         self.slot_layers = 1  # layers one ring slot spans
-        self.layers_texture = None
+        self.layers_texture = None  # (the fragment path's; the compute path reads a buffer)
         self._layer_unpack = None  # (the layer rows' pixel-unpack buffer, made with the texture)
+        self._layer_rows = 0  # rows of layers the storage holds (LAYERS * layer_agents_per_row texels a row)
+        self._layer_buffer = None  # the compute path's own layers, made at its first upload from the CPU
+        self._layers_source = None  # the buffer the compute path's next run reads: its own, or upload_from's
         self._locals, self._locals_framebuffer = (), None  # (the fragment path's scratch of blended locals)
         self.planes: tuple = ()
         self._framebuffer = None
@@ -226,7 +229,7 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
             new = self._layout(counts)
             if new.rows == old.rows and self.planes and new.agents and all(a.first_row == b.first_row for a, b in zip(old.parts, new.parts)):
                 self.layout, self.agents = new, new.agents  # the same texture rows: the agents kept keep their palette history
-                if self.layers_texture.height != math.ceil(new.agents / self.layer_agents_per_row):
+                if self._layer_rows != math.ceil(new.agents / self.layer_agents_per_row):
                     self._make_layers(new.agents)  # (the layers' own rows may still differ: 2,048 agents a row)
                 self._update_quads()
                 return
@@ -287,8 +290,8 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
         if agents == 0:
             return  # no agents: no palette, no layer texture, no pass
         layer_rows_needed = math.ceil(agents / self.layer_agents_per_row)
-        # (the layer texture and its pixel-unpack buffer, the same size)
-        need = 3 * width * layer_rows * layers * 16 + 2 * self.layer_agents_per_row * self.layer_count * layer_rows_needed * 16
+        # (the fragment path's layer texture and its pixel-unpack buffer, the same size; the compute path's buffer)
+        need = 3 * width * layer_rows * layers * 16 + (2 if self.path == "fragment" else 1) * self.layer_agents_per_row * self.layer_count * layer_rows_needed * 16
         if self.path == "fragment":
             need += 3 * width * layer_rows * slot_layers * 16  # (the locals pass's scratch)
         self.ctx.error  # clear an earlier error, so the check below sees these allocations'
@@ -364,14 +367,16 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
             whole.release()
 
     def _make_layers(self, agents: int) -> None:
-        """The layer texture for `agents` agents (weight 0, the rest pose, until an upload) and its
-        pixel-unpack buffer, in place of the ones before. The layers' whole rows go through that buffer:
-        a buffer write ran at about 14 GB/s on the H200 host where a texture write from the array ran at
-        2.6 (docs/BENCHMARKS.md, "The CPU side of the frame"), and the texture copy then runs on the GPU,
-        in order after the last frame's pass."""
+        """The layers' storage for `agents` agents (weight 0, the rest pose, until an upload), in place of
+        the one before. The compute path reads a buffer, made at its first upload from the CPU (a crowd
+        on the GPU hands its own, ``upload_from``). The fragment path reads a texture, whose whole rows
+        go through a pixel-unpack buffer: a buffer write ran at about 14 GB/s on the H200 host where a
+        texture write from the array ran at 2.6 (docs/BENCHMARKS.md, "The CPU side of the frame")."""
         self._release_group("layers")
-        self.layers_texture = self._layer_unpack = None
-        rows = math.ceil(agents / self.layer_agents_per_row)
+        self.layers_texture = self._layer_unpack = self._layer_buffer = self._layers_source = None
+        rows = self._layer_rows = math.ceil(agents / self.layer_agents_per_row)
+        if self.path == "compute":
+            return
         zeros = np.zeros((rows, self.layer_agents_per_row * self.layer_count, 4), np.float32)
         self.layers_texture = self._texture("layers", (self.layer_agents_per_row * self.layer_count, rows), 4, zeros, "f4")
         self._layer_unpack = self.ctx.buffer(reserve=zeros.nbytes)
@@ -383,7 +388,8 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
         self._release_group("layers")
         self._release_group("locals")
         self.planes, self.layers_texture, self._framebuffer = (), None, None
-        self._layer_unpack = None
+        self._layer_unpack = self._layer_buffer = self._layers_source = None
+        self._layer_rows = 0
         self._locals, self._locals_framebuffer = (), None
 
     def _array(self, group, size):
@@ -435,15 +441,16 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
         False when nothing ran."""
         if self.agents == 0:
             return False
-        self.layers_texture.use(3)
         slot = self.runs % self.history  # the ring slot this run writes
         if self.path == "compute":
+            (self._layers_source if self._layers_source is not None else self._own_layers()).bind_to_storage_buffer(LAYERS_IN)
             for unit, plane in enumerate(self.planes):
                 plane.bind_to_image(unit, read=False, write=True)
             for part, block in zip(self.parts, self.layout.parts):
                 if block.count:
                     self._draw_part(part, block, slot, part.program)
         else:
+            self.layers_texture.use(3)
             self.ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND | moderngl.CULL_FACE)
             # First every joint's blended local into the scratch, then the chains composed into the slot.
             self._locals_framebuffer.viewport = (0, 0, self.layout.width, self.layer_rows)
@@ -583,6 +590,7 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
             self._release_group(group)
         self.planes, self.layers_texture, self._framebuffer = (), None, None
         self._layer_unpack, self._locals, self._locals_framebuffer = None, (), None
+        self._layer_buffer = self._layers_source = None
         for part in self.parts:
             part.lock_state = part.lock_motion = part.quad = part.quad_vao = part.locals_vao = None
         for program in self._programs.values():

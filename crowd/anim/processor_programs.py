@@ -15,6 +15,8 @@ from .palette_reference import SLERP_FIT
 from .processor_inputs import ProcessorError
 from .reference import CANCELLED_NORM, REST_THRESHOLD
 
+LAYERS_IN = 4  # processor.comp.glsl's storage binding of the layers it reads (0 to 3: the foot lock's, the far agents')
+
 MAX_JOINTS = 256  # one compute work group of 256 invocations holds at least one whole agent
 GROUP_SIZE = 256
 
@@ -101,7 +103,7 @@ class CharacterPrograms:
             defines["SLERP_FIT_A"] = "vec3({:.12f}, {:.12f}, {:.12f})".format(*SLERP_FIT[:3])
             defines["SLERP_FIT_B"] = "vec3({:.12f}, {:.12f}, {:.12f})".format(*SLERP_FIT[3:])
         if self.path == "compute":
-            source = load_shader("processor.comp.glsl", defines)
+            source = load_shader("processor.comp.glsl", {**defines, "LAYERS_BUFFER": LAYERS_IN})
             if source not in self._programs:
                 self._programs[source] = self.ctx.compute_shader(source)
         else:
