@@ -295,7 +295,9 @@ def _replay_gpu_passes(ctx, pipeline, framebuffer, count: int) -> dict:
     """The last frame's shadow, draw and weapons passes replayed `count` times back to back (the same
     lists and commands), each timed with a timer query: their GPU time with the GPU kept busy. In the
     frame the GPU idles while the CPU runs the AI, and the H200 then sits at lower clocks: the same draw
-    read 10.8 to 20.8 ms at 100,000 agents from one run to the next (docs/BENCHMARKS.md)."""
+    read 10.8 to 20.8 ms at 100,000 agents from one run to the next (docs/BENCHMARKS.md). The splat of the
+    smallest impostors (crowd.draw.splat) is not replayed: it sorts the lists it reads, so the replayed
+    draw is its quads alone; the splat's time is the frame's."""
     from crowd.timing import PassTimer
 
     view, renderer, weapons = pipeline.last.view, pipeline.renderer, pipeline.weapons

@@ -452,7 +452,8 @@ class CrowdPipeline(LiveSettings, GLStage):
             if self.player_script is not None:
                 self.player_script.update(crowd, survivor)
             landed = move_survivor(self.ai, survivor, dt, self.obstacles) if survivor is not None else False
-            crowd.step(dt)
+            with t.gpu("step"):  # the AI's compute passes (its CPU share is in "ai")
+                crowd.step(dt)
             if survivor is not None:
                 self._blows_seen = crowd.settle(survivor, landed, self._blows_seen)
                 if survivor.down:
@@ -474,7 +475,8 @@ class CrowdPipeline(LiveSettings, GLStage):
                     motion = np.array([[*(survivor.position - self._survivor_ground), *survivor.heading]], np.float32)
                     self._survivor_ground = survivor.position.copy()
             clip, within = (self._forced_clip(overrides), self._block(overrides)) if overrides else ((1.0, 1.0, True), None)
-            crowd.upload(self.processor, layers, motion, overrides, self.ai.time, clip, within, stepped)
+            with t.gpu("layers"):  # every agent's layers written and copied into the processor's input
+                crowd.upload(self.processor, layers, motion, overrides, self.ai.time, clip, within, stepped)
         extra = None
         if survivor is not None:
             extra = Instances(np.array([[survivor.position[0], 0.0, survivor.position[1]]]), np.array([survivor.yaw], np.float32),
@@ -604,6 +606,10 @@ class CrowdPipeline(LiveSettings, GLStage):
                     self.town.depth_pass(view, self.renderer)
             self._run("shadow")
         if self.renderer.draws_anything(rows):
+            if self.renderer.splat is not None:
+                with t.gpu("splat"):  # the smallest impostors, before the quads (crowd.draw.splat)
+                    self.renderer.splat_pass(framebuffer, view, self.processor)
+                self._run("splat")
             with t.gpu("draw"):
                 self.renderer.color_pass(framebuffer, view, self.processor)
             self._run("draw")

@@ -142,10 +142,16 @@ void emit(int list, int p, int part, uint entry) {
     g_emits += 1;
 }
 
+uniform int u_held_group;   // the group of the weapons impostors hold (crowd.draw.impostors.HELD_GROUP); -1: none
+uniform float u_held_px;   // in the view, an impostor whose bound spans fewer pixels holds none (crowd.draw.splat.HELD_PX; 0: always)
+uniform float u_focal_px;  // the view's pixels a metre spans at a metre's depth
+
 // Pass p's entries of agent i: on each side of a fade (only the coarser outside one), its common pieces'
 // list and one list per group it has, the one of its choice there.
 void add_entries(uint i, Record r, Character ch, Pick pick, int p, int part) {
     if (!pick.inside) return;
+    float scale = r.position_scale.w;
+    bool unarmed = p == 0 && pick.held && 2.0 * ch.bound.w * scale * u_focal_px < u_held_px * length(r.position_scale.xyz + ch.bound.xyz * scale);
     for (int side = pick.fading ? 0 : 1; side < 2; ++side) {
         int row = ch.table + (side == 0 ? pick.finer : pick.lod) * ch.columns;
         uint entry = i | ((pick.fading ? (uint(side) << 7) | pick.through : 255u) << 24);
@@ -155,7 +161,7 @@ void add_entries(uint i, Record r, Character ch, Pick pick, int p, int part) {
             if (column >= 0) {
                 int bits = tables[u_choice_table + 2 * g + 1];
                 uint mask = bits >= 32 ? 0xFFFFFFFFu : (1u << uint(bits)) - 1u;
-                uint choice = (r.fields.w >> uint(tables[u_choice_table + 2 * g])) & mask;
+                uint choice = g == u_held_group && unarmed ? 0u : (r.fields.w >> uint(tables[u_choice_table + 2 * g])) & mask;  // (0: none)
                 emit(tables[row + column + int(choice)], p, part, entry);
             }
         }

@@ -7,10 +7,7 @@
 // and normal as skin.frag.glsl lights a mesh (the same sun, sky, shadows and fog, the agent's tint), and
 // writes the depth the atlas holds, so impostors and meshes intersect; the shadow pass (DEPTH_ONLY) keeps
 // the coverage only.
-uniform sampler2DArray u_atlas_albedo;        // RGBA8: albedo, coverage
-uniform sampler2DArray u_atlas_normal_depth;  // RGBA8: octahedral normal, depth (16 bits in two channels)
-uniform int u_columns;  // cells across a layer: views x elevations
-uniform int u_rows;     // frames a layer holds
+#include "impostor_sample.glsl"
 flat in ivec4 v_cells;
 flat in vec2 v_blend;
 in vec2 v_corner;
@@ -32,14 +29,6 @@ layout(depth_greater) out float gl_FragDepth;  // the quad lies nearer than the 
 #endif
 #endif
 
-vec3 cell_coord(int cell) {
-    int frame = cell / u_columns;
-    int column = cell - frame * u_columns;
-    int layer = frame / u_rows;
-    int row = frame - layer * u_rows;
-    return vec3((vec2(float(column), float(row)) + v_corner) / vec2(float(u_columns), float(u_rows)), float(layer));
-}
-
 // The bake cleared every texel no triangle covers to 0, so a filtered texel is already weighted by its
 // coverage (the depth's two channels decode linearly): sums over the cells, divided by the coverage.
 void main() {
@@ -54,12 +43,12 @@ void main() {
 #endif
     for (int k = 0; k < 4; ++k) {
         if (w[k] <= 0.0) continue;
-        vec3 at = cell_coord(v_cells[k]);
-        albedo += w[k] * texture(u_atlas_albedo, at);
+        vec3 at = cell_coord(v_cells[k], v_corner);
+        albedo += w[k] * textureLod(u_atlas_albedo, at, 0.0);
 #ifndef DEPTH_ONLY
-        vec4 nd = texture(u_atlas_normal_depth, at);
+        vec4 nd = textureLod(u_atlas_normal_depth, at, 0.0);
         oct += w[k] * nd.xy;
-        depth += w[k] * (nd.z * (255.0 * 256.0) + nd.w * 255.0) / 65535.0;
+        depth += w[k] * atlas_depth(nd);
 #endif
     }
     if (albedo.a < 0.5) discard;

@@ -272,13 +272,14 @@ class GpuCull(GLStage):
             self.ring.zero()
 
     def run(self, planes: np.ndarray, culling: bool = True, shadow_planes=None, reach=None, occlusion=None,
-            palette=None) -> None:
+            palette=None, held=(-1, 0.0, 0.0)) -> None:
         """Cull the agents into every pass's lists and commands: the view (`planes` (6, 4)) and
         each cascade (`shadow_planes` (cascades, 6, 4), `reach` (cascades,) metres from the eye past which an
         agent casts nothing there). `occlusion`: (the previous frame's DepthPyramid, this frame's eye) to test
         the view's agents against too. `palette`: the processor whose newest palette the draws read
         (bind_palette), so agents moving no morph target go to the plain twins (None: every agent of a morph
-        piece to its morph draw)."""
+        piece to its morph draw). `held`: (the group of the weapons impostors hold or -1, the view's pixels a
+        metre spans at a metre's depth, and the pixels an impostor's bound must span in the view to hold one)."""
         n = self.agents
         if n == 0:
             return
@@ -305,7 +306,8 @@ class GpuCull(GLStage):
         if routing:
             palette.bind_palette(ROUTE_UNIT, p)
         values = {"u_agents": n, "u_lists": self.lists, "u_draws": self.draw_count, "u_draw_table": self._draw_table,
-                  "u_choice_table": self._choice_table, "u_stats": self.stats, "u_write_visible": int(self.visible is not None)}
+                  "u_choice_table": self._choice_table, "u_stats": self.stats, "u_write_visible": int(self.visible is not None),
+                  "u_held_group": int(held[0]), "u_focal_px": float(held[1]), "u_held_px": float(held[2]) if held[1] > 0.0 else 0.0}
         for name, value in values.items():
             if name in self._names:  # (the compiler drops what a cast does not use: the choices of a cast without groups)
                 p[name] = value

@@ -42,7 +42,7 @@ import numpy as np
 from ..anim.bake import AnimationBake
 from ..asset.model import Character
 from ..cache import CacheError, checksum, read_arrays, write_arrays
-from ..gl import GLObjects, GLStage, has_uniform
+from ..gl import GLObjects, GLStage, set_uniforms
 
 FORMAT = 2  # the cache files' layout; a change makes every older file a miss (2: crowd.cache's checksum over every array)
 MAX_ELEVATIONS = 4  # impostor.vert.glsl's u_elevation
@@ -339,13 +339,9 @@ class ImpostorTextures(GLStage):
                   "u_cell_bounds": self.BOUNDS_UNIT,
                   "u_key_offset": int(key_offset), "u_views": int(s.views), "u_elevations": len(s.elevations), "u_columns": s.columns,
                   "u_rows": int(self.atlas.rows), "u_blend_px": BLEND_PX}
-        for name, value in values.items():
-            if has_uniform(prog, name):
-                prog[name] = value
-        if has_uniform(prog, "u_elevation"):
-            e = np.zeros(MAX_ELEVATIONS, np.float32)
-            e[: len(s.elevations)] = np.radians(s.elevations)
-            prog["u_elevation"].write(e.tobytes())
+        e = np.zeros(MAX_ELEVATIONS, np.float32)
+        e[: len(s.elevations)] = np.radians(s.elevations)
+        set_uniforms(prog, **values, u_elevation=e.tobytes())  # (written where they changed: two characters share a program)
 
     def gpu_bytes(self) -> int:
         return self._objects.gpu_bytes()

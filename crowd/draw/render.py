@@ -39,7 +39,7 @@ from ..asset.model import Character
 from ..asset.town import TILE
 from ..asset.vertex_cache import best_triangle_order
 from ..frame import Camera, Instances, SimFrame
-from ..gl import GLStage, gpu_bytes, has_compute, has_uniform, load_shader, set_uniforms
+from ..gl import GLStage, gpu_bytes, has_compute, has_uniform, set_uniforms
 from ..lighting import FOG_COLOR, LIGHTING, SUN_DIR, fog_density
 from ..settings import DEFAULTS, SETTINGS
 from .cpu_cull import CpuCull
@@ -47,13 +47,15 @@ from .cull_lists import ALL, MOVING, STILL, DrawSpec, ListError, ListPlan
 from .feedback_cull import FeedbackCull, FeedbackCullError
 from .gpu_records import GpuRecordPass
 from .gpu_cull import CullCharacter, GpuCull, GpuCullError
-from .impostors import HELD_GROUP, HELD_NONE, ImpostorTextures, held_pieces
-from .materials import TEXTURE_UNIT, MaterialTextures
+from .impostors import BLEND_PX, HELD_GROUP, HELD_NONE, ImpostorTextures, held_pieces
+from .materials import MaterialTextures
 from .morph import MorphDeltas
 from .occlusion import DepthPyramid
 from .packing import LAYOUTS, pack_vertices, read_by, shared_buffers, uv_box, uv_layout
-from .records import AgentRecords, RecordError, RecordPacker, use_records_unit
+from .records import AgentRecords, RecordError, RecordPacker
 from .shadows import CASCADES, Cascades
+from .splat import HELD_PX, SPLAT_PX, ImpostorSplat
+from .draw_programs import draw_program, lighting_defines
 from .drawn_counts import DrawnCounts
 from .view import CascadeCache, FrameView, frustum_planes, gl_bytes, view_proj
 
@@ -98,7 +100,8 @@ class CrowdRenderer(DrawnCounts, GLStage):
     def __init__(self, ctx: moderngl.Context, characters, pieces: tuple[str, ...] | None = None, lod_distances=DEFAULT_LOD_DISTANCES,
                  shadows: bool = True, shadow_size: int = 2048, culling: bool = True, cull_path: str = "cpu",
                  weapons_visibility: bool = False, occlusion: bool = False, town: bool = False, morphs=None, morph_buffers: bool | None = None,
-                 impostors=None, impostor_distance: float = math.inf, lod_fade: float = 0.0, lod_error_px: float = DEFAULTS["lod_error_px"]):
+                 impostors=None, impostor_distance: float = math.inf, lod_fade: float = 0.0, lod_error_px: float = DEFAULTS["lod_error_px"],
+                 splat_px: float | None = None):
         """`characters`: one Character, or the cast's, in its order (its agents come in that order,
         crowd.frame). `cull_path`: "cpu", "gpu" (a GL 4.3 context) or "feedback" (GL 4.0; see the module docstring); with
         `weapons_visibility` the GPU culls also write each agent's visibility, for the weapons; with
@@ -110,10 +113,14 @@ class CrowdRenderer(DrawnCounts, GLStage):
         impostor from `impostor_distance` metres on (its last LOD; its processor row starts with its key).
         `lod_fade`: metres past each LOD switch (the impostor's too) over which an agent is drawn at both
         LODs, cross-faded by a dither (shaders/lod_fade.glsl); 0, none. `lod_error_px`: a character with
-        generated LODs (its own `lod_distances`, each where its error is one pixel) switches where the error covers this many."""
+        generated LODs (its own `lod_distances`, each where its error is one pixel) switches where the error covers this many.
+        `splat_px`: on the gpu cull path, impostors shorter than this many pixels are drawn by compute passes
+        instead of quads (crowd.draw.splat; 0: never; None: SPLAT_PX)."""
         self._objects: dict[str, list] = {"meshes": [], "records": [], "programs": [], "shadow_map": [], "ground": [], "textures": [], "cull": [],
-                                          "occlusion": [], "morphs": [], "impostors": []}
+                                          "occlusion": [], "morphs": [], "impostors": [], "splat": []}
         self.pyramid: DepthPyramid | None = None
+        self.splat: ImpostorSplat | None = None
+        self._view_height = 0  # the last colour pass's viewport height, pixels (0: none yet)
         self._programs: dict[tuple, moderngl.Program] = {}
         self.draws: list[_Draw] = []
         self.materials: MaterialTextures | None = None
@@ -182,6 +189,12 @@ class CrowdRenderer(DrawnCounts, GLStage):
             self.bounds[k, :3] = (lo + hi) / 2.0
             self.bounds[k, 3] = float(np.linalg.norm(hi - lo) * 0.5 * 1.3)
         self._build_cull(weapons_visibility)
+        splat_px = SPLAT_PX if splat_px is None else splat_px
+        if not 0.0 <= float(splat_px) <= BLEND_PX:  # (the splat shows the nearest cell, as quads do below BLEND_PX)
+            raise RenderError(f"the splat height must be 0 to {BLEND_PX:g} pixels, got {splat_px}")
+        self.splat_px = float(splat_px)
+        if self.splat_px > 0.0 and self.gpu is not None and any(d.layout == "impostor" for d in self.draws):
+            self.splat = self._own("splat", ImpostorSplat(ctx, lighting_defines(self.shadows)))
         self.shadow_size = int(shadow_size)
         self.shadow_map = None
         self._shadow_fbo = None
@@ -332,54 +345,8 @@ class CrowdRenderer(DrawnCounts, GLStage):
         key = (kind, skinned, layout, morph)
         if key in self._programs:
             return self._programs[key]
-        defines = {}
-        if self.shadows:
-            defines.update(SHADOWS=1, CASCADES=CASCADES)
-        if self.lod_fade > 0.0 and kind == "color":
-            defines["LOD_FADE"] = 1
-        if kind == "ground":
-            if self.town:
-                defines["TOWN"] = 1
-            prog = self.ctx.program(vertex_shader=load_shader("ground.vert.glsl"), fragment_shader=load_shader("ground.frag.glsl", defines))
-            if self.town:
-                from ..asset.town import SIDEWALK, STREET
-
-                prog["u_tile"], prog["u_street"], prog["u_sidewalk"] = TILE, STREET, SIDEWALK
-        elif layout == "impostor":
-            vdefs = {"DEPTH_ONLY": 1} if kind == "depth" else {}
-            prog = self.ctx.program(vertex_shader=load_shader("impostor.vert.glsl", vdefs),
-                                    fragment_shader=load_shader("impostor.frag.glsl", {**defines, **vdefs}))
-        else:
-            vdefs = {} if skinned else {"UNSKINNED": 1}
-            if "LOD_FADE" in defines:
-                vdefs["LOD_FADE"] = 1
-            if kind == "depth":
-                vdefs["DEPTH_ONLY"] = 1
-                frag = load_shader("depth.frag.glsl")
-            else:
-                if layout:
-                    defines["TEXTURED"] = 1
-                if kind == "bake":  # an impostor atlas's cells (crowd.draw.impostors): unlit, no shadows
-                    defines = {k: v for k, v in defines.items() if k not in ("SHADOWS", "CASCADES")}
-                    defines["IMPOSTOR_BAKE"] = vdefs["IMPOSTOR_BAKE"] = 1
-                frag = load_shader("skin.frag.glsl", defines)
-            if layout:
-                vdefs["TEXTURED"] = 1
-            if layout == "wide":
-                vdefs["WIDE_UV"] = 1
-            if morph:
-                vdefs["MORPH"] = 1
-                if self.morph_buffers:
-                    vdefs["MORPH_BUFFERS"] = 1
-            prog = self.ctx.program(vertex_shader=load_shader("skin.vert.glsl", vdefs), fragment_shader=frag)
-        for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
-            if has_uniform(prog, name):
-                prog[name] = unit
-        if has_uniform(prog, "u_shadow_map"):
-            prog["u_shadow_map"] = 3
-        if has_uniform(prog, "u_albedo"):
-            prog["u_albedo"] = TEXTURE_UNIT
-        use_records_unit(prog)
+        prog = draw_program(self.ctx, kind, skinned, layout, morph, shadows=self.shadows, lod_fade=self.lod_fade > 0.0, town=self.town,
+                            morph_buffers=self.morph_buffers)
         self._programs[key] = self._own("programs", prog)
         return prog
 
@@ -506,6 +473,7 @@ class CrowdRenderer(DrawnCounts, GLStage):
             out["occlusion"] = self.pyramid.gpu_bytes()
         out["morphs"] = 0 if self.morph is None else self.morph.nbytes
         out["impostors"] = gpu_bytes(self._objects["impostors"]) + sum(t.gpu_bytes() for t in self.impostors if t is not None)
+        out["splat"] = 0 if self.splat is None else self.splat.gpu_bytes()
         return out
 
     def release(self) -> None:
@@ -576,7 +544,7 @@ class CrowdRenderer(DrawnCounts, GLStage):
         light = (None, None) if shadow is None else (self._light.planes(shadow), shadow.reach_m)
         if self.cpu is None:
             self._counts_due = True  # (read when ``last`` is: the newest frame the GPU has finished)
-            self._pending = (planes, light, eye)
+            self._pending = (planes, light, eye, camera.fov_y)
             if cull_now:
                 self.cull(processor)
             return FrameView(camera, matrix, shadow, None)
@@ -598,12 +566,14 @@ class CrowdRenderer(DrawnCounts, GLStage):
         pending, self._pending = self._pending, None
         if not self.culls_on_gpu or pending is None:
             return False
-        planes, (shadow_planes, reach), eye = pending
+        planes, (shadow_planes, reach), eye, fov_y = pending
         if self.feedback is not None:
             self.feedback.run(planes, self.culling, shadow_planes, reach)
         else:
-            self.gpu.run(planes, self.culling, shadow_planes, reach,
-                         occlusion=None if self.pyramid is None else (self.pyramid, eye), palette=processor)
+            # Impostors under HELD_PX hold no weapon in the view (crowd.draw.splat); the height is the last colour pass's.
+            focal = 0.5 * self._view_height / math.tan(math.radians(fov_y) / 2.0)
+            self.gpu.run(planes, self.culling, shadow_planes, reach, occlusion=None if self.pyramid is None else (self.pyramid, eye),
+                         palette=processor, held=(self.group_names.index(HELD_GROUP) if HELD_GROUP in self.group_names else -1, focal, HELD_PX))
         return True
 
     @property
@@ -671,7 +641,7 @@ class CrowdRenderer(DrawnCounts, GLStage):
                     self._render_merged("depth", True, k, morph)
                     continue
                 if layout == "impostor":
-                    prog["u_toward_light"] = tuple(float(x) for x in self.sun_dir)
+                    set_uniforms(prog, u_toward_light=tuple(float(x) for x in self.sun_dir))
                 for index, draw in enumerate(self.draws):
                     if (draw.layout, draw.morph) == (layout, morph):
                         if layout == "impostor":
@@ -687,6 +657,7 @@ class CrowdRenderer(DrawnCounts, GLStage):
             self.shadow_map.use(3)
 
     def color_pass(self, framebuffer, view: "FrameView", processor, skinned: bool = True) -> None:
+        self._view_height = framebuffer.viewport[3]
         self.records.bind()
         framebuffer.use()
         self.ctx.enable(moderngl.DEPTH_TEST)
@@ -712,15 +683,31 @@ class CrowdRenderer(DrawnCounts, GLStage):
                         if layout == "impostor":  # pixels a metre at one metre's depth: an impostor's height on screen
                             set_uniforms(prog, u_focal_px=0.5 * framebuffer.viewport[3] / math.tan(math.radians(view.camera.fov_y) / 2.0))
                         self._render(index, draw, "color", skinned)
+            if self.splat is not None and skinned is True:
+                self.splat.resolve(framebuffer)
         finally:
             if self.materials is not None:  # a sampler object left on its unit would override what binds there next
                 self.materials.unbind()
+
+    def splat_pass(self, framebuffer, view: "FrameView", processor) -> bool:
+        """The small impostors of the colour pass splatted (crowd.draw.splat), before ``color_pass`` draws
+        the rest; False where the splat is off."""
+        if self.splat is None:
+            return False
+        draws = [(index, draw.character) for index, draw in enumerate(self.draws) if draw.layout == "impostor"]  # (the view's commands come first)
+        self.records.bind()
+        self.splat.run(framebuffer, view, self, processor, draws, self.records.agents, self.splat_px)
+        return True
+
+    def bind_impostor(self, character: int, prog) -> None:
+        """`character`'s impostor atlas and key offset for `prog`."""
+        self.impostors[character].bind(prog, self.palette.parts[character].slots)
 
     def _bind_piece(self, draw: _Draw, prog: moderngl.Program) -> None:
         """What one draw's program reads besides the palette and its lists: an impostor's atlas and key
         offset, or a textured piece's texture layer (and coordinate box where packed)."""
         if draw.layout == "impostor":
-            self.impostors[draw.character].bind(prog, self.palette.parts[draw.character].slots)
+            self.bind_impostor(draw.character, prog)
             return
         if draw.layout:
             self.materials.bind(draw.texture, prog)

@@ -14,8 +14,6 @@ only when the scene has a town (``town`` setting); without it there is no mesh, 
 
 from __future__ import annotations
 
-import math
-
 import moderngl
 import numpy as np
 
@@ -25,7 +23,7 @@ from .cpu_cull import sphere_visible
 from .packing import write_heading
 from .view import frustum_planes, gl_bytes
 from .shadows import CASCADES
-from .weapons import VERTEX_DTYPE, pack_rigid
+from .weapons import pack_rigid
 
 INSTANCE_DTYPE = np.dtype([("position", "<f4", 3), ("fields", "<u4", 2)])  # town.vert.glsl's i_position, i_fields
 SIGHT_M = 800.0  # metres from the eye within which districts are placed: the fog has hidden the rest (crowd.lighting)
