@@ -29,9 +29,9 @@ from .stages import CastPart, StageSpec, build_processor, build_readback, build_
 from .stages import build_town as build_town_stage
 
 # Triangles the crowd's agents would draw at their coarsest LODs from which "auto" draws the far ones as
-# impostors: 20,000 of the built-ins (138 each), where impostors were measured to pay (docs/BENCHMARKS.md,
-# "Impostors"); a character with heavier far LODs gets them with fewer agents.
-IMPOSTOR_TRIANGLES = 20_000 * 138
+# impostors: 5,000 of the built-ins (138 each), where impostors were measured to pay (docs/BENCHMARKS.md,
+# "Splatting the smallest impostors"); a character with heavier far LODs gets them with fewer agents.
+IMPOSTOR_TRIANGLES = 5_000 * 138
 
 
 def far_triangles(character, switches: int) -> float:

@@ -295,9 +295,8 @@ def test_far_impostors_are_measured_against_the_supersampled_mesh(gl_context, zo
 
 
 def test_auto_makes_impostors_by_the_triangles_the_far_meshes_would_draw(zombie):
-    """"auto": the built-ins get impostors from 20,000 agents as before; a character whose coarsest LOD
-    draws 5 times the triangles gets them from a fifth of that; a spread too small for the impostor
-    distance gets none."""
+    """"auto": the built-ins get impostors from 5,000 agents; a character whose coarsest LOD draws 5 times
+    the triangles gets them from a fifth of that; a spread too small for the impostor distance gets none."""
     import dataclasses
     from types import SimpleNamespace
 
@@ -316,9 +315,9 @@ def test_auto_makes_impostors_by_the_triangles_the_far_meshes_would_draw(zombie)
                                counts=(agents, 1), ai=SimpleNamespace(n=agents, half_extent=half_extent))
         return LiveSettings.impostors_needed(fake)
 
-    assert IMPOSTOR_TRIANGLES == 20_000 * 138
-    assert not needed(character, 19_999) and needed(character, 20_000)
-    assert not needed(heavy, 3_999) and needed(heavy, 4_000)
+    assert IMPOSTOR_TRIANGLES == 5_000 * 138
+    assert not needed(character, 4_999) and needed(character, 5_000)
+    assert not needed(heavy, 999) and needed(heavy, 1_000)
     assert not needed(heavy, 100_000, half_extent=1.0)
 
 
