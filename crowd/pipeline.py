@@ -557,6 +557,7 @@ class CrowdPipeline(LiveSettings, GLStage):
         its weapons are placed by the GPU cull from the records."""
         t, survivor, rows = self.timer, self.survivor, self.rows
         on_gpu = self.gpu_crowd is not None
+        self.renderer.set_view_height(framebuffer.viewport[3])
         with t.cpu("cull_lod"):
             # The CPU path culls and packs here; the GPU path packs and uploads every agent's record and
             # then dispatches the cull ("cull": its GPU time; a query around the upload would also count

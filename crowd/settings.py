@@ -222,9 +222,9 @@ _ALL = (
     Setting("lod_distances", "features", "ascending", (14.0, 40.0, 90.0), "metres from the camera where LOD1, LOD2 and LOD3 start",
             label="LOD distances", low=0, open_low=True, slider=(1, 500)),
     Setting("lod_error_px", "features", "float", 2.0,
-            "pixels of a 1920x1080 view at 45 degrees that a generated LOD's measured error covers where it starts: a character "
-            "whose file has no coarser LODs gets them made, each switched in where its error projects to this (the built-ins "
-            "use lod_distances)", label="LOD error (px)", low=0, open_low=True, high=100, slider=(0.25, 8)),
+            "pixels of the view drawn into (its height and field of view) that a generated LOD's measured error covers where it "
+            "starts: a character whose file has no coarser LODs gets them made, each switched in where its error projects to this "
+            "(the built-ins use lod_distances)", label="LOD error (px)", low=0, open_low=True, high=100, slider=(0.25, 8)),
     Setting("lod_fade", "features", "float", 2.0,
             "metres past each LOD switch (the impostors' too) over which the two LODs cross-fade, dithered, so no switch pops "
             "(0: they switch at once)", label="LOD fade", low=0, high=100, slider=(0, 10)),

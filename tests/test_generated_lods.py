@@ -390,8 +390,9 @@ def test_variation_pieces_each_get_their_own_chain():
 
 @pytest.mark.parametrize("path", ["cpu", "gpu"])
 def test_the_cull_switches_generated_lods_at_the_pixels_set(gl_context, extremes, path):
-    """A character with generated LODs switches where its error covers lod_error_px pixels: its own
-    (one-pixel) distances over the setting, changed live; the lod_distances setting is not read for it."""
+    """A character with generated LODs switches where its error covers lod_error_px pixels of the view it is
+    drawn into: its own (one-pixel at 1080 rows) distances over the setting, times the view's rows over
+    1080, changed live; the lod_distances setting is not read for it."""
     from crowd.draw.render import CrowdRenderer
     from crowd.frame import Camera, Instances
 
@@ -403,12 +404,14 @@ def test_the_cull_switches_generated_lods_at_the_pixels_set(gl_context, extremes
     instances = Instances(positions, np.zeros(n, np.float32), np.ones(n, np.float32), np.full((n, 4), 255, np.uint8), {})
     camera = Camera(eye=(0.0, 0.0, 0.0), target=(0.0, 0.0, -1.0))
     with CrowdRenderer(gl_context, made, lod_distances=(1.0, 2.0, 3.0), shadows=False, culling=False, cull_path=path) as renderer:
-        for pixels in (2.0, 1.0, 4.0):
+        for pixels, view in ((2.0, 0), (1.0, 0), (4.0, 0), (4.0, 2160), (4.0, 540)):
             if pixels != 2.0:
                 renderer.set_lod_error_px(pixels)
+            renderer.set_view_height(view)  # (0: the reference view's 1080 rows; twice the rows, twice as far)
             renderer.prepare(camera, instances)
             renderer.refresh_counts(wait=True)
-            switch = own / pixels
+            switch = own / pixels * (view / 1080 if view else 1.0)
+            assert np.allclose(renderer.character_lod_distances(0), switch)
             near = np.min(np.abs(distances[:, None] / switch[None] - 1.0), axis=1) < 0.02  # within float rounding of a switch
             expect = np.bincount(np.searchsorted(switch, distances[~near], side="right"), minlength=renderer.lod_count)
             got = renderer.last["lod_counts"]

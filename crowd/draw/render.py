@@ -35,6 +35,7 @@ import moderngl
 import numpy as np
 
 from ..anim.palette_layout import PaletteLayout
+from ..asset.lod import REFERENCE_FOV_Y, REFERENCE_HEIGHT_PX
 from ..asset.model import Character
 from ..asset.town import TILE
 from ..asset.vertex_cache import best_triangle_order
@@ -120,7 +121,8 @@ class CrowdRenderer(DrawnCounts, GLStage):
                                           "occlusion": [], "morphs": [], "impostors": [], "splat": []}
         self.pyramid: DepthPyramid | None = None
         self.splat: ImpostorSplat | None = None
-        self._view_height = 0  # the last colour pass's viewport height, pixels (0: none yet)
+        self._view_height = 0  # the view's height, pixels (0: not known yet: the reference view's)
+        self._view_scale = 1.0  # its pixels a metre against the reference view's (crowd.asset.lod)
         self._programs: dict[tuple, moderngl.Program] = {}
         self.draws: list[_Draw] = []
         self.materials: MaterialTextures | None = None
@@ -427,9 +429,25 @@ class CrowdRenderer(DrawnCounts, GLStage):
         self._cull.set_characters(self._cull_characters())
 
     def character_lod_distances(self, k: int) -> tuple:
-        """Metres where character k's LOD 1, 2, ... start: its own (generated) at lod_error_px, else the setting's."""
+        """Metres where character k's LOD 1, 2, ... start: its own (generated: where its error covers
+        lod_error_px pixels of this frame's view), else the setting's."""
         own = self.cast[k].lod_distances
-        return tuple(float(d) / self.lod_error_px for d in own) if own else tuple(self._lod_distances)
+        return tuple(float(d) * self._view_scale / self.lod_error_px for d in own) if own else tuple(self._lod_distances)
+
+    def set_view_height(self, pixels: int) -> None:
+        """The height of the view the next frames are drawn into (the colour pass says it too, a frame late)."""
+        self._view_height = int(pixels)
+
+    def _follow_view(self, fov_y: float) -> None:
+        """Generated LODs switch where their error covers lod_error_px pixels of this view: their distances,
+        made for the reference view (crowd.asset.lod), scaled by its pixels a metre against the reference's."""
+        scale = 1.0
+        if self._view_height > 0:
+            scale = (self._view_height / math.tan(math.radians(fov_y) / 2.0)) / (REFERENCE_HEIGHT_PX / math.tan(math.radians(REFERENCE_FOV_Y) / 2.0))
+        if scale != self._view_scale:
+            self._view_scale = scale
+            if any(c.lod_distances for c in self.cast):
+                self._cull.set_characters(self._cull_characters())
 
     def set_lod_error_px(self, pixels: float) -> None:
         self.lod_error_px = SETTINGS["lod_error_px"].check(pixels, RenderError)
@@ -514,6 +532,7 @@ class CrowdRenderer(DrawnCounts, GLStage):
         passes read, run for this frame already; on the GPU path its morph pairs send agents moving no target
         to the plain twins (None: to the morph draws)."""
         camera.validate()
+        self._follow_view(camera.fov_y)
         on_gpu = isinstance(instances, SimFrame)  # a crowd that lives on the GPU: `row_offset` is (slot, latest, born limit)
         if on_gpu and self.gpu_record_pass is None:
             raise RenderError("the renderer packs no records on the GPU: call gpu_records first")
