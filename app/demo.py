@@ -64,21 +64,14 @@ def _show(value) -> str:
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
 
-    from crowd.sim.config import AIError
-    from crowd.anim.bake import BakeError
-    from crowd.gl import GLUnavailable, has_display
+    from crowd.errors import CrowdError
+    from crowd.gl import has_display
     from crowd.asset.gltf import BUILT_IN, is_built_in
-    from crowd.asset.gltf.reader import GltfImportError
-    from crowd.frame import FrameError
-    from crowd.pipeline_config import PipelineError
-    from crowd.anim.processor_inputs import ProcessorError
-    from crowd.draw.readback import ReadbackError
-    from crowd.draw.render import RenderError
-    from crowd.anim.roles import RoleError, parse_overrides
+    from crowd.anim.roles import parse_overrides
     from crowd.scene import Scene, SceneError, load_scene
-    from crowd.settings import SETTINGS, SCENE_GROUPS, SettingError, group, parse
+    from crowd.settings import SETTINGS, SCENE_GROUPS, group, parse
+    from crowd.pipeline_config import PipelineError
     from crowd.smoke import run_headless
-    from crowd.draw.weapons import WeaponError
 
     windowed = not args.headless and has_display()
     if not args.headless and not windowed:
@@ -117,8 +110,7 @@ def main(argv=None) -> int:
                 raise SceneError(f"--clip {args.clip}: a clip is written as .webp or .gif")
             stats = run_headless(scene.pipeline_config(), args.frames, size, args.screenshot, args.stats,
                                  camera=scene.camera_for(size[0] / size[1]) or view, overlay=overlay, clip=args.clip)
-    except (AIError, GltfImportError, BakeError, PipelineError, ProcessorError, RenderError, RoleError, GLUnavailable,
-            ReadbackError, WeaponError, SceneError, SettingError, FrameError) as exc:
+    except CrowdError as exc:
         print(f"crowd-demo: {exc}", file=sys.stderr)
         return 2
     for note in stats["warnings"]:

@@ -11,14 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from crowd.anim.bake import BakeError
-from crowd.anim.processor_inputs import ProcessorError
-from crowd.pipeline_config import PipelineError
-from crowd.scene import SceneError
+from crowd.errors import CrowdError
 from crowd.timing import SampleRing
-from crowd.session import CrowdSession, SessionError
+from crowd.session import CrowdSession
 from crowd.settings import SETTINGS, SOURCE_RATE
-from crowd.sim.config import AIError
 from crowd.stats import weapon_stats
 
 # Widget ranges and choices come from the settings schema, where each setting's bounds are declared.
@@ -93,7 +89,7 @@ class Panel:
                 getattr(self.session, self.ACTIONS[action])(*args, **kwargs)
                 self.status = ""
             return True
-        except (SessionError, SceneError, PipelineError, ProcessorError, AIError, BakeError, OSError) as exc:
+        except (CrowdError, OSError) as exc:
             self.status = str(exc).splitlines()[0]
             return False
 

@@ -16,10 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import CrowdError
 from .files import atomic_write_bytes
 
 
-class CacheError(ValueError):
+class CacheError(CrowdError, ValueError):
     """A cache file that cannot be used; the message is one line and names the file."""
 
 

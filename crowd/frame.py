@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .errors import CrowdError
 from .spans import min_max, over_spans
 
 CLIP, PHASE, WEIGHT, MASK = range(4)  # the columns of one layer
@@ -39,7 +40,7 @@ PHASE_LIMIT = 32.0  # cycles: validate_layers says why
 MAX_WEIGHT = 1.0e6  # larger weights would overflow the float32 sum long before they mean anything
 
 
-class FrameError(ValueError):
+class FrameError(CrowdError, ValueError):
     """A frame contract broken by its producer; the message is one line."""
 
 

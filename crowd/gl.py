@@ -12,6 +12,7 @@ import os
 
 import moderngl
 
+from .errors import CrowdError
 from .resources import SHADER_DIR
 
 
@@ -72,7 +73,7 @@ class GLObjects:
             self._objects.pop().release()
 
 
-class GLUnavailable(RuntimeError):
+class GLUnavailable(CrowdError, RuntimeError):
     """No usable OpenGL context could be made; the message says why in one line."""
 
 

@@ -7,11 +7,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .errors import CrowdError
 from .settings import DEFAULTS
 from .sim.config import AIConfig
 
 
-class PipelineError(ValueError):
+class PipelineError(CrowdError, ValueError):
     """Bad pipeline configuration; the message is one line."""
 
 

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
+from .errors import CrowdError
 from .anim.roles import ROLES
 from .files import atomic_write_bytes
 from .frame import MAX_CAST, Camera
@@ -47,7 +48,7 @@ from .settings import DEFAULTS, SCENE_GROUPS, SETTINGS, group
 from .sim.config import AIConfig, AIError
 
 
-class SceneError(ValueError):
+class SceneError(CrowdError, ValueError):
     """A scene file that cannot be used; the message is one line and names the file."""
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
+from .errors import CrowdError
 from .anim.bake import BakeError
 from .anim.morph import ALL_HELD
 from .anim.processor_inputs import ProcessorError
@@ -38,7 +39,7 @@ PICK_RADIUS = 0.4  # metres: an agent is a vertical cylinder this wide and 1.9 m
 PICK_HEIGHT = 1.9
 
 
-class SessionError(ValueError):
+class SessionError(CrowdError, ValueError):
     """A control given a value it cannot take; the message is one line."""
 
 

@@ -20,13 +20,14 @@ import numbers
 from dataclasses import dataclass
 
 import numpy as np
+from .errors import CrowdError
 
 SOURCE_RATE = "source"  # bake each clip at its own key rate
 AUTO_SCALE = "auto"  # measure the character's standing height and scale it to a person's where it is far off
 INF = math.inf
 
 
-class SettingError(ValueError):
+class SettingError(CrowdError, ValueError):
     """A value a setting cannot take; the message is one line."""
 
 

@@ -42,6 +42,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..errors import CrowdError
 from . import reference
 from .compress import MAX_BITS, CompressedKeys, compress
 from .. import transforms as tf
@@ -68,7 +69,7 @@ SCALE_EPS = 1e-4
 STORAGE_WARN_M = 1e-3
 
 
-class BakeError(ValueError):
+class BakeError(CrowdError, ValueError):
     """Bad bake input; the message is one line."""
 
 

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import CrowdError
 from ..asset.model import CONTACT_M, Skeleton, foot_joints
 from .palette_reference import palette_joint_positions
 
@@ -31,7 +32,7 @@ __all__ = ["CONTACT_M", "SKATE_SPEED_M_S", "FootSkate", "FootSkateMonitor", "Ska
 SKATE_SPEED_M_S = 0.10  # a contact frame step faster than this counts as skating
 
 
-class SkateError(ValueError):
+class SkateError(CrowdError, ValueError):
     """Bad input to the foot-skate measure; the message is one line."""
 
 

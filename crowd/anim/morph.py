@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import CrowdError
 from ..asset.model import Character, ModelError
 from ..asset.pose import sample_morph_weights
 from ..frame import CLIP, PHASE, WEIGHT
@@ -51,7 +52,7 @@ ERROR_WARN = 0.01  # a baked weight this far from the source's says so in the ba
 ALL_HELD, NOT_HELD = -1, -2  # held weights for every agent of a character, or for none (else one agent's number)
 
 
-class MorphError(ValueError):
+class MorphError(CrowdError, ValueError):
     """Bad morph input; the message is one line."""
 
 

@@ -8,6 +8,7 @@ import math
 import moderngl
 import numpy as np
 
+from ..errors import CrowdError
 from ..gl import has_compute, limit_note
 from ..settings import DEFAULTS, SETTINGS
 from ..spans import min_max, over_spans
@@ -24,7 +25,7 @@ DEFAULT_INTERPOLATION = DEFAULTS["interpolation"]  # chosen by crowd-bench error
 MAX_HISTORY = SETTINGS["readback_latency"].high + 1  # palettes kept: the latest and one per frame of read-back latency
 
 
-class ProcessorError(ValueError):
+class ProcessorError(CrowdError, ValueError):
     """Bad processor input; the message is one line."""
 
 

@@ -12,6 +12,7 @@ actions (attack, hit, death) stay unassigned and are simply not played. Only ass
 
 from __future__ import annotations
 
+from ..errors import CrowdError
 from .bake import DEFAULT_BOUND_MM, DEFAULT_FPS
 
 ROLES = ("idle", "walk", "run", "attack", "hit", "death")
@@ -25,7 +26,7 @@ ROLE_WORDS = {
 }
 
 
-class RoleError(ValueError):
+class RoleError(CrowdError, ValueError):
     """Bad role override; the message is one line."""
 
 

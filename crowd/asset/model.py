@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from ..errors import CrowdError
 
 INTERPOLATIONS = ("LINEAR", "STEP", "CUBICSPLINE")
 # Sampler values as glTF (and GL) write them.
@@ -38,7 +39,7 @@ def foot_joints(skeleton: "Skeleton") -> list[int]:
     return [j for j, name in enumerate(skeleton.names) if any(word in name.lower() for word in FOOT_WORDS)]
 
 
-class ModelError(ValueError):
+class ModelError(CrowdError, ValueError):
     """A character, clip or mesh that breaks the contract. The message is one line and names the culprit."""
 
 

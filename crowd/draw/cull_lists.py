@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+from ..errors import CrowdError
 
 RECORD_DTYPE = np.dtype([("position_scale", "<f4", 4), ("packed", "<u4", 4)])
 ENTRY_AGENT_BITS = 24
@@ -38,7 +39,7 @@ CHOICE_BITS = 32  # fields.w: every group's choice
 ALL, MOVING, STILL = 0, 1, 2  # the part of its list a draw reads
 
 
-class ListError(ValueError):
+class ListError(CrowdError, ValueError):
     """A cast whose lists cannot be laid out; the message is one line."""
 
 

@@ -44,6 +44,7 @@ import ctypes
 import moderngl
 import numpy as np
 
+from ..errors import CrowdError
 from ..gl import GLObjects, GLStage, current_context_function, load_shader
 from .cull_lists import ListKey, ListPlan
 from .gpu_cull import COMMAND_DTYPE, CountRing, CullCharacter
@@ -58,7 +59,7 @@ _GL_TRANSFORM_FEEDBACK, _GL_TRANSFORM_FEEDBACK_BUFFER, _GL_POINTS, _GL_TRIANGLES
 _GL_DRAW_INDIRECT_BUFFER, _GL_UNSIGNED_INT = 0x8F3F, 0x1405
 
 
-class FeedbackCullError(ValueError):
+class FeedbackCullError(CrowdError, ValueError):
     """A crowd the transform-feedback cull cannot take; the message is one line."""
 
 

@@ -30,6 +30,7 @@ from typing import NamedTuple
 import moderngl
 import numpy as np
 
+from ..errors import CrowdError
 from ..gl import Fence, GLObjects, GLStage, load_shader
 from .cull_lists import RECORD_DTYPE, ListPlan
 from .occlusion import HIZ_UNIT
@@ -51,7 +52,7 @@ ROUTE_UNIT = 0  # the cull reads the palette's first plane here
 VERTEX_ATTRIB_ARRAY, COMMAND, BUFFER_UPDATE, SHADER_STORAGE = 0x1, 0x40, 0x200, 0x2000
 
 
-class GpuCullError(ValueError):
+class GpuCullError(CrowdError, ValueError):
     """A crowd the GPU cull cannot take; the message is one line."""
 
 

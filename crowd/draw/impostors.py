@@ -39,6 +39,7 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
+from ..errors import CrowdError
 from ..anim.bake import AnimationBake
 from ..asset.model import Character
 from ..cache import CacheError, checksum, read_arrays, write_arrays
@@ -51,7 +52,7 @@ MAX_ELEVATIONS = 4  # impostor.vert.glsl's u_elevation
 BLEND_PX = 24.0
 
 
-class ImpostorError(ValueError):
+class ImpostorError(CrowdError, ValueError):
     """Impostor settings or an atlas that cannot be used; the message is one line."""
 
 

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import moderngl
 import numpy as np
 
+from ..errors import CrowdError
 from ..gl import Fence, GLStage, gpu_bytes, load_shader
 from ..settings import SETTINGS
 from ..anim.palette_layout import texel_code
@@ -37,7 +38,7 @@ ENTRIES_PER_ROW = 1024  # gather texture: 3 x 1024 texels wide, one row per 1,02
 ENTRY_BYTES = 3 * 4 * 4  # three RGBA32F texels
 
 
-class ReadbackError(ValueError):
+class ReadbackError(CrowdError, ValueError):
     """Bad read-back input; the message is one line."""
 
 

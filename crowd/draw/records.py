@@ -15,6 +15,7 @@ import ctypes
 import moderngl
 import numpy as np
 
+from ..errors import CrowdError
 from ..anim.palette_layout import PaletteLayout, texel_code
 from ..frame import Instances
 from ..gl import GLStage, current_context_function
@@ -51,7 +52,7 @@ def use_records_unit(program: moderngl.Program, name: str = "u_agents") -> None:
         gl["glUseProgram"](0)
 
 
-class RecordError(ValueError):
+class RecordError(CrowdError, ValueError):
     """Records this GPU cannot hold; the message is one line."""
 
 

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field, replace
 import moderngl
 import numpy as np
 
+from ..errors import CrowdError
 from ..anim.palette_layout import PaletteLayout
 from ..asset.lod import REFERENCE_FOV_Y, REFERENCE_HEIGHT_PX
 from ..asset.model import Character
@@ -67,7 +68,7 @@ BAKE_BOXES_UNIT = 4  # the impostor bake's per-frame boxes (the palette takes 0-
 DEFAULT_LOD_DISTANCES = DEFAULTS["lod_distances"]  # metres: LOD0 closer than the first, LOD1 to the second, LOD2 beyond
 
 
-class RenderError(ValueError):
+class RenderError(CrowdError, ValueError):
     """Bad render input; the message is one line."""
 
 

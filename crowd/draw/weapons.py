@@ -39,6 +39,7 @@ from __future__ import annotations
 import moderngl
 import numpy as np
 
+from ..errors import CrowdError
 from ..gl import GLObjects, GLStage, has_uniform, load_shader, set_uniforms
 from .drawn_counts import CountsWhenAsked
 from .feedback_cull import STREAMS, FeedbackCounter, TransformFeedbacks, capture, stream_groups, stream_varyings
@@ -56,7 +57,7 @@ VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("packed", "<u4", 2)])
 INSTANCE_DTYPE = np.dtype([("rows", "<f4", (3, 4)), ("position_scale", "<f4", 4), ("fields", "<u4", 4)])
 
 
-class WeaponError(ValueError):
+class WeaponError(CrowdError, ValueError):
     """Bad weapon input; the message is one line."""
 
 

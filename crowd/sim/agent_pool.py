@@ -30,6 +30,7 @@ import weakref
 from multiprocessing import shared_memory
 
 import numpy as np
+from ..errors import CrowdError
 
 PARAMS = 64  # float64 numbers a phase is posted with (its code first)
 RESULTS = 8  # float64 numbers a worker answers a phase with (its status first)
@@ -38,7 +39,7 @@ WAIT_SLICE_S = 0.5  # how often a waiting main process checks that its workers a
 START_TIMEOUT_S = 120.0  # a worker that has not started by then (an overloaded machine) is an error
 
 
-class PoolError(RuntimeError):
+class PoolError(CrowdError, RuntimeError):
     """A worker failed or exited; the message is one line."""
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from ..errors import CrowdError
 from ..frame import MAX_LAYERS
 from ..settings import group
 
@@ -22,7 +23,7 @@ ATTACK_IMPACT = 0.5
 BLOW_REACH = 1.25
 
 
-class AIError(ValueError):
+class AIError(CrowdError, ValueError):
     """Bad AI input; the message is one line."""
 
 

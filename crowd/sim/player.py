@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import CrowdError
 from ..frame import CLIP, MASK, PHASE, WEIGHT
 from .locomotion import advance_phase
 from .outputs import MAX_ACTION_WEIGHT
@@ -47,7 +48,7 @@ CROSSFADE = 0.12  # seconds an action fades in and out
 NONE, STRIKE, HIT = 0, 1, 2
 
 
-class PlayerError(ValueError):
+class PlayerError(CrowdError, ValueError):
     """Bad input for the survivor; the message is one line."""
 
 

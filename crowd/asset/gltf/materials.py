@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...errors import CrowdError
 from ..model import CLAMP_TO_EDGE, LINEAR, MIPMAP_FILTERS, NEAREST, PACKED_UV_SPAN, REPEAT, WRAPS, Texture
 
 MAX_IMAGE_PIXELS = 4096 * 4096  # 64 MB as RGBA8: a character's atlas is at most 4k
@@ -236,7 +237,7 @@ class Materials:
         return r.uri_bytes(uri, where)  # a failure is a GltfImportError: _image makes it a warning
 
 
-class ImageError(ValueError):
+class ImageError(CrowdError, ValueError):
     """An image the crowd cannot use; the message is one line."""
 
 

@@ -39,6 +39,7 @@ from urllib.parse import unquote
 
 import numpy as np
 
+from ...errors import CrowdError
 from ... import transforms as tf
 
 _COMPONENT = {5120: np.dtype("<i1"), 5121: np.dtype("<u1"), 5122: np.dtype("<i2"), 5123: np.dtype("<u2"),
@@ -66,7 +67,7 @@ _SAFE_EXTENSION_PREFIXES = ("KHR_materials_", "KHR_texture_", "EXT_texture_", "K
 _SAFE_EXTENSIONS = {"KHR_mesh_quantization"}  # any component type is read as numbers: that is all it asks
 
 
-class GltfImportError(ValueError):
+class GltfImportError(CrowdError, ValueError):
     """A file the importer cannot turn into a correct character. The message is one line."""
 
 
