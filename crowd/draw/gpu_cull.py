@@ -31,7 +31,7 @@ import moderngl
 import numpy as np
 
 from ..errors import CrowdError
-from ..gl import Fence, GLObjects, GLStage, load_shader
+from ..gl import Fence, GLObjects, GLStage, load_shader, set_uniforms
 from .cull_lists import RECORD_DTYPE, ListPlan
 from .occlusion import HIZ_UNIT
 
@@ -150,7 +150,6 @@ class GpuCull(GLStage):
         self.program = self._objects.add(ctx.compute_shader(load_shader("cull.comp.glsl", defines)))
         # Each sampler on a unit of its own from the start: the pyramid's sampler2D left on unit 0 beside
         # the palette's sampler2DArray there is an error GL need not report (the fetch then reads zeros).
-        self._names = frozenset(self.program)
         self.program["u_hiz"] = HIZ_UNIT
         self.program["u_palette0"] = ROUTE_UNIT
         self.routed_characters = any(c.routed for c in characters)
@@ -288,7 +287,7 @@ class GpuCull(GLStage):
         if occlusion is not None and culling:
             occlusion[0].bind(p, occlusion[1])
         else:
-            p["u_occlusion"] = 0
+            set_uniforms(p, u_occlusion=0)
         volumes = np.zeros((self.passes, 6, 4), np.float32)
         reaches = np.full(self.passes, NEVER, np.float32)
         volumes[0] = planes
@@ -298,26 +297,20 @@ class GpuCull(GLStage):
             volumes[1:] = np.asarray(shadow_planes, np.float32)[: self.cascades]
             if reach is not None:
                 reaches[1:] = np.minimum(np.asarray(reach, np.float64)[: self.cascades], NEVER)
-        p["u_planes"].write(volumes.tobytes())
-        p["u_reach"].write(reaches.tobytes())
-        p["u_culling"] = int(bool(culling))
-        p["u_lod_fade"] = float(self.lod_fade)
         routing = palette is not None and self.routed_characters
-        p["u_routing"] = int(routing)
         if routing:
             palette.bind_palette(ROUTE_UNIT, p)
-        values = {"u_agents": n, "u_lists": self.lists, "u_draws": self.draw_count, "u_draw_table": self._draw_table,
-                  "u_choice_table": self._choice_table, "u_stats": self.stats, "u_write_visible": int(self.visible is not None),
-                  "u_held_group": int(held[0]), "u_focal_px": float(held[1]), "u_held_px": float(held[2]) if held[1] > 0.0 else 0.0}
-        for name, value in values.items():
-            if name in self._names:  # (the compiler drops what a cast does not use: the choices of a cast without groups)
-                p[name] = value
+        # (Written where they changed since the last frame; set_uniforms leaves out what the compiler dropped.)
+        set_uniforms(p, u_planes=volumes.tobytes(), u_reach=reaches.tobytes(), u_culling=int(bool(culling)), u_lod_fade=float(self.lod_fade),
+                     u_routing=int(routing), u_agents=n, u_lists=self.lists, u_draws=self.draw_count, u_draw_table=self._draw_table,
+                     u_choice_table=self._choice_table, u_stats=self.stats, u_write_visible=int(self.visible is not None),
+                     u_held_group=int(held[0]), u_focal_px=float(held[1]), u_held_px=float(held[2]) if held[1] > 0.0 else 0.0)
         for binding, buffer in enumerate((self.agents_buffer, self.entries, self.counters, self.commands, self.tables, self.character_buffer, self.visible)):
             if buffer is not None:
                 buffer.bind_to_storage_buffer(binding)
         groups = (n + GROUP_SIZE - 1) // GROUP_SIZE
         for phase, size in ((0, groups), (1, 1), (2, groups)):
-            p["u_phase"] = phase
+            set_uniforms(p, u_phase=phase)
             p.run(group_x=size)
             self.ctx.memory_barrier(SHADER_STORAGE)
         # The entries feed vertex attributes and the commands feed the draws: both written by the shader.

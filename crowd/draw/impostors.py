@@ -329,20 +329,21 @@ class ImpostorTextures(GLStage):
         except BaseException:
             self._objects.release()
             raise
+        s = atlas.settings
+        elevations = np.zeros(MAX_ELEVATIONS, np.float32)
+        elevations[: len(s.elevations)] = np.radians(s.elevations)
+        self._uniforms = {"u_atlas_albedo": self.ALBEDO_UNIT, "u_atlas_normal_depth": self.NORMAL_UNIT, "u_impostor_clips": self.CLIPS_UNIT,
+                          "u_cell_bounds": self.BOUNDS_UNIT, "u_views": int(s.views), "u_elevations": len(s.elevations), "u_columns": s.columns,
+                          "u_rows": int(atlas.rows), "u_elevation": elevations.tobytes()}
 
     def bind(self, prog: moderngl.Program, key_offset: int) -> None:
-        s = self.atlas.settings
+        """The atlas on its units and its constants in `prog` (written where they changed: each character's
+        impostors have programs of their own, so once)."""
         self.albedo.use(self.ALBEDO_UNIT)
         self.normal_depth.use(self.NORMAL_UNIT)
         self.clips.use(self.CLIPS_UNIT)
         self.bounds.use(self.BOUNDS_UNIT)
-        values = {"u_atlas_albedo": self.ALBEDO_UNIT, "u_atlas_normal_depth": self.NORMAL_UNIT, "u_impostor_clips": self.CLIPS_UNIT,
-                  "u_cell_bounds": self.BOUNDS_UNIT,
-                  "u_key_offset": int(key_offset), "u_views": int(s.views), "u_elevations": len(s.elevations), "u_columns": s.columns,
-                  "u_rows": int(self.atlas.rows), "u_blend_px": BLEND_PX}
-        e = np.zeros(MAX_ELEVATIONS, np.float32)
-        e[: len(s.elevations)] = np.radians(s.elevations)
-        set_uniforms(prog, **values, u_elevation=e.tobytes())  # (written where they changed: two characters share a program)
+        set_uniforms(prog, **self._uniforms, u_key_offset=int(key_offset), u_blend_px=BLEND_PX)
 
     def gpu_bytes(self) -> int:
         return self._objects.gpu_bytes()

@@ -29,7 +29,7 @@ import math
 import moderngl
 import numpy as np
 
-from ..gl import GLObjects, GLStage, load_shader
+from ..gl import GLObjects, GLStage, load_shader, set_uniforms
 
 SHADER_IMAGE_ACCESS, TEXTURE_FETCH = 0x20, 0x8
 HIZ_UNIT = 7  # the texture unit the cull samples the pyramid on (the palette takes 0-2, the albedo 6)
@@ -105,15 +105,12 @@ class DepthPyramid(GLStage):
     def bind(self, program, eye) -> bool:
         """Point the cull's occlusion uniforms at the pyramid; False (no test this frame) before the first capture."""
         if self.view_proj is None or self.unusable is not None:
-            program["u_occlusion"] = 0
+            set_uniforms(program, u_occlusion=0)
             return False
         self.pyramid.use(HIZ_UNIT)
-        program["u_hiz"] = HIZ_UNIT
-        program["u_occlusion"] = 1
-        program["u_hiz_view_proj"].write(np.ascontiguousarray(self.view_proj.T).tobytes())
-        program["u_hiz_eye_delta"] = tuple(float(v) for v in (np.asarray(eye, np.float64) - self.eye))
-        program["u_hiz_size"] = self.levels[0]
-        program["u_hiz_levels"] = len(self.levels)
+        set_uniforms(program, u_hiz=HIZ_UNIT, u_occlusion=1, u_hiz_view_proj=np.ascontiguousarray(self.view_proj.T).tobytes(),
+                     u_hiz_eye_delta=tuple(float(v) for v in (np.asarray(eye, np.float64) - self.eye)), u_hiz_size=tuple(self.levels[0]),
+                     u_hiz_levels=len(self.levels))
         return True
 
     def gpu_bytes(self) -> int:

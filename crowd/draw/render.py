@@ -197,7 +197,7 @@ class CrowdRenderer(DrawnCounts, GLStage):
             raise RenderError(f"the splat height must be 0 to {BLEND_PX:g} pixels, got {splat_px}")
         self.splat_px = float(splat_px)
         if self.splat_px > 0.0 and self.gpu is not None and any(d.layout == "impostor" for d in self.draws):
-            self.splat = self._own("splat", ImpostorSplat(ctx, lighting_defines(self.shadows)))
+            self.splat = self._own("splat", ImpostorSplat(ctx, lighting_defines(self.shadows), sum(d.layout == "impostor" for d in self.draws)))
         self.shadow_size = int(shadow_size)
         self.shadow_map = None
         self._shadow_fbo = None
@@ -341,11 +341,11 @@ class CrowdRenderer(DrawnCounts, GLStage):
         self._objects[group].append(obj)
         return obj
 
-    def _program(self, kind: str, skinned: bool | str, layout: str = "", morph: bool = False) -> moderngl.Program:
+    def _program(self, kind: str, skinned: bool | str, layout: str = "", morph: bool = False, character: int = -1) -> moderngl.Program:
         """kind: color, depth or ground; skinned: True, or False for the benchmark's unskinned ceiling;
         layout: a textured piece's vertex layout ("packed" or "wide", see uv_layout), "" for none; morph:
         pieces drawn with their morph targets."""
-        key = (kind, skinned, layout, morph)
+        key = (kind, skinned, layout, morph, character)
         if key in self._programs:
             return self._programs[key]
         prog = draw_program(self.ctx, kind, skinned, layout, morph, shadows=self.shadows, lod_fade=self.lod_fade > 0.0, town=self.town,
@@ -394,7 +394,16 @@ class CrowdRenderer(DrawnCounts, GLStage):
         return sorted({(d.layout, d.morph) for d in self.draws})
 
     def _draw_program(self, draw: _Draw, kind: str, skinned: bool) -> moderngl.Program:
-        return self._program(kind, skinned, draw.layout, draw.morph and skinned is True)
+        return self._program(kind, skinned, draw.layout, draw.morph and skinned is True, draw.character if draw.layout == "impostor" else -1)
+
+    def _variant_programs(self, kind: str, skinned: bool, layout: str, morph: bool):
+        """(character, program) of a variant's draws: one program for all (character None), but each
+        character's impostors their own, so that its atlas's constants are written once, not at every
+        switch between characters."""
+        if layout != "impostor":
+            return [(None, self._program(kind, skinned, layout, morph))]
+        characters = sorted({d.character for d in self.draws if d.layout == "impostor"})
+        return [(c, self._program(kind, skinned, layout, morph, c)) for c in characters]
 
     @staticmethod
     def _checked_fade(metres) -> float:
@@ -650,23 +659,25 @@ class CrowdRenderer(DrawnCounts, GLStage):
         self._shadow_fbo.clear(depth=1.0)
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE)
+        toward = tuple(float(x) for x in self.sun_dir)
         for k, matrix in self.shadow_tiles(view):
+            matrix = gl_bytes(matrix)
             for layout, morph in self._variants():
-                prog = self._program("depth", True, layout, morph)
-                processor.bind_palette(0, prog)
-                if morph:
-                    self.morph.bind(prog)
-                set_uniforms(prog, u_view_proj=gl_bytes(matrix))
-                if layout == "" and self.merged:
-                    self._render_merged("depth", True, k, morph)
-                    continue
-                if layout == "impostor":
-                    set_uniforms(prog, u_toward_light=tuple(float(x) for x in self.sun_dir))
-                for index, draw in enumerate(self.draws):
-                    if (draw.layout, draw.morph) == (layout, morph):
-                        if layout == "impostor":
-                            self._bind_piece(draw, prog)
-                        self._render(index, draw, "depth", True, k)
+                for character, prog in self._variant_programs("depth", True, layout, morph):
+                    processor.bind_palette(0, prog)
+                    if morph:
+                        self.morph.bind(prog)
+                    set_uniforms(prog, u_view_proj=matrix)
+                    if layout == "" and self.merged:
+                        self._render_merged("depth", True, k, morph)
+                        continue
+                    if layout == "impostor":
+                        set_uniforms(prog, u_toward_light=toward)
+                    for index, draw in enumerate(self.draws):
+                        if (draw.layout, draw.morph) == (layout, morph) and character in (None, draw.character):
+                            if layout == "impostor":
+                                self._bind_piece(draw, prog)
+                            self._render(index, draw, "depth", True, k)
         return True
 
     def set_lighting(self, prog, view: "FrameView"):
@@ -684,25 +695,28 @@ class CrowdRenderer(DrawnCounts, GLStage):
         self.ctx.disable(moderngl.CULL_FACE)
         try:
             # (The unskinned benchmark ceiling reads no palette, so no pairs: its pieces draw without morphs.)
+            matrix = gl_bytes(view.view_proj)
+            focal = 0.5 * framebuffer.viewport[3] / math.tan(math.radians(view.camera.fov_y) / 2.0)  # pixels a metre at one metre's depth
             for layout, morph in sorted({(layout, morph and skinned is True) for layout, morph in self._variants()}):
-                prog = self._program("color", skinned, layout, morph)
-                if skinned:
-                    processor.bind_palette(0, prog)
-                if morph:
-                    self.morph.bind(prog)
-                set_uniforms(prog, u_view_proj=gl_bytes(view.view_proj))
-                self.set_lighting(prog, view)
-                if layout == "" and self.merged:
-                    self._render_merged("color", skinned, morph=morph)
+                if layout == "impostor" and skinned is not True:  # the unskinned ceiling binds no palette, so no keys
                     continue
-                for index, draw in enumerate(self.draws):
-                    if (draw.layout, draw.morph and skinned is True) == (layout, morph) and (draw.count or self.culls_on_gpu):
-                        if layout == "impostor" and skinned is not True:  # the unskinned ceiling binds no palette, so no keys
-                            continue
-                        self._bind_piece(draw, prog)
-                        if layout == "impostor":  # pixels a metre at one metre's depth: an impostor's height on screen
-                            set_uniforms(prog, u_focal_px=0.5 * framebuffer.viewport[3] / math.tan(math.radians(view.camera.fov_y) / 2.0))
-                        self._render(index, draw, "color", skinned)
+                for character, prog in self._variant_programs("color", skinned, layout, morph):
+                    if skinned:
+                        processor.bind_palette(0, prog)
+                    if morph:
+                        self.morph.bind(prog)
+                    set_uniforms(prog, u_view_proj=matrix)
+                    self.set_lighting(prog, view)
+                    if layout == "" and self.merged:
+                        self._render_merged("color", skinned, morph=morph)
+                        continue
+                    if layout == "impostor":  # (an impostor's height on screen)
+                        set_uniforms(prog, u_focal_px=focal)
+                    for index, draw in enumerate(self.draws):
+                        if (draw.layout, draw.morph and skinned is True) == (layout, morph) and (draw.count or self.culls_on_gpu) \
+                                and character in (None, draw.character):
+                            self._bind_piece(draw, prog)
+                            self._render(index, draw, "color", skinned)
             if self.splat is not None and skinned is True:
                 self.splat.resolve(framebuffer)
         finally:

@@ -47,12 +47,15 @@ _BARRIER = 0x2000 | 0x40 | 0x1  # GL_SHADER_STORAGE_BARRIER_BIT | GL_COMMAND_BAR
 class ImpostorSplat(GLStage):
     """The splat's programs and buffers for one renderer; ``run`` before the quads, ``resolve`` after."""
 
-    def __init__(self, ctx: moderngl.Context, defines: dict):
-        """`defines`: the colour pass's lighting defines (shadows and cascades), as its impostor program has."""
+    def __init__(self, ctx: moderngl.Context, defines: dict, draws: int):
+        """`defines`: the colour pass's lighting defines (shadows and cascades), as its impostor program has;
+        `draws`: the impostor draws (one per character with an atlas), each with a program of its own so that
+        its atlas's constants are written once."""
         self.ctx = ctx
         self._objects = GLObjects()
         self._buffers = GLObjects()
-        self.program = self._objects.add(fixed_units(ctx.compute_shader(load_shader("impostor_splat.comp.glsl", {**defines, "NO_INSTANCE_ENTRY": 1}))))
+        source = load_shader("impostor_splat.comp.glsl", {**defines, "NO_INSTANCE_ENTRY": 1})
+        self.programs = [self._objects.add(fixed_units(ctx.compute_shader(source))) for _ in range(max(int(draws), 1))]
         self.resolve_program = self._objects.add(ctx.program(vertex_shader=load_shader("impostor_resolve.vert.glsl"),
                                                              fragment_shader=load_shader("impostor_resolve.frag.glsl")))
         self._triangle = self._objects.add(ctx.vertex_array(self.resolve_program, []))
@@ -82,28 +85,31 @@ class ImpostorSplat(GLStage):
         most once: an agent's fade copies go to two draws)."""
         size = tuple(framebuffer.viewport[2:])
         self._ensure(size, records, len(draws))
-        prog = self.program
         focal = 0.5 * size[1] / math.tan(math.radians(view.camera.fov_y) / 2.0)
-        inverse = np.linalg.inv(np.asarray(view.view_proj, np.float64))
-        set_uniforms(prog, u_view_proj=gl_bytes(view.view_proj), u_inverse_view_proj=gl_bytes(inverse), u_size=size, u_focal_px=float(focal),
-                     u_splat_px=float(splat_px), u_max_side=MAX_SIDE, u_draws=len(draws), u_region=self._records)
-        renderer.set_lighting(prog, view)
-        processor.bind_palette(0, prog)
-        renderer.bind_impostor(draws[0][1], prog)  # (every sampler on its own unit before the first dispatch)
+        constants = {"u_view_proj": gl_bytes(view.view_proj), "u_inverse_view_proj": gl_bytes(np.linalg.inv(np.asarray(view.view_proj, np.float64))),
+                     "u_size": size, "u_focal_px": float(focal), "u_splat_px": float(splat_px), "u_max_side": MAX_SIDE, "u_draws": len(draws),
+                     "u_region": self._records}
+        for k, (command, character) in enumerate(draws):
+            prog = self.programs[k]
+            set_uniforms(prog, **constants, u_command=int(command), u_draw=k)
+            renderer.set_lighting(prog, view)
+            processor.bind_palette(0, prog)
         renderer.gpu.entries.bind_to_storage_buffer(0)
         renderer.gpu.commands.bind_to_storage_buffer(1)
         for binding, buffer in enumerate((*self.pixels, self.sorted, self.counts), start=2):
             buffer.bind_to_storage_buffer(binding)
-        set_uniforms(prog, u_pass=CLEAR)
-        prog.run(math.ceil(max(size[0] * size[1], 2 * len(draws)) / GROUP))
         groups = math.ceil(max(records, 1) / GROUP)
-        for step in (SORT, REQUEUE, WINNER, COLOUR):
-            self.ctx.memory_barrier(_BARRIER)
-            set_uniforms(prog, u_pass=step)
+        for step in (CLEAR, SORT, REQUEUE, WINNER, COLOUR):
+            if step != CLEAR:
+                self.ctx.memory_barrier(_BARRIER)
             for k, (command, character) in enumerate(draws):
-                if step != REQUEUE:
+                prog = self.programs[k]
+                if step != REQUEUE:  # (which reads no texture; every sampler is on its unit before the first dispatch)
                     renderer.bind_impostor(character, prog)
-                set_uniforms(prog, u_command=int(command), u_draw=k)
+                set_uniforms(prog, u_pass=step)
+                if step == CLEAR:
+                    prog.run(math.ceil(max(size[0] * size[1], 2 * len(draws)) / GROUP))
+                    break
                 prog.run(groups)
         self.ctx.memory_barrier(_BARRIER)
         self._unresolved = True
