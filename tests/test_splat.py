@@ -83,6 +83,11 @@ def test_the_splat_is_made_only_where_it_draws(gpu):
                 p.frame(target.framebuffer, 1 / 30)
             grown = p.renderer.gpu_bytes()["splat"]
         assert grown >= sizes[0]  # (the sorted lists keep the largest crowd's room, as the cull's entries do)
+        # One pixel, and none (a minimised window's framebuffer): frames go on.
+        with Offscreen(gpu, (1, 1)) as target:
+            p.frame(target.framebuffer, 1 / 30)
+            target.framebuffer.viewport = (0, 0, 0, 0)
+            p.frame(target.framebuffer, 1 / 30)
 
 
 def test_a_quad_too_wide_for_the_splat_stays_a_quad():

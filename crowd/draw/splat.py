@@ -84,6 +84,8 @@ class ImpostorSplat(GLStage):
         leave the rest in the draws' lists; `records`: agent records in the crowd (a list holds each at
         most once: an agent's fade copies go to two draws)."""
         size = tuple(framebuffer.viewport[2:])
+        if min(size) <= 0:  # (a minimised window: no pixel to splat into, and the quads draw nothing there either)
+            return
         self._ensure(size, records, len(draws))
         focal = 0.5 * size[1] / math.tan(math.radians(view.camera.fov_y) / 2.0)
         constants = {"u_view_proj": gl_bytes(view.view_proj), "u_inverse_view_proj": gl_bytes(np.linalg.inv(np.asarray(view.view_proj, np.float64))),
