@@ -438,7 +438,7 @@ def bench_soak(args) -> int:
             atomic_write_bytes(Path(args.json), json.dumps({"partial": True, "samples": samples}, indent=1).encode())
 
     with bar(args.frames, f"soak, {args.agents:,} agents", "frame") as shown:
-        result = run_soak(args.agents, args.frames, size, args.warmup, args.every, args.scene, progress=shown, on_sample=partial)
+        result = run_soak(args.agents, args.frames, size, args.warmup, args.every, args.scene, progress=shown, on_sample=partial, heap=args.heap)
     if args.json:
         atomic_write_bytes(Path(args.json), json.dumps(result, indent=1).encode())
     print(f"{result['device']} | {result['agents']:,} agents, {result['frames']:,} frames at {size[0]}x{size[1]} in {result['seconds']} s, "
@@ -450,7 +450,8 @@ def bench_soak(args) -> int:
         print(f"after {result['warmup']} frames, {len(result['samples'])} samples: resident memory {rss['first']} MB to {rss['last']} MB "
               f"(drift {100 * rss['drift']:+.2f} %, growth {100 * rss['growth']:+.2f} %; range {rss['min']} to {rss['max']} MB, spread {100 * rss['spread']:.2f} %; "
               f"untrimmed drift {100 * result['rss_untrimmed_mb']['drift']:+.2f} %, spread {100 * result['rss_untrimmed_mb']['spread']:.2f} %); "
-              f"GL objects {gl['first']:.0f} to {gl['last']:.0f} (drift {100 * gl['drift']:+.2f} %, spread {100 * gl['spread']:.2f} %)")
+              f"GL objects {gl['first']:.0f} to {gl['last']:.0f} (drift {100 * gl['drift']:+.2f} %, spread {100 * gl['spread']:.2f} %)"
+              + (f"; Python heap held {result['heap_mb']['min']} to {result['heap_mb']['max']} MB (rise {result['heap_mb']['rise']:+.2f} MB)" if args.heap else ""))
     print(f"faults {len(result['faults'])}")
     for fault in result["faults"][:20]:
         print(f"  fault: {fault}")
@@ -713,6 +714,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--every", type=int, default=250, help="frames between samples")
     p.add_argument("--size", default="320x180", help="frame size WxH (small: the soak is about growth, not pixels)")
     p.add_argument("--scene", type=Path, help="a scene file (default: the default scene, the game as shipped)")
+    p.add_argument("--heap", action="store_true", help="also trace the Python heap after the warm-up (tracemalloc: slower, exact)")
     p.add_argument("--json", type=Path, help="write the samples and figures here")
     p.set_defaults(run=bench_soak)
     p = sub.add_parser("fragment", help="the fragment processor (GL 3.3 / 4.1) against the compute one: its two passes and the fill floor, GPU ms")

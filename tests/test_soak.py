@@ -1,6 +1,7 @@
 """The soak, short: the game as shipped (the mixed horde in the town, the scripted survivor through its
-rounds) headless; after the warm-up its resident memory and live GL objects stay within 2 % and no
-fault is logged. ``crowd-bench soak`` runs the issue's 20,000 frames at 10,000 agents (docs/BENCHMARKS.md)."""
+rounds) headless; after the warm-up its Python heap and live GL objects do not grow, its resident
+memory does not grow grossly, and no fault is logged. ``crowd-bench soak`` runs the issue's 20,000
+frames at 10,000 agents (docs/BENCHMARKS.md)."""
 
 from __future__ import annotations
 
@@ -17,14 +18,15 @@ def test_a_short_soak_holds_memory_and_gl_objects_and_logs_no_fault(gl_context, 
     # around the survivor and the pressure does not build (a newcomer's round lasts a minute).
     scene = tmp_path / "soak.toml"
     scene.write_text("[ai]\nstart_clear = 0.0\nalert_rate = 0.0\n")
-    result = run_soak(agents=300, frames=640, size=(96, 54), warmup=320, every=20, scene_path=scene)
+    result = run_soak(agents=300, frames=640, size=(96, 54), warmup=320, every=20, scene_path=scene, heap=True)
     assert result["faults"] == []
     assert len(result["samples"]) == 17 and result["samples"][-1]["agents"] == 300 and result["rounds"] >= 3
-    # A leak grows: memory may fall back past the warm-up (glibc handing freed frames back to the system:
-    # -3.6 % and -6.3 % in two runs once meshes merged and the cull's lists shrank) but may not rise. The
-    # resident memory swings between two levels on llvmpipe (bench.soak says so), so the floor and ceiling
-    # of the samples are what may not rise, not their quartiles' medians (-5.9 % and +3.8 % on one tree).
-    assert result["rss_mb"]["growth"] <= 0.02, result["rss_mb"]
+    # A leak grows. The Python heap (numpy's arrays included), traced from before the first sample, holds
+    # 0.0 to 1.1 MB as rounds come and go; a leak of 3 KB a frame would raise it by 1 MB over these frames.
+    assert result["heap_mb"]["rise"] <= 1.0, result["heap_mb"]
+    # The resident memory swings between two levels on llvmpipe, about 12 % apart, and changed level for
+    # good once in three runs of one tree (bench.soak says so): it is a check on gross growth only.
+    assert result["rss_mb"]["growth"] <= 0.25, result["rss_mb"]
     assert result["gl_objects"]["spread"] <= 0.02, result["gl_objects"]
 
 
