@@ -61,7 +61,8 @@ bool splat_rect(Agent agent, inout Impostor im, out ivec2 first, out ivec2 last)
 }
 
 void main() {
-    uint i = gl_GlobalInvocationID.x;
+    // (Two-dimensional where one dimension's groups would pass GL's guaranteed 65,535: a 4K viewport's clear.)
+    uint i = gl_GlobalInvocationID.y * gl_NumWorkGroups.x * gl_WorkGroupSize.x + gl_GlobalInvocationID.x;
     if (u_pass == 0) {
         if (i < uint(u_size.x * u_size.y)) {
             splat_depth[i] = 0xFFFFFFFFu;

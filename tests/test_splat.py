@@ -90,6 +90,20 @@ def test_the_splat_is_made_only_where_it_draws(gpu):
             p.frame(target.framebuffer, 1 / 30)
 
 
+def test_a_viewport_of_more_pixels_than_one_dispatch_row_is_cleared_whole(gpu):
+    """A 4K view has more pixels than 65,535 work groups of 64 (what GL promises a dispatch dimension):
+    the clear runs in rows, so every pixel no impostor covers stays empty."""
+    size = (2100, 2100)  # 4,410,000 pixels: 68,907 groups
+    with Offscreen(gpu, size) as target, CrowdPipeline(gpu, PipelineConfig(agents=300, seed=1, impostors="on", weapons=False)) as p:
+        p.camera = p.overview_camera(1.0)
+        p.frame(target.framebuffer, 1 / 30)
+        assert gpu.error == "GL_NO_ERROR"
+        depth = np.frombuffer(p.renderer.splat.pixels[0].read(), np.uint32)
+        splatted = int(np.frombuffer(p.renderer.splat.counts.read(), np.uint32)[0])
+        covered = int(np.count_nonzero(depth != 0xFFFFFFFF))
+        assert depth.size == size[0] * size[1] and covered <= 64 * max(splatted, 1), (covered, splatted)
+
+
 def test_a_quad_too_wide_for_the_splat_stays_a_quad():
     """MAX_SIDE bounds an invocation's pixels; the height rule alone would let a lying agent's wide quad
     through, so it is a separate check, and both are below the blend's threshold."""

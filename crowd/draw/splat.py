@@ -39,9 +39,18 @@ SPLAT_PX = 8.0  # impostors shorter than this many pixels are splatted (docs/BEN
 HELD_PX = 4.0
 MAX_SIDE = 16  # pixels: a quad whose screen rectangle spans more either way (lying, or seen wide) stays a quad
 GROUP = 64  # impostor_splat.comp.glsl's local size
+MAX_GROUPS_X = 32768  # work groups a dispatch row (within GL's guaranteed 65,535)
 CLEAR, SORT, REQUEUE, WINNER, COLOUR = range(5)  # its passes
 # What reads the passes' writes: the shaders (storage), the quads' draws (their commands and entries).
 _BARRIER = 0x2000 | 0x40 | 0x1  # GL_SHADER_STORAGE_BARRIER_BIT | GL_COMMAND_BARRIER_BIT | GL_VERTEX_ATTRIB_ARRAY_BARRIER_BIT
+
+
+def _run_over(prog, invocations: int) -> None:
+    """Dispatch `prog` over at least `invocations` (GROUP a work group), in rows of at most MAX_GROUPS_X
+    groups: GL promises 65,535 groups a dimension, and a 4K viewport's pixels need 129,600."""
+    groups = math.ceil(invocations / GROUP)
+    across = min(groups, MAX_GROUPS_X)
+    prog.run(across, math.ceil(groups / across), 1)
 
 
 class ImpostorSplat(GLStage):
@@ -100,7 +109,6 @@ class ImpostorSplat(GLStage):
         renderer.gpu.commands.bind_to_storage_buffer(1)
         for binding, buffer in enumerate((*self.pixels, self.sorted, self.counts), start=2):
             buffer.bind_to_storage_buffer(binding)
-        groups = math.ceil(max(records, 1) / GROUP)
         for step in (CLEAR, SORT, REQUEUE, WINNER, COLOUR):
             if step != CLEAR:
                 self.ctx.memory_barrier(_BARRIER)
@@ -110,9 +118,9 @@ class ImpostorSplat(GLStage):
                     renderer.bind_impostor(character, prog)
                 set_uniforms(prog, u_pass=step)
                 if step == CLEAR:
-                    prog.run(math.ceil(max(size[0] * size[1], 2 * len(draws)) / GROUP))
+                    _run_over(prog, max(size[0] * size[1], 2 * len(draws)))
                     break
-                prog.run(groups)
+                _run_over(prog, max(records, 1))
         self.ctx.memory_barrier(_BARRIER)
         self._unresolved = True
 
