@@ -475,7 +475,7 @@ class CrowdPipeline(LiveSettings, GLStage):
                     motion = np.array([[*(survivor.position - self._survivor_ground), *survivor.heading]], np.float32)
                     self._survivor_ground = survivor.position.copy()
             clip, within = (self._forced_clip(overrides), self._block(overrides)) if overrides else ((1.0, 1.0, True), None)
-            with t.gpu("layers"):  # every agent's layers written and copied into the processor's input
+            with t.gpu("layers"):  # every agent's layers written into the buffer the processor reads
                 crowd.upload(self.processor, layers, motion, overrides, self.ai.time, clip, within, stepped)
         extra = None
         if survivor is not None:

@@ -54,9 +54,8 @@ void main() {
     if (albedo.a < 0.5) discard;
 #ifndef DEPTH_ONLY
     vec3 n = turn_about_y(v_heading, oct_decode(oct / albedo.a * 2.0 - 1.0));
-    vec3 world = v_world + v_toward * ((depth / albedo.a * 2.0 - 1.0) * v_depth_range);
-    vec4 clip = u_view_proj * vec4(world, 1.0);
-    gl_FragDepth = clamp(clip.z / clip.w * 0.5 + 0.5, 0.0, 1.0);
+    vec3 world = atlas_surface(v_world, v_toward, depth / albedo.a, v_depth_range);
+    gl_FragDepth = window_depth(u_view_proj, world);
     o_color = vec4(shade(albedo.rgb / albedo.a * v_tint.rgb, world, n), 1.0);
 #endif
 }

@@ -20,3 +20,15 @@ vec3 cell_coord(int cell, vec2 corner) {
 float atlas_depth(vec4 normal_depth) {
     return (normal_depth.z * (255.0 * 256.0) + normal_depth.w * 255.0) / 65535.0;
 }
+
+// The surface point the atlas's depth (0 to 1 across the clip's depth range either side of the quad,
+// already divided by the coverage) puts at `on_quad`, a point of the quad's plane.
+vec3 atlas_surface(vec3 on_quad, vec3 toward, float depth, float depth_range) {
+    return on_quad + toward * ((depth * 2.0 - 1.0) * depth_range);
+}
+
+// A camera-relative point's window depth, 0 to 1.
+float window_depth(mat4 view_proj, vec3 world) {
+    vec4 clip = view_proj * vec4(world, 1.0);
+    return clamp(clip.z / clip.w * 0.5 + 0.5, 0.0, 1.0);
+}

@@ -115,9 +115,8 @@ void main() {
             vec4 albedo = textureLod(u_atlas_albedo, at, 0.0);
             if (albedo.a < 0.5) continue;
             vec4 nd = textureLod(u_atlas_normal_depth, at, 0.0);
-            vec3 world = on_quad + im.toward * ((atlas_depth(nd) / albedo.a * 2.0 - 1.0) * im.box.w);
-            vec4 clip = u_view_proj * vec4(world, 1.0);
-            uint depth = floatBitsToUint(clamp(clip.z / clip.w * 0.5 + 0.5, 0.0, 1.0));  // (>= 0: its bits order as the floats)
+            vec3 world = atlas_surface(on_quad, im.toward, atlas_depth(nd) / albedo.a, im.box.w);
+            uint depth = floatBitsToUint(window_depth(u_view_proj, world));  // (>= 0: its bits order as the floats)
             int pixel = y * u_size.x + x;
             if (u_pass == 1) {
                 atomicMin(splat_depth[pixel], depth);

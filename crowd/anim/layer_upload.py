@@ -68,7 +68,7 @@ class LayerUpload:
     def _own_layers(self):
         """The compute path's own layer buffer (zeros: weight 0, the rest pose), made at its first use."""
         if self._layer_buffer is None:
-            self._layer_buffer = self.ctx.buffer(bytes(max(self._layer_rows * self.layer_agents_per_row * self.layer_count * 16, 16)))
+            self._layer_buffer = self.ctx.buffer(bytes(max(self.layer_bytes(), 16)))
             self._own["layers"].append(self._layer_buffer)
         return self._layer_buffer
 

@@ -59,7 +59,7 @@ from .shadows import CASCADES, Cascades
 from .splat import HELD_PX, SPLAT_PX, ImpostorSplat
 from .draw_programs import draw_program, lighting_defines
 from .drawn_counts import DrawnCounts
-from .view import CascadeCache, FrameView, frustum_planes, gl_bytes, view_proj
+from .view import CascadeCache, FrameView, focal_px, frustum_planes, gl_bytes, view_proj
 
 IMPOSTOR_PIECE = "impostor"  # the piece name of a character's impostor draw (crowd.draw.impostors)
 ENTRY_FORMAT = ("1u/i", "i_entry")  # a list's entries, one an instance (shaders/agent_instance.glsl)
@@ -177,6 +177,7 @@ class CrowdRenderer(DrawnCounts, GLStage):
                     groups[m.group].append(m.piece)
             self.groups.append(groups)
         self.group_names = list(dict.fromkeys(g for groups in self.groups for g in groups))
+        self._held_group = self.group_names.index(HELD_GROUP) if HELD_GROUP in self.group_names else -1  # (the cull's, for HELD_PX)
         self._build_draws(ctx, per_character, atlases)
         self.shadows = shadows
         for draw in self.draws if shadows else ():
@@ -453,7 +454,7 @@ class CrowdRenderer(DrawnCounts, GLStage):
         made for the reference view (crowd.asset.lod), scaled by its pixels a metre against the reference's."""
         scale = 1.0
         if self._view_height > 0:
-            scale = (self._view_height / math.tan(math.radians(fov_y) / 2.0)) / (REFERENCE_HEIGHT_PX / math.tan(math.radians(REFERENCE_FOV_Y) / 2.0))
+            scale = focal_px(self._view_height, fov_y) / focal_px(REFERENCE_HEIGHT_PX, REFERENCE_FOV_Y)
         if scale != self._view_scale:
             self._view_scale = scale
             if any(c.lod_distances for c in self.cast):
@@ -599,10 +600,9 @@ class CrowdRenderer(DrawnCounts, GLStage):
         if self.feedback is not None:
             self.feedback.run(planes, self.culling, shadow_planes, reach)
         else:
-            # Impostors under HELD_PX hold no weapon in the view (crowd.draw.splat); the height is the last colour pass's.
-            focal = 0.5 * self._view_height / math.tan(math.radians(fov_y) / 2.0)
+            # Impostors under HELD_PX hold no weapon in the view (crowd.draw.splat), at the view's height (set_view_height).
             self.gpu.run(planes, self.culling, shadow_planes, reach, occlusion=None if self.pyramid is None else (self.pyramid, eye),
-                         palette=processor, held=(self.group_names.index(HELD_GROUP) if HELD_GROUP in self.group_names else -1, focal, HELD_PX))
+                         palette=processor, held=(self._held_group, focal_px(self._view_height, fov_y), HELD_PX))
         return True
 
     @property
@@ -696,7 +696,7 @@ class CrowdRenderer(DrawnCounts, GLStage):
         try:
             # (The unskinned benchmark ceiling reads no palette, so no pairs: its pieces draw without morphs.)
             matrix = gl_bytes(view.view_proj)
-            focal = 0.5 * framebuffer.viewport[3] / math.tan(math.radians(view.camera.fov_y) / 2.0)  # pixels a metre at one metre's depth
+            focal = focal_px(framebuffer.viewport[3], view.camera.fov_y)
             for layout, morph in sorted({(layout, morph and skinned is True) for layout, morph in self._variants()}):
                 if layout == "impostor" and skinned is not True:  # the unskinned ceiling binds no palette, so no keys
                     continue

@@ -31,7 +31,7 @@ import numpy as np
 
 from ..gl import GLObjects, GLStage, load_shader, set_uniforms
 from .draw_programs import fixed_units
-from .view import gl_bytes
+from .view import focal_px, gl_bytes
 
 SPLAT_PX = 8.0  # impostors shorter than this many pixels are splatted (docs/BENCHMARKS.md: the measured choice)
 # An impostor whose bound spans fewer pixels than this holds no weapon in the view (shaders/cull.comp.glsl):
@@ -96,7 +96,7 @@ class ImpostorSplat(GLStage):
         if min(size) <= 0:  # (a minimised window: no pixel to splat into, and the quads draw nothing there either)
             return
         self._ensure(size, records, len(draws))
-        focal = 0.5 * size[1] / math.tan(math.radians(view.camera.fov_y) / 2.0)
+        focal = focal_px(size[1], view.camera.fov_y)
         constants = {"u_view_proj": gl_bytes(view.view_proj), "u_inverse_view_proj": gl_bytes(np.linalg.inv(np.asarray(view.view_proj, np.float64))),
                      "u_size": size, "u_focal_px": float(focal), "u_splat_px": float(splat_px), "u_max_side": MAX_SIDE, "u_draws": len(draws),
                      "u_region": self._records}

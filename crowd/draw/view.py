@@ -67,6 +67,12 @@ class CascadeCache:
         return self._planes[1]
 
 
+def focal_px(height_px: float, fov_y: float) -> float:
+    """Pixels a metre spans at a metre's depth in a view `height_px` rows tall with a vertical field of
+    view of `fov_y` degrees: an object's height on screen is its height times this over its depth."""
+    return 0.5 * float(height_px) / math.tan(math.radians(fov_y) / 2.0)
+
+
 def gl_bytes(matrix: np.ndarray) -> bytes:
     """A 4x4 matrix (rows as in the maths) in the column-major order GLSL's mat4 expects."""
     return np.ascontiguousarray(np.asarray(matrix, np.float32).T).tobytes()
