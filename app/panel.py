@@ -71,22 +71,22 @@ class Panel:
     # -- actions: the only way the panel changes anything
 
     ACTIONS = {
-        "agents": "set_agent_count", "seed": "set_seed", "crossfade": "set_crossfade", "time_scale": "set_time_scale",
         "pause": "set_paused", "step": "step_once", "clip_speed": "set_clip_speed", "clip_loop": "set_clip_loop",
-        "play": "play", "weight": "set_weight", "rebake": "start_rebake", "measure_error": "measure_error", "lod": "set_lod_distances", "culling": "set_culling", "occlusion": "set_occlusion",
-        "lod_fade": "set_lod_fade", "lod_error_px": "set_lod_error_px", "impostors": "set_impostors", "impostor_distance": "set_impostor_distance",
-        "shadows": "set_shadows", "weapons": "set_weapons", "latency": "set_readback_latency", "cull": "set_cull_path",
-        "foot_lock": "set_foot_lock", "morph": "set_morph_weight", "morphs": "set_morphs",
+        "play": "play", "weight": "set_weight", "rebake": "start_rebake", "measure_error": "measure_error", "morph": "set_morph_weight",
     }
 
     def apply(self, action: str, *args, **kwargs) -> bool:
-        """Run one control's action; False (and the reason in the status line) when it was refused."""
+        """Run one control's action (a setting's name sets it through the session's one path); False (and
+        the reason in the status line) when it was refused."""
         try:
             if action == "save":
                 backup = self.session.save(self.scene_path)
                 self.status = f"saved {self.scene_path}" + (f" (previous kept as {backup.name})" if backup else "")
-            else:
+            elif action in self.ACTIONS:
                 getattr(self.session, self.ACTIONS[action])(*args, **kwargs)
+                self.status = ""
+            else:
+                self.session.set(action, *args)
                 self.status = ""
             return True
         except (CrowdError, OSError) as exc:
@@ -324,7 +324,7 @@ class Panel:
                        f"({e['poses']} poses, GPU)")
         changed, distances = imgui.drag_float3("LOD distances (m)", list(p.renderer.lod_distances), 0.5, *LOD.slider)
         if changed:
-            self.apply("lod", *map(float, np.maximum.accumulate(distances)))  # dragging one past the next pushes the next along
+            self.apply("lod_distances", tuple(map(float, np.maximum.accumulate(distances))))  # dragging one past the next pushes the next along
         if any(m.character.lod_distances for m in p.cast):  # only a character with generated LODs reads it
             changed, pixels = imgui.slider_float("LOD error (px)", float(p.config.lod_error_px), *LOD_ERROR.slider, "%.2f")
             if changed:
@@ -370,7 +370,7 @@ class Panel:
             imgui.text_wrapped(f"foot lock off: {lock['why']}")
         changed, latency = imgui.slider_int("read-back lag", p.latency, *LATENCY.slider, "%d frames")
         if changed:
-            self.apply("latency", latency)
+            self.apply("readback_latency", latency)
         if p.weapons is not None:
             w = weapon_stats(p)
             imgui.text_wrapped(f"{w['drawn']} weapons, pose lag {w['pose_lag_ms']:.1f} ms ({w['latency_frames']} frames x frame time), {w['stalls']} stalls")

@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from crowd.draw.frame_block import lighting_vectors
 from crowd.lighting import LIGHTING
 from .peer_work import FRAME_DT, agent_layout
 
@@ -273,14 +274,14 @@ class PandaSide:
         from crowd.gl import load_shader
 
         defines = {"HARDWARE_SKINNING": 1, "MAX_TRANSFORMS": max(joints + 1, 4)} if self.hardware else {}
-        shader = Shader.make(Shader.SL_GLSL, load_shader("bench/panda_actor.vert.glsl", defines), load_shader("skin.frag.glsl"))
+        shader = Shader.make(Shader.SL_GLSL, load_shader("bench/panda_actor.vert.glsl", defines), load_shader("skin.frag.glsl", {"FRAME_UNIFORMS": 1}))
         attrib = ShaderAttrib.make(shader)
         if self.hardware:
             attrib = attrib.setFlag(ShaderAttrib.F_hardware_skinning, True)
         self.root = self.base.render.attachNewNode("crowd")
         self.root.setAttrib(attrib)
-        for name, value in LIGHTING.items():
-            self.root.setShaderInput(name, tuple(float(v) for v in value) if isinstance(value, tuple) else float(value))
+        for name, value in lighting_vectors(LIGHTING["u_fog_density"]).items():  # (skin.frag.glsl's lighting, as plain uniforms)
+            self.root.setShaderInput(name, tuple(float(v) for v in value))
         self.lens = PerspectiveLens()
         self.base.cam.node().setLens(self.lens)
         self.base.win.setClearColor((0, 0, 0, 1))

@@ -19,6 +19,7 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
+from crowd.draw.frame_block import FRAME_DEFINES, use_frame_block
 from crowd.gl import Offscreen, describe, headless_context, load_shader
 from crowd.asset.gltf import load_character
 from crowd.files import atomic_write_bytes
@@ -121,14 +122,13 @@ def main(argv=None) -> int:
             vaos = {}
             for name, (layout, define, _) in VARIANTS.items():
                 defines = {layout: 1} | ({define: 1} if define else {})
-                prog = ctx.program(vertex_shader=load_shader("bench/vertex_layout.vert.glsl", defines), fragment_shader=load_shader("skin.frag.glsl"))
+                prog = ctx.program(vertex_shader=load_shader("bench/vertex_layout.vert.glsl", defines),
+                                   fragment_shader=load_shader("skin.frag.glsl", FRAME_DEFINES))
+                use_frame_block(prog)  # (its light: the renderer's frame block, written by prepare above)
                 own.append(prog)
                 for uniform, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
                     if uniform in prog:
                         prog[uniform] = unit
-                for uniform, value in (("u_sun_dir", (0.45, 0.75, 0.35)), ("u_sun_color", (1.7, 1.45, 1.1)), ("u_sky_color", (0.16, 0.2, 0.3))):
-                    if uniform in prog:
-                        prog[uniform] = value
                 prog["u_view_proj"].write(gl_bytes(view_proj))
                 vaos[name] = []
                 for draw in draws:

@@ -1,5 +1,5 @@
-"""One frame of the crowd, stage after stage: ai → read back → upload → process → gather → cull/LOD →
-attach → shadow → draw → weapons → ground.
+"""One frame of the crowd, stage after stage: ai → read back → upload → process → gather, then the
+draw's passes (crowd.frame_passes): cull/LOD → attach → shadow → splat → draw → weapons → ground.
 
 ``CrowdPipeline`` owns one instance of each stage and nothing else; each stage owns its GL objects.
 The headless smoke mode, the window (through crowd.session) and the benchmarks drive this same class.
@@ -30,7 +30,6 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections import deque
-from dataclasses import dataclass
 
 import moderngl
 import numpy as np
@@ -50,7 +49,7 @@ from .asset.town import build_town
 from .cast import CastMember, bake_member, character_motion, load_cast, player_motion
 from .draw.far_agents import FarAgents
 from .draw.readback import RING, SocketRead, SocketReadback
-from .draw.render import CrowdRenderer, FrameView, view_proj
+from .draw.render import CrowdRenderer, view_proj
 from .draw.sync import PaletteSync
 from .draw.town import TownRenderer
 from .draw.weapons import AgentFrames, WeaponRenderer
@@ -58,6 +57,7 @@ from .asset.model import cast_weapons
 from .frame import Camera, FrameError, Instances, LayerOverrides, cast_counts
 from .gl import GL_LIMITS, GLStage, feature_level, has_compute
 from .gpu_crowd import GpuCrowd
+from .frame_passes import DRAW_PASSES, FrameState, FrameWork
 from .live_settings import LiveSettings
 from .pipeline_config import PipelineConfig, PipelineError
 from .progress import bar
@@ -71,17 +71,6 @@ from .stages import CastPart, Stages
 from .timing import PassTimer, SampleRing
 
 FOOT_SKATE_SAMPLE = 32  # agents whose feet are read back for the stats' foot_skate: 128 entries beside the sockets
-
-
-@dataclass
-class FrameState:
-    """What the last frame decided, kept until the next one replaces it whole."""
-
-    index: int = -1  # the frame number (-1: none yet)
-    view: FrameView | None = None  # the camera, view and light matrices and visible set every pass got
-    read: SocketRead | None = None  # the socket read-back that arrived in this frame (from frame index - N)
-    row_offset: int | np.ndarray = 0  # the first palette row each agent was drawn from
-    agent_frames: AgentFrames | None = None  # where each agent stood, for the weapons
 
 
 class CrowdPipeline(LiveSettings, GLStage):
@@ -122,7 +111,7 @@ class CrowdPipeline(LiveSettings, GLStage):
         started.update(1)
         started.set_description(f"starting the crowd: {config.agents:,} agents")
         self.lock_steps = FootLockSteps()
-        self.latency = SETTINGS["readback_latency"].check(config.readback_latency, PipelineError)
+        SETTINGS["readback_latency"].check(config.readback_latency, PipelineError)
         self.crowd_cast = len(specs)  # the cast's first characters are the crowd's; a survivor comes after them
         for k in range(self.crowd_cast):
             self.cast[k].motion = character_motion(self.cast, k)
@@ -316,7 +305,8 @@ class CrowdPipeline(LiveSettings, GLStage):
 
     # -- the frame
 
-    def _run(self, name: str) -> None:
+    def note_pass(self, name: str) -> None:
+        """Name a pass in passes_run (once)."""
         if name not in self.passes_run:
             self.passes_run.append(name)
 
@@ -352,15 +342,20 @@ class CrowdPipeline(LiveSettings, GLStage):
             self.cpu_ms.append((time.thread_time() - start) * 1e3)
 
     def _frame(self, framebuffer: moderngl.Framebuffer, dt: float, overrides: LayerOverrides | None) -> FrameState:
-        t = self.timer
-        f = self.frames
+        """The crowd's step (ai → read back → upload → process → gather), on the GPU or with the numpy AI,
+        then the draw's passes (crowd.frame_passes.DRAW_PASSES)."""
         if overrides:
             forced = overrides.forced
             overrides.validate(len(self.member(forced.character if forced is not None else 0).bake.clips), LAYERS)
+        step = self._step_on_gpu if self.gpu_crowd is not None and self._gpu_path_holds() else self._step
+        return self._draw(step(framebuffer, dt, overrides))
+
+    def _step(self, framebuffer: moderngl.Framebuffer, dt: float, overrides: LayerOverrides | None) -> FrameWork:
+        """The numpy AI's step, the weapons' read-back, the layers' upload, the processor's pass and the
+        sockets' gather."""
+        t, f = self.timer, self.frames
         sim_time, ai_before = self.ai.time, self.ai
         survivor = self.survivor
-        if self.gpu_crowd is not None and self._gpu_path_holds():
-            return self._frame_gpu(framebuffer, dt, overrides, sim_time, ai_before)
         with t.cpu("ai"):
             if self.player_script is not None:
                 self.player_script.update(self.ai, survivor)
@@ -379,7 +374,7 @@ class CrowdPipeline(LiveSettings, GLStage):
             blocks = layers
             if survivor is not None:  # its row after the crowd's: its own block of layers (its instance: instances())
                 blocks = [layers, survivor.write_layers(self._survivor_layers)]
-        self._run("ai")
+        self.note_pass("ai")
         self.sync.spawned(np.flatnonzero(self.ai.spawned_step >= steps_before), f)  # respawned (or added) in this frame's step
         self._pose_lag.append(float(min(dt, self.ai.config.max_dt)))
         read = None
@@ -389,7 +384,7 @@ class CrowdPipeline(LiveSettings, GLStage):
                 read = self.readback.fetch(f - self.latency)
                 if read is not None:
                     read = self._split_feet(read)
-            self._run("readback")
+            self.note_pass("readback")
             if read is not None:
                 self.readback_waits.append(read.wait_ms)
                 self.readback_stalls += int(read.stalled)
@@ -410,15 +405,15 @@ class CrowdPipeline(LiveSettings, GLStage):
             agents = np.concatenate([armed, feet])
             joints = np.concatenate([self.weapons.socket_joints[agent_weapon[armed]], foot_joints])
             if self.readback.gather(f, self.processor, agents, joints, t):
-                self._run("gather")
-                self._run("transfer")
+                self.note_pass("gather")
+                self.note_pass("transfer")
                 self._socket_entries[f] = armed.size
                 sampled = feet[:: max(len(self.foot_skate.feet), 1)]
                 self.foot_skate.sent(f, sampled, instances.position[sampled][:, [0, 2]], instances.yaw[sampled],
                                      instances.scale[sampled], self.ai.time)
         # Each body's palette: frame F - N where the weapon read-back is from that frame, else this one.
         row_offset = self.sync.row_offsets(None if read is None else read.frame, self.processor.row_offset) if rows else 0
-        return self._render(framebuffer, f, instances, row_offset, read, agent_weapon)
+        return FrameWork(framebuffer, f, instances, row_offset, read, agent_weapon)
 
     def _process(self, f: int) -> None:
         """The processor's pass over this frame's uploaded input (with the morph weights the panel holds)."""
@@ -432,18 +427,19 @@ class CrowdPipeline(LiveSettings, GLStage):
         if rows:
             with t.gpu("process"):
                 self.processor.run()
-            self._run("process")
+            self.note_pass("process")
             if any(part.key for part in self.processor.layout.parts):
-                self._run("impostors")  # (the keys in the process pass; the quads in the shadow and draw passes)
+                self.note_pass("impostors")  # (the keys in the process pass; the quads in the shadow and draw passes)
             if any(part.morph for part in self.processor.layout.parts):
-                self._run("morph_weights")  # (in the process pass; the draws add the deltas: gpu_bytes' "morphs")
+                self.note_pass("morph_weights")  # (in the process pass; the draws add the deltas: gpu_bytes' "morphs")
             self.sync.processed(f, fresh=self.processor.runs == 1)  # a new palette: the frames kept before it are gone
 
-    def _frame_gpu(self, framebuffer: moderngl.Framebuffer, dt: float, overrides, sim_time: float, ai_before) -> FrameState:
-        """``frame`` with the crowd on the GPU (crowd.gpu_crowd): the player, the survivor's row and a
+    def _step_on_gpu(self, framebuffer: moderngl.Framebuffer, dt: float, overrides: LayerOverrides | None) -> FrameWork:
+        """``_step`` with the crowd on the GPU (crowd.gpu_crowd): the player, the survivor's row and a
         person's overrides go in, the facts of frame F - N come back, and every agent's step, layers,
         foot-lock motion and record are written on the GPU."""
         t, f, survivor, crowd = self.timer, self.frames, self.survivor, self.gpu_crowd
+        sim_time, ai_before = self.ai.time, self.ai
         steps_before = self.ai.steps
         with t.cpu("ai"):
             crowd.fetch(f)
@@ -464,7 +460,7 @@ class CrowdPipeline(LiveSettings, GLStage):
         self._clock_at[f] = (steps_before if self.ai is ai_before else 0, self.ai.time)  # (a new round's crowd began at step 0)
         for old in [k for k in self._clock_at if k < f - RING]:
             del self._clock_at[old]
-        self._run("ai")
+        self.note_pass("ai")
         self._pose_lag.append(float(min(dt, self.ai.config.max_dt)))
         with t.cpu("upload"):
             stepped = self.ai.time - sim_time if self.ai is ai_before else min(float(dt), self.ai.config.max_dt)
@@ -493,7 +489,7 @@ class CrowdPipeline(LiveSettings, GLStage):
             age = None if read is None else self.sync.age(read.frame)
             if age is not None:  # each body from the read-back's palette, but agents born after it from this frame's
                 row_offset = (self.processor.row_offset(age), latest, self._clock_at[read.frame][0])
-        return self._render(framebuffer, f, sim, row_offset, read, agent_weapon, fallen)
+        return FrameWork(framebuffer, f, sim, row_offset, read, agent_weapon, fallen)
 
     def _far_keys(self, crowd, sim, dt: float) -> None:
         """Agents drawn only as impostors get their key alone from this frame's processor run; a cut
@@ -521,7 +517,7 @@ class CrowdPipeline(LiveSettings, GLStage):
             got = crowd.sockets.fetch(f - self.latency)
             if got is not None and got[0].frame < self._crowd_since:  # gathered from a crowd since replaced or resized
                 got = None
-        self._run("readback")
+        self.note_pass("readback")
         read, down, feet = (None, None, None) if got is None else got
         if read is not None:
             self.readback_waits.append(read.wait_ms)
@@ -549,87 +545,21 @@ class CrowdPipeline(LiveSettings, GLStage):
         with self.timer.gpu("gather"):
             crowd.sockets.gather(f, sim, self.processor, texel_base, int(texel_code(0, self.processor.row_offset(0))), self.camera.eye,
                                  reach, extra, sampled)
-        self._run("gather")
+        self.note_pass("gather")
 
-    def _render(self, framebuffer: moderngl.Framebuffer, f: int, instances, row_offset, read, agent_weapon, fallen=None) -> FrameState:
-        """The frame after its processor pass: cull and LOD, weapons, shadows, draws, ground, depth pyramid.
-        A crowd on the GPU (`instances` a SimFrame) says who is down in `fallen` and has no agent frames:
-        its weapons are placed by the GPU cull from the records."""
-        t, survivor, rows = self.timer, self.survivor, self.rows
-        on_gpu = self.gpu_crowd is not None
-        self.renderer.set_view_height(framebuffer.viewport[3])
-        with t.cpu("cull_lod"):
-            # The CPU path culls and packs here; the GPU path packs and uploads every agent's record and
-            # then dispatches the cull ("cull": its GPU time; a query around the upload would also count
-            # the CPU's copying while the GPU waits for it).
-            # The shadow cascades cover the AI's world square (crowd.draw.shadows), known without a pass over the agents.
-            half, centre = self.ai.half_extent, self.ai.origin
-            top = 0.0 if self.town is None else self.town.height  # (the town's roofs cast shadows into the streets)
-            self.renderer.crowd_box = (np.array([centre[0] - half, 0.0, centre[1] - half]), np.array([centre[0] + half, top, centre[1] + half]))
-            view = self.renderer.prepare(self.camera, instances, row_offset, cull_now=False, palette=self.processor.layout)
-            if self.renderer.culls_on_gpu and rows:
-                with t.gpu("cull"):
-                    self.renderer.cull(self.processor)
-        self._run("cull_lod")
-        if self.town is not None:
-            with t.cpu("town_cull"):
-                self.town.prepare(view)
-            self._run("town_cull")
-        if self.renderer.culls_on_gpu and rows:
-            self._run("cull")
-        agent_frames = None
-        if self.weapons is not None:
-            with t.cpu("attach"):
-                if agent_weapon is None:
-                    agent_weapon = weapon_of_agent(self.ai, [m.character for m in self.cast], survivor)
-                if not on_gpu:
-                    agent_frames = AgentFrames(instances.position, instances.yaw, instances.scale, self.camera.eye)
-                    fallen = ~self.ai.alive() if survivor is None else np.append(~self.ai.alive(), False)
-                gpu = self.renderer.gpu
-                # (An agent drawn as its impostor alone holds its weapon in its impostor: none placed for it.)
-                shown, casting = (view.visible, view.casting) if view.held is None or view.visible is None else \
-                    (view.visible & ~view.held, None if view.casting is None else view.casting & ~view.held[None])
-                # (the GPU paths' visibility: the compute cull's buffers, or the feedback cull's texture)
-                visibility = (gpu.visible, gpu.agents_buffer) if gpu is not None else \
-                    self.renderer.feedback.visible if self.renderer.feedback is not None else None
-                synced = self.sync.synced(read, rows, row_offset[2] if on_gpu else None)
-                self.weapons.attach(synced, agent_frames, agent_weapon, shown, visibility, casting, view.lod, fallen=fallen)
-            self._run("attach")
-        self.last = FrameState(f, view, read, row_offset, agent_frames)
-        framebuffer.use()
-        framebuffer.clear(*self.renderer.clear_color(), 1.0, depth=1.0)
-        if self.renderer.shadows:
-            with t.gpu("shadow"):
-                self.renderer.shadow_pass(view, self.processor)
-                if self.weapons is not None and self.weapons.casts_shadows():
-                    self.weapons.depth_pass(view, self.renderer)
-                if self.town is not None:
-                    self.town.depth_pass(view, self.renderer)
-            self._run("shadow")
-        if self.renderer.draws_anything(rows):
-            if self.renderer.splat is not None:
-                with t.gpu("splat"):  # the smallest impostors, before the quads (crowd.draw.splat)
-                    self.renderer.splat_pass(framebuffer, view, self.processor)
-                self._run("splat")
-            with t.gpu("draw"):
-                self.renderer.color_pass(framebuffer, view, self.processor)
-            self._run("draw")
-        if self.weapons is not None and self.weapons.placed_any():
-            with t.gpu("weapons"):
-                self.weapons.color_pass(framebuffer, view, self.renderer)
-            self._run("weapons")
-        if self.town is not None:
-            with t.gpu("town"):
-                self.town.color_pass(framebuffer, view, self.renderer)
-            self._run("town")
-        with t.gpu("ground"):
-            self.renderer.ground_pass(framebuffer, view)
-        self._run("ground")
-        if self.renderer.pyramid is not None and rows:
-            with t.gpu("hiz"):  # the next frame's occlusion test reads this frame's depth
-                self.renderer.capture_depth(framebuffer, view)
-            self._run("hiz")
-        t.end_frame()
+    def _draw(self, w: FrameWork) -> FrameState:
+        """The frame after its processor pass: DRAW_PASSES, each run where the scene needs it, timed on
+        its clock and named in ``passes_run``."""
+        for step in DRAW_PASSES:
+            if not step.needed(self, w):
+                continue
+            if step.clock is None:
+                step.run(self, w)
+                continue
+            with (self.timer.gpu if step.clock == "gpu" else self.timer.cpu)(step.name):
+                step.run(self, w)
+            self.note_pass(step.name)
+        self.timer.end_frame()
         self.frames += 1
         return self.last
 
@@ -789,3 +719,4 @@ class CrowdPipeline(LiveSettings, GLStage):
             self.ai.close()
         self.timer.release()
         self.stages.release()
+

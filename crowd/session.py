@@ -22,18 +22,17 @@ from .anim.bake import BakeError
 from .anim.morph import ALL_HELD
 from .anim.processor_inputs import ProcessorError
 from .asset.model import cast_weapons
-from .draw.render import RenderError, view_proj
-from .draw.weapons import WeaponError
+from .draw.render import view_proj
 from .frame import CLIP, MASK, PHASE, WEIGHT, ForcedClip, LayerOverrides, cast_firsts
 from .gl import GLStage
 from .pipeline import CrowdPipeline
 from .pipeline_config import PipelineError
 from .scene import CameraSetting, Scene, SceneError, save_scene
-from .settings import SETTINGS, group
+from .live_settings import BAKE_SETTINGS
+from .settings import SETTINGS
 from .sim.config import LAYERS, STATE_NAMES, AIError
 from .sim.player import HEALTH, PlayerError
 
-AI_SETTINGS = group("ai")
 STRIKE_REACH = 2.0  # metres from the player
 PICK_RADIUS = 0.4  # metres: an agent is a vertical cylinder this wide and 1.9 m tall (times its scale)
 PICK_HEIGHT = 1.9
@@ -104,36 +103,30 @@ class CrowdSession(GLStage):
         self.paused = True
         self._pending_steps += 1
 
-    def set_time_scale(self, scale: float) -> None:
-        self.time_scale = SETTINGS["time_scale"].check(scale, SessionError)
+    # -- every setting by name: the panel, the command line, scripted controls and the tests all come here
 
-    # -- crowd
-
-    def set_agent_count(self, agents: int) -> None:
-        self.pipeline.set_agent_count(SETTINGS["agents"].check(agents, SessionError))
-        if self.selected >= self.pipeline.agents:
-            self.selected = -1
-
-    def set_seed(self, seed: int) -> None:
-        self.pipeline.set_seed(SETTINGS["seed"].check(seed, SessionError))
-
-    def set_ai(self, **settings) -> None:
-        """AI settings by name (cross-fade length: crossfade=0.4)."""
-        for name, value in settings.items():
-            if name not in AI_SETTINGS:
-                raise SessionError(f"unknown AI setting {name!r}")
-            settings[name] = AI_SETTINGS[name].check(value, SessionError)  # as the schema's type (a numpy float becomes float)
+    def set(self, name: str, value) -> None:
+        """Set one setting of crowd.settings on the running crowd: the session's time scale here, the rest
+        through the pipeline's one mechanism (crowd.live_settings), which rebuilds only what the setting
+        touches. A refusal is SessionError, one line, and nothing
+        changes."""
+        if name == "time_scale":
+            self.time_scale = SETTINGS["time_scale"].check(value, SessionError)
+            return
+        if name in BAKE_SETTINGS and self._rebake is not None:
+            raise SessionError("a re-bake is under way; wait for it to finish")
         try:
-            self.pipeline.set_ai_config(dataclasses.replace(self.pipeline.config.ai, **settings))
-        except AIError as exc:
-            raise SessionError(str(exc)) from None
+            self.pipeline.set(name, value)
+        except CrowdError as exc:
+            raise SessionError(str(exc).splitlines()[0]) from None
+        if name in BAKE_SETTINGS:
+            self.bake_error = None  # (measured for the bake it replaced)
+        if name == "agents" and self.selected >= self.pipeline.agents:
+            self.selected = -1
 
     def ai_setting(self, name: str):
         """The current value of one AI setting (the panel's sliders start from it)."""
         return getattr(self.pipeline.config.ai, name)
-
-    def set_crossfade(self, seconds: float) -> None:
-        self.set_ai(crossfade=float(seconds))
 
     # -- clips (each character of the cast has its own; `character` is its index, 0 the first)
 
@@ -339,59 +332,7 @@ class CrowdSession(GLStage):
         self.bake_error = {**accuracy.summarise(np.concatenate([e.ravel() for e in errors])), "poses": int(poses)}
         return self.bake_error
 
-    def set_lod_distances(self, *distances: float) -> None:
-        """Metres from the camera where LOD1, LOD2 and LOD3 start."""
-        self.pipeline.set_lod_distances(*SETTINGS["lod_distances"].check(distances, SessionError))
-
-    def set_cull_path(self, path: str) -> None:
-        """Cull, pick LODs and build the instance lists on the GPU or the CPU ("auto": the GPU where it can)."""
-        try:
-            self.pipeline.set_cull_path(SETTINGS["cull"].check(path, SessionError))
-        except (RenderError, WeaponError) as exc:
-            raise SessionError(str(exc)) from None
-
-    def set_culling(self, on: bool) -> None:
-        self.pipeline.set_culling(SETTINGS["culling"].check(on, SessionError))
-
-    def set_occlusion(self, on: bool) -> None:
-        self.pipeline.set_occlusion(SETTINGS["occlusion"].check(on, SessionError))
-
-    def set_foot_lock(self, on: bool) -> None:
-        self.pipeline.set_foot_lock(SETTINGS["foot_lock"].check(on, SessionError))
-
-    def set_morphs(self, on: bool) -> None:
-        self.pipeline.set_morphs(SETTINGS["morphs"].check(on, SessionError))
-
-    def set_impostors(self, mode: str) -> None:
-        """Far agents drawn as impostors: "auto", "on" or "off" (the atlas made or dropped), live."""
-        self.pipeline.set_impostors(SETTINGS["impostors"].check(mode, SessionError))
-
-    def set_lod_fade(self, metres: float) -> None:
-        self.pipeline.set_lod_fade(SETTINGS["lod_fade"].check(metres, SessionError))
-
-    def set_lod_error_px(self, pixels: float) -> None:
-        self.pipeline.set_lod_error_px(SETTINGS["lod_error_px"].check(pixels, SessionError))
-
-    def set_impostor_distance(self, metres: float) -> None:
-        self.pipeline.set_impostor_distance(SETTINGS["impostor_distance"].check(metres, SessionError))
-
-    def set_shadows(self, on: bool) -> None:
-        self.pipeline.set_shadows(SETTINGS["shadows"].check(on, SessionError))
-
-    def set_weapons(self, on: bool) -> None:
-        self.pipeline.set_weapons(SETTINGS["weapons"].check(on, SessionError))
-
-    def set_readback_latency(self, frames: int) -> None:
-        self.pipeline.set_readback_latency(SETTINGS["readback_latency"].check(frames, SessionError))
-
-    def set_processor_path(self, path: str) -> None:
-        """Run the animation on another processor path (compute or the GL 3.3 fragment pass), live."""
-        try:
-            self.pipeline.set_processor_path(SETTINGS["processor"].check(path, SessionError))
-        except ProcessorError as exc:
-            raise SessionError(str(exc)) from None
-
-    # -- every setting by name: what the schema test and scripted controls use
+    # -- the agent the panel follows
 
     @property
     def selected(self) -> int:
@@ -414,32 +355,6 @@ class CrowdSession(GLStage):
         return {"agent": a, "x": float(ai.x[a]), "z": float(ai.z[a]), "vx": float(ai.vx[a]), "vz": float(ai.vz[a]),
                 "phase": float(ai.phase[a]), "scale": float(ai.scale[a]), "state": int(ai.state[a]), "action": int(ai.action[a]),
                 "health": int(ai.health[a])}
-
-    def apply_setting(self, name: str, value) -> None:
-        """Set one setting of crowd.settings by its name, through the control that owns it. Per-clip and
-        per-layer ones (playback speed: use
-        set_clip_speed; held weights: set_weight) are refused with a line saying so."""
-        bake = self.pipeline.bake
-        controls = {
-            "agents": self.set_agent_count, "seed": self.set_seed, "time_scale": self.set_time_scale,
-            "bake_fps": lambda v: self.rebake(v, bake.precision), "precision": lambda v: self.rebake(bake.fps, v),
-            "interpolation": lambda v: self.rebake(bake.fps, bake.precision, v), "processor": self.set_processor_path,
-            "compression_bound_mm": lambda v: self.rebake(bake.fps, bake.precision, bound_mm=v),
-            "shadows": self.set_shadows, "culling": self.set_culling, "occlusion": self.set_occlusion, "weapons": self.set_weapons,
-            "lod_distances": lambda v: self.set_lod_distances(*SETTINGS["lod_distances"].check(v, SessionError)),
-            "readback_latency": self.set_readback_latency, "cull": self.set_cull_path, "foot_lock": self.set_foot_lock,
-            "morphs": self.set_morphs, "impostors": self.set_impostors, "impostor_distance": self.set_impostor_distance,
-            "lod_fade": self.set_lod_fade, "lod_error_px": self.set_lod_error_px,
-        }
-        if name in ("model_scale", "survivor", "town", "gl", "ai_path"):  # what the cast, its world and its GL paths are: set when the crowd is built
-            SETTINGS[name].check(value, SessionError)
-            raise SessionError(f"{SETTINGS[name].words} is applied when the crowd is built: save the scene and run it again")
-        if name in AI_SETTINGS:
-            self.set_ai(**{name: value})
-        elif name in controls:
-            controls[name](value)
-        else:
-            raise SessionError(f"{name!r} is not a setting a running crowd takes")
 
     # -- the player and picking
 

@@ -15,7 +15,6 @@ in vec2 v_corner;
 #include "lighting.glsl"
 #include "octahedral.glsl"
 #include "vertex_packing.glsl"
-uniform mat4 u_view_proj;
 in vec3 v_world;
 flat in vec3 v_toward;
 flat in float v_depth_range;
@@ -55,7 +54,7 @@ void main() {
 #ifndef DEPTH_ONLY
     vec3 n = turn_about_y(v_heading, oct_decode(oct / albedo.a * 2.0 - 1.0));
     vec3 world = atlas_surface(v_world, v_toward, depth / albedo.a, v_depth_range);
-    gl_FragDepth = window_depth(u_view_proj, world);
+    gl_FragDepth = window_depth(u_camera_view_proj, world);
     o_color = vec4(shade(albedo.rgb / albedo.a * v_tint.rgb, world, n), 1.0);
 #endif
 }

@@ -5,7 +5,12 @@
 // which takes them out of the colour pass's list.
 in vec2 in_corner;          // the quad's corner, (0 or 1, 0 or 1): its place in a cell
 
-uniform mat4 u_view_proj;   // camera-relative
+#ifdef DEPTH_ONLY
+uniform mat4 u_view_proj;  // the shadow cascade's, camera-relative
+#else
+#include "frame.glsl"
+#define u_view_proj u_camera_view_proj
+#endif
 #include "palette.glsl"
 #include "vertex_packing.glsl"
 #include "agent_instance.glsl"

@@ -14,7 +14,7 @@
 // draws the pixels into the frame.
 layout(local_size_x = 64) in;
 
-uniform mat4 u_view_proj;          // camera-relative
+#include "frame.glsl"
 uniform mat4 u_inverse_view_proj;  // its inverse: a pixel's ray from the camera
 #include "palette.glsl"
 #include "vertex_packing.glsl"
@@ -44,12 +44,12 @@ uniform int u_max_side;    // pixels: a quad whose rectangle spans more is left 
 
 // The pixels whose centres the quad's screen rectangle holds, and whether it is splatted at all.
 bool splat_rect(Agent agent, inout Impostor im, out ivec2 first, out ivec2 last) {
-    bool small = agent.fade == 255u && impostor_shorter(im, impostor_centre(agent, im, u_view_proj), u_focal_px, u_splat_px);
+    bool small = agent.fade == 255u && impostor_shorter(im, impostor_centre(agent, im, u_camera_view_proj), u_focal_px, u_splat_px);
     impostor_nearest(im);
     impostor_rect(im);
     vec2 lo = vec2(1e30), hi = vec2(-1e30);
     for (int k = 0; k < 4; ++k) {
-        vec4 q = u_view_proj * vec4(impostor_point(agent, im, mix(im.rect.xy, im.rect.zw, vec2(k & 1, k >> 1))), 1.0);
+        vec4 q = u_camera_view_proj * vec4(impostor_point(agent, im, mix(im.rect.xy, im.rect.zw, vec2(k & 1, k >> 1))), 1.0);
         if (q.w <= 1e-6) small = false;
         vec2 p = (q.xy / q.w * 0.5 + 0.5) * vec2(u_size);
         lo = min(lo, p);
@@ -116,7 +116,7 @@ void main() {
             if (albedo.a < 0.5) continue;
             vec4 nd = textureLod(u_atlas_normal_depth, at, 0.0);
             vec3 world = atlas_surface(on_quad, im.toward, atlas_depth(nd) / albedo.a, im.box.w);
-            uint depth = floatBitsToUint(window_depth(u_view_proj, world));  // (>= 0: its bits order as the floats)
+            uint depth = floatBitsToUint(window_depth(u_camera_view_proj, world));  // (>= 0: its bits order as the floats)
             int pixel = y * u_size.x + x;
             if (u_pass == 1) {
                 atomicMin(splat_depth[pixel], depth);

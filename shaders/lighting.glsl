@@ -1,18 +1,10 @@
 // Shared lighting for the crowd and the ground: a low sun with soft shadows, a cool sky and warm
 // ground bounce, a rim light so silhouettes read against the ground, and distance fog.
-uniform vec3 u_sun_dir;         // toward the sun, unit
-uniform vec3 u_sun_color;
-uniform vec3 u_sky_color;
-uniform vec3 u_ground_color;
-uniform vec3 u_fog_color;
-uniform float u_fog_density;
+#include "frame.glsl"
 #ifdef SHADOWS
 // CASCADES tiles side by side in one depth texture (crowd/draw/shadows.py): a fragment takes the
 // first cascade whose tile holds it, with its PCF kernel inside the tile.
-uniform sampler2DShadow u_shadow_map;
-uniform mat4 u_light_view_proj[CASCADES];  // camera-relative, like the positions
-uniform float u_shadow_texel[CASCADES];    // metres a texel covers
-uniform float u_shadow_bias[CASCADES];     // depth bias, in the tile's depth units
+uniform sampler2DShadow u_shadow_map;  // (the cascades' matrices, texels and biases: frame.glsl)
 #endif
 
 float sun_visibility(vec3 world, vec3 n) {
@@ -22,12 +14,12 @@ float sun_visibility(vec3 world, vec3 n) {
     for (int k = 0; k < CASCADES; ++k) {
         // Offset along the normal by 1.5 texels of this cascade against acne, then a PCF of four
         // filtered taps half a texel off each way (each tap compares 2x2 texels: a tent over 3x3).
-        vec4 l = u_light_view_proj[k] * vec4(world + n * (1.5 * u_shadow_texel[k]), 1.0);
+        vec4 l = u_light_view_proj[k] * vec4(world + n * (1.5 * u_cascade[k].x), 1.0);
         vec3 uvz = l.xyz / l.w * 0.5 + 0.5;
         float edge = 2.0 * texel.y;  // the kernel's reach, in tile units (tiles are square)
         if (any(lessThan(uvz, vec3(edge, edge, 0.0))) || any(greaterThan(uvz, vec3(1.0 - edge, 1.0 - edge, 1.0)))) continue;
         vec2 uv = vec2((uvz.x + float(k)) * tile, uvz.y);
-        float z = uvz.z - u_shadow_bias[k];
+        float z = uvz.z - u_cascade[k].y;
         float lit = texture(u_shadow_map, vec3(uv + vec2(-0.5, -0.5) * texel, z)) + texture(u_shadow_map, vec3(uv + vec2(0.5, -0.5) * texel, z))
                   + texture(u_shadow_map, vec3(uv + vec2(-0.5, 0.5) * texel, z)) + texture(u_shadow_map, vec3(uv + vec2(0.5, 0.5) * texel, z));
         return lit * 0.25;
@@ -40,11 +32,11 @@ float sun_visibility(vec3 world, vec3 n) {
 
 vec3 shade(vec3 albedo, vec3 world, vec3 n) {
     vec3 view = normalize(-world);  // the camera is at the origin
-    float ndl = max(dot(n, u_sun_dir), 0.0);
-    vec3 ambient = mix(u_ground_color, u_sky_color, 0.5 + 0.5 * n.y);
+    float ndl = max(dot(n, u_sun_dir.xyz), 0.0);
+    vec3 ambient = mix(u_ground_color.rgb, u_sky_color.rgb, 0.5 + 0.5 * n.y);
     float rim = pow(1.0 - max(dot(n, view), 0.0), 3.0) * 0.35;
-    vec3 color = albedo * (ambient + u_sun_color * ndl * sun_visibility(world, n)) + rim * u_sky_color;
-    float fog = 1.0 - exp(-u_fog_density * length(world));
-    color = mix(color, u_fog_color, clamp(fog, 0.0, 1.0));
+    vec3 color = albedo * (ambient + u_sun_color.rgb * ndl * sun_visibility(world, n)) + rim * u_sky_color.rgb;
+    float fog = 1.0 - exp(-u_fog.a * length(world));
+    color = mix(color, u_fog.rgb, clamp(fog, 0.0, 1.0));
     return pow(max(color, vec3(0.0)), vec3(1.0 / 2.2));  // linear → display
 }

@@ -44,7 +44,12 @@ in vec3 in_position;   // bind space
 in uvec4 in_packed;    // x: normal, snorm10 x3 | y: joints, 4 x u8 (by descending weight)
                        // z: weights 1-3 as unorm10 of 2w (weight 0 = 1 - the rest) | w: colour, RGBA8
 
-uniform mat4 u_view_proj;  // camera-relative: the camera sits at the origin
+#ifdef DEPTH_ONLY
+uniform mat4 u_view_proj;  // the shadow cascade's, camera-relative
+#else
+#include "frame.glsl"
+#define u_view_proj u_camera_view_proj
+#endif
 #include "palette.glsl"
 #include "vertex_packing.glsl"
 #include "agent_instance.glsl"

@@ -11,7 +11,12 @@ in uvec2 in_packed;     // x: normal, snorm10 x3 | y: colour, RGBA8
 in vec3 i_position;     // the placement's origin, relative to the camera
 in uvec2 i_fields;      // x: cos, sin of the heading, snorm16 x2 | y: tint, RGBA8
 
-uniform mat4 u_view_proj;
+#ifdef DEPTH_ONLY
+uniform mat4 u_view_proj;  // the shadow cascade's, camera-relative
+#else
+#include "frame.glsl"
+#define u_view_proj u_camera_view_proj
+#endif
 uniform vec3 u_anchor_rel;  // where i_position counts from, relative to the camera (0: i_position is camera-relative)
 
 #ifndef DEPTH_ONLY

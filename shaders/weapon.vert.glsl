@@ -16,7 +16,12 @@ in vec4 i_row2;
 in vec4 i_position_scale;  // the agent's origin relative to the camera, uniform scale (its instance record's)
 in uint i_heading;         // cos, sin of the agent's heading, snorm16 x2 (its instance record's)
 
-uniform mat4 u_view_proj;
+#ifdef DEPTH_ONLY
+uniform mat4 u_view_proj;  // the shadow cascade's, camera-relative
+#else
+#include "frame.glsl"
+#define u_view_proj u_camera_view_proj
+#endif
 #include "vertex_packing.glsl"
 
 #ifndef DEPTH_ONLY

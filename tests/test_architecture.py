@@ -126,7 +126,7 @@ def test_cli_scene_file_and_session_refuse_the_same_value_with_the_same_line(tmp
     # The running session (the panel's path).
     before = running.to_scene()
     with pytest.raises(SessionError) as from_session:
-        running.apply_setting(name, bad)
+        running.set(name, bad)
     assert str(from_session.value) == expected
     assert running.to_scene() == before  # refused: nothing changed
 
@@ -140,7 +140,7 @@ def test_the_demo_refuses_a_bad_flag_in_one_line():
 
 def test_session_only_and_run_settings_are_checked_by_the_schema_too(running):
     with pytest.raises(SessionError, match=SETTINGS["time_scale"].reason(11.0)):
-        running.set_time_scale(11.0)
+        running.set("time_scale", 11.0)
     with pytest.raises(SessionError) as info:
         running.set_clip_speed(running.clip_names()[0], 50.0)
     assert str(info.value) == SETTINGS["clip_speed"].reason(50.0)
@@ -213,12 +213,12 @@ def test_resizing_from_0_to_a_crowd_and_back_leaks_nothing(gl_context):
         p.frame(target.framebuffer, FIXED_DT)
         start = gl_census()
         for n in (5000, 0, 300, 0):
-            p.set_agent_count(n)
+            p.set("agents", n)
             p.frame(target.framebuffer, FIXED_DT)
-        p.set_weapons(False)
-        p.set_weapons(True)
-        p.set_shadows(True)
-        p.set_shadows(False)
+        p.set("weapons", False)
+        p.set("weapons", True)
+        p.set("shadows", True)
+        p.set("shadows", False)
         p.frame(target.framebuffer, FIXED_DT)
         assert {k: len(v) for k, v in gl_census().items()} == {k: len(v) for k, v in start.items()}
 
@@ -235,9 +235,9 @@ def test_stages_follow_what_exists_after_the_armed_share_drops_to_zero(gl_contex
         with Offscreen(gl_context, SIZE) as target:
             for _ in range(4):
                 session.frame(target.framebuffer, FIXED_DT)
-            session.set_ai(armed_share=0.0)
-            {"shadows": lambda: session.set_shadows(False), "rebake": lambda: session.rebake(20, "f32"),
-             "latency": lambda: session.set_readback_latency(3), "processor": lambda: session.set_processor_path("fragment")}[change]()
+            session.set("armed_share", 0.0)
+            {"shadows": lambda: session.set("shadows", False), "rebake": lambda: session.rebake(20, "f32"),
+             "latency": lambda: session.set("readback_latency", 3), "processor": lambda: session.set("processor", "fragment")}[change]()
             p = session.pipeline
             assert p.readback is not None and p.weapons is not None and p.processor.history == p.latency + 1
             for _ in range(5):
@@ -265,7 +265,8 @@ def test_numbers_past_float_range_and_past_storage_are_refused_in_one_line(tmp_p
 def test_session_stores_settings_as_the_schema_types_so_the_scene_saves(gl_context, tmp_path):
     session = CrowdSession(gl_context, Scene(agents=3, shadows=False))
     try:
-        session.set_ai(notice_radius=np.float32(20.0), health=np.int64(5))
+        session.set("notice_radius", np.float32(20.0))
+        session.set("health", np.int64(5))
         assert type(session.ai_setting("notice_radius")) is float and type(session.ai_setting("health")) is int
         session.save(tmp_path / "saved.toml")
         assert load_scene(tmp_path / "saved.toml").ai.notice_radius == 20.0

@@ -248,7 +248,7 @@ def test_the_crowd_resizes_from_zero_to_thousands_and_back_without_leaks(gl_cont
         p.frame(target.framebuffer, 1 / 30)
         empty = p.gpu_bytes()
         for n in (5, 3000, 7, 0, 1200, 0):
-            p.set_agent_count(n)
+            p.set("agents", n)
             p.frame(target.framebuffer, 1 / 30)
             assert p.ai.cast == cast_counts(n, (3.0, 1.0)) and p.processor.layout.counts == p.counts == p.ai.cast + (1,)
             assert p.processor.nan_rows() == 0

@@ -171,7 +171,7 @@ def test_resizing_the_feedback_cull_from_0_to_200000_and_back_leaks_nothing(gl_c
             pipeline.camera = Camera(eye=np.array([0.0, 300.0, 0.0]), target=np.array([0.0, 400.0, 0.1]))  # high, at the sky: all culled
             fixed = None  # the counts, the commands and an entry's worth of each list: what no agents cost
             for n in (0, 1, 200_000, 0):
-                pipeline.set_agent_count(n)
+                pipeline.set("agents", n)
                 pipeline.frame(target.framebuffer, 1 / 30)
                 gl_context.finish()
                 cull = pipeline.renderer.feedback
@@ -191,10 +191,10 @@ def test_the_visibility_texture_exists_only_with_weapons(gl_context):
             CrowdPipeline(gl_context, PipelineConfig(agents=50, cull="feedback", processor_path="fragment")) as pipeline:
         pipeline.frame(target.framebuffer, 1 / 30)
         assert pipeline.renderer.feedback.visible is not None
-        pipeline.set_weapons(False)
+        pipeline.set("weapons", False)
         assert pipeline.renderer.feedback.visible is None
         pipeline.frame(target.framebuffer, 1 / 30)
-        pipeline.set_weapons(True)
+        pipeline.set("weapons", True)
         pipeline.frame(target.framebuffer, 1 / 30)
         words = pipeline.renderer.feedback.visible_agents()
         assert len(words) == pipeline.renderer.feedback.agents >= 50 and (words & 0xFFFF).any()
@@ -228,7 +228,7 @@ def test_a_crowd_gone_to_zero_leaves_no_commands_behind(gl_context):
                 p.frame(target.framebuffer, 1 / 30)
             if path == "feedback":
                 assert p.weapons.casts_shadows() and int(p.renderer.feedback.counts(wait=True).sum()) > 0
-            p.set_agent_count(0)
+            p.set("agents", 0)
             p.frame(target.framebuffer, 1 / 30)
             images[path] = target.image()
             if path == "feedback":

@@ -388,11 +388,11 @@ def test_the_pipeline_reports_and_switches_the_lock(gl_context):
         if gl_context.version_code >= 430:
             assert p.foot_lock_state() == {"on": True, "legs": ["foot_l", "foot_r"]}
             assert p.gpu_bytes()["foot_lock"] == 20 * 2 * 16 + 20 * 16
-        p.set_foot_lock(False)
+        p.set("foot_lock", False)
         p.frame(target.framebuffer, 1 / 30)
         assert p.foot_lock_state()["why"] == "off in the scene" and p.gpu_bytes()["foot_lock"] == 0
-        p.set_foot_lock(True)
-        p.set_processor_path("fragment")
+        p.set("foot_lock", True)
+        p.set("processor", "fragment")
         p.frame(target.framebuffer, 1 / 30)
         state = p.foot_lock_state()
         assert not state["on"] and "fragment path" in state["why"] and p.gpu_bytes()["foot_lock"] == 0

@@ -67,10 +67,10 @@ def test_a_running_crowd_keeps_its_gl_level_and_saves_it(compute_context):
     session = CrowdSession(compute_context, dataclasses.replace(Scene(agents=4, shadows=False, town=False), gl="4.1"), SIZE[0] / SIZE[1])
     try:
         with pytest.raises(SessionError, match="applied when the crowd is built"):
-            session.apply_setting("gl", "auto")
+            session.set("gl", "auto")
         assert session.to_scene().gl == "4.1" and session.pipeline.processor.path == "fragment"
         with pytest.raises(SessionError, match="used as GL 4.1"):
-            session.set_processor_path("compute")
+            session.set("processor", "compute")
     finally:
         session.release()
 

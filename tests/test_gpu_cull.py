@@ -143,7 +143,7 @@ def test_the_stats_describe_the_last_frame_on_the_gpu_path(gl_context):
         pipeline.camera = pipeline.default_camera(SIZE[0] / SIZE[1])
         for _ in range(3):
             pipeline.frame(target.framebuffer, FIXED_DT)
-        pipeline.set_agent_count(0)
+        pipeline.set("agents", 0)
         pipeline.frame(target.framebuffer, FIXED_DT)
         assert pipeline.renderer.last["instances"] == 0 and pipeline.renderer.last["triangles"] == 0
 
@@ -151,7 +151,7 @@ def test_the_stats_describe_the_last_frame_on_the_gpu_path(gl_context):
 def test_lists_past_what_a_shader_may_address_are_one_line(gl_context, monkeypatch):
     with CrowdPipeline(gl_context, PipelineConfig(agents=10, cull="gpu", weapons=False)) as pipeline:
         monkeypatch.setattr(pipeline.renderer.gpu, "max_block", 1000)
-        pipeline.set_agent_count(50)
+        pipeline.set("agents", 50)
         from crowd.gl import Offscreen
 
         with Offscreen(gl_context, (32, 32)) as target, pytest.raises(RenderError, match=r"lists for 50 agents need [\d,]+ bytes, more than the 1,000 one shader storage block may hold on this GPU .*--cull feedback or cpu"):
@@ -171,9 +171,9 @@ def test_switching_the_cull_path_live_leaks_nothing(gl_context):
         try:
             for path, weapons, occlusion in (("cpu", True, True), ("gpu", False, True), ("gpu", True, False), ("cpu", False, False),
                                              ("feedback", True, True), ("feedback", False, False), ("auto", True, True), ("auto", True, False)):
-                session.set_cull_path(path)
-                session.set_weapons(weapons)
-                session.set_occlusion(occlusion)
+                session.set("cull", path)
+                session.set("weapons", weapons)
+                session.set("occlusion", occlusion)
                 session.frame(target.framebuffer, 1 / 30)
                 session.frame(target.framebuffer, 1 / 30)
                 renderer = session.pipeline.renderer
@@ -181,7 +181,7 @@ def test_switching_the_cull_path_live_leaks_nothing(gl_context):
                 assert (renderer.pyramid is not None) == (occlusion and renderer.gpu is not None)
                 assert session.to_scene().cull == path and session.to_scene().occlusion == occlusion
             with pytest.raises(SessionError, match="cull"):
-                session.set_cull_path("sideways")
+                session.set("cull", "sideways")
         finally:
             session.release()
     assert gl_census() == before
@@ -227,7 +227,7 @@ def test_resizing_the_gpu_cull_from_0_to_200000_and_back_leaks_nothing(gl_contex
         with Offscreen(gl_context, (64, 64)) as target:
             pipeline.camera = Camera(eye=np.array([0.0, 300.0, 0.0]), target=np.array([0.0, 400.0, 0.1]))  # high, at the sky: all culled
             for n in (0, 1, 200_000, 0):
-                pipeline.set_agent_count(n)
+                pipeline.set("agents", n)
                 pipeline.frame(target.framebuffer, 1 / 30)
                 gl_context.finish()
                 cull = pipeline.renderer.gpu

@@ -78,11 +78,11 @@ def test_a_resize_keeps_the_crowd_on_the_gpu(ctx):
     with Offscreen(ctx, SIZE) as target, CrowdPipeline(ctx, PipelineConfig(agents=0, ai_path="gpu", **UNARMED)) as p:
         p.frame(target.framebuffer, 1 / 30)
         for n in (100_000, 40, 0, 7):
-            p.set_agent_count(n)
+            p.set("agents", n)
             p.frame(target.framebuffer, 1 / 30)
             assert p.ai_path == "gpu" and p.gpu_crowd.gpu.n == n
         kept = p.gpu_crowd.store().tint.copy()
-        p.set_agent_count(20)
+        p.set("agents", 20)
         p.frame(target.framebuffer, 1 / 30)
         assert np.array_equal(p.gpu_crowd.store().tint[:7], kept)
 
@@ -104,7 +104,7 @@ def test_a_live_change_it_cannot_run_with_moves_the_crowd_to_the_numpy_ai(ctx):
         for _ in range(5):
             p.frame(target.framebuffer, 1 / 30)
         before = p.gpu_crowd.store().x.copy()
-        p.set_cull_path("cpu")
+        p.set("cull", "cpu")
         p.frame(target.framebuffer, 1 / 30)
         assert p.ai_path == "cpu" and "moved to the numpy AI" in p.ai_note
         assert np.abs(p.ai.x - before).max() < 1.0  # the same crowd, a frame on
@@ -138,9 +138,9 @@ def test_the_gpu_crowd_leaves_no_gl_object_on_any_path(ctx, monkeypatch):
     before = gl_census()
     with Offscreen(ctx, SIZE) as target, CrowdPipeline(ctx, PipelineConfig(agents=300, ai_path="gpu", **UNARMED)) as p:
         for n in (0, 5000, 0, 300):
-            p.set_agent_count(n)
+            p.set("agents", n)
             p.frame(target.framebuffer, 1 / 30)
-        p.set_shadows(False)  # a new renderer: told again to pack records on the GPU
+        p.set("shadows", False)  # a new renderer: told again to pack records on the GPU
         p.frame(target.framebuffer, 1 / 30)
         assert p.renderer.gpu_record_pass is not None
     assert gl_census() == before

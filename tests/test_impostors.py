@@ -153,12 +153,12 @@ def test_only_scenes_that_need_impostors_allocate_them(gl_context):
         with CrowdPipeline(gl_context, PipelineConfig(agents=0, seed=1, impostors="on", impostor_distance=5.0)) as p:
             p.frame(target.framebuffer, 1 / 30)
             assert p.renderer.gpu_bytes()["impostors"] > 0
-            p.set_agent_count(30)
+            p.set("agents", 30)
             p.camera = p.overview_camera(16 / 9)
             for _ in range(3):
                 p.frame(target.framebuffer, 1 / 30)
             assert "impostors" in p.passes_run and p.processor.read_impostor_keys().shape == (30, 4)
-            p.set_impostors("off")
+            p.set("impostors", "off")
             assert p.renderer.gpu_bytes()["impostors"] == 0 and all(m.impostor is None for m in p.cast)
             p.frame(target.framebuffer, 1 / 30)
 
@@ -240,7 +240,7 @@ def test_impostors_hold_their_weapons_without_a_read_back(gl_context, path):
         assert p.weapons.last["drawn"] == 0 and all(v == 0 for v in p._socket_entries.values())
         # The switch inside the crowd: an agent's weapon is placed or held, never both.
         p.camera = p.overview_camera(16 / 9)
-        p.set_impostor_distance(float(np.median(np.linalg.norm(p.instances().position - p.camera.eye, axis=1))))
+        p.set("impostor_distance", float(np.median(np.linalg.norm(p.instances().position - p.camera.eye, axis=1))))
         for _ in range(5):
             p.frame(target.framebuffer, 1 / 30)
         p.renderer.refresh_counts(wait=True)

@@ -136,7 +136,7 @@ def test_the_pipeline_draws_morphs_only_where_the_scene_moves_them(gl_context, c
         assert p.processor.gpu_bytes()["morphs"] > 0 and p.renderer.gpu_bytes()["morphs"] > 0
         pairs = p.processor.read_morph_pairs()
         assert np.all(pairs[:, 0, 0] == 1) and np.allclose(np.abs(pairs[:, 0, 1]), 1.0, atol=1e-6)  # belly_swell at 1 leads every list
-        p.set_morphs(False)
+        p.set("morphs", False)
         p.passes_run.clear()
         plain = _frames(p, target, 0.0, 3)
         assert "morph_weights" not in p.passes_run
@@ -144,7 +144,7 @@ def test_the_pipeline_draws_morphs_only_where_the_scene_moves_them(gl_context, c
         assert p.processor.layout.parts[0].slots == 0 and not any(d.morph for d in p.renderer.draws)
         changed = np.count_nonzero(np.abs(swollen - plain).max(axis=2) > 24)
         assert changed > 30, changed  # the bellies show (30 zombies of about 20 px by 60 at this size)
-        p.set_morphs(True)
+        p.set("morphs", True)
         again = _frames(p, target, 0.0, 3)
         assert np.count_nonzero(np.abs(again - swollen).max(axis=2) > 24) <= 3
     if cull == "gpu":  # the same frame through the cpu path's draws (a draw per mesh, the table's base per draw)

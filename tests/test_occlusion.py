@@ -85,9 +85,9 @@ def test_the_cpu_path_and_a_toggle_leave_no_pyramid(compute):
         p.frame(target.framebuffer, 1 / 60)
         assert p.renderer.pyramid is not None
         pyramid = p.renderer.pyramid
-        p.set_occlusion(False)
+        p.set("occlusion", False)
         assert p.renderer.pyramid is None and pyramid.pyramid is None and "occlusion" not in p.gpu_bytes()
-        p.set_occlusion(True)
+        p.set("occlusion", True)
         p.frame(target.framebuffer, 1 / 60)
         p.frame(target.framebuffer, 1 / 60)
         assert p.gpu_bytes()["occlusion"] > 0

@@ -11,6 +11,7 @@ from __future__ import annotations
 import moderngl
 import numpy as np
 
+from crowd.draw.frame_block import FRAME_BINDING, FRAME_DEFINES, use_frame_block
 from crowd.anim.bake import bake
 from crowd.gl import load_shader
 from crowd.frame import CLIP, PHASE, WEIGHT, empty_layers
@@ -40,7 +41,7 @@ def capture(ctx, renderer, index, proc, defines=None, setup=None):
     """v_world and v_normal of every vertex of every instance of draw `index` of `renderer` (instance-major),
     through skin.vert.glsl with `defines`; `setup(program)` binds what those need."""
     draw = renderer.draws[index]
-    prog = ctx.program(vertex_shader=load_shader("skin.vert.glsl", defines), varyings=["v_world", "v_normal"])
+    prog = ctx.program(vertex_shader=load_shader("skin.vert.glsl", {**FRAME_DEFINES, **(defines or {})}), varyings=["v_world", "v_normal"])
     for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2)):
         prog[name] = unit
     use_records_unit(prog)
@@ -48,7 +49,9 @@ def capture(ctx, renderer, index, proc, defines=None, setup=None):
     proc.bind_palette(0, prog)
     if setup is not None:
         setup(prog)
-    prog["u_view_proj"].write(np.eye(4, dtype=np.float32).tobytes())
+    # (gl_Position is not captured: the frame block's camera is what the renderer last wrote, bound as the draws have it)
+    use_frame_block(prog)
+    renderer.frame_block.buffer.bind_to_uniform_block(FRAME_BINDING)
     vao = ctx.vertex_array(prog, [(draw.vbo, *read_by(prog, VERTEX_FORMAT)), (renderer._entries(index, None), *read_by(prog, ENTRY_FORMAT))])
     vertices = draw.vbo.size // VERTEX_DTYPE.itemsize
     out = ctx.buffer(reserve=vertices * draw.count * 6 * 4)

@@ -49,12 +49,12 @@ def test_pause_single_step_and_time_scale(session):
     s.frame(fb, DT)
     assert s.pipeline.ai.time == pytest.approx(t0 + 1 / 60)
     s.set_paused(False)
-    s.set_time_scale(2.0)
+    s.set("time_scale", 2.0)
     s.frame(fb, DT)
     assert s.pipeline.ai.time == pytest.approx(t0 + 3 / 60)
     for bad in (-1.0, 11.0, float("nan")):
         with pytest.raises(SessionError, match="time scale"):
-            s.set_time_scale(bad)
+            s.set("time_scale", bad)
     with pytest.raises(SessionError, match="frame time"):
         s.frame(fb, float("inf"))
 
@@ -63,12 +63,12 @@ def test_agent_count_live_from_0_to_10000_and_back(session):
     s, fb = session()
     s.selected = 25
     for n in (0, 10_000, 0, 200):
-        s.set_agent_count(n)
+        s.set("agents", n)
         s.frame(fb, DT)
         assert s.pipeline.agents == n and s.pipeline.processor.nan_rows() == 0
     assert s.selected == -1  # agent 25 went away with the count at 0
     with pytest.raises(SessionError, match="agent count"):
-        s.set_agent_count(-1)
+        s.set("agents", -1)
 
 
 def test_play_a_clip_on_all_then_give_control_back(session):
@@ -127,17 +127,17 @@ def test_rebake_and_features_live(session):
     old_processor = s.pipeline.processor
     s.rebake(30.0, "f16")
     assert s.pipeline.bake.fps == 30.0 and s.pipeline.bake.precision == "f16" and old_processor.planes == ()
-    s.set_shadows(True)
-    s.set_weapons(False)
-    s.set_lod_distances(5.0, 10.0, 20.0)
-    s.set_culling(False)
+    s.set("shadows", True)
+    s.set("weapons", False)
+    s.set("lod_distances", (5.0, 10.0, 20.0))
+    s.set("culling", False)
     for _ in range(3):
         s.frame(fb, DT)
     bytes_ = s.pipeline.gpu_bytes()
     assert bytes_["shadow_map"] > 0 and "readback" not in bytes_ and s.pipeline.processor.history == 1
     assert s.pipeline.processor.nan_rows() == 0
-    s.set_weapons(True)
-    s.set_readback_latency(3)
+    s.set("weapons", True)
+    s.set("readback_latency", 3)
     for _ in range(5):
         s.frame(fb, DT)
     assert s.pipeline.weapons.last["weapons"] > 0 and s.pipeline.weapon_error_mm() <= 0.1
@@ -191,9 +191,9 @@ def test_rebake_interpolation_and_measured_error(session):
     s.frame(fb, DT)
     assert s.to_scene().interpolation == "qt_cubic" and s.to_scene().bake_fps == 15.0
     with pytest.raises(SessionError, match="LOD"):
-        s.set_lod_distances(10.0, 5.0, 20.0)
+        s.set("lod_distances", (10.0, 5.0, 20.0))
     with pytest.raises(SessionError, match="latency"):
-        s.set_readback_latency(0)
+        s.set("readback_latency", 0)
 
 
 def test_pick_an_agent_move_the_player_and_strike(session):
@@ -216,10 +216,10 @@ def test_pick_an_agent_move_the_player_and_strike(session):
 
 def test_saved_scene_loads_back_as_the_run_that_saved_it(session, tmp_path):
     s, fb = session(agents=12)
-    s.set_crossfade(0.4)
+    s.set("crossfade", 0.4)
     s.set_clip_speed(s.pipeline.roles["run"], 1.25)
     s.set_clip_loop("hit", True)
-    s.set_agent_count(17)
+    s.set("agents", 17)
     s.rebake(20.0, "f32")
     s.frame(fb, DT)
     path = tmp_path / "tweaked.toml"
@@ -291,12 +291,12 @@ def test_held_morph_weights_from_the_panel(session):
     has = np.any((pairs[..., 0] == gaunt) & np.isclose(pairs[..., 1], 1.0), axis=1)
     assert has[4] and has.sum() == 1
     assert s.held_morphs() == {"belly_swell": pytest.approx(0.8), "gaunt": 1.0}
-    s.apply_setting("morphs", False)
+    s.set("morphs", False)
     s.frame(fb, DT)
     assert s.morph_character() is None and s.pipeline.processor.gpu_bytes()["morphs"] == 0
     with pytest.raises(SessionError, match="no character moves morph targets"):
         s.set_morph_weight("gaunt", 0.5)
-    s.apply_setting("morphs", True)
+    s.set("morphs", True)
     s.frame(fb, DT)
     assert s.pipeline.processor.read_morph_pairs()[4, 0, 0] in (gaunt, belly)  # held again, on the new processor
     s.set_morph_weight("gaunt", None)

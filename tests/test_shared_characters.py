@@ -51,7 +51,7 @@ def test_one_character_seen_from_the_side_stands_whole_at_a_persons_size(model, 
         ground = np.array([pipeline.ai.x[0], 0.0, pipeline.ai.z[0]])
         foot, top = pipeline.project(np.array([ground, ground + [0.0, agent_height, 0.0]]), SIZE)
         pixels = pipeline.project(joints, SIZE)
-        pipeline.set_agent_count(0)
+        pipeline.set("agents", 0)
         pipeline.frame(target.framebuffer, FIXED_DT)
         empty = target.image().astype(int)
     covered = np.abs(drawn - empty).max(axis=2) > 12

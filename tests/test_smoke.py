@@ -35,7 +35,7 @@ def test_smoke_frame_shows_zombies_where_they_stand(gl_context, cull, gl):
             pipeline.frame(fb, FIXED_DT)
         crowd = target.image().astype(int)
         hips = pipeline.project(pipeline.joint_world_positions(0), SIZE)
-        pipeline.set_agent_count(0)  # same camera, same ground, no zombies
+        pipeline.set("agents", 0)  # same camera, same ground, no zombies
         pipeline.frame(fb, FIXED_DT)
         empty = target.image().astype(int)
         assert "process" in pipeline.passes_run and "draw" in pipeline.passes_run
@@ -307,7 +307,7 @@ def test_the_default_picture_shows_the_horde_at_any_size(gl_context, agents):
         for _ in range(2):
             p.frame(target.framebuffer, 1 / 30)
         crowd = target.image().astype(int)
-        p.set_agent_count(0)  # the same camera on the same ground, nobody on it
+        p.set("agents", 0)  # the same camera on the same ground, nobody on it
         p.frame(target.framebuffer, 1 / 30)
         empty = target.image().astype(int)
     covered = float(np.mean(np.abs(crowd - empty).max(axis=2) > 8))

@@ -79,7 +79,7 @@ def test_the_splat_is_made_only_where_it_draws(gpu):
         assert sizes[0] == sizes[2] < sizes[1]
         with Offscreen(gpu, (64, 36)) as target:
             for n in (0, 100_000, 500):
-                p.set_agent_count(n)
+                p.set("agents", n)
                 p.frame(target.framebuffer, 1 / 30)
             grown = p.renderer.gpu_bytes()["splat"]
         assert grown >= sizes[0]  # (the sorted lists keep the largest crowd's room, as the cull's entries do)

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import shared
+from crowd.draw.frame_block import FRAME_DEFINES
 from crowd.asset.model import LINEAR, NEAREST, REPEAT, Texture
 from crowd.draw import materials, texture_layers
 from crowd.draw.materials import BlockArray, MaterialTextures
@@ -268,7 +269,7 @@ void main() {
     v_world = vec3(0); v_normal = vec3(0, 0, 1); v_color = vec4(1); v_bake_depth = 0.0;
     v_uv = u_offset + (p[gl_VertexID] * 0.5 + 0.5) * u_scale;
 }"""
-    return ctx.program(vertex_shader=vertex, fragment_shader=load_shader("skin.frag.glsl", {"TEXTURED": 1, "IMPOSTOR_BAKE": 1}))
+    return ctx.program(vertex_shader=vertex, fragment_shader=load_shader("skin.frag.glsl", {**FRAME_DEFINES, "TEXTURED": 1, "IMPOSTOR_BAKE": 1}))
 
 
 def _sampled(ctx, mats, texture, scale, offset=(0.0, 0.0), side=64):
@@ -395,7 +396,7 @@ def test_the_impostor_bake_draws_bc1_textures(zombie, gl_context, monkeypatch):
     assert np.abs(albedo["bc1"] - albedo["untextured"]).max() > 24
 
 
-@pytest.mark.parametrize("defines", [{}, {"SHADOWS": 1, "CASCADES": 2}, {"LOD_FADE": 1}, {"IMPOSTOR_BAKE": 1}])
+@pytest.mark.parametrize("defines", [{}, {"SHADOWS": 1}, {"LOD_FADE": 1}, {"IMPOSTOR_BAKE": 1}])
 def test_the_textured_fragment_shader_is_valid_glsl_330(defines, tmp_path):
     """skin.frag.glsl's textured variants through the Khronos reference compiler (stricter than Mesa
     about what #version 330 allows; .ci/run installs it, and the test skips without it)."""
@@ -406,6 +407,6 @@ def test_the_textured_fragment_shader_is_valid_glsl_330(defines, tmp_path):
     if validator is None:
         pytest.skip("glslangValidator not installed (.ci/run installs glslang-tools)")
     path = tmp_path / "skin.frag"
-    path.write_text(load_shader("skin.frag.glsl", {"TEXTURED": 1, **defines}))
+    path.write_text(load_shader("skin.frag.glsl", {**FRAME_DEFINES, "TEXTURED": 1, **defines}))
     result = subprocess.run([validator, str(path)], capture_output=True, text=True)
     assert result.returncode == 0, result.stdout

@@ -166,13 +166,13 @@ def test_latency_can_change_at_run_time(harness):
     p = h.pipeline
     for _ in range(4):
         h.frame()
-    p.set_readback_latency(3)
+    p.set("readback_latency", 3)
     for k in range(5):
         h.frame()
         assert (p.weapons.last["weapons"] > 0) == (k >= 3)  # a new palette ring: hidden for 3 frames
     assert p.weapon_error_mm() <= ERROR_MM
     with pytest.raises(PipelineError, match="latency"):
-        p.set_readback_latency(4)
+        p.set("readback_latency", 4)
 
 
 def test_dying_and_removed_agents_drop_their_weapon_and_nobody_else_does(harness):
@@ -196,12 +196,12 @@ def test_dying_and_removed_agents_drop_their_weapon_and_nobody_else_does(harness
     assert p.weapon_error_mm() <= ERROR_MM
 
     # Removing the last agent drops its weapon at once (same palette rows: the history is kept).
-    p.set_agent_count(p.agents - 1)
+    p.set("agents", p.agents - 1)
     h.frame()
     assert drawn_agents(p) == everyone - {victim, p.agents}
     assert p.weapon_error_mm() <= ERROR_MM
     # New agents are drawn from this frame's palette, without a weapon, until N frames have passed.
-    p.set_agent_count(p.agents + 5)
+    p.set("agents", p.agents + 5)
     p.ai.weapon[-5:] = 0
     h.frame()
     new = set(range(p.agents - 5, p.agents))
@@ -214,7 +214,7 @@ def test_dying_and_removed_agents_drop_their_weapon_and_nobody_else_does(harness
     # every agent kept keeps its weapon in hand in every frame.
     held = drawn_agents(p)
     capacity = p.readback.capacity
-    p.set_agent_count(400)
+    p.set("agents", 400)
     p.ai.weapon[:] = np.arange(p.agents) % 2
     for _ in range(p.latency + 1):
         h.frame()
@@ -244,7 +244,7 @@ def test_readback_resize_and_release_leak_nothing(harness):
     h = harness(agents=0)
     p = h.pipeline
     for n in (0, 10_000, 0, 200):
-        p.set_agent_count(n)
+        p.set("agents", n)
         for _ in range(3):
             h.frame()
     assert p.weapon_error_mm() is None or p.weapon_error_mm() <= ERROR_MM
@@ -401,7 +401,7 @@ def test_a_reallocated_palette_keeps_every_kept_agents_history_bit_for_bit(harne
         kept = np.arange(min(agents, proc.agents))
         ages = range(min(proc.history, proc.runs))
         before = [proc.read_rows(kept, j, np.full(len(kept), proc.row_offset(a))) for a in ages for j in (0, 11)]
-        h.pipeline.set_agent_count(agents)
+        h.pipeline.set("agents", agents)
         after = [proc.read_rows(kept, j, np.full(len(kept), proc.row_offset(a))) for a in ages for j in (0, 11)]
         assert all(np.array_equal(b, c) for b, c in zip(before, after))
         if limit is not None:

@@ -8,23 +8,24 @@ import moderngl
 
 from ..asset.town import SIDEWALK, STREET, TILE
 from ..gl import has_uniform, load_shader
+from .frame_block import FRAME_DEFINES, use_frame_block
 from .materials import TEXTURE_UNIT
 from .records import use_records_unit
-from .shadows import CASCADES
 
 
 def lighting_defines(shadows: bool) -> dict:
-    """lighting.glsl's defines: the shadow cascades where the scene has shadows."""
-    return {"SHADOWS": 1, "CASCADES": CASCADES} if shadows else {}
+    """lighting.glsl's defines: the frame block's (frame.glsl), and shadows where the scene has them."""
+    return {**FRAME_DEFINES, "SHADOWS": 1} if shadows else dict(FRAME_DEFINES)
 
 
 def fixed_units(prog):
-    """`prog`'s samplers that always read one texture unit: the palette's, the shadow map's, the
-    material's and the records'. Returns it."""
+    """`prog`'s samplers that always read one texture unit (the palette's, the shadow map's, the
+    material's and the records'), and its frame block's binding. Returns it."""
     for name, unit in (("u_palette0", 0), ("u_palette1", 1), ("u_palette2", 2), ("u_shadow_map", 3), ("u_albedo", TEXTURE_UNIT)):
         if has_uniform(prog, name):
             prog[name] = unit
     use_records_unit(prog)
+    use_frame_block(prog)
     return prog
 
 
@@ -40,15 +41,15 @@ def draw_program(ctx: moderngl.Context, kind: str, skinned: bool | str, layout: 
     if kind == "ground":
         if town:
             defines["TOWN"] = 1
-        prog = ctx.program(vertex_shader=load_shader("ground.vert.glsl"), fragment_shader=load_shader("ground.frag.glsl", defines))
+        prog = ctx.program(vertex_shader=load_shader("ground.vert.glsl", FRAME_DEFINES), fragment_shader=load_shader("ground.frag.glsl", defines))
         if town:
             prog["u_tile"], prog["u_street"], prog["u_sidewalk"] = TILE, STREET, SIDEWALK
     elif layout == "impostor":
-        vdefs = {"DEPTH_ONLY": 1} if kind == "depth" else {}
+        vdefs = {"DEPTH_ONLY": 1} if kind == "depth" else dict(FRAME_DEFINES)
         prog = ctx.program(vertex_shader=load_shader("impostor.vert.glsl", vdefs),
                        fragment_shader=load_shader("impostor.frag.glsl", {**defines, **vdefs}))
     else:
-        vdefs = {} if skinned else {"UNSKINNED": 1}
+        vdefs = dict(FRAME_DEFINES) if skinned else {**FRAME_DEFINES, "UNSKINNED": 1}
         if "LOD_FADE" in defines:
             vdefs["LOD_FADE"] = 1
         if kind == "depth":
@@ -58,7 +59,7 @@ def draw_program(ctx: moderngl.Context, kind: str, skinned: bool | str, layout: 
             if layout:
                 defines["TEXTURED"] = 1
             if kind == "bake":  # an impostor atlas's cells (crowd.draw.impostors): unlit, no shadows
-                defines = {k: v for k, v in defines.items() if k not in ("SHADOWS", "CASCADES")}
+                defines = {k: v for k, v in defines.items() if k != "SHADOWS"}
                 defines["IMPOSTOR_BAKE"] = vdefs["IMPOSTOR_BAKE"] = 1
             frag = load_shader("skin.frag.glsl", defines)
         if layout:

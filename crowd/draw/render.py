@@ -42,7 +42,7 @@ from ..asset.town import TILE
 from ..asset.vertex_cache import best_triangle_order
 from ..frame import Camera, Instances, SimFrame
 from ..gl import GLStage, gpu_bytes, has_compute, has_uniform, set_uniforms
-from ..lighting import FOG_COLOR, LIGHTING, SUN_DIR, fog_density
+from ..lighting import FOG_COLOR, SUN_DIR, fog_density
 from ..settings import DEFAULTS, SETTINGS
 from .cpu_cull import CpuCull
 from .cull_lists import ALL, MOVING, STILL, DrawSpec, ListError, ListPlan
@@ -58,6 +58,7 @@ from .records import AgentRecords, RecordError, RecordPacker
 from .shadows import CASCADES, Cascades
 from .splat import HELD_PX, SPLAT_PX, ImpostorSplat
 from .draw_programs import draw_program, lighting_defines
+from .frame_block import FrameBlock
 from .drawn_counts import DrawnCounts
 from .view import CascadeCache, FrameView, focal_px, frustum_planes, gl_bytes, view_proj
 
@@ -119,7 +120,7 @@ class CrowdRenderer(DrawnCounts, GLStage):
         `splat_px`: on the gpu cull path, impostors shorter than this many pixels are drawn by compute passes
         instead of quads (crowd.draw.splat; 0: never; None: SPLAT_PX)."""
         self._objects: dict[str, list] = {"meshes": [], "records": [], "programs": [], "shadow_map": [], "ground": [], "textures": [], "cull": [],
-                                          "occlusion": [], "morphs": [], "impostors": [], "splat": []}
+                                          "occlusion": [], "morphs": [], "impostors": [], "splat": [], "frame": []}
         self.pyramid: DepthPyramid | None = None
         self.splat: ImpostorSplat | None = None
         self._view_height = 0  # the view's height, pixels (0: not known yet: the reference view's)
@@ -208,6 +209,7 @@ class CrowdRenderer(DrawnCounts, GLStage):
             self.shadow_map.filter = (moderngl.LINEAR, moderngl.LINEAR)
             self.shadow_map.repeat_x = self.shadow_map.repeat_y = False
             self._shadow_fbo = self._own("shadow_map", ctx.framebuffer(depth_attachment=self.shadow_map))
+        self.frame_block = self._own("frame", FrameBlock(ctx))  # the camera and the light, once a frame
         ground_prog = self._program("ground", False)
         extent = 20_000.0  # past any crowd's far side: a million agents stand 2.4 km wide (the fog hides the edge)
         quad = np.array([[-extent, -extent], [extent, -extent], [extent, extent], [-extent, -extent], [extent, extent], [-extent, extent]], np.float32)
@@ -503,6 +505,7 @@ class CrowdRenderer(DrawnCounts, GLStage):
         out["morphs"] = 0 if self.morph is None else self.morph.nbytes
         out["impostors"] = gpu_bytes(self._objects["impostors"]) + sum(t.gpu_bytes() for t in self.impostors if t is not None)
         out["splat"] = 0 if self.splat is None else self.splat.gpu_bytes()
+        out["frame"] = self.frame_block.gpu_bytes()
         return out
 
     def release(self) -> None:
@@ -577,7 +580,7 @@ class CrowdRenderer(DrawnCounts, GLStage):
             self._pending = (planes, light, eye, camera.fov_y)
             if cull_now:
                 self.cull(processor)
-            return FrameView(camera, matrix, shadow, None)
+            return self._frame_view(FrameView(camera, matrix, shadow, None))
         picks = self.cpu.run(instances, eye, planes, self.culling, *light)
         for d, draw in enumerate(self.draws):
             draw.count = int(picks.counts[0, d])
@@ -588,7 +591,12 @@ class CrowdRenderer(DrawnCounts, GLStage):
                      "lod_counts": np.bincount(picks.lod[shown], minlength=self.lod_count).tolist(),
                      "shadow_instances": int(picks.counts[1:].sum()), "cast_visible": picks.cast_visible,
                      "impostors": picks.impostors}
-        return FrameView(camera, matrix, shadow, picks.visible, picks.casting, picks.lod, picks.held)
+        return self._frame_view(FrameView(camera, matrix, shadow, picks.visible, picks.casting, picks.lod, picks.held))
+
+    def _frame_view(self, view: "FrameView") -> "FrameView":
+        """`view`, its camera and light written to the frame block every later pass reads."""
+        self.frame_block.write(view, fog_density(view.camera.fog_reach))
+        return view
 
     def cull(self, processor=None) -> bool:
         """The GPU paths' cull for what `prepare(cull_now=False)` uploaded; False when there is nothing to do
@@ -680,11 +688,9 @@ class CrowdRenderer(DrawnCounts, GLStage):
                             self._render(index, draw, "depth", True, k)
         return True
 
-    def set_lighting(self, prog, view: "FrameView"):
-        set_uniforms(prog, **{**LIGHTING, "u_fog_density": fog_density(view.camera.fog_reach)})
-        if self.shadows and has_uniform(prog, "u_light_view_proj"):
-            set_uniforms(prog, u_light_view_proj=b"".join(gl_bytes(m) for m in view.shadow.view_proj),
-                         u_shadow_texel=view.shadow.texel_m.tobytes(), u_shadow_bias=view.shadow.depth_bias.tobytes())
+    def bind_shadow_map(self) -> None:
+        """The shadow map on the unit the lit programs read it from (their camera and light: the frame block)."""
+        if self.shadows:
             self.shadow_map.use(3)
 
     def color_pass(self, framebuffer, view: "FrameView", processor, skinned: bool = True) -> None:
@@ -695,8 +701,8 @@ class CrowdRenderer(DrawnCounts, GLStage):
         self.ctx.disable(moderngl.CULL_FACE)
         try:
             # (The unskinned benchmark ceiling reads no palette, so no pairs: its pieces draw without morphs.)
-            matrix = gl_bytes(view.view_proj)
             focal = focal_px(framebuffer.viewport[3], view.camera.fov_y)
+            self.bind_shadow_map()  # (the camera and the light: the frame block)
             for layout, morph in sorted({(layout, morph and skinned is True) for layout, morph in self._variants()}):
                 if layout == "impostor" and skinned is not True:  # the unskinned ceiling binds no palette, so no keys
                     continue
@@ -705,8 +711,6 @@ class CrowdRenderer(DrawnCounts, GLStage):
                         processor.bind_palette(0, prog)
                     if morph:
                         self.morph.bind(prog)
-                    set_uniforms(prog, u_view_proj=matrix)
-                    self.set_lighting(prog, view)
                     if layout == "" and self.merged:
                         self._render_merged("color", skinned, morph=morph)
                         continue
@@ -777,9 +781,8 @@ class CrowdRenderer(DrawnCounts, GLStage):
         framebuffer.use()
         self.ctx.enable(moderngl.DEPTH_TEST)
         prog = self._program("ground", False)
-        set_uniforms(prog, u_view_proj=gl_bytes(view.view_proj))
         eye = np.asarray(view.camera.eye, np.float64)
         period = TILE if self.town else 1000.0  # (a whole number of metres: the 1 m grid stays where it is)
         prog["u_eye"] = (float(np.mod(eye[0], period)), float(eye[1]), float(np.mod(eye[2], period)))
-        self.set_lighting(prog, view)
+        self.bind_shadow_map()  # (the camera and the light: the frame block)
         self._ground_vao.render(moderngl.TRIANGLES)

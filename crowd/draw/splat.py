@@ -97,14 +97,14 @@ class ImpostorSplat(GLStage):
             return
         self._ensure(size, records, len(draws))
         focal = focal_px(size[1], view.camera.fov_y)
-        constants = {"u_view_proj": gl_bytes(view.view_proj), "u_inverse_view_proj": gl_bytes(np.linalg.inv(np.asarray(view.view_proj, np.float64))),
+        constants = {"u_inverse_view_proj": gl_bytes(np.linalg.inv(np.asarray(view.view_proj, np.float64))),
                      "u_size": size, "u_focal_px": float(focal), "u_splat_px": float(splat_px), "u_max_side": MAX_SIDE, "u_draws": len(draws),
                      "u_region": self._records}
         for k, (command, character) in enumerate(draws):
             prog = self.programs[k]
             set_uniforms(prog, **constants, u_command=int(command), u_draw=k)
-            renderer.set_lighting(prog, view)
             processor.bind_palette(0, prog)
+        renderer.bind_shadow_map()  # (the camera and the light: the frame block)
         renderer.gpu.entries.bind_to_storage_buffer(0)
         renderer.gpu.commands.bind_to_storage_buffer(1)
         for binding, buffer in enumerate((*self.pixels, self.sorted, self.counts), start=2):

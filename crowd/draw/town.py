@@ -18,9 +18,11 @@ import moderngl
 import numpy as np
 
 from ..asset.town import PERIOD, TINTS, Town
-from ..gl import GLObjects, GLStage, has_uniform, load_shader, set_uniforms
+from ..gl import GLObjects, GLStage, load_shader, set_uniforms
 from .cpu_cull import sphere_visible
 from .packing import write_heading
+from .draw_programs import fixed_units, lighting_defines
+from .frame_block import FRAME_DEFINES
 from .view import frustum_planes, gl_bytes
 from .shadows import CASCADES
 from .weapons import pack_rigid
@@ -55,14 +57,13 @@ class TownRenderer(GLStage):
                 # A sphere about the placement's origin that holds the mesh whatever its heading.
                 "radius": float(np.max(np.linalg.norm(positions, axis=1))),
             })
-        defines = {"SHADOWS": 1, "CASCADES": CASCADES} if shadows else {}
+        defines = lighting_defines(shadows)
         self._programs = {
-            "color": self._objects.add(ctx.program(vertex_shader=load_shader("town.vert.glsl"), fragment_shader=load_shader("skin.frag.glsl", defines))),
+            "color": self._objects.add(ctx.program(vertex_shader=load_shader("town.vert.glsl", FRAME_DEFINES), fragment_shader=load_shader("skin.frag.glsl", defines))),
             "depth": self._objects.add(ctx.program(vertex_shader=load_shader("town.vert.glsl", {"DEPTH_ONLY": 1}),
                                                    fragment_shader=load_shader("depth.frag.glsl"))),
         }
-        if has_uniform(self._programs["color"], "u_shadow_map"):
-            self._programs["color"]["u_shadow_map"] = 3
+        fixed_units(self._programs["color"])
         if self.gpu_cull:
             self._programs["cull"] = self._objects.add(ctx.compute_shader(load_shader("town_cull.comp.glsl", {"PASSES": self._passes})))
         self.height = max(float(np.max(np.asarray(p.mesh.positions)[:, 1])) for p in town.pieces)  # the tallest roof
@@ -283,9 +284,8 @@ class TownRenderer(GLStage):
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE)
         prog = self._programs["color"]
-        set_uniforms(prog, u_view_proj=gl_bytes(view.view_proj))
         set_uniforms(prog, u_anchor_rel=self._anchor_rel)
-        renderer.set_lighting(prog, view)
+        renderer.bind_shadow_map()  # (the camera and the light: the frame block)
         for i, piece in enumerate(self._pieces):
             if self.gpu_cull:
                 if self._gpu is not None and self._gpu["count"]:

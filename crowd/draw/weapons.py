@@ -40,13 +40,15 @@ import moderngl
 import numpy as np
 
 from ..errors import CrowdError
-from ..gl import GLObjects, GLStage, has_uniform, load_shader, set_uniforms
+from ..gl import GLObjects, GLStage, load_shader, set_uniforms
 from .drawn_counts import CountsWhenAsked
 from .feedback_cull import STREAMS, FeedbackCounter, TransformFeedbacks, capture, stream_groups, stream_varyings
 from .gpu_cull import BUFFER_UPDATE, COMMAND, COMMAND_DTYPE, GROUP_SIZE, VERTEX_ATTRIB_ARRAY, CountRing
 from ..asset.model import Character, RigidMesh, cast_weapons
 from ..asset.vertex_cache import best_triangle_order
 from .packing import heading_snorm16, pack_colors, pack_normals, shared_buffers, write_heading
+from .draw_programs import fixed_units, lighting_defines
+from .frame_block import FRAME_DEFINES
 from .view import gl_bytes
 from .shadows import CASCADES
 
@@ -209,13 +211,12 @@ class WeaponRenderer(CountsWhenAsked, GLStage):
             self._counter = FeedbackCounter(ctx, self._objects, [(self._meshes[d]["triangles"] * 3, k) for k, (d, _) in enumerate(self._slots)],
                                             len(self._slots))
             self._capacity = np.zeros(len(self.names), np.int64)  # weapons each mesh's lists hold
-        defines = {"SHADOWS": 1, "CASCADES": CASCADES} if shadows else {}
+        defines = lighting_defines(shadows)
         self._programs = {
-            "color": self._objects.add(ctx.program(vertex_shader=load_shader("weapon.vert.glsl"), fragment_shader=load_shader("skin.frag.glsl", defines))),
+            "color": self._objects.add(ctx.program(vertex_shader=load_shader("weapon.vert.glsl", FRAME_DEFINES), fragment_shader=load_shader("skin.frag.glsl", defines))),
             "depth": self._objects.add(ctx.program(vertex_shader=load_shader("weapon.vert.glsl", {"DEPTH_ONLY": 1}), fragment_shader=load_shader("depth.frag.glsl"))),
         }
-        if has_uniform(self._programs["color"], "u_shadow_map"):
-            self._programs["color"]["u_shadow_map"] = 3
+        fixed_units(self._programs["color"])
         self.drawn = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3, 4), np.float32))
         # Weapons lying on the ground (agents, weapon, rows in the fallen agent's model space) until their
         # agent gets up again; and what was in hand last frame, where the next drop comes from.
@@ -546,9 +547,7 @@ class WeaponRenderer(CountsWhenAsked, GLStage):
         """`view`: this frame's ``FrameView``; `renderer` lights the weapons as it lights the crowd."""
         framebuffer.use()
         self.ctx.enable(moderngl.DEPTH_TEST)
-        prog = self._programs["color"]
-        set_uniforms(prog, u_view_proj=gl_bytes(view.view_proj))
-        renderer.set_lighting(prog, view)
+        renderer.bind_shadow_map()  # (the camera and the light: the frame block)
         self._render_pass("color")
 
     def gpu_bytes(self) -> int:
