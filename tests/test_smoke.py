@@ -144,6 +144,15 @@ def test_roles_match_by_name_and_can_be_overridden(zombie):
     assert roles["run"] == "Run" and roles["walk"] == "Walking" and roles["idle"] == "Idle" and roles["death"] == "Zombie_Death"
     roles, notes = match_roles([C("clip0")])
     assert roles["walk"] == roles["idle"] == roles["run"] == "clip0" and roles["attack"] is None and notes
+    # A creature of actions and one flying loop flies, whether or not its bite looks looped.
+    roles, notes = match_roles([C("Bite"), C("Death", False), C("Hit", False), C("Flying")])
+    assert roles["walk"] == roles["idle"] == roles["run"] == "Flying" and roles["attack"] == "Bite" and "'Flying'" in notes[0]
+    roles, _ = match_roles([C("Bite"), C("Hurt", False), C("Glide", False), C("Soar")])
+    assert roles["walk"] == "Soar"
+    roles, _ = match_roles([C("Bite"), C("Glide", False)])  # no loop but the bite: the clip that is not an action
+    assert roles["walk"] == "Glide"
+    roles, _ = match_roles([C("Bite"), C("Stab", False)])  # nothing but actions: the looping one
+    assert roles["walk"] == "Bite"
     roles, _ = match_roles([C("Walk"), C("Shuffle")], parse_overrides("walk=Shuffle"))
     assert roles["walk"] == "Shuffle"
     with pytest.raises(RoleError, match="no clip named"):

@@ -6,8 +6,9 @@ and any of them can be overridden: ``parse_overrides("walk=Walk_Gun,idle=Idle")`
 
 Matching, per role: a clip whose lower-cased name equals a role word wins, then one that starts with
 it, then one that contains it; among equals the shortest name ("Run" before "Run_Gun"). Roles with
-no match fall back: walk → idle, else the first looping clip (else the first clip), idle and run → walk; the
-actions (attack, hit, death) stay unassigned and are simply not played. Only assigned clips are baked.
+no match fall back: walk → idle, else the first looping clip that is not an action (an action clip only
+where nothing else is), idle and run → walk; the actions (attack, hit, death) stay unassigned and are
+simply not played. Only assigned clips are baked.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from ..errors import CrowdError
 from .bake import DEFAULT_BOUND_MM, DEFAULT_FPS
 
 ROLES = ("idle", "walk", "run", "attack", "hit", "death")
+ACTIONS = ("attack", "hit", "death")
 ROLE_WORDS = {
     "idle": ("idle", "stand", "breath"),
     "walk": ("walk", "shamble", "stroll", "shuffle"),
@@ -81,8 +83,7 @@ def match_roles(clips, overrides: dict[str, str] | None = None) -> tuple[dict[st
                     best = ((s[0], rank, s[1]), name)
         roles[role] = best[1] if best else None
     if roles["walk"] is None:
-        looping = [c.name for c in clips if c.loop]
-        roles["walk"] = roles["idle"] or (looping[0] if looping else names[0])
+        roles["walk"] = roles["idle"] or _fallback_walk(clips, roles)
         notes.append(f"no clip is named like a walk; walk plays {roles['walk']!r}")
     for role in ("idle", "run"):
         if roles[role] is None:
@@ -92,6 +93,17 @@ def match_roles(clips, overrides: dict[str, str] | None = None) -> tuple[dict[st
         if roles[role] is None:
             notes.append(f"no {role} clip; agents will not {({'attack': 'attack', 'hit': 'react to hits', 'death': 'die'})[role]}")
     return roles, notes
+
+
+def _fallback_walk(clips, roles: dict[str, str | None]) -> str:
+    """The clip a character without an idle or a walk moves with: the first looping clip that is not an
+    action (one the attack, hit or death role took, or named like one), else the first clip that is not
+    an action, else the first looping clip, else the first clip. A creature whose clips are a bite, a
+    death, a hit and a flying loop flies."""
+    taken = {roles[r] for r in ACTIONS if roles[r]}
+    action = {c.name for c in clips if c.name in taken or any(_score(c.name, w) for r in ACTIONS for w in ROLE_WORDS[r])}
+    ranked = sorted(range(len(clips)), key=lambda k: (clips[k].name in action, not clips[k].loop, k))
+    return clips[ranked[0]].name
 
 
 def clips_used(roles: dict[str, str | None]) -> list[str]:
