@@ -14,7 +14,7 @@ from ..lighting import LIGHTING
 from .shadows import CASCADES
 from .view import FrameView
 
-FRAME_BINDING = 0  # the uniform-block binding point the block is bound to (the only block the stages use)
+FRAME_BINDING = 1  # the uniform-block binding point it is bound to (the GPU AI's Kinds block is on 0)
 FRAME_DEFINES = {"CASCADES": CASCADES}  # every shader that includes frame.glsl: one layout for all
 
 # std140: a mat4 is 64 bytes, a vec4 16; arrays of them are tightly packed.
