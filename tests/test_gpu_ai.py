@@ -373,3 +373,36 @@ def test_a_new_crowd_is_spawned_on_the_gpu_as_the_numpy_ai_spawns_it(motion, com
             assert g.sent_bytes == 0
     finally:
         g.release()
+
+
+def test_a_character_wider_than_a_person_gets_room_by_its_footprint(motion, gpu_ai):
+    """Issue 44: bats 3.2 m across kept only the setting's 0.75 m apart. A pair keeps the mean of its two
+    characters' radii (the setting, times footprint / PERSON_FOOTPRINT where that is over 1), on the numpy
+    AI and on its GPU twin alike; the built-in characters stand within a person's footprint."""
+    from crowd.sim.separation import PERSON_FOOTPRINT, kind_radii
+
+    assert motion.footprint <= PERSON_FOOTPRINT
+    wide = dataclasses.replace(motion, footprint=1.6)  # a 3.2 m wingspan
+    radii = kind_radii(CONFIG.separation_radius, [motion, wide])
+    assert radii[0] == CONFIG.separation_radius and radii[1] == pytest.approx(CONFIG.separation_radius * 1.6 / PERSON_FOOTPRINT)
+    config = dataclasses.replace(CONFIG, half_extent=14.0, wander_speed=0.0, notice_radius=0.01)
+    ai = CrowdAI(240, 4, [motion, wide], config, shares=(0.5, 0.5))
+    ai.x[:] = ai.origin[0] + np.linspace(-1.0, 1.0, ai.n)  # piled up on a line: separation spreads them
+    ai.z[:] = ai.origin[1] + np.linspace(0.5, -0.5, ai.n)
+    ai.player = ai.origin + 1e4
+    g = gpu_ai(ai)
+    for _ in range(900):
+        ai.step(STEP)
+        g.step(STEP)
+    s = g.download()
+    for x, z in ((ai.x, ai.z), (s["x"], s["z"])):
+        pos = np.stack([x, z], 1)
+        d = np.sqrt(((pos[:, None] - pos[None]) ** 2).sum(-1))
+        np.fill_diagonal(d, np.inf)
+        kind = ai.kind
+        narrow_narrow = np.median(d[np.ix_(kind == 0, kind == 0)].min(1))
+        wide_wide = np.median(d[np.ix_(kind == 1, kind == 1)].min(1))
+        # Settled: each kind's median nearest neighbour of its own kind near its own radius, the wide far wider.
+        assert 0.8 * radii[0] <= narrow_narrow <= 1.6 * radii[0], narrow_narrow
+        assert 0.8 * radii[1] <= wide_wide, wide_wide
+        assert wide_wide > 1.8 * narrow_narrow

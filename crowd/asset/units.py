@@ -20,7 +20,7 @@ import dataclasses
 import numpy as np
 
 from .model import Character, Clip
-from .pose import global_matrices, rest_pose
+from .pose import global_matrices, rest_pose, sample_clip
 
 GROUND_TOLERANCE = 0.05  # share of the height the lowest rest-pose point may lie off the ground (soles sink a little)
 HUMAN_HEIGHTS = (0.5, 3.0)  # metres: a character standing between these is taken as authored in metres
@@ -36,20 +36,40 @@ def standing_height(character: Character) -> float:
 
 def rest_extent(character: Character) -> tuple[float, float]:
     """Lowest and highest y of the character's most detailed meshes in the rest pose, skinned."""
-    sk = character.skeleton
-    joints = global_matrices(sk, rest_pose(sk))[0] @ np.asarray(sk.inverse_bind, np.float64)  # (J, 4, 4)
-    lod = min((m.lod for m in character.meshes), default=0)
     low, high = np.inf, -np.inf
-    for mesh in character.meshes:
-        if mesh.lod != lod:
-            continue
-        p = np.c_[np.asarray(mesh.positions, np.float64), np.ones(len(mesh.positions))]
-        # y of each vertex under each of its 4 influences, blended by weight (linear blend: the rest
-        # pose is where the bind meshes came from, so any blend rule gives the same heights here).
-        y = np.einsum("vkj,vj->vk", joints[mesh.joints.astype(np.int64), 1, :], p)
-        skinned = np.sum(y * mesh.weights, axis=1)
-        low, high = min(low, float(skinned.min(initial=np.inf))), max(high, float(skinned.max(initial=-np.inf)))
+    for y in _skinned_rows(character, rest_pose(character.skeleton), 1):
+        low, high = min(low, float(y.min(initial=np.inf))), max(high, float(y.max(initial=-np.inf)))
     return low, high
+
+
+def footprint_radius(character: Character, clip: Clip | None = None) -> float:
+    """Metres from the model's vertical axis (where an agent stands) to the farthest point of its most
+    detailed meshes, skinned in `clip`'s first pose (how it stands or hovers; the rest pose without one):
+    a person's arms, a bat's wingtips."""
+    pose = rest_pose(character.skeleton) if clip is None else sample_clip(character.skeleton, clip, np.zeros(1))
+    reach = 0.0
+    for x, z in _skinned_rows(character, pose, 0, 2):
+        reach = max(reach, float(np.sqrt(x * x + z * z).max(initial=0.0)))
+    return reach
+
+
+def _lod0(character: Character):
+    lod = min((m.lod for m in character.meshes), default=0)
+    return (m for m in character.meshes if m.lod == lod)
+
+
+def _skinned_rows(character: Character, pose, *axes: int):
+    """Per mesh of the most detailed LOD, its vertices' coordinates along each of `axes` (a tuple per mesh
+    with several, an array with one), skinned in `pose` by linear blending: the rest pose is where the
+    bind meshes came from, so any blend rule gives the same points there, and elsewhere linear blending is
+    within millimetres of the drawn dual quaternions for a measure of size."""
+    sk = character.skeleton
+    joints = global_matrices(sk, pose)[0] @ np.asarray(sk.inverse_bind, np.float64)  # (J, 4, 4)
+    for mesh in _lod0(character):
+        p = np.c_[np.asarray(mesh.positions, np.float64), np.ones(len(mesh.positions))]
+        rows = tuple(np.sum(np.einsum("vkj,vj->vk", joints[mesh.joints.astype(np.int64), axis, :], p) * mesh.weights, axis=1)
+                     for axis in axes)
+        yield rows[0] if len(rows) == 1 else rows
 
 
 def lift_character(character: Character, lift: float) -> Character:

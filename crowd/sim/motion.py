@@ -11,6 +11,7 @@ import numpy as np
 
 from ..asset.model import CONTACT_M, foot_joints
 from ..asset.pose import global_matrices, sample_clip
+from ..asset.units import footprint_radius
 from ..search import golden_section_max
 from ..settings import SETTINGS
 from .config import AIError
@@ -44,6 +45,9 @@ class Motion:
     # foot joints on the ground and 1 where one is (3, FOOT_SAMPLES + 1, 3); None: about their origin.
     pivots: np.ndarray | None = dataclasses.field(default=None, compare=False)
     weapon_first: int = 0  # its first weapon's number among the cast's (a crowd of several characters)
+    # Metres from where it stands to the farthest point of its idle pose (crowd.asset.units.footprint_radius):
+    # separation gives a character wider than a person room in proportion (crowd.sim.separation).
+    footprint: float = 0.0
 
     @staticmethod
     def from_bake(bake, roles: dict, strides: dict, upper_body_mask: int = -1, head_count: int = 0, weapon_count: int = 0,
@@ -109,7 +113,8 @@ def motion_for(character, bake, roles: dict, clip_speed: dict | None = None) -> 
     motion = Motion.from_bake(bake, roles, strides, mask_row, heads, weapons, clip_speed)
     notes = motion.notes + tuple(f"clip {name!r} has no stride; measured from its planted feet: {strides[name]:.3f} m a cycle"
                                  for name in measured)
-    return dataclasses.replace(motion, pivots=pivot_table(character, roles), notes=notes)
+    stands = character.clip(roles["idle"]) if roles.get("idle") else None
+    return dataclasses.replace(motion, pivots=pivot_table(character, roles), notes=notes, footprint=footprint_radius(character, stands))
 
 
 def _feet_over_cycle(character, clip, samples: int) -> tuple[np.ndarray, np.ndarray] | None:

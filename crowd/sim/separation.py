@@ -16,6 +16,16 @@ from .config import DYING, AIError
 from .workers import P_SIDE
 
 SEPARATION_CELL_CAP = 48  # neighbours considered per row of three cells (bounds the work when many agents pile up)
+# Metres from a person's axis to the farthest point of its standing pose, arms out front included (the
+# built-in zombie, brute and survivor stand at 0.33, 0.62 and 0.47 m): a character wider than this gets
+# the separation radius times its footprint over this; a person, or anything smaller, the radius itself.
+PERSON_FOOTPRINT = 0.65
+
+
+def kind_radii(radius: float, motions) -> np.ndarray:
+    """Each character's separation radius (float64, one per Motion): `radius` (the setting), times its
+    footprint over PERSON_FOOTPRINT where that is over 1. Two agents keep the mean of theirs apart."""
+    return float(radius) * np.maximum(1.0, np.array([m.footprint for m in motions], np.float64) / PERSON_FOOTPRINT)
 
 
 class SeparationMixin:
@@ -32,26 +42,35 @@ class SeparationMixin:
         An agent's entries in its range's list are contiguous and in the grid's order, so its push is a
         sum over the same entries in the same order whichever range it is in. Returns (agents, push x,
         push z) for the pushed ones, or None."""
-        r = self.config.separation_radius
+        radii = self._separation_radii()
         first, second = self._range_list
         if not first.size:
             return None
         dx, dz = self.x[first] - self.x[second], self.z[first] - self.z[second]
         dist2 = dx * dx + dz * dz
+        # A pair keeps the mean of its two characters' radii apart (one character: the setting's radius).
+        r = radii[0] if radii.size == 1 else 0.5 * (radii[self.kind[first]] + radii[self.kind[second]])
         # Agents that died since the list was built are skipped here rather than by a rebuild.
         close = np.flatnonzero((dist2 < r * r) & (self.state[first] < DYING) & (self.state[second] < DYING))
         if not close.size:
             return None
+        r = r if radii.size == 1 else r[close]
         first, second = first[close], second[close]
         fx, fz = _overlap_push(first, second, dx[close], dz[close], np.sqrt(dist2[close]), r)
         local = first - lo  # sorted: the list is in agent order
         agents = local[np.flatnonzero(np.concatenate(([True], local[1:] != local[:-1])))]
         push_x = np.bincount(local, weights=fx, minlength=hi - lo)[agents]
         push_z = np.bincount(local, weights=fz, minlength=hi - lo)[agents]
-        # Stiffness x h above 1 removes the whole overlap, never more; no agent moves more than r / 2.
+        # Stiffness x h above 1 removes the whole overlap, never more; no agent moves more than half its radius.
+        own = radii[0] if radii.size == 1 else radii[self.kind[agents + lo]]
         norm = np.sqrt(push_x * push_x + push_z * push_z) * gain
-        gain = gain * np.minimum(1.0, 0.5 * r / np.maximum(norm, 1e-12))
+        gain = gain * np.minimum(1.0, 0.5 * own / np.maximum(norm, 1e-12))
         return agents + lo, push_x * gain, push_z * gain
+
+    def _separation_radii(self) -> np.ndarray:
+        """Each character's separation radius (kind_radii), one entry where all of them are the setting's."""
+        radii = kind_radii(self.config.separation_radius, self.motions)
+        return radii[:1] if np.all(radii == radii[0]) else radii
 
     def _prepare_lists(self, moved2: float) -> bool:
         """Whether the separation's neighbour lists are to be rebuilt in this substep's push phase, and if
@@ -62,7 +81,7 @@ class SeparationMixin:
         squared move, measured by the think phase): until then no pair can have closed from over 2r to
         under r, so the lists still hold every close pair. A build costs about seven substeps' use of
         them; agents move 1 to 7 cm per substep."""
-        r = self.config.separation_radius
+        r = float(self._separation_radii().max())  # (the widest pair's: every list and cell holds it)
         if self._pairs and moved2 <= 0.25 * r * r:
             return False
         self._params[P_SIDE] = self._build_grid(2.0 * r)
@@ -101,9 +120,9 @@ class SeparationMixin:
     def _build_list(self, lo: int, hi: int, side: int) -> None:
         """This range's neighbour list from the grid: for each living agent of lo..hi, in agent order,
         the agents of the three rows of three cells around its own (at most SEPARATION_CELL_CAP from
-        each row), itself left out, within 2r. An agent's entries are the same whichever range it is
-        in. Also notes where the range's agents stand, for the next substeps' move test."""
-        r = self.config.separation_radius
+        each row), itself left out, within 2r (r the widest character's radius). An agent's entries are the
+        same whichever range it is in. Also notes where the range's agents stand, for the next substeps' move test."""
+        r = float(self._separation_radii().max())
         self._pairs_x[lo:hi], self._pairs_z[lo:hi] = self.x[lo:hi], self.z[lo:hi]
         live = lo + np.flatnonzero(self.state[lo:hi] < DYING)
         first_in = self._cell_first  # where each cell's agents start in the grid's order
@@ -136,9 +155,9 @@ def grid_shape(half: float, size: float, agents: int) -> tuple[float, int]:
     return size, int(math.ceil(2.0 * half / size)) + 3
 
 
-def _overlap_push(i, j, dx, dz, dist, r: float):
-    """Per overlapping pair (i, j) at offset (dx, dz) = i - j and distance `dist` < r: the push on i
-    (j gets its opposite), half the overlap along the pair's direction."""
+def _overlap_push(i, j, dx, dz, dist, r):
+    """Per overlapping pair (i, j) at offset (dx, dz) = i - j and distance `dist` < r (the pair's radius,
+    one for all or one a pair): the push on i (j gets its opposite), half the overlap along the pair's direction."""
     inv = 1.0 / np.maximum(dist, 1e-12)
     ux, uz = dx * inv, dz * inv
     # Coincident agents: a direction made from the pair's agent numbers (deterministic), pointing from

@@ -1,8 +1,8 @@
 #version 430
 // The GPU twin of crowd.sim.separation's push: each living agent gathers its neighbours from the grid
 // (the three rows of three cells around its own, at most SEPARATION_CELL_CAP from each row, in the
-// grid's order) and sums half of each overlap closer than the separation radius, in that order; no
-// agent moves more than half the radius. The push is written beside the agent; FINISH adds it.
+// grid's order) and sums half of each overlap closer than the pair's separation radius (the mean of its
+// two characters'), in that order; no agent moves more than half its own radius. The push is written beside the agent; FINISH adds it.
 layout(local_size_x = 256) in;
 #include "sim/agents.glsl"
 layout(std430, binding = 10) buffer Cell { uint cell_[]; };
@@ -12,7 +12,7 @@ layout(std430, binding = 16) buffer Payload { vec4 payload_[]; };  // each slot'
 
 uniform int u_n;
 uniform int u_side;
-uniform float u_radius;
+uniform float u_radius[KINDS];  // each character's (crowd.sim.separation.kind_radii): a pair keeps their mean apart
 uniform float u_gain;  // min(stiffness x h, 1)
 
 uniform int u_cells;
@@ -27,7 +27,11 @@ void main() {
     vec2 p = payload_[slot].xy;
     vec2 push = vec2(0.0);
     bool any = false;
-    float r2 = u_radius * u_radius;
+#if KINDS > 1
+    float own = u_radius[codes_[i].w];
+#else
+    float own = u_radius[0];
+#endif
     for (int row = -1; row <= 1; row++) {
         uint middle = uint(int(c) + row * u_side);
         uint lo = first_[middle - 1u];
@@ -36,7 +40,12 @@ void main() {
             if (e == slot) continue;
             vec2 d = p - payload_[e].xy;
             float d2 = d.x * d.x + d.y * d.y;
-            if (d2 >= r2) continue;
+#if KINDS > 1
+            float r = 0.5 * (own + u_radius[codes_[sorted_[e]].w]);
+#else
+            float r = own;
+#endif
+            if (d2 >= r * r) continue;
             float dist = sqrt(d2);
             vec2 u;
             if (dist < 1e-9) {  // coincident: a direction from the pair's numbers, as the numpy twin makes it
@@ -48,12 +57,12 @@ void main() {
             } else {
                 u = d * (1.0 / max(dist, 1e-12));
             }
-            push += u * (0.5 * (u_radius - dist));
+            push += u * (0.5 * (r - dist));
             any = true;
         }
     }
     if (any) {
         float norm = sqrt(push.x * push.x + push.y * push.y) * u_gain;
-        scratch_[i].xy = push * (u_gain * min(1.0, 0.5 * u_radius / max(norm, 1e-12)));
+        scratch_[i].xy = push * (u_gain * min(1.0, 0.5 * own / max(norm, 1e-12)));
     }
 }

@@ -33,7 +33,7 @@ from ...gl import GLObjects, GLStage, has_compute, load_shader, set_uniforms
 from ...frame import SimFrame, cast_firsts
 from ..config import STATE_NAMES, AIError
 from ..obstacles import FLOW_CELLS
-from ..separation import SEPARATION_CELL_CAP, grid_shape
+from ..separation import SEPARATION_CELL_CAP, grid_shape, kind_radii
 from ..spawn import _ARMS, _LOOKS, _MASK64, _PLACE, _RESPAWN, _TRAITS, _WANDER, PLACE_TRIES, TINTS, draw_bound
 from .facts import facts_of
 from .grid import GROUP, SHADER_STORAGE, NeighbourGrid
@@ -331,13 +331,15 @@ class GpuCrowdAI(GLStage):
     def _separate(self, h: float) -> None:
         """The grid of the living and each one's push from it (the finish pass adds it)."""
         cfg, groups = self.config, (self.n + GROUP - 1) // GROUP
-        r = cfg.separation_radius
+        radii = kind_radii(cfg.separation_radius, self.motions)  # (each character's: its footprint's)
+        r = float(radii.max())
         # The numpy twin's cells (2r, or wider where that would be over 4 cells an agent), so that its cap
         # of candidates a row of cells means the same: wider cells would drop real neighbours in a pile-up.
         size, side = grid_shape(self.half_extent, 2.0 * r, self.n)
         self.grid.build(self._state["motion"], self.n, (-self.half_extent, -self.half_extent), size, side, self.timer)
         self._bind()
-        self._set(self._programs["separation"], u_side=side, u_cells=side * side, u_radius=r, u_gain=min(cfg.separation_stiffness * h, 1.0))
+        self._set(self._programs["separation"], u_side=side, u_cells=side * side, u_radius=radii.astype(np.float32).tobytes(),
+                  u_gain=min(cfg.separation_stiffness * h, 1.0))
         with self._timed("ai_separation"):
             self._programs["separation"].run(groups)
             self.ctx.memory_barrier(SHADER_STORAGE)
