@@ -55,6 +55,10 @@ void main() {
     vec3 n = turn_about_y(v_heading, oct_decode(oct / albedo.a * 2.0 - 1.0));
     vec3 world = atlas_surface(v_world, v_toward, depth / albedo.a, v_depth_range);
     gl_FragDepth = window_depth(u_camera_view_proj, world);
+#ifdef UNLIT
+    o_color = vec4(shade_unlit(albedo.rgb / albedo.a * v_tint.rgb, world), 1.0);  // a KHR_materials_unlit character's
+#else
     o_color = vec4(shade(albedo.rgb / albedo.a * v_tint.rgb, world, n), 1.0);
+#endif
 #endif
 }

@@ -124,7 +124,11 @@ void main() {
                 if (splat_depth[pixel] == depth) atomicMin(splat_winner[pixel], record);
             } else if (splat_winner[pixel] == record) {
                 vec3 n = turn_about_y(im.heading, oct_decode(nd.xy / albedo.a * 2.0 - 1.0));
+#ifdef UNLIT
+                splat_colour[pixel] = packUnorm4x8(vec4(shade_unlit(albedo.rgb / albedo.a * agent.tint.rgb, world), 1.0));
+#else
                 splat_colour[pixel] = packUnorm4x8(vec4(shade(albedo.rgb / albedo.a * agent.tint.rgb, world, n), 1.0));
+#endif
             }
         }
     }

@@ -30,13 +30,18 @@ float sun_visibility(vec3 world, vec3 n) {
 #endif
 }
 
+// A colour as it reaches the display through the fog: an unlit surface's albedo (KHR_materials_unlit),
+// or a lit one's light.
+vec3 shade_unlit(vec3 color, vec3 world) {
+    float fog = 1.0 - exp(-u_fog.a * length(world));
+    color = mix(color, u_fog.rgb, clamp(fog, 0.0, 1.0));
+    return pow(max(color, vec3(0.0)), vec3(1.0 / 2.2));  // linear → display
+}
+
 vec3 shade(vec3 albedo, vec3 world, vec3 n) {
     vec3 view = normalize(-world);  // the camera is at the origin
     float ndl = max(dot(n, u_sun_dir.xyz), 0.0);
     vec3 ambient = mix(u_ground_color.rgb, u_sky_color.rgb, 0.5 + 0.5 * n.y);
     float rim = pow(1.0 - max(dot(n, view), 0.0), 3.0) * 0.35;
-    vec3 color = albedo * (ambient + u_sun_color.rgb * ndl * sun_visibility(world, n)) + rim * u_sky_color.rgb;
-    float fog = 1.0 - exp(-u_fog.a * length(world));
-    color = mix(color, u_fog.rgb, clamp(fog, 0.0, 1.0));
-    return pow(max(color, vec3(0.0)), vec3(1.0 / 2.2));  // linear → display
+    return shade_unlit(albedo * (ambient + u_sun_color.rgb * ndl * sun_visibility(world, n)) + rim * u_sky_color.rgb, world);
 }

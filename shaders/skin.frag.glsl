@@ -19,6 +19,9 @@ layout(location = 0) out vec4 o_color;
 #include "lod_fade.glsl"
 flat in uint v_fade;
 #endif
+#ifdef UNLIT_PIECES
+flat in uint v_unlit;  // 1: the piece's material is KHR_materials_unlit
+#endif
 #ifdef IMPOSTOR_BAKE
 // The impostor atlas's cells (crowd/draw/impostors.py): the albedo before lighting and tint, then the
 // model-space normal (octahedral) and the depth toward the camera as 16 bits in two channels.
@@ -53,6 +56,8 @@ void main() {
     o_color = vec4(albedo, 1.0);
     float depth = floor(clamp(v_bake_depth * 0.5 + 0.5, 0.0, 1.0) * 65535.0 + 0.5);
     o_normal_depth = vec4(oct_encode(n) * 0.5 + 0.5, floor(depth / 256.0) / 255.0, mod(depth, 256.0) / 255.0);
+#elif defined(UNLIT_PIECES)
+    o_color = vec4(v_unlit != 0u ? shade_unlit(albedo, v_world) : shade(albedo, v_world, n), 1.0);
 #else
     o_color = vec4(shade(albedo, v_world, n), 1.0);
 #endif

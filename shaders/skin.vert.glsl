@@ -23,7 +23,8 @@
 // the atlas from the view u_bake_*; the cell's box is u_bake_boxes' texel t), and
 // MORPH (a piece with morph targets the scene moves: the agent's (target, weight) pairs, which the
 // processor wrote into the texel before its joint 0, add each target's deltas to the bind-space
-// position and normal before skinning; crowd/draw/morph.py has the textures' layout).
+// position and normal before skinning; crowd/draw/morph.py has the textures' layout), and
+// UNLIT_PIECES (a cast with KHR_materials_unlit pieces: each vertex says whether its piece is lit).
 
 #if defined(TEXTURED) && defined(WIDE_UV)
 in vec3 in_position;   // bind space
@@ -136,6 +137,9 @@ out vec4 v_color;
 #ifdef LOD_FADE
 flat out uint v_fade;  // lod_fade.glsl's code, from the list entry
 #endif
+#ifdef UNLIT_PIECES
+flat out uint v_unlit;  // bit 30 of the packed normal (crowd.draw.packing.UNLIT_BIT)
+#endif
 #endif
 #ifdef IMPOSTOR_BAKE
 uniform sampler2D u_bake_boxes;  // (frames, 1): the frame's clip's box: half width, bottom, height, depth half-range
@@ -213,6 +217,9 @@ void main() {
     v_color = unpack_rgba8(in_packed.w) * agent.tint;
 #ifdef LOD_FADE
     v_fade = agent.fade;
+#endif
+#ifdef UNLIT_PIECES
+    v_unlit = (in_packed.x >> 30u) & 1u;
 #endif
 #endif
 #if defined(TEXTURED) && defined(WIDE_UV) && !defined(DEPTH_ONLY)

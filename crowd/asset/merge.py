@@ -68,7 +68,7 @@ def _draw_key(mesh: SkinnedMesh) -> tuple:
     """What must be equal for two meshes to share a draw (all but the texture coordinates' span)."""
     choice = (mesh.group, mesh.piece) if mesh.group else ("", "")
     morphs = None if mesh.morph_targets is None else tuple(int(t) for t in mesh.morph_targets)
-    return mesh.lod, choice, mesh.texture, morphs
+    return mesh.lod, choice, mesh.texture, morphs, mesh.unlit
 
 
 def _uv_span(mesh: SkinnedMesh) -> tuple[np.ndarray, np.ndarray]:
@@ -120,7 +120,7 @@ def _joined(sources: list[SkinnedMesh]) -> SkinnedMesh:
         positions=np.concatenate([m.positions for m in sources]), normals=np.concatenate([m.normals for m in sources]),
         joints=np.concatenate([m.joints for m in sources]), weights=np.concatenate([m.weights for m in sources]),
         indices=np.concatenate([m.indices.astype(np.uint32) + np.uint32(k) for m, k in zip(sources, starts)]),
-        colors=colors, base_color=base, texture=first.texture,
+        colors=colors, base_color=base, texture=first.texture, unlit=first.unlit,
         uvs=np.concatenate([m.uvs for m in sources]) if first.texture >= 0 else None,
         morph_targets=first.morph_targets.copy() if morphing else None,
         morph_positions=np.concatenate([m.morph_positions for m in sources], axis=1) if morphing else None,

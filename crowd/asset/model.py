@@ -275,6 +275,7 @@ class SkinnedMesh:
     morph_targets: np.ndarray | None = None  # int64 (T,), distinct
     morph_positions: np.ndarray | None = None  # float32 (T, V, 3)
     morph_normals: np.ndarray | None = None  # float32 (T, V, 3), zeros where the source gives none
+    unlit: bool = False  # KHR_materials_unlit: drawn in its base colour, without the sun, sky or shadows
 
     @property
     def triangle_count(self) -> int:
@@ -350,6 +351,7 @@ class RigidMesh:
     base_color: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
     texture: int = -1  # as SkinnedMesh
     uvs: np.ndarray | None = None
+    unlit: bool = False  # as SkinnedMesh
 
     @property
     def triangle_count(self) -> int:

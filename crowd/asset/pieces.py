@@ -35,7 +35,7 @@ def attachment_piece(character: Character, attachment: Attachment, lod: int, pie
     return SkinnedMesh(name=mesh.name, piece=piece, lod=lod, positions=points[:, :3].astype(np.float32),
                        normals=normals.astype(np.float32), joints=joints, weights=weights,
                        indices=np.asarray(mesh.indices, np.uint32), colors=mesh.colors, base_color=mesh.base_color,
-                       texture=mesh.texture, uvs=mesh.uvs)
+                       texture=mesh.texture, uvs=mesh.uvs, unlit=mesh.unlit)
 
 
 def attachments_as_pieces(character: Character) -> Character:

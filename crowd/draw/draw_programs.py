@@ -30,14 +30,17 @@ def fixed_units(prog):
 
 
 def draw_program(ctx: moderngl.Context, kind: str, skinned: bool | str, layout: str = "", morph: bool = False, *, shadows: bool,
-                 lod_fade: bool, town: bool, morph_buffers: bool) -> moderngl.Program:
+                 lod_fade: bool, town: bool, morph_buffers: bool, unlit: bool = False) -> moderngl.Program:
     """kind: color, depth, bake or ground; skinned: True, or False for the benchmark's unskinned ceiling;
     layout: a textured piece's vertex layout ("packed" or "wide", crowd.draw.packing.uv_layout), "impostor",
     or "" for none; morph: pieces drawn with their morph targets (`morph_buffers`: their deltas in storage
-    buffers); `lod_fade`: LODs cross-fade; `town`: the ground shows the town's streets."""
+    buffers); `lod_fade`: LODs cross-fade; `town`: the ground shows the town's streets; `unlit` (colour
+    programs): the pieces say whether they are KHR_materials_unlit, or an impostor's character is."""
     defines = lighting_defines(shadows)
     if lod_fade and kind == "color":
         defines["LOD_FADE"] = 1
+    if unlit and kind == "color":
+        defines["UNLIT" if layout == "impostor" else "UNLIT_PIECES"] = 1
     if kind == "ground":
         if town:
             defines["TOWN"] = 1
@@ -66,6 +69,8 @@ def draw_program(ctx: moderngl.Context, kind: str, skinned: bool | str, layout: 
             vdefs["TEXTURED"] = 1
         if layout == "wide":
             vdefs["WIDE_UV"] = 1
+        if "UNLIT_PIECES" in defines:
+            vdefs["UNLIT_PIECES"] = 1
         if morph:
             vdefs["MORPH"] = 1
             if morph_buffers:

@@ -29,6 +29,7 @@ WIDE_UV_VERTEX_FORMAT = ("3f 4u 2f", "in_position", "in_packed", "in_uv")
 LAYOUTS = {"": (VERTEX_DTYPE, VERTEX_FORMAT), "packed": (TEXTURED_VERTEX_DTYPE, TEXTURED_VERTEX_FORMAT),
             "wide": (WIDE_UV_VERTEX_DTYPE, WIDE_UV_VERTEX_FORMAT), "impostor": (None, ("2f", "in_corner"))}
 WEIGHT_STEP = 1.0 / 2046.0  # a stored weight is within half of this of the float weight
+UNLIT_BIT = 1 << 30  # in packed[0], above the normal's 30 bits: the vertex's piece is unlit (KHR_materials_unlit)
 
 
 def rgba8(values: np.ndarray) -> np.ndarray:
@@ -113,7 +114,7 @@ def pack_vertices(mesh: SkinnedMesh) -> np.ndarray:
         v["position_uv"][:, 3] = q[:, 0] | (q[:, 1] << 16)
     else:
         v["position"] = mesh.positions
-    v["packed"][:, 0] = pack_normals(mesh.normals)
+    v["packed"][:, 0] = pack_normals(mesh.normals) | (np.uint32(UNLIT_BIT) if mesh.unlit else np.uint32(0))
     order = np.argsort(-mesh.weights, axis=1, kind="stable")
     w = np.take_along_axis(np.asarray(mesh.weights, np.float64), order, axis=1)
     w = w / w.sum(axis=1, keepdims=True)

@@ -147,6 +147,10 @@ class CrowdRenderer(DrawnCounts, GLStage):
         self.morph: MorphDeltas | None = None
         self.morph_buffers = has_compute(ctx) if morph_buffers is None else bool(morph_buffers)
         per_character = [[m for m in c.meshes if pieces is None or m.piece in pieces] for c in cast]
+        # KHR_materials_unlit: the colour programs read each vertex's flag only where some piece is unlit, and a
+        # character's impostor is unlit where all its pieces are (its atlas holds no flag).
+        self.unlit_pieces = any(m.unlit for meshes in per_character for m in meshes)
+        self.unlit_impostor = [bool(meshes) and all(m.unlit for m in meshes) for meshes in per_character]
         for c, meshes in zip(cast, per_character):
             if not meshes:
                 raise RenderError(f"character {c.name!r} has no skinned mesh to draw")
@@ -199,7 +203,8 @@ class CrowdRenderer(DrawnCounts, GLStage):
             raise RenderError(f"the splat height must be 0 to {BLEND_PX:g} pixels, got {splat_px}")
         self.splat_px = float(splat_px)
         if self.splat_px > 0.0 and self.gpu is not None and any(d.layout == "impostor" for d in self.draws):
-            self.splat = self._own("splat", ImpostorSplat(ctx, lighting_defines(self.shadows), sum(d.layout == "impostor" for d in self.draws)))
+            unlit = [self.unlit_impostor[d.character] for d in self.draws if d.layout == "impostor"]  # (in the draws' order)
+            self.splat = self._own("splat", ImpostorSplat(ctx, lighting_defines(self.shadows), unlit))
         self.shadow_size = int(shadow_size)
         self.shadow_map = None
         self._shadow_fbo = None
@@ -351,8 +356,9 @@ class CrowdRenderer(DrawnCounts, GLStage):
         key = (kind, skinned, layout, morph, character)
         if key in self._programs:
             return self._programs[key]
+        unlit = self.unlit_impostor[character] if layout == "impostor" else self.unlit_pieces
         prog = draw_program(self.ctx, kind, skinned, layout, morph, shadows=self.shadows, lod_fade=self.lod_fade > 0.0, town=self.town,
-                            morph_buffers=self.morph_buffers)
+                            morph_buffers=self.morph_buffers, unlit=unlit)
         self._programs[key] = self._own("programs", prog)
         return prog
 

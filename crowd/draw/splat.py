@@ -56,15 +56,15 @@ def _run_over(prog, invocations: int) -> None:
 class ImpostorSplat(GLStage):
     """The splat's programs and buffers for one renderer; ``run`` before the quads, ``resolve`` after."""
 
-    def __init__(self, ctx: moderngl.Context, defines: dict, draws: int):
+    def __init__(self, ctx: moderngl.Context, defines: dict, unlit: list[bool]):
         """`defines`: the colour pass's lighting defines (shadows and cascades), as its impostor program has;
-        `draws`: the impostor draws (one per character with an atlas), each with a program of its own so that
-        its atlas's constants are written once."""
+        `unlit`: per impostor draw (one per character with an atlas), whether its character is unlit. Each
+        draw has a program of its own, so that its atlas's constants are written once."""
         self.ctx = ctx
         self._objects = GLObjects()
         self._buffers = GLObjects()
-        source = load_shader("impostor_splat.comp.glsl", {**defines, "NO_INSTANCE_ENTRY": 1})
-        self.programs = [self._objects.add(fixed_units(ctx.compute_shader(source))) for _ in range(max(int(draws), 1))]
+        self.programs = [self._objects.add(fixed_units(ctx.compute_shader(load_shader(
+            "impostor_splat.comp.glsl", {**defines, "NO_INSTANCE_ENTRY": 1, **({"UNLIT": 1} if flat else {})})))) for flat in unlit or [False]]
         self.resolve_program = self._objects.add(ctx.program(vertex_shader=load_shader("impostor_resolve.vert.glsl"),
                                                              fragment_shader=load_shader("impostor_resolve.frag.glsl")))
         self._triangle = self._objects.add(ctx.vertex_array(self.resolve_program, []))

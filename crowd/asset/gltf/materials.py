@@ -1,6 +1,6 @@
 """Materials as the file authored them (issue 18, point 2): the base colour factor, vertex colours and
 the ``baseColorTexture``, sampled at its TEXCOORD set through its sampler's wrap and filter, with
-KHR_texture_transform.
+KHR_texture_transform; KHR_materials_unlit draws the base colour without the sun, sky or shadows.
 
 What the crowd's one lighting model cannot use (normal, metallic-roughness, occlusion and emissive
 maps, alpha modes, specular-glossiness) is named in one warning. A KHR_materials_pbrSpecularGlossiness
@@ -23,6 +23,7 @@ whose coordinates span more than PACKED_UV_SPAN is named in a warning (it draws 
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import math
 from dataclasses import dataclass
@@ -39,6 +40,7 @@ MAX_JPEG_SCANS = 100  # progressive JPEGs have about 10; each scan is decoded ov
 MAX_UV = 1e4  # float32 keeps 1/1600 of a texel of a 1024 texture here; beyond, the texture is noise
 _MAPS = ("normalTexture", "occlusionTexture", "emissiveTexture")
 _SPEC_GLOSS = "KHR_materials_pbrSpecularGlossiness"  # archived, still exported: its diffuse is a base colour
+_UNLIT = "KHR_materials_unlit"  # its base colour is drawn as it is, without the sun, sky or shadows
 _FORMATS = {"PNG": "image/png", "JPEG": "image/jpeg"}
 
 
@@ -50,6 +52,7 @@ class Surface:
     texture: int = -1  # index into Materials.textures
     texcoord: int = 0  # the TEXCOORD_n set the texture reads
     transform: np.ndarray | None = None  # (2, 3) KHR_texture_transform, or None
+    unlit: bool = False  # KHR_materials_unlit: the base colour is the colour drawn (fog still falls on it)
 
 
 def texture_transform(offset, rotation: float, scale) -> np.ndarray:
@@ -88,7 +91,19 @@ class Materials:
         return isinstance(pbr, dict) and pbr.get("baseColorTexture") is not None
 
     def surface(self, prim: dict, label: str, textures: bool = True) -> Surface:
-        """The primitive's base colour and texture; `textures=False` reads the colour only (props)."""
+        """The primitive's base colour, texture and whether it is unlit; `textures=False` reads the colour
+        only (props)."""
+        surface = self._surface(prim, label, textures)
+        material = prim.get("material")
+        if surface.unlit or material is None:
+            return surface
+        extensions = self.r.obj(self.r.item("materials", material), "extensions", f"material {material}") or {}
+        if _UNLIT in extensions:
+            self.r.obj(extensions, _UNLIT, f"material {material} extensions")  # (an object, as glTF says)
+            return dataclasses.replace(surface, unlit=True)
+        return surface
+
+    def _surface(self, prim: dict, label: str, textures: bool) -> Surface:
         r = self.r
         material = r.index(prim, "material", "materials", label)
         if material is None:

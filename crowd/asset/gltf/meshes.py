@@ -303,7 +303,7 @@ def read_meshes(r: Reader, tree: Tree, skin_maps: dict[int, np.ndarray], materia
                 joints=joints.astype(np.uint16), weights=weights.astype(np.float32), indices=idx.astype(np.uint32),
                 colors=None if colors is None else colors.astype(np.float32), base_color=surface.base_color, group=group,
                 texture=surface.texture if uvs is not None else -1, uvs=uvs,
-                morph_targets=morph_targets, morph_positions=morph_positions, morph_normals=morph_normals,
+                morph_targets=morph_targets, morph_positions=morph_positions, morph_normals=morph_normals, unlit=surface.unlit,
             ))
     return meshes
 
@@ -334,12 +334,12 @@ def _rigid_parts(r: Reader, mesh_index: int, materials: Materials, warn: list[st
         uvs = _uvs(r, prim, surface, materials, label, pos.shape[0])
         colors = _colors(r, prim, pos.shape[0], label)
         colors = (np.ones((pos.shape[0], 4)) if colors is None else colors) * np.asarray(surface.base_color)
-        parts.setdefault(surface.texture if uvs is not None else -1, []).append((pos, nrm, idx, colors, uvs))
+        parts.setdefault((surface.texture if uvs is not None else -1, surface.unlit), []).append((pos, nrm, idx, colors, uvs))
     if not parts:
         warn.append(f"mesh {mesh_name!r} has no triangles; left out")
         return []
     out = []
-    for texture, prims in sorted(parts.items()):
+    for (texture, unlit), prims in sorted(parts.items()):
         starts = np.cumsum([0] + [len(p[0]) for p in prims])
         name = mesh_name or f"mesh{mesh_index}"
         out.append(RigidMesh(
@@ -347,7 +347,7 @@ def _rigid_parts(r: Reader, mesh_index: int, materials: Materials, warn: list[st
             np.concatenate([p[0] for p in prims]).astype(np.float32), np.concatenate([p[1] for p in prims]).astype(np.float32),
             np.concatenate([p[2] + k for p, k in zip(prims, starts)]).astype(np.uint32),
             np.concatenate([p[3] for p in prims]).astype(np.float32), texture=texture,
-            uvs=np.concatenate([p[4] for p in prims]).astype(np.float32) if texture >= 0 else None))
+            uvs=np.concatenate([p[4] for p in prims]).astype(np.float32) if texture >= 0 else None, unlit=unlit))
     return out
 
 
