@@ -537,3 +537,39 @@ def _part_shape(centre: np.ndarray, lod: int) -> tuple[np.ndarray, np.ndarray, n
     normals = np.repeat(normal, 3, axis=0).astype(np.float32)
     uvs = np.tile([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]], (len(faces), 1)).astype(np.float32)
     return positions, normals, uvs, np.arange(len(positions), dtype=np.uint16)
+
+
+MORPH_ONLY_TRANSLATION = np.array([0.3, 0.0, -0.2])  # the mesh node's place
+MORPH_ONLY_TURNS = np.array([0.0, 0.6, 1.2])  # radians about Y at KEY_TIMES: the node's own animation
+
+
+def morph_only_gltf(folder: Path, name: str = "morph_only.gltf", turn: bool = True) -> Path:
+    """make_gltf(morph=True) without its skin: the mesh has no JOINTS_0/WEIGHTS_0, its node stands at
+    MORPH_ONLY_TRANSLATION, and the one clip keys the morph weights (MORPH_KEYS) and, with `turn`, the
+    node's rotation about Y (MORPH_ONLY_TURNS), as vertex-animated files are made."""
+    path = make_gltf(folder, name, morph=True)
+    doc = json.loads(path.read_text())
+    doc.pop("skins")
+    body = doc["nodes"][4]
+    body.pop("skin")
+    body["translation"] = MORPH_ONLY_TRANSLATION.tolist()
+    attributes = doc["meshes"][0]["primitives"][0]["attributes"]
+    attributes.pop("JOINTS_0")
+    attributes.pop("WEIGHTS_0")
+    anim = doc["animations"][0]
+    weights = next(c for c in anim["channels"] if c["target"]["path"] == "weights")
+    anim["channels"] = [dict(weights, sampler=0)]
+    anim["samplers"] = [anim["samplers"][weights["sampler"]]]
+    if turn:
+        blob = bytearray(base64.b64decode(doc["buffers"][0]["uri"].split(",", 1)[1]))
+        keys = tf.quat_from_axis_angle([0.0, 1.0, 0.0], MORPH_ONLY_TURNS).astype(np.float32)
+        while len(blob) % 4:
+            blob.append(0)
+        doc["bufferViews"].append({"buffer": 0, "byteOffset": len(blob), "byteLength": keys.nbytes})
+        blob.extend(keys.tobytes())
+        doc["accessors"].append({"bufferView": len(doc["bufferViews"]) - 1, "componentType": 5126, "count": 3, "type": "VEC4"})
+        anim["samplers"].append({"input": anim["samplers"][0]["input"], "output": len(doc["accessors"]) - 1})
+        anim["channels"].append({"sampler": 1, "target": {"node": 4, "path": "rotation"}})
+        doc["buffers"][0] = {"byteLength": len(blob), "uri": "data:application/octet-stream;base64," + base64.b64encode(bytes(blob)).decode()}
+    path.write_text(json.dumps(doc))
+    return path

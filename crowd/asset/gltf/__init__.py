@@ -1,4 +1,5 @@
-"""Import stage: a skinned glTF 2.0 character (.glb or .gltf) → ``Character``.
+"""Import stage: a glTF 2.0 character (.glb or .gltf) → ``Character``: a skinned one, or one animated by
+its nodes and morph weights alone, whose mesh nodes become its skeleton (``skins.skin_of_nodes``).
 
 Contract: ``load_character(path, clips=None)`` returns a validated ``Character`` whose skeleton is
 sorted parents-first, or raises ``GltfImportError`` (crowd.asset.gltf.reader) with one line that names
@@ -52,7 +53,7 @@ from .clips import check_scale_chains, read_clips
 from .materials import Materials
 from .meshes import Morphs, read_meshes, read_rigid
 from .reader import GltfImportError, Reader, crowd_extras, one_line
-from .skins import read_skeleton
+from .skins import read_skeleton, skin_of_nodes
 from .tree import Tree
 
 _UNEXPECTED = "the importer failed unexpectedly"  # the safety net's words: a test treats them as a bug
@@ -112,6 +113,7 @@ def _select_clips(character: Character, clips, where: str) -> Character:
 
 def _import(r: Reader) -> Character:
     """The file's character as it stands, before it is made whole (pieces, root motion, targets, units)."""
+    node_joints = skin_of_nodes(r)  # (a file without a skin: its mesh nodes made the skeleton)
     tree = Tree(r)
     warn = r.warnings
     rig = read_skeleton(r, tree)
@@ -119,9 +121,9 @@ def _import(r: Reader) -> Character:
 
     materials = Materials(r)
     morphs = Morphs(r, warn)
-    meshes = read_meshes(r, tree, rig.skin_maps, materials, morphs, warn)
+    meshes = read_meshes(r, tree, rig.skin_maps, materials, morphs, warn, node_joints)
     if not meshes:
-        r.fail("the skinned meshes have no triangles")
+        r.fail("the skinned meshes have no triangles" if node_joints is None else "the meshes have no triangles")
     attachments, props = read_rigid(r, tree, rig.joint_index, rig.factor, materials, warn)
     warn.extend(materials.warnings())
     sockets = {}
@@ -131,7 +133,8 @@ def _import(r: Reader) -> Character:
             sockets[name] = i
     clips = read_clips(r, tree, skeleton, rig.joint_index, rig.folds, rig.factor, morphs, warn)
     if not clips:
-        r.fail("no animation animates the skin's joints: the crowd needs at least one clip")
+        r.fail("no animation animates the skin's joints: the crowd needs at least one clip" if node_joints is None else
+               "no skin, and no animation moves its mesh nodes or morph weights: the crowd needs at least one clip")
     check_scale_chains(r, skeleton, clips)
     name = Path(r.path).stem
     character = Character(name, skeleton, meshes, clips, attachments, props, sockets, warn, materials.textures,

@@ -214,13 +214,68 @@ def _read_targets(r: Reader, morphs: Morphs, mesh_index: int, mesh: dict, node: 
     return indices, positions, normals
 
 
+def _joints_and_weights(r: Reader, prim: dict, label: str, v: int, skin_to_new: np.ndarray, warn: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """A skinned primitive's four influences a vertex (the skeleton's joints, weights summing to 1), from
+    its JOINTS_n and WEIGHTS_n sets."""
+    if _attr(r, prim, "JOINTS_0", label) is None or _attr(r, prim, "WEIGHTS_0", label) is None:
+        r.fail(f"{label} is drawn with a skin but has no JOINTS_0/WEIGHTS_0")
+    jsets, wsets = [], []
+    k = 0
+    while _attr(r, prim, f"JOINTS_{k}", label) is not None and _attr(r, prim, f"WEIGHTS_{k}", label) is not None:
+        jj = _vertex_data(r, prim, f"JOINTS_{k}", label, v, ("VEC4",), UNSIGNED_TYPES)
+        ww = _vertex_data(r, prim, f"WEIGHTS_{k}", label, v, ("VEC4",), (5126, 5121, 5123)).astype(np.float64)
+        what = f"accessor {_attr(r, prim, f'WEIGHTS_{k}', label)} ({label} WEIGHTS_{k})"
+        bad = ~np.isfinite(ww)
+        if np.any(bad):
+            r.fail(f"{what}: vertex {first_row(bad)} has a NaN or infinite weight")
+        negative = ww < -WEIGHT_NOISE
+        if np.any(negative):
+            r.fail(f"{what}: vertex {first_row(negative)} has a negative weight ({float(ww[negative][0]):.3g})")
+        jsets.append(jj.astype(np.int64))
+        wsets.append(ww)
+        k += 1
+    joints = np.concatenate(jsets, axis=1)
+    weights = np.concatenate(wsets, axis=1)
+    weights = np.maximum(weights, 0.0)
+    used = weights > 0.0
+    if np.any(joints[used] >= skin_to_new.shape[0]):
+        vertex = first_row(used & (joints >= skin_to_new.shape[0]))
+        r.fail(f"{label} references joint {int(joints[used].max())} but the skin has {skin_to_new.shape[0]} (vertex {vertex})")
+    joints = np.where(used, skin_to_new[np.minimum(joints, skin_to_new.shape[0] - 1)], 0)
+    if joints.shape[1] > 4:
+        order = np.argsort(-weights, axis=1, kind="stable")[:, :4]
+        dropped = float(np.max(np.sum(weights, 1) - np.sum(np.take_along_axis(weights, order, 1), 1)))
+        joints, weights = np.take_along_axis(joints, order, 1), np.take_along_axis(weights, order, 1)
+        warn.append(f"{label}: more than 4 influences per vertex; kept the 4 largest (largest weight dropped {dropped:.3f})")
+    total = weights.sum(axis=1, keepdims=True)
+    zero = total[:, 0] <= 1e-12
+    if np.any(zero):
+        warn.append(f"{label}: {int(zero.sum())} vertices have no weight; bound to the first root joint")
+        weights[zero] = [1.0, 0.0, 0.0, 0.0]
+        joints[zero] = 0
+        total = weights.sum(axis=1, keepdims=True)
+    weights = weights / total
+    return joints, weights
+
+
+def _on_node(v: int, joint: int) -> tuple[np.ndarray, np.ndarray]:
+    """`v` vertices weighted wholly to `joint`."""
+    joints = np.zeros((v, 4), np.int64)
+    joints[:, 0] = joint
+    weights = np.zeros((v, 4))
+    weights[:, 0] = 1.0
+    return joints, weights
+
+
 def read_meshes(r: Reader, tree: Tree, skin_maps: dict[int, np.ndarray], materials: Materials, morphs: Morphs,
-                 warn: list[str]) -> list[SkinnedMesh]:
-    """The meshes drawn with the merged skins; `skin_maps[k]` maps skin k's joint indices to the skeleton's."""
+                 warn: list[str], node_joints: dict[int, int] | None = None) -> list[SkinnedMesh]:
+    """The meshes drawn with the merged skins; `skin_maps[k]` maps skin k's joint indices to the skeleton's.
+    `node_joints` (crowd.asset.gltf.skins.skin_of_nodes): a file without a skin, each mesh weighted wholly
+    to its node's joint in the skin made of them (any JOINTS_n and WEIGHTS_n it holds mean nothing then)."""
     meshes: list[SkinnedMesh] = []
     seen_mesh: set[tuple[int, int]] = set()
     read_mesh: set[int] = set()
-    for node in tree.nodes:
+    for node_index, node in enumerate(tree.nodes):
         mesh_index, skin_index = node.get("mesh"), node.get("skin")
         if mesh_index is None or skin_index not in skin_maps or (mesh_index, skin_index) in seen_mesh:
             continue
@@ -249,44 +304,10 @@ def read_meshes(r: Reader, tree: Tree, skin_maps: dict[int, np.ndarray], materia
                 r.fail(f"{label} has no POSITION")
             pos = _positions(r, prim, label)
             v = pos.shape[0]
-            if _attr(r, prim, "JOINTS_0", label) is None or _attr(r, prim, "WEIGHTS_0", label) is None:
-                r.fail(f"{label} is drawn with a skin but has no JOINTS_0/WEIGHTS_0")
-            jsets, wsets = [], []
-            k = 0
-            while _attr(r, prim, f"JOINTS_{k}", label) is not None and _attr(r, prim, f"WEIGHTS_{k}", label) is not None:
-                jj = _vertex_data(r, prim, f"JOINTS_{k}", label, v, ("VEC4",), UNSIGNED_TYPES)
-                ww = _vertex_data(r, prim, f"WEIGHTS_{k}", label, v, ("VEC4",), (5126, 5121, 5123)).astype(np.float64)
-                what = f"accessor {_attr(r, prim, f'WEIGHTS_{k}', label)} ({label} WEIGHTS_{k})"
-                bad = ~np.isfinite(ww)
-                if np.any(bad):
-                    r.fail(f"{what}: vertex {first_row(bad)} has a NaN or infinite weight")
-                negative = ww < -WEIGHT_NOISE
-                if np.any(negative):
-                    r.fail(f"{what}: vertex {first_row(negative)} has a negative weight ({float(ww[negative][0]):.3g})")
-                jsets.append(jj.astype(np.int64))
-                wsets.append(ww)
-                k += 1
-            joints = np.concatenate(jsets, axis=1)
-            weights = np.concatenate(wsets, axis=1)
-            weights = np.maximum(weights, 0.0)
-            used = weights > 0.0
-            if np.any(joints[used] >= skin_to_new.shape[0]):
-                vertex = first_row(used & (joints >= skin_to_new.shape[0]))
-                r.fail(f"{label} references joint {int(joints[used].max())} but the skin has {skin_to_new.shape[0]} (vertex {vertex})")
-            joints = np.where(used, skin_to_new[np.minimum(joints, skin_to_new.shape[0] - 1)], 0)
-            if joints.shape[1] > 4:
-                order = np.argsort(-weights, axis=1, kind="stable")[:, :4]
-                dropped = float(np.max(np.sum(weights, 1) - np.sum(np.take_along_axis(weights, order, 1), 1)))
-                joints, weights = np.take_along_axis(joints, order, 1), np.take_along_axis(weights, order, 1)
-                warn.append(f"{label}: more than 4 influences per vertex; kept the 4 largest (largest weight dropped {dropped:.3f})")
-            total = weights.sum(axis=1, keepdims=True)
-            zero = total[:, 0] <= 1e-12
-            if np.any(zero):
-                warn.append(f"{label}: {int(zero.sum())} vertices have no weight; bound to the first root joint")
-                weights[zero] = [1.0, 0.0, 0.0, 0.0]
-                joints[zero] = 0
-                total = weights.sum(axis=1, keepdims=True)
-            weights = weights / total
+            if node_joints is not None:
+                joints, weights = _on_node(v, int(skin_to_new[node_joints[node_index]]))
+            else:
+                joints, weights = _joints_and_weights(r, prim, label, v, skin_to_new, warn)
             idx = _indices(r, prim, v, label, warn)
             if not idx.size:
                 warn.append(f"{label}: no whole triangle; left out")

@@ -37,6 +37,26 @@ class Rig:
     factor: float  # the uniform scale factored out above the root joints
 
 
+def skin_of_nodes(r: Reader) -> dict[int, int] | None:
+    """A file without a skin (the classic vertex-animated birds and horses, morph test files): one skin is
+    made whose joints are the nodes that draw meshes, each mesh weighted wholly to its own node, with
+    identity inverse binds (the bind pose is where the nodes stand), so its node animation and morph
+    weights play as any character's. Returns node -> its joint in that skin, or None where the file has
+    a skin (which is then used as it is)."""
+    if r.array("skins"):
+        return None
+    nodes = r.array("nodes")
+    drawn = [i for i, n in enumerate(nodes) if isinstance(n, dict) and n.get("mesh") is not None]
+    if not drawn:
+        r.fail("no skin and no node draws a mesh: nothing to draw")
+    r.doc["skins"] = [{"name": "nodes", "joints": drawn}]
+    for i in drawn:
+        nodes[i]["skin"] = 0
+    r.warnings.append(f"no skin: the {len(drawn)} node{'s' if len(drawn) > 1 else ''} drawing meshes made the skeleton "
+                      "(node animation and morph weights play; each mesh moves with its node)")
+    return {node: k for k, node in enumerate(drawn)}
+
+
 def read_skeleton(r: Reader, tree: Tree) -> Rig:
     """The skeleton of the skins that draw meshes (tree.joints becomes its joint nodes)."""
     nodes = tree.nodes
