@@ -561,15 +561,24 @@ def morph_only_gltf(folder: Path, name: str = "morph_only.gltf", turn: bool = Tr
     anim["channels"] = [dict(weights, sampler=0)]
     anim["samplers"] = [anim["samplers"][weights["sampler"]]]
     if turn:
-        blob = bytearray(base64.b64decode(doc["buffers"][0]["uri"].split(",", 1)[1]))
-        keys = tf.quat_from_axis_angle([0.0, 1.0, 0.0], MORPH_ONLY_TURNS).astype(np.float32)
-        while len(blob) % 4:
-            blob.append(0)
-        doc["bufferViews"].append({"buffer": 0, "byteOffset": len(blob), "byteLength": keys.nbytes})
-        blob.extend(keys.tobytes())
-        doc["accessors"].append({"bufferView": len(doc["bufferViews"]) - 1, "componentType": 5126, "count": 3, "type": "VEC4"})
-        anim["samplers"].append({"input": anim["samplers"][0]["input"], "output": len(doc["accessors"]) - 1})
-        anim["channels"].append({"sampler": 1, "target": {"node": 4, "path": "rotation"}})
-        doc["buffers"][0] = {"byteLength": len(blob), "uri": "data:application/octet-stream;base64," + base64.b64encode(bytes(blob)).decode()}
+        add_channel(doc, 4, "rotation", tf.quat_from_axis_angle([0.0, 1.0, 0.0], MORPH_ONLY_TURNS))
     path.write_text(json.dumps(doc))
     return path
+
+
+def add_channel(doc: dict, node: int, path: str, keys: np.ndarray) -> None:
+    """A channel keying `node`'s `path` at KEY_TIMES (one key a row of `keys`, LINEAR) in the first
+    animation of a make_gltf document (its buffer a data URI), the keys appended to the buffer."""
+    blob = bytearray(base64.b64decode(doc["buffers"][0]["uri"].split(",", 1)[1]))
+    values = np.asarray(keys, np.float32)
+    while len(blob) % 4:
+        blob.append(0)
+    doc["bufferViews"].append({"buffer": 0, "byteOffset": len(blob), "byteLength": values.nbytes})
+    blob.extend(values.tobytes())
+    doc["accessors"].append({"bufferView": len(doc["bufferViews"]) - 1, "componentType": 5126, "count": int(values.shape[0]),
+                             "type": {3: "VEC3", 4: "VEC4"}[values.shape[1]]})
+    anim = doc["animations"][0]
+    times = next(doc["accessors"].index(a) for a in doc["accessors"] if a.get("min") is not None and a["type"] == "SCALAR")
+    anim["samplers"].append({"input": times, "output": len(doc["accessors"]) - 1})
+    anim["channels"].append({"sampler": len(anim["samplers"]) - 1, "target": {"node": node, "path": path}})
+    doc["buffers"][0] = {"byteLength": len(blob), "uri": "data:application/octet-stream;base64," + base64.b64encode(bytes(blob)).decode()}

@@ -71,6 +71,7 @@ def read_clips(r: Reader, tree: Tree, skeleton: Skeleton, new_index, folds, fact
         warn.append(f"merged {len(anims)} single-joint animations (old one-animation-per-joint layout) into one clip")
     clips: list[Clip] = []
     clip_names = set()
+    left_out: dict[int, tuple[set, set]] = {}  # non-joint node -> (its paths, the clips) whose channels are left out
     for name, members in groups:
         channels: dict[tuple[int, str], Channel] = {}
         morph_channels: list[MorphChannel] = []
@@ -95,7 +96,9 @@ def read_clips(r: Reader, tree: Tree, skeleton: Skeleton, new_index, folds, fact
                     warn.append(f"{where}: target path {show(path)} is not a joint transform; left out")
                     continue
                 if node not in joint_set:
-                    warn.append(f"{where}: animates non-joint node {node}; left out")
+                    paths, names = left_out.setdefault(node, (set(), set()))
+                    paths.add(path)
+                    names.add(name)
                     continue
                 j = new_index[node]
                 key = (j, path)
@@ -149,7 +152,34 @@ def read_clips(r: Reader, tree: Tree, skeleton: Skeleton, new_index, folds, fact
             clip.name = f"{base}.{n}"
         clip_names.add(clip.name)
         clips.append(clip)
+    for node, (paths, names) in sorted(left_out.items()):
+        warn.append(_left_out_note(r, tree, node, paths, names))
     return clips
+
+
+def _left_out_note(r: Reader, tree: Tree, node: int, paths: set, clips: set) -> str:
+    """One line for an animated node whose channels no joint plays (a node above a joint is a joint by
+    now: crowd.asset.gltf.skins.animated_ancestors), saying whether its motion moves anything drawn."""
+    name = tree.nodes[node].get("name")
+    label = f"node {node}" + (f" ({name!r})" if isinstance(name, str) and name else "")
+    drawn = _drawn_below(tree, node)
+    moves = f"it moves {drawn}, which is drawn still" if drawn else "it moves nothing drawn"
+    count = f"{len(clips)} clip{'s' if len(clips) > 1 else ''}"
+    return f"{label}: its {', '.join(sorted(paths))} channels ({count}) are left out; {moves}"
+
+
+def _drawn_below(tree: Tree, node: int) -> str | None:
+    """The first mesh drawn with `node`'s motion, at or below it (a rigid mesh hanging on a joint, as
+    crowd.asset.gltf.meshes.read_rigid draws it; a skinned mesh ignores its node), or None."""
+    stack = [node]
+    while stack:
+        k = stack.pop()
+        n = tree.nodes[k]
+        if n.get("mesh") is not None and n.get("skin") is None and tree.joint_above(k) is not None:
+            name = n.get("name")
+            return f"mesh node {k}" + (f" ({name!r})" if isinstance(name, str) and name else "")
+        stack.extend(c for c in n.get("children") or [] if is_whole(c))
+    return None
 
 
 def _morph_channel(r: Reader, anim: dict, ch: dict, node: int, morphs: Morphs, where: str, warn: list[str]) -> MorphChannel | None:

@@ -20,7 +20,7 @@ import numpy as np
 
 from ... import transforms as tf
 from ..model import Skeleton
-from .reader import FLOAT_TYPES, Reader, check_matrices
+from .reader import FLOAT_TYPES, Reader, check_matrices, is_whole
 from .tree import Fold, Tree, joint_tops
 
 MAX_JOINTS = 1 << 16  # SkinnedMesh.joints is uint16
@@ -88,6 +88,10 @@ def read_skeleton(r: Reader, tree: Tree) -> Rig:
             if j not in listed:
                 listed.add(j)
                 src_joints.append(j)
+    skinned = len(src_joints)  # (the joints after these are animated nodes above them: no skin lists them)
+    for node in animated_ancestors(r, tree, listed):
+        listed.add(node)
+        src_joints.append(node)
     if len(src_joints) > MAX_JOINTS:
         r.fail(f"skins {', '.join(map(str, merged))} have {len(src_joints):,} joints together, more than the {MAX_JOINTS:,} a vertex can address")
     tree.joints = listed
@@ -145,6 +149,8 @@ def read_skeleton(r: Reader, tree: Tree) -> Rig:
     skin_maps: dict[int, np.ndarray] = {}
     dup_of: list[int] = []
     dup_ibm: list[np.ndarray] = []
+    ibm_file[[new_index[j] for j in src_joints[skinned:]]] = np.eye(4)  # (no vertex is weighted to them)
+    assigned[[new_index[j] for j in src_joints[skinned:]]] = True
     for k in merged:
         ibm_k = _skin_inverse_binds(r, k, len(skin_joints[k]))
         idx = np.array([new_index[j] for j in skin_joints[k]], dtype=np.int64)
@@ -185,8 +191,12 @@ def read_skeleton(r: Reader, tree: Tree) -> Rig:
 
     # Factor a constant uniform scale above the root joint(s) out of the skeleton: child translations
     # are multiplied by it and the inverse binds absorb it, so joint transforms stay rigid.
+    # A root made of an animated node above the skin's joints (animated_ancestors) counts its own uniform
+    # scale too (an armature's 0.01), as it counted when it was folded in above them.
     roots = [i for i in range(jc) if parents[i] < 0]
-    root_scales = {round(folds[i].s, 9) if folds[i] else 1.0 for i in roots}
+    added = {new_index[j] for j in src_joints[skinned:]}
+    root_scales = {round(float(rest_s[i][0]), 9) if i in added and _uniform(rest_s[i]) else (round(folds[i].s, 9) if folds[i] else 1.0)
+                   for i in roots}
     factor = root_scales.pop() if len(root_scales) == 1 else 1.0
     if factor != 1.0:
         for i in roots:
@@ -201,6 +211,32 @@ def read_skeleton(r: Reader, tree: Tree) -> Rig:
 
     skeleton = Skeleton(tuple(names), parents, rest_t, tf.quat_normalize(rest_q), rest_s, ibm).validate()
     return Rig(skeleton, new_index, skin_maps, folds, factor)
+
+
+def animated_ancestors(r: Reader, tree: Tree, joints: set[int]) -> list[int]:
+    """The nodes above `joints` (the skins' joint nodes) that are not joints themselves and that some
+    animation moves (a translation, rotation or scale channel), in node order: folded at rest, their
+    motion would be lost, so they become joints of the skeleton. Channels are read leniently here; the
+    clips check them."""
+    moved = set()
+    for anim in r.array("animations"):
+        for ch in (anim.get("channels") if isinstance(anim, dict) else None) or []:
+            target = ch.get("target") if isinstance(ch, dict) else None
+            if isinstance(target, dict) and target.get("path") in ("translation", "rotation", "scale") and is_whole(target.get("node")):
+                moved.add(int(target["node"]))
+    out, seen = set(), set()
+    for j in joints:
+        k = tree.parent.get(j)
+        while k is not None and k not in seen:
+            seen.add(k)
+            if k in moved and k not in joints:
+                out.add(k)
+            k = tree.parent.get(k)
+    return sorted(out)
+
+
+def _uniform(s: np.ndarray, tol: float = 1e-5) -> bool:
+    return float(np.max(np.abs(s - s[0]))) <= tol * max(1.0, abs(float(s[0]))) and s[0] > 0
 
 
 def _skin_label(r: Reader, k: int, joints: int) -> str:

@@ -2,7 +2,8 @@
 non-joint nodes between joints, and the constant similarity (a `Fold`) such nodes apply above a joint.
 
 Space: skinned vertices stay in the mesh's bind space (glTF ignores a skinned mesh node's transform).
-Non-joint nodes above and between joints are folded into the joints' local transforms, and a constant
+Non-joint nodes above and between joints are folded into the joints' local transforms (an animated one
+is made a joint instead: crowd.asset.gltf.skins.animated_ancestors), and a constant
 uniform scale above the root joint (0.01 and 100 are common) is factored out of the whole skeleton by
 scaling joint translations (crowd.asset.gltf.skins), so joint transforms come out rigid and in the
 file's scene units. Every walk here is linear in the number of nodes.
