@@ -582,3 +582,66 @@ def add_channel(doc: dict, node: int, path: str, keys: np.ndarray) -> None:
     anim["samplers"].append({"input": times, "output": len(doc["accessors"]) - 1})
     anim["channels"].append({"sampler": len(anim["samplers"]) - 1, "target": {"node": node, "path": path}})
     doc["buffers"][0] = {"byteLength": len(blob), "uri": "data:application/octet-stream;base64," + base64.b64encode(bytes(blob)).decode()}
+
+
+DRACO_POSITION_BITS = 16  # the copies' position quantisation: a vertex within its box's size / 2^16 of the plain file's
+
+
+def draco_copy(source: Path, target: Path) -> dict:
+    """A copy of the GLB `source` with every skinned primitive Draco-compressed (KHR_draco_mesh_compression,
+    DracoPy's encoder, vertex order kept), its accessors' plain data no longer referenced. Returns
+    {mesh name: the position box's size} for the tolerance."""
+    import struct
+
+    import DracoPy
+
+    data = Path(source).read_bytes()
+    length = struct.unpack_from("<I", data, 12)[0]
+    doc = json.loads(data[20:20 + length])
+    blob = bytearray(data[28 + length:])
+    dtypes = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
+    sizes = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
+
+    def raw(index):
+        acc = doc["accessors"][index]
+        view = doc["bufferViews"][acc["bufferView"]]
+        n = acc["count"] * sizes[acc["type"]]
+        return np.frombuffer(bytes(blob), dtypes[acc["componentType"]], n, view.get("byteOffset", 0) + acc.get("byteOffset", 0)).reshape(acc["count"], -1)
+
+    boxes = {}
+    for mesh in doc["meshes"]:
+        for prim in mesh["primitives"]:
+            attributes = prim["attributes"]
+            if "JOINTS_0" not in attributes:
+                continue
+            points = raw(attributes["POSITION"]).astype(np.float64)
+            faces = raw(prim["indices"]).reshape(-1, 3).astype(np.int64)
+            boxes[mesh.get("name")] = float(np.max(points.max(0) - points.min(0)))
+            generic = {semantic: k for k, semantic in enumerate(s for s in attributes if s not in ("POSITION", "NORMAL"))}
+            encoded = DracoPy.encode(points, faces, quantization_bits=DRACO_POSITION_BITS, preserve_order=True,
+                                     normals=raw(attributes["NORMAL"]).astype(np.float64) if "NORMAL" in attributes else None,
+                                     generic_attributes={k: raw(attributes[s]) for s, k in generic.items()})
+            decoded = DracoPy.decode(encoded)
+            ids = {"POSITION": next(a["unique_id"] for a in decoded.attributes if a["attribute_type"] == 0)}
+            if "NORMAL" in attributes:
+                ids["NORMAL"] = next(a["unique_id"] for a in decoded.attributes if a["attribute_type"] == 1)
+            ids.update(generic)
+            while len(blob) % 4:
+                blob.append(0)
+            doc["bufferViews"].append({"buffer": 0, "byteOffset": len(blob), "byteLength": len(encoded)})
+            blob.extend(encoded)
+            prim.setdefault("extensions", {})["KHR_draco_mesh_compression"] = {"bufferView": len(doc["bufferViews"]) - 1, "attributes": ids}
+            for index in [*(attributes[s] for s in ids), prim["indices"]]:
+                doc["accessors"][index].pop("bufferView", None)
+                doc["accessors"][index].pop("byteOffset", None)
+    for key in ("extensionsUsed", "extensionsRequired"):
+        doc[key] = sorted(set(doc.get(key, [])) | {"KHR_draco_mesh_compression"})
+    doc["buffers"][0]["byteLength"] = len(blob)
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    while len(blob) % 4:
+        blob.append(0)
+    out = b"glTF" + struct.pack("<II", 2, 28 + len(text) + len(blob)) + struct.pack("<I", len(text)) + b"JSON" + text
+    out += struct.pack("<I", len(blob)) + b"BIN\x00" + bytes(blob)
+    Path(target).write_bytes(out)
+    return boxes

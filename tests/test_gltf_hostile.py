@@ -265,7 +265,7 @@ def test_zero_quaternion_rest_rotation_becomes_the_identity_with_a_warning(tmp_p
     (lambda d, b: d["buffers"][0].update(uri="a\u0000b.bin"), "is not a usable path"),
     (lambda d, b: d["buffers"][0].update(uri="data:application/octet-stream,AAAA"), "malformed data URI"),
     (lambda d, b: d["buffers"][0].update(uri=7), "buffer 0: uri must be a string, got 7"),
-    (lambda d, b: d.update(extensionsRequired=["KHR_draco_mesh_compression"]), "requires extension 'KHR_draco_mesh_compression'"),
+    (lambda d, b: d.update(extensionsRequired=["EXT_mesh_gpu_instancing"]), "requires extension 'EXT_mesh_gpu_instancing'"),
 ])
 def test_accessor_view_and_buffer_rules(tmp_path, mutate, needle):
     refused(hostile(tmp_path, mutate), needle)

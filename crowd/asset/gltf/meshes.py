@@ -17,6 +17,7 @@ import numpy as np
 
 from ... import transforms as tf
 from ..model import MAX_MORPHS, Attachment, Prop, RigidMesh, SkinnedMesh, vertex_normals
+from .draco import decode_primitive
 from .materials import Materials
 from .reader import (MAX_COORDINATE, MAX_MORPH_WEIGHT, UNSIGNED_TYPES, Reader, check_matrices, crowd_extras, first_row, is_whole,
                      refuse_bad_values, show)
@@ -45,7 +46,7 @@ def _vertex_data(r: Reader, prim: dict, key: str, label: str, v: int, types, com
 def _positions(r: Reader, prim: dict, label: str) -> np.ndarray:
     index = _attr(r, prim, "POSITION", label)
     acc = r.item("accessors", index)
-    if acc.get("bufferView") is None and acc.get("sparse") is None:
+    if acc.get("bufferView") is None and acc.get("sparse") is None and index not in r.decoded:
         r.fail(f"accessor {index} ({label} POSITION) has no data (no bufferView: compressed by an extension?)")
     what = f"accessor {index} ({label} POSITION)"
     pos = r.accessor(index, f"{label} POSITION", ("VEC3",)).astype(np.float64)
@@ -302,6 +303,7 @@ def read_meshes(r: Reader, tree: Tree, skin_maps: dict[int, np.ndarray], materia
                 continue
             if _attr(r, prim, "POSITION", label) is None:
                 r.fail(f"{label} has no POSITION")
+            decode_primitive(r, prim, label)
             pos = _positions(r, prim, label)
             v = pos.shape[0]
             if node_joints is not None:
@@ -346,6 +348,7 @@ def _rigid_parts(r: Reader, mesh_index: int, materials: Materials, warn: list[st
         targets = r.list(prim, "targets", label)
         if targets:  # a rigid mesh is drawn as it is at rest: its shapes cannot be given weights
             warn.append(f"{label}: a rigid mesh (on a joint, or a prop); its {len(targets)} morph targets left out")
+        decode_primitive(r, prim, label)
         pos = _positions(r, prim, label)
         idx = _indices(r, prim, pos.shape[0], label, warn)
         if not idx.size:

@@ -65,6 +65,8 @@ ZERO_QUATERNION = 1e-6  # a rotation this short has no direction (int16-normalis
 AFFINE_TOLERANCE = 1e-4  # a matrix's last row against (0, 0, 0, 1)
 _SAFE_EXTENSION_PREFIXES = ("KHR_materials_", "KHR_texture_", "EXT_texture_", "KHR_lights_", "KHR_xmp")
 _SAFE_EXTENSIONS = {"KHR_mesh_quantization"}  # any component type is read as numbers: that is all it asks
+DRACO = "KHR_draco_mesh_compression"  # decoded by DracoPy, the optional extra crowd[draco] (crowd.asset.gltf.draco)
+MESHOPT = "EXT_meshopt_compression"
 
 
 class GltfImportError(CrowdError, ValueError):
@@ -116,10 +118,14 @@ class Reader:
         if not isinstance(required, list):
             self.fail("extensionsRequired must be an array")
         for ext in required:
-            if not isinstance(ext, str) or not (ext in _SAFE_EXTENSIONS or ext.startswith(_SAFE_EXTENSION_PREFIXES)):
+            if ext == MESHOPT:
+                self.fail(f"requires extension {MESHOPT}, which this importer does not decode yet (no meshopt decoder installs with pip "
+                          "without a compiler; decompress the file with gltfpack -noq, or re-export it with Draco)")
+            if not isinstance(ext, str) or not (ext in _SAFE_EXTENSIONS or ext == DRACO or ext.startswith(_SAFE_EXTENSION_PREFIXES)):
                 self.fail(f"requires extension {show(ext)}, which this importer does not implement")
         self._buffers: dict[int, bytes] = {}
         self._cache: dict[int, np.ndarray] = {}
+        self.decoded: dict[int, np.ndarray] = {}  # accessor -> its elements as a compressed primitive decoded them (crowd.asset.gltf.draco)
         self._trs: dict[int, tuple] = {}
         self._local: dict[int, np.ndarray] = {}
         self._primitives = 0
@@ -399,7 +405,12 @@ class Reader:
         if normalized and ctype in (5125, 5126):
             self.fail(f"{what} is {'float' if ctype == 5126 else 'unsigned int'} and normalized, which glTF forbids")
         view = self.index(acc, "bufferView", "bufferViews", what)
-        if view is None:
+        if index in self.decoded:
+            arr = self.decoded[index]
+            if arr.shape != (count, ncomp):
+                self.fail(f"{what}: the compressed data decoded to {arr.shape[0]:,} x {arr.shape[1]} values, the accessor says {count:,} x {ncomp}")
+            arr = arr.astype(dtype, copy=False)
+        elif view is None:
             arr = np.zeros((count, ncomp), dtype=dtype)  # glTF: an accessor without a bufferView is zeros
         else:
             arr = self._view_array(view, self.whole(acc, "byteOffset", what, default=0), count, dtype, ncomp, what)
