@@ -34,6 +34,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--characters", default=None, metavar="MODEL=SHARE,...",
                    help="a mixed crowd: models (built-in names or files) and their relative shares, e.g. zombie=3,brute=1,x.glb=1")
     p.add_argument("--roles", default=None, help="clip role overrides of a crowd of one character, e.g. walk=Walking,idle=Idle")
+    p.add_argument("--clips", nargs="+", default=None, metavar="FILE",
+                   help="glTF files whose clips join the character's (an animation library, Mixamo's animations), matched to its "
+                        "joints by name; a crowd of one character")
     for name in ("frames", "size", "view"):
         s = SETTINGS[name]
         p.add_argument(s.flag, default=None, metavar=s.name.upper(), help=f"{s.help} ({s.rule()})")
@@ -83,6 +86,9 @@ def main(argv=None) -> int:
         if args.model is not None and not is_built_in(args.model) and not Path(args.model).is_file():
             raise PipelineError(f"--model {args.model}: no such file (nor a built-in: {', '.join(BUILT_IN)})")
         characters = None if args.characters is None else _cast_flag(args.characters)
+        for file in args.clips or ():
+            if not Path(file).is_file():
+                raise PipelineError(f"--clips {file}: no such file")
         scene = Scene()
         if args.scene is not None:
             try:
@@ -92,7 +98,8 @@ def main(argv=None) -> int:
         # Every setting flag given, its text as the setting's type; the scene checks it, naming the flag.
         given = {name: SETTINGS[name].from_text(text) for table in SCENE_GROUPS
                  for name in group(table) if (text := getattr(args, name)) is not None}
-        scene = scene.with_overrides(model=args.model, characters=characters, roles=parse_overrides(args.roles) or None, **given)
+        scene = scene.with_overrides(model=args.model, characters=characters, roles=parse_overrides(args.roles) or None, files=args.clips,
+                                     **given)
         size = SETTINGS["size"].default if args.size is None else parse("size", args.size, SceneError, "--size")
         stats = None
         if windowed:

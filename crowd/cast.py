@@ -62,7 +62,8 @@ def load_cast(specs: tuple[CharacterSpec, ...], survivor: bool) -> list[CastMemb
     cast = []
     for spec in specs:
         # A file without coarser LODs gets a chain of them (cached), for the crowd to draw from afar.
-        character = with_generated_lods(load_character(spec.model, scale=SETTINGS["model_scale"].check(spec.model_scale, PipelineError)))
+        character = with_generated_lods(load_character(spec.model, scale=SETTINGS["model_scale"].check(spec.model_scale, PipelineError),
+                                                       libraries=spec.clips))
         roles, notes = match_roles(character.clips, spec.roles)
         if len(specs) > 1:
             notes = [f"{character.name}: {note}" for note in notes]

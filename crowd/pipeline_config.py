@@ -27,6 +27,7 @@ class CharacterSpec:
     roles: dict = field(default_factory=dict)
     model_scale: float | str = DEFAULTS["model_scale"]
     morph: dict = field(default_factory=dict)  # morph target name → (lo, hi): each agent's offset (crowd.anim.morph)
+    clips: tuple = ()  # glTF files whose clips join the model's, matched to its joints by name (crowd.asset.gltf.library)
 
 
 @dataclass

@@ -70,9 +70,10 @@ class CharacterEntry:
     clip_loop: dict = field(default_factory=dict)  # clip name → loop (true) or play once (false), where set
     model_scale: float | str = DEFAULTS["model_scale"]
     morph: dict = field(default_factory=dict)  # morph target → (lo, hi): each agent's body variation (crowd.anim.morph)
+    clips: tuple = ()  # glTF files whose clips join the model's, matched to its joints by name (crowd.asset.gltf.library)
 
     def spec(self) -> CharacterSpec:
-        return CharacterSpec(self.model, self.share, dict(self.roles), self.model_scale, dict(self.morph))
+        return CharacterSpec(self.model, self.share, dict(self.roles), self.model_scale, dict(self.morph), tuple(self.clips))
 
 
 # What a fresh clone shows: a mixed horde of the two built-in zombie types, three zombies to a brute, each
@@ -146,7 +147,7 @@ class Scene:
             data["characters"] = [_cast_entry(model, share, source) for model, share in values["characters"]]
         if values.get("model") is not None:
             data.pop("characters", None)
-            for key in ("roles", "speed", "loop"):
+            for key in ("roles", "speed", "loop", "files"):
                 data["clips"].pop(key, None)
         for key, value in values.items():
             if value is None or key == "characters":
@@ -156,12 +157,14 @@ class Scene:
                 raise SceneError(f"{source}: unknown scene setting {key!r}")
             if key in SETTINGS:
                 value = _toml_value(SETTINGS[key].check(value, SceneError, SETTINGS[key].flag))
-            if key in ("roles", "model_scale") and "characters" in data:
+            if key == "files":  # clip libraries: files, resolved where they were named
+                value = [str(Path(v).resolve()) for v in value]
+            if key in ("roles", "model_scale", "files") and "characters" in data:
                 if len(data["characters"]) > 1:
                     raise SceneError(f"{source}: {key} belongs to one character, and this scene has {len(data['characters'])}: "
                                      f"set it per character in the scene's [[characters]]")
                 entry = data["characters"][0]
-                entry[key] = {**entry.get(key, {}), **value} if key == "roles" else value
+                entry["clips" if key == "files" else key] = {**entry.get(key, {}), **value} if key == "roles" else value
                 continue
             if key == "model":
                 value = value if is_built_in(str(value)) else str(Path(value).resolve())
@@ -186,11 +189,11 @@ class Scene:
 
 
 # The keys of each table: the settings of its group, and the few structured keys only scenes have.
-_EXTRA_KEYS = {"scene": ("name", "model"), "clips": ("roles", "speed", "loop"), "features": (), "ai": ()}
+_EXTRA_KEYS = {"scene": ("name", "model"), "clips": ("roles", "speed", "loop", "files"), "features": (), "ai": ()}
 _KEYS = {table: (*_EXTRA_KEYS[table], *group(table)) for table in SCENE_GROUPS}
 _KEYS["camera"] = ("eye", "target", "fov_y")
 _TABLE_OF = {key: table for table, keys in _KEYS.items() if table != "camera" for key in keys}
-_CHARACTER_KEYS = ("model", "share", "roles", "speed", "loop", "model_scale", "morph")  # one [[characters]] table
+_CHARACTER_KEYS = ("model", "share", "roles", "speed", "loop", "model_scale", "morph", "clips")  # one [[characters]] table
 MAX_SHARE = 1e6  # shares are relative; this bounds a typo's reach
 
 
@@ -216,6 +219,13 @@ def _model(where: str, value, base: Path | None):
         return name
     model = Path(name)
     return model if model.is_absolute() or base is None else (base / model)
+
+
+def _files(where: str, value, base: Path | None) -> tuple:
+    """A list of glTF files (clip libraries), each relative to `base` (the scene's folder) unless absolute."""
+    if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
+        raise SceneError(f"{where} must be a list of glTF files, got {value!r}")
+    return tuple(Path(v) if Path(v).is_absolute() or base is None else base / v for v in value)
 
 
 def _toml_value(value):
@@ -299,19 +309,20 @@ def scene_from_dict(data: dict, base: Path | None = None, source: str = "scene")
     if "name" in s:
         scene.name = _string(where("scene", "name"), s["name"])
     if "characters" in data:
-        own = [key for key in ("model", "model_scale") if key in s] + [key for key in ("roles", "speed", "loop") if c.get(key)]
+        own = [key for key in ("model", "model_scale") if key in s] + [key for key in ("roles", "speed", "loop", "files") if c.get(key)]
         if own:
             raise SceneError(f"{source}: with [[characters]], each character has its own model, roles, speed, loop and model_scale; "
                              f"[scene]/[clips] give {', '.join(own)}")
         scene.characters = _characters(data["characters"], base, source)
-    elif "model" in s or scale is not None or any(key in c for key in ("roles", "speed", "loop")):
+    elif "model" in s or scale is not None or any(key in c for key in ("roles", "speed", "loop", "files")):
         # One character: the model (the zombie when none is named), its roles, speeds, loops and size.
         scene.characters = (CharacterEntry(
             _model(where("scene", "model"), s.get("model", ""), base), 1.0,
             _roles(where("clips", "roles"), c["roles"]) if "roles" in c else {},
             _clip_table(where("clips", "speed"), c["speed"], SETTINGS["clip_speed"]) if "speed" in c else {},
             _clip_table(where("clips", "loop"), c["loop"], SETTINGS["clip_loop"]) if "loop" in c else {},
-            DEFAULTS["model_scale"] if scale is None else scale),)
+            DEFAULTS["model_scale"] if scale is None else scale, {},
+            _files(where("clips", "files"), c["files"], base) if "files" in c else ()),)
     if ai:
         try:
             scene.ai = AIConfig(**ai).validate()  # the relations between AI settings (min <= max, ...)
@@ -348,7 +359,8 @@ def _characters(value, base: Path | None, source: str) -> tuple[CharacterEntry, 
             _clip_table(f"{at}.speed", entry["speed"], SETTINGS["clip_speed"]) if "speed" in entry else {},
             _clip_table(f"{at}.loop", entry["loop"], SETTINGS["clip_loop"]) if "loop" in entry else {},
             SETTINGS["model_scale"].check(entry["model_scale"], SceneError, f"{at}.model_scale") if "model_scale" in entry else DEFAULTS["model_scale"],
-            _morph(f"{at}.morph", entry["morph"]) if "morph" in entry else {}))
+            _morph(f"{at}.morph", entry["morph"]) if "morph" in entry else {},
+            _files(f"{at}.clips", entry["clips"], base) if "clips" in entry else ()))
     return tuple(out)
 
 
@@ -389,10 +401,13 @@ def scene_to_dict(scene: Scene, base: Path | None = None) -> dict:
         one = scene.characters[0]
         out["scene"].update(model=_model_text(one.model, base), model_scale=_toml_value(one.model_scale))
         out["clips"].update(roles=dict(one.roles), speed=dict(one.clip_speed), loop=dict(one.clip_loop))
+        if one.clips:
+            out["clips"]["files"] = [_model_text(p, base) for p in one.clips]
     else:
         out["characters"] = [{"model": _model_text(c.model, base) or "zombie", "share": c.share, "roles": dict(c.roles),
                               "speed": dict(c.clip_speed), "loop": dict(c.clip_loop), "model_scale": _toml_value(c.model_scale),
-                              "morph": {name: list(pair) for name, pair in c.morph.items()}}
+                              "morph": {name: list(pair) for name, pair in c.morph.items()},
+                              **({"clips": [_model_text(p, base) for p in c.clips]} if c.clips else {})}
                              for c in scene.characters]
     out["ai"] = {key: getattr(scene.ai, key) for key, setting in group("ai").items() if getattr(scene.ai, key) != setting.default}
     if scene.camera is not None:

@@ -645,3 +645,28 @@ def draco_copy(source: Path, target: Path) -> dict:
     out += struct.pack("<I", len(blob)) + b"BIN\x00" + bytes(blob)
     Path(target).write_bytes(out)
     return boxes
+
+
+def clipless_gltf(folder: Path, name: str = "body.gltf") -> Path:
+    """make_gltf's skinned character with no animations: a body whose clips come from elsewhere."""
+    path = make_gltf(folder, name)
+    doc = json.loads(path.read_text())
+    doc.pop("animations")
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def library_gltf(folder: Path, name: str = "library.gltf", mid_length: float | None = None) -> Path:
+    """make_gltf's rig and clip without its skin or mesh (as Mixamo's animations come without the
+    character): the nodes and the animation alone. `mid_length`: the "mid" joint's rest offset made this
+    long, with translation keys on it, as a rig of other proportions would be."""
+    path = make_gltf(folder, name)
+    doc = json.loads(path.read_text())
+    for key in ("skins", "meshes"):
+        doc.pop(key)
+    doc["nodes"][4] = {"name": "empty"}
+    if mid_length is not None:
+        doc["nodes"][2]["translation"] = [0.0, float(mid_length), 0.0]
+        add_channel(doc, 2, "translation", np.tile([0.0, float(mid_length), 0.0], (3, 1)))
+    path.write_text(json.dumps(doc))
+    return path

@@ -54,6 +54,7 @@ from .clips import check_scale_chains, read_clips
 from .materials import Materials
 from .meshes import Morphs, read_meshes, read_rigid
 from .reader import GltfImportError, Reader, crowd_extras, one_line
+from .library import read_library
 from .skins import read_skeleton, skin_of_nodes
 from .tree import Tree
 
@@ -69,18 +70,19 @@ def is_built_in(model) -> bool:
 
 
 def load_character(path: str | Path | None = None, clips: list[str] | None = None, scale: float | str = AUTO,
-                   merge: bool = True) -> Character:
+                   merge: bool = True, libraries=()) -> Character:
     """Import a skinned character. ``path=None`` loads the built-in zombie, a built-in's name (BUILT_IN) that
     character; ``clips`` keeps only those clips; ``scale`` is a size factor, or "auto" for a person's
     height where the file is far from it (units.py); ``merge`` joins the meshes that can share a draw
     (crowd.asset.merge; False keeps the file's meshes as they are, to compare). The coarser LODs a file
-    lacks are made where a crowd is built from it (crowd.cast, crowd.asset.lod)."""
+    lacks are made where a crowd is built from it (crowd.cast, crowd.asset.lod). ``libraries``: glTF files
+    whose clips join the character's, matched to its joints by name (crowd.asset.gltf.library)."""
     finish = merge_pieces if merge else (lambda character: character)
     if is_built_in(path):
         name = path or "zombie"
         generator = importlib.import_module(f"..{name}", __package__)
         path = generator.ASSET_PATH
-        if not path.exists():  # a copy that lost the shipped file (wheels carry it): the generator is the source of truth
+        if not path.exists() and not libraries:  # a copy that lost the shipped file (wheels carry it): the generator is the source of truth
             return finish(to_crowd_units(_select_clips(generator.build_character(), clips, f"built-in {name}"), scale))
     path = Path(path)
     if not path.is_file():
@@ -89,7 +91,7 @@ def load_character(path: str | Path | None = None, clips: list[str] | None = Non
         # Hostile values are checked explicitly after each conversion; numpy's warnings on the way
         # (a signalling NaN cast to float64, a float32 overflow) are noise.
         with np.errstate(invalid="ignore", over="ignore"):
-            character = _import(Reader(path))
+            character = _import(Reader(path), [Path(p) for p in libraries])
     except ModelError as exc:
         raise GltfImportError(f"{path.name}: {exc}") from None
     except GltfImportError:
@@ -112,7 +114,7 @@ def _select_clips(character: Character, clips, where: str) -> Character:
     return character
 
 
-def _import(r: Reader) -> Character:
+def _import(r: Reader, libraries: list[Path]) -> Character:
     """The file's character as it stands, before it is made whole (pieces, root motion, targets, units)."""
     node_joints = skin_of_nodes(r)  # (a file without a skin: its mesh nodes made the skeleton)
     tree = Tree(r)
@@ -133,6 +135,11 @@ def _import(r: Reader) -> Character:
         if isinstance(name, str):
             sockets[name] = i
     clips = read_clips(r, tree, skeleton, rig.joint_index, rig.folds, rig.factor, morphs, warn)
+    taken = {c.name for c in clips}
+    for library in libraries:  # (their skeleton is the character's: any errors name the library file)
+        more, line = read_library(library, skeleton, taken)
+        clips += more
+        warn.append(line)
     if not clips:
         r.fail("no animation animates the skin's joints: the crowd needs at least one clip" if node_joints is None else
                "no skin, and no animation moves its mesh nodes or morph weights: the crowd needs at least one clip")
