@@ -103,6 +103,20 @@ def load_character(path: str | Path | None = None, clips: list[str] | None = Non
     return finish(to_crowd_units(transfer_targets(take_out_root_motion(attachments_as_pieces(_select_clips(character, clips, path.name)))), scale))
 
 
+def _retargeted(r: Reader, skeleton, warn: list[str]) -> list:
+    """A humanoid without clips: the built-in zombie's, retargeted (crowd.asset.retarget); refused in one
+    line naming the joints it lacks where it is not one."""
+    from ..retarget import RetargetError, retarget_clips
+
+    zombie = load_character(None)
+    try:
+        clips, line = retarget_clips(skeleton, zombie.skeleton, zombie.clips, "the character")
+    except RetargetError as exc:
+        r.fail(str(exc).removeprefix("the character: "))
+    warn.append(line)
+    return clips
+
+
 def _select_clips(character: Character, clips, where: str) -> Character:
     if clips is None:
         return character
@@ -114,7 +128,7 @@ def _select_clips(character: Character, clips, where: str) -> Character:
     return character
 
 
-def _import(r: Reader, libraries: list[Path]) -> Character:
+def _import(r: Reader, libraries: list[Path] = ()) -> Character:
     """The file's character as it stands, before it is made whole (pieces, root motion, targets, units)."""
     node_joints = skin_of_nodes(r)  # (a file without a skin: its mesh nodes made the skeleton)
     tree = Tree(r)
@@ -140,6 +154,8 @@ def _import(r: Reader, libraries: list[Path]) -> Character:
         more, line = read_library(library, skeleton, taken)
         clips += more
         warn.append(line)
+    if not clips and node_joints is None and not libraries:
+        clips = _retargeted(r, skeleton, warn)
     if not clips:
         r.fail("no animation animates the skin's joints: the crowd needs at least one clip" if node_joints is None else
                "no skin, and no animation moves its mesh nodes or morph weights: the crowd needs at least one clip")

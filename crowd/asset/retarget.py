@@ -1,0 +1,286 @@
+"""The built-in zombie's clips, retargeted to a humanoid character whose file has none (an avatar, a
+character from a pack whose animations were not bought): issue 44, point 3.
+
+A joint map first: each humanoid role (hips, spine, chest, neck, head, and per side the shoulder, upper
+and lower arm, hand, upper and lower leg, foot, toe) is found by name (the common schemes: Mixamo's
+"mixamorig:LeftUpLeg", the free packs' "UpperLeg.L", Blender's metarig "thigh.L", "shin.L"), then checked
+by the skeleton's shape: the hips are where the two legs meet, the chest where the two arms do.
+
+Then each frame, in float64, in model space:
+- each mapped bone points where the zombie's does (its world rotation is the zombie's change from rest,
+  applied after turning the character's rest bone onto the zombie's rest bone: rest poses aligned, so a
+  character in an A-pose plays a T-posed clip with its arms where the clip puts them);
+- each mapped joint sits at its rest offset from the nearest mapped joint above it, turned with that one
+  (so a foot that is a root-level IK control, as in the free packs, stays at the end of its leg);
+- the hips move as the zombie's hips do, scaled by the ratio of the legs' lengths, and the whole body
+  is then moved up or down so that its lower foot is where the zombie's lower foot is (scaled from the
+  ground up): the feet stay on the ground whatever the legs' other proportions;
+- joints not mapped keep their rest local transform.
+The character's local keys are solved from those world transforms, and that clip is the truth the
+bake and the float64 reference hold; its stride, root motion and foot contacts are measured from it as
+any clip's are (crowd.sim.motion).
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+from .. import transforms as tf
+from ..errors import CrowdError
+from .model import Channel, Clip, Skeleton
+from .pose import global_matrices, rest_pose, sample_clip
+
+FPS = 30.0  # keys a second of a retargeted clip whose source has more keys than that, or splines
+SIDES = ("l", "r")
+# Role -> names (lower case, separators and side removed) that mean it, in order of preference.
+ALIASES = {
+    "head": ("head",),
+    "neck": ("neck",),
+    "shoulder": ("shoulder", "clavicle", "collar"),
+    "upper_arm": ("upperarm", "arm"),
+    "lower_arm": ("forearm", "lowerarm", "elbow"),
+    "hand": ("hand", "wrist", "fist"),
+    "upper_leg": ("upleg", "upperleg", "thigh"),
+    "lower_leg": ("leg", "lowerleg", "shin", "calf", "knee"),
+    "foot": ("foot", "ankle"),
+    "toe": ("toebase", "toe", "ball"),
+}
+REQUIRED = ("hips", "chest", "head", "upper_arm", "lower_arm", "upper_leg", "lower_leg", "foot")  # (a hand may be its fingers' forearm)
+# The humanoid chain: each role's parent role (a role's offset and turn follow it).
+PARENT_ROLE = {"spine": "hips", "chest": "spine", "neck": "chest", "head": "neck", "shoulder": "chest", "upper_arm": "shoulder",
+               "lower_arm": "upper_arm", "hand": "lower_arm", "upper_leg": "hips", "lower_leg": "upper_leg", "foot": "lower_leg",
+               "toe": "foot"}
+# Where each role's bone points in the rest pose: toward this child role (none: the bone keeps its rest turn).
+BONE_END = {"spine": "chest", "chest": "neck", "neck": "head", "shoulder": "upper_arm", "upper_arm": "lower_arm",
+            "lower_arm": "hand", "upper_leg": "lower_leg", "lower_leg": "foot", "foot": "toe"}
+
+
+class RetargetError(CrowdError, ValueError):
+    """A character the built-in clips cannot be retargeted to; the message is one line."""
+
+
+def _side_and_core(name: str) -> tuple[str | None, str]:
+    """(side "l", "r" or None, the name lower-cased without its namespace, side or separators)."""
+    low = name.lower().split(":")[-1].split("|")[-1]
+    low = re.sub(r"^(def|org|mch)[-_.]", "", low)
+    side = None
+    for pattern, s in ((r"left", "l"), (r"right", "r")):
+        if re.search(pattern, low):
+            side, low = s, re.sub(pattern, "", low)
+            break
+    if side is None:
+        m = re.search(r"(^|[._\-\s])([lr])($|[._\-\s]\d*$)", low)
+        if m:
+            side = m.group(2)
+            low = low[:m.start(2)] + low[m.end(2):]
+    return side, re.sub(r"[^a-z0-9]", "", low)
+
+
+def joint_map(skeleton: Skeleton) -> tuple[dict[str, int], str]:
+    """Role ("hips", "upper_leg.l", ...) -> joint index, and the naming scheme recognised. Roles that
+    cannot be found are absent (the caller checks REQUIRED)."""
+    found: dict[str, int] = {}
+    parsed = [_side_and_core(n) for n in skeleton.names]
+    for role, aliases in ALIASES.items():
+        sides = SIDES if role not in ("head", "neck") else (None,)
+        for side in sides:
+            key = role if side is None else f"{role}.{side}"
+            for alias in aliases:
+                hit = next((j for j, (s, core) in enumerate(parsed) if s == side and core == alias), None)
+                if hit is not None:
+                    found[key] = hit
+                    break
+    parents = skeleton.parents
+
+    def chain(j):
+        out = []
+        while j >= 0:
+            out.append(j)
+            j = int(parents[j])
+        return out
+
+    def meet(a, b):
+        above = set(chain(a))
+        return next((j for j in chain(b) if j in above), None)
+
+    if "upper_leg.l" in found and "upper_leg.r" in found:
+        hips = meet(found["upper_leg.l"], found["upper_leg.r"])
+        if hips is not None:
+            found["hips"] = hips
+    arms = [found.get(f"shoulder.{s}", found.get(f"upper_arm.{s}")) for s in SIDES]
+    if None not in arms:
+        chest = meet(*arms)
+        if chest is not None and "hips" in found and chest != found["hips"] and found["hips"] in chain(chest):
+            found["chest"] = chest
+            below = [j for j in chain(chest) if j != chest]
+            spine = next((j for j in below if int(parents[j]) == found["hips"]), None)
+            found["spine"] = chest if spine is None else spine
+    if "head" in found and "chest" in found and "neck" not in found:
+        path = [j for j in chain(found["head"])[1:] if j != found["chest"] and found["chest"] in chain(j)]
+        found["neck"] = path[-1] if path else found["chest"]
+    names = " ".join(skeleton.names).lower()
+    scheme = ("Mixamo" if "mixamorig" in names else "the free packs' (UpperLeg.L)" if "upperleg" in names
+              else "Blender's metarig" if "thigh" in names and "shin" in names else "matched by name")
+    return found, scheme
+
+
+def _missing(found: dict[str, int]) -> list[str]:
+    out = []
+    for role in REQUIRED:
+        keys = [f"{role}.{s}" for s in SIDES] if role not in ("hips", "chest", "head") else [role]
+        out += [k.replace(".l", " left").replace(".r", " right").replace("_", " ") for k in keys if k not in found]
+    return out
+
+
+def retarget_clips(target: Skeleton, source: Skeleton, clips: list[Clip], where: str) -> tuple[list[Clip], str]:
+    """`clips` of the `source` skeleton (the built-in zombie's) retargeted to `target`, and one line
+    saying how. RetargetError naming the roles it lacks for a skeleton that is not a humanoid."""
+    tmap, scheme = joint_map(target)
+    smap, _ = joint_map(source)
+    missing = _missing(tmap)
+    if missing:
+        raise RetargetError(f"{where}: no clips, and the built-in clips cannot be retargeted to it: no joint found for "
+                            f"{', '.join(missing[:6])}{', ...' if len(missing) > 6 else ''}")
+    roles = [r for r in _order() if r in tmap and r in smap]
+    t_rest = global_matrices(target, rest_pose(target))[0]
+    s_rest = global_matrices(source, rest_pose(source))[0]
+    ratio = _leg_length(tmap, t_rest) / max(_leg_length(smap, s_rest), 1e-9)
+    ground_t, ground_s = (float(np.mean([rest[m[f"foot.{side}"], 1, 3] for side in SIDES])) for m, rest in ((tmap, t_rest), (smap, s_rest)))
+    roots_t = float(np.mean([t_rest[tmap[f"upper_leg.{side}"], 1, 3] for side in SIDES]))
+    align = {r: _align(r, tmap, smap, t_rest, s_rest) for r in roles}
+    out = []
+    for clip in clips:
+        phases = _key_phases(clip)
+        frames = len(phases)
+        s_world = global_matrices(source, sample_clip(source, clip, phases))  # (F, J, 4, 4)
+        world = np.empty((frames, len(roles), 4, 4))
+        at = {}
+        for k, role in enumerate(roles):
+            tj, sj = tmap[role], smap[role]
+            turn = s_world[:, sj, :3, :3] @ np.linalg.inv(s_rest[sj, :3, :3]) @ align[role] @ t_rest[tj, :3, :3]
+            if role == "hips":
+                place = t_rest[tj, :3, 3] + (s_world[:, sj, :3, 3] - s_rest[sj, :3, 3]) * ratio
+                # Height from the ground up, as the legs stand once their bones point as the zombie's do (a
+                # rest pose with bent legs would otherwise push the feet into the ground): the leg roots as
+                # high above the feet as the zombie's, times the legs' ratio, the hips where they are above them.
+                roots_s = np.mean([s_world[:, smap[f"upper_leg.{side}"], 1, 3] for side in SIDES], axis=0)
+                place[:, 1] = ground_t + (roots_s - ground_s) * ratio + (t_rest[tj, 1, 3] - roots_t)
+            else:
+                up = at[_parent_role(role, roles)]
+                pj = tmap[_parent_role(role, roles)]
+                offset = np.linalg.inv(t_rest[pj, :3, :3]) @ (t_rest[tj, :3, 3] - t_rest[pj, :3, 3])
+                place = world[:, up, :3, 3] + np.einsum("fij,j->fi", world[:, up, :3, :3], offset)
+            world[:, k, :3, :3], world[:, k, :3, 3] = turn, place
+            world[:, k, 3] = (0.0, 0.0, 0.0, 1.0)
+            at[role] = k
+        # The lower foot where the zombie's lower foot is, scaled from the ground up: the whole body shifted
+        # up or down by what the two legs' other proportions leave (a few centimetres at most).
+        low_s = np.min([s_world[:, smap[f"foot.{side}"], 1, 3] for side in SIDES], axis=0)
+        low_t = np.min([world[:, at[f"foot.{side}"], 1, 3] for side in SIDES], axis=0)
+        world[:, :, 1, 3] += (ground_t + (low_s - ground_s) * ratio - low_t)[:, None]
+        locals_ = _locals(target, {tmap[r]: world[:, at[r]] for r in roles}, frames)
+        times = clip.start + phases * clip.duration
+        channels = []
+        for j in range(target.joint_count):
+            t, q, _, _ = tf.mat4_decompose(locals_[:, j])
+            channels.append(Channel(j, "rotation", "LINEAR", times.copy(), _aligned(q)))
+            channels.append(Channel(j, "translation", "LINEAR", times.copy(), t))
+        # (No stride: the crowd measures it from the retargeted clip's own planted feet, as for any clip.)
+        out.append(Clip(clip.name, channels, clip.start, clip.end, clip.loop, dict(clip.markers), None))
+    mapped = len([r for r in tmap if r in smap])
+    line = (f"no clips: the built-in zombie's {len(out)} clips retargeted to it (joint map: {scheme} names, {mapped} roles mapped; "
+            f"legs {ratio:.3g} times the zombie's)")
+    return out, line
+
+
+def _key_phases(clip: Clip) -> np.ndarray:
+    """Where the retargeted clip is keyed: at the source's own key times (so a rig of the same shape gets
+    the source's keys back), or at FPS where the source has more keys than that or none."""
+    times = np.unique(np.concatenate([np.asarray(ch.times, np.float64) for ch in clip.channels] + [np.array([clip.start, clip.end])]))
+    times = times[(times >= clip.start) & (times <= clip.end)]
+    if clip.duration <= 0.0:
+        return np.zeros(1)
+    if len(times) > clip.duration * FPS + 2 or any(ch.interpolation == "CUBICSPLINE" for ch in clip.channels):
+        return np.linspace(0.0, 1.0, max(int(np.ceil(clip.duration * FPS - 1e-9)), 1) + 1)
+    return (times - clip.start) / clip.duration
+
+
+def _leg_length(found: dict[str, int], rest: np.ndarray) -> float:
+    """Metres from each hip joint to its knee and on to its ankle in the rest pose, the two legs' mean:
+    how far the hips stand from the ground, whatever the joint the rig calls its hips."""
+    total = 0.0
+    for side in SIDES:
+        chain = [found[f"{r}.{side}"] for r in ("upper_leg", "lower_leg", "foot")]
+        total += sum(float(np.linalg.norm(rest[b, :3, 3] - rest[a, :3, 3])) for a, b in zip(chain, chain[1:]))
+    return total / 2.0
+
+
+def _order() -> list[str]:
+    """Every role, each after its parent role."""
+    out = ["hips", "spine", "chest", "neck", "head"]
+    for side in SIDES:
+        out += [f"{r}.{side}" for r in ("shoulder", "upper_arm", "lower_arm", "hand", "upper_leg", "lower_leg", "foot", "toe")]
+    return out
+
+
+def _parent_role(role: str, roles: list[str]) -> str:
+    """The nearest role above `role` that both skeletons have."""
+    base, _, side = role.partition(".")
+    while True:
+        base = PARENT_ROLE[base]
+        key = base if base in ("hips", "spine", "chest", "neck", "head") else f"{base}.{side}"
+        if key in roles:
+            return key
+
+
+def _align(role: str, tmap, smap, t_rest, s_rest) -> np.ndarray:
+    """The rotation (model space) taking the character's rest bone of `role` onto the zombie's."""
+    base, _, side = role.partition(".")
+    end = BONE_END.get(base)
+    if end is None:
+        return np.eye(3)
+    end_key = end if end in ("spine", "chest", "neck", "head") else f"{end}.{side}"
+    if end_key not in tmap or end_key not in smap:
+        return np.eye(3)
+    a = t_rest[tmap[end_key], :3, 3] - t_rest[tmap[role], :3, 3]
+    b = s_rest[smap[end_key], :3, 3] - s_rest[smap[role], :3, 3]
+    if np.linalg.norm(a) < 1e-9 or np.linalg.norm(b) < 1e-9:
+        return np.eye(3)
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    axis, cos = np.cross(a, b), float(np.clip(np.dot(a, b), -1.0, 1.0))
+    if np.linalg.norm(axis) < 1e-12:
+        return np.eye(3) if cos > 0 else tf.quat_to_mat3(tf.quat_from_axis_angle(_perpendicular(a), np.pi))
+    return tf.quat_to_mat3(tf.quat_from_axis_angle(axis / np.linalg.norm(axis), np.arccos(cos)))
+
+
+def _perpendicular(v: np.ndarray) -> np.ndarray:
+    other = np.array([1.0, 0.0, 0.0]) if abs(v[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    p = np.cross(v, other)
+    return p / np.linalg.norm(p)
+
+
+def _locals(skeleton: Skeleton, placed: dict[int, np.ndarray], frames: int) -> np.ndarray:
+    """Local matrices (F, J, 4, 4) whose chain puts each joint of `placed` at its world transform; the
+    others keep their rest local transform."""
+    rest = rest_pose(skeleton).matrices()[0]
+    world = np.empty((frames, skeleton.joint_count, 4, 4))
+    local = np.empty_like(world)
+    for j, p in enumerate(skeleton.parents):
+        if j in placed:
+            world[:, j] = placed[j]
+            local[:, j] = placed[j] if p < 0 else np.linalg.inv(world[:, p]) @ placed[j]
+        else:
+            local[:, j] = rest[j]
+            world[:, j] = rest[j] if p < 0 else world[:, p] @ rest[j]
+    return local
+
+
+def _aligned(q: np.ndarray) -> np.ndarray:
+    """Quaternion keys with each sign chosen nearest the previous key's."""
+    q = tf.quat_normalize(q).copy()
+    for k in range(1, len(q)):
+        if np.dot(q[k], q[k - 1]) < 0.0:
+            q[k] = -q[k]
+    return q
