@@ -74,13 +74,14 @@ def test_a_mixamo_named_rig_of_the_zombies_shape_gets_the_zombies_poses_back(zom
             assert np.abs(got[:, j, :3, 3] - want[:, smap[role], :3, 3]).max() < 1e-6, (clip.name, role)
 
 
-def test_a_packs_rig_of_other_proportions_keeps_its_feet_on_the_ground(zombie):
+@pytest.mark.parametrize("thigh, shin", [(0.9, 1.1), (0.8, 1.3)])
+def test_a_packs_rig_of_other_proportions_keeps_its_feet_on_the_ground(zombie, thigh, shin):
     sk = _renamed(zombie.skeleton, PACK)
     rest = np.asarray(sk.rest_translation, np.float64).copy()
     names = list(sk.names)
-    for side in "LR":  # shorter thighs, longer shins, shorter forearms, an A-pose's arms lowered 40 degrees
-        rest[names.index(f"LowerLeg.{side}")] *= 0.9
-        rest[names.index(f"Foot.{side}")] *= 1.1
+    for side in "LR":  # other thighs and shins, shorter forearms, an A-pose's arms lowered 40 degrees
+        rest[names.index(f"LowerLeg.{side}")] *= thigh
+        rest[names.index(f"Foot.{side}")] *= shin
         rest[names.index(f"LowerArm.{side}")] *= 0.85
     from crowd import transforms as tf
 
@@ -92,9 +93,9 @@ def test_a_packs_rig_of_other_proportions_keeps_its_feet_on_the_ground(zombie):
     clips, line = retarget_clips(target, zombie.skeleton, zombie.clips, "pack")
     assert "the free packs' (UpperLeg.L) names" in line
     ratio = float(line.split("legs ")[1].split(" times")[0])
-    assert ratio == pytest.approx(1.0, abs=0.01)
+    assert ratio == pytest.approx((thigh + shin) / 2.0, abs=0.01)
     assert all(c.stride is None for c in clips)  # (measured from the clip's own planted feet, as for any clip)
-    assert _stance_error(target, clips, zombie, ratio) <= 0.02
+    assert _stance_error(target, clips, zombie, ratio) <= 0.002  # (the two-bone IK puts each ankle where it belongs)
     # Rest poses aligned: the A-posed upper arm points where the zombie's does in each pose.
     tmap, smap = joint_map(target)[0], joint_map(zombie.skeleton)[0]
     tw = global_matrices(target, sample_clip(target, clips[0], PHASES))
@@ -128,4 +129,4 @@ def test_a_real_pack_character_without_its_clips_walks_with_its_feet_on_the_grou
     c = load_character(path)
     line = next(w for w in c.warnings if "retargeted" in w)
     ratio = float(line.split("legs ")[1].split(" times")[0])
-    assert _stance_error(c.skeleton, c.clips, zombie, ratio) <= 0.02
+    assert _stance_error(c.skeleton, c.clips, zombie, ratio) <= 0.002

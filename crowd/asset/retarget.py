@@ -12,9 +12,10 @@ Then each frame, in float64, in model space:
   character in an A-pose plays a T-posed clip with its arms where the clip puts them);
 - each mapped joint sits at its rest offset from the nearest mapped joint above it, turned with that one
   (so a foot that is a root-level IK control, as in the free packs, stays at the end of its leg);
-- the hips move as the zombie's hips do, scaled by the ratio of the legs' lengths, and the whole body
-  is then moved up or down so that its lower foot is where the zombie's lower foot is (scaled from the
-  ground up): the feet stay on the ground whatever the legs' other proportions;
+- the hips move as the zombie's hips do, scaled by the ratio of the legs' lengths;
+- each ankle goes where the zombie's is, scaled: across the ground from the leg's own root at rest, up
+  from the ground; a two-bone IK bends the leg to reach it in the knee's plane (so the feet stay on the
+  ground whatever the legs' proportions or rest bend, and a planted foot does not slide);
 - joints not mapped keep their rest local transform.
 The character's local keys are solved from those world transforms, and that clip is the truth the
 bake and the float64 reference hold; its stride, root motion and foot contacts are measured from it as
@@ -148,7 +149,6 @@ def retarget_clips(target: Skeleton, source: Skeleton, clips: list[Clip], where:
     s_rest = global_matrices(source, rest_pose(source))[0]
     ratio = _leg_length(tmap, t_rest) / max(_leg_length(smap, s_rest), 1e-9)
     ground_t, ground_s = (float(np.mean([rest[m[f"foot.{side}"], 1, 3] for side in SIDES])) for m, rest in ((tmap, t_rest), (smap, s_rest)))
-    roots_t = float(np.mean([t_rest[tmap[f"upper_leg.{side}"], 1, 3] for side in SIDES]))
     align = {r: _align(r, tmap, smap, t_rest, s_rest) for r in roles}
     out = []
     for clip in clips:
@@ -162,11 +162,6 @@ def retarget_clips(target: Skeleton, source: Skeleton, clips: list[Clip], where:
             turn = s_world[:, sj, :3, :3] @ np.linalg.inv(s_rest[sj, :3, :3]) @ align[role] @ t_rest[tj, :3, :3]
             if role == "hips":
                 place = t_rest[tj, :3, 3] + (s_world[:, sj, :3, 3] - s_rest[sj, :3, 3]) * ratio
-                # Height from the ground up, as the legs stand once their bones point as the zombie's do (a
-                # rest pose with bent legs would otherwise push the feet into the ground): the leg roots as
-                # high above the feet as the zombie's, times the legs' ratio, the hips where they are above them.
-                roots_s = np.mean([s_world[:, smap[f"upper_leg.{side}"], 1, 3] for side in SIDES], axis=0)
-                place[:, 1] = ground_t + (roots_s - ground_s) * ratio + (t_rest[tj, 1, 3] - roots_t)
             else:
                 up = at[_parent_role(role, roles)]
                 pj = tmap[_parent_role(role, roles)]
@@ -175,11 +170,14 @@ def retarget_clips(target: Skeleton, source: Skeleton, clips: list[Clip], where:
             world[:, k, :3, :3], world[:, k, :3, 3] = turn, place
             world[:, k, 3] = (0.0, 0.0, 0.0, 1.0)
             at[role] = k
-        # The lower foot where the zombie's lower foot is, scaled from the ground up: the whole body shifted
-        # up or down by what the two legs' other proportions leave (a few centimetres at most).
-        low_s = np.min([s_world[:, smap[f"foot.{side}"], 1, 3] for side in SIDES], axis=0)
-        low_t = np.min([world[:, at[f"foot.{side}"], 1, 3] for side in SIDES], axis=0)
-        world[:, :, 1, 3] += (ground_t + (low_s - ground_s) * ratio - low_t)[:, None]
+        for side in SIDES:  # each ankle where the zombie's is, scaled from the ground up: a two-bone IK per leg
+            # (Across the ground, from the leg's own root at rest: a rig whose legs hang elsewhere from its hips
+            # keeps its stance; up, from the ground.)
+            ankle_s = s_world[:, smap[f"foot.{side}"], :3, 3]
+            root_s, root_t = s_rest[smap[f"upper_leg.{side}"], :3, 3], t_rest[tmap[f"upper_leg.{side}"], :3, 3]
+            want = root_t + (ankle_s - root_s) * ratio
+            want[:, 1] = ground_t + (ankle_s[:, 1] - ground_s) * ratio
+            _reach(world, at, side, want, tmap, t_rest)
         locals_ = _locals(target, {tmap[r]: world[:, at[r]] for r in roles}, frames)
         times = clip.start + phases * clip.duration
         channels = []
@@ -193,6 +191,45 @@ def retarget_clips(target: Skeleton, source: Skeleton, clips: list[Clip], where:
     line = (f"no clips: the built-in zombie's {len(out)} clips retargeted to it (joint map: {scheme} names, {mapped} roles mapped; "
             f"legs {ratio:.3g} times the zombie's)")
     return out, line
+
+
+def _reach(world: np.ndarray, at: dict, side: str, want: np.ndarray, tmap: dict, t_rest: np.ndarray) -> None:
+    """The leg of `side` bent so that its ankle reaches `want` (F, 3), in place in `world`: the thigh and
+    shin keep their rest lengths and the plane the knee bends in (the aligned pose's), the hip stays, and
+    the foot keeps its world rotation (the zombie's). A point out of reach is reached as far as the leg goes."""
+    hip, knee, ankle = (at[f"{r}.{side}"] for r in ("upper_leg", "lower_leg", "foot"))
+    l1 = float(np.linalg.norm(t_rest[tmap[f"lower_leg.{side}"], :3, 3] - t_rest[tmap[f"upper_leg.{side}"], :3, 3]))
+    l2 = float(np.linalg.norm(t_rest[tmap[f"foot.{side}"], :3, 3] - t_rest[tmap[f"lower_leg.{side}"], :3, 3]))
+    a, k0, f0 = world[:, hip, :3, 3], world[:, knee, :3, 3], world[:, ankle, :3, 3]
+    d = want - a
+    dist = np.clip(np.linalg.norm(d, axis=1), abs(l1 - l2) + 1e-9, l1 + l2 - 1e-9)
+    u = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    v = (k0 - a) - np.sum((k0 - a) * u, axis=1, keepdims=True) * u  # toward the knee, square to the hip-ankle line
+    v /= np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+    cos = np.clip((l1 * l1 + dist * dist - l2 * l2) / (2.0 * l1 * dist), -1.0, 1.0)[:, None]
+    k = a + l1 * (cos * u + np.sqrt(1.0 - cos * cos) * v)
+    f = a + u * dist[:, None]
+    for j, old_from, old_to, new_from, new_to in ((hip, a, k0, a, k), (knee, k0, f0, k, f)):
+        turn = _turns(old_to - old_from, new_to - new_from)
+        world[:, j, :3, :3] = turn @ world[:, j, :3, :3]
+        world[:, j, :3, 3] = new_from
+    world[:, ankle, :3, 3] = f
+
+
+def _turns(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(F, 3, 3) rotations taking each direction of `a` onto `b` by the shortest arc."""
+    a = a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
+    b = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12)
+    axis = np.cross(a, b)
+    s, c = np.linalg.norm(axis, axis=1), np.clip(np.sum(a * b, axis=1), -1.0, 1.0)
+    axis = axis / np.maximum(s, 1e-15)[:, None]
+    x, y, z = axis[:, 0], axis[:, 1], axis[:, 2]
+    one = 1.0 - c
+    out = np.empty((len(a), 3, 3))
+    out[:, 0] = np.stack([c + x * x * one, x * y * one - z * s, x * z * one + y * s], 1)
+    out[:, 1] = np.stack([y * x * one + z * s, c + y * y * one, y * z * one - x * s], 1)
+    out[:, 2] = np.stack([z * x * one - y * s, z * y * one + x * s, c + z * z * one], 1)
+    return out
 
 
 def _key_phases(clip: Clip) -> np.ndarray:
