@@ -7,9 +7,9 @@ and lower arm, hand, upper and lower leg, foot, toe) is found by name (the commo
 by the skeleton's shape: the hips are where the two legs meet, the chest where the two arms do.
 
 Then each frame, in float64, in model space:
-- each mapped bone points where the zombie's does (its world rotation is the zombie's change from rest,
-  applied after turning the character's rest bone onto the zombie's rest bone: rest poses aligned, so a
-  character in an A-pose plays a T-posed clip with its arms where the clip puts them);
+- each mapped bone points where the zombie's does (its world rotation is the zombie's change from its
+  bind pose, applied after turning the character's bone in its bind pose onto the zombie's: rest poses
+  aligned, so a character in an A-pose plays a T-posed clip with its arms where the clip puts them);
 - each mapped joint sits at its rest offset from the nearest mapped joint above it, turned with that one
   (so a foot that is a root-level IK control, as in the free packs, stays at the end of its leg);
 - the hips move as the zombie's hips do, scaled by the ratio of the legs' lengths;
@@ -145,8 +145,7 @@ def retarget_clips(target: Skeleton, source: Skeleton, clips: list[Clip], where:
         raise RetargetError(f"{where}: no clips, and the built-in clips cannot be retargeted to it: no joint found for "
                             f"{', '.join(missing[:6])}{', ...' if len(missing) > 6 else ''}")
     roles = [r for r in _order() if r in tmap and r in smap]
-    t_rest = global_matrices(target, rest_pose(target))[0]
-    s_rest = global_matrices(source, rest_pose(source))[0]
+    t_rest, s_rest = _bind_pose(target), _bind_pose(source)
     ratio = _leg_length(tmap, t_rest) / max(_leg_length(smap, s_rest), 1e-9)
     ground_t, ground_s = (float(np.mean([rest[m[f"foot.{side}"], 1, 3] for side in SIDES])) for m, rest in ((tmap, t_rest), (smap, s_rest)))
     align = {r: _align(r, tmap, smap, t_rest, s_rest) for r in roles}
@@ -229,6 +228,24 @@ def _turns(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     out[:, 0] = np.stack([c + x * x * one, x * y * one - z * s, x * z * one + y * s], 1)
     out[:, 1] = np.stack([y * x * one + z * s, c + y * y * one, y * z * one - x * s], 1)
     out[:, 2] = np.stack([z * x * one - y * s, z * y * one + x * s, c + z * z * one], 1)
+    return out
+
+
+def _bind_pose(skeleton: Skeleton) -> np.ndarray:
+    """Each joint's model-space transform (J, 4, 4) in the pose the meshes were bound in (the inverse of
+    its inverse bind, its rotation made orthonormal): the pose a character was modelled in, which a file's
+    node rest pose need not be (the free packs export theirs with the legs bent toward their IK poles).
+    A joint without an inverse bind of its own (the identity: an animated node made a joint) keeps its rest."""
+    rest = global_matrices(skeleton, rest_pose(skeleton))[0]
+    ibm = np.asarray(skeleton.inverse_bind, np.float64)
+    out = rest.copy()
+    for j in range(skeleton.joint_count):
+        if np.allclose(ibm[j], np.eye(4), atol=1e-12):
+            continue
+        bind = np.linalg.inv(ibm[j])
+        u, _, vt = np.linalg.svd(bind[:3, :3])
+        out[j, :3, :3] = u @ vt
+        out[j, :3, 3] = bind[:3, 3]
     return out
 
 
