@@ -1,7 +1,8 @@
 """What joint scale costs the animation processor (issue 44, point 1's target: at most 1.1 times): the
-built-in zombie's bake as it is (no scale texture, HAS_SCALE compiled out) and the same bake with a
-scale texture of ones (a character with scale keys: the texture sampled and blended, the affine
-composed with it), on both processor paths, interleaved in one run, GPU timer queries, medians.
+built-in zombie's bake as it is (no scale texture, HAS_SCALE compiled out), the same bake with a scale
+texture of ones (a character with uniform scale keys: the texture sampled and blended, the affine
+composed with it), and with a residual texture of ones as well (non-uniform scale: HAS_RESIDUAL, each
+joint's own matrix scaled), on both processor paths, interleaved in one run, GPU timer queries, medians.
 
 Run: python -m bench.scale_cost [--agents 16384,131072,1048576] [--frames 30] [--json out.json]"""
 
@@ -33,6 +34,7 @@ def main(argv=None) -> int:
     roles, _ = match_roles(zombie.clips)
     plain = bake_roles(zombie, roles)
     scaled = dataclasses.replace(plain, scale=np.ones((plain.rows, zombie.skeleton.joint_count), np.float32))
+    uneven = dataclasses.replace(scaled, residual=np.ones((plain.rows, zombie.skeleton.joint_count, 3), np.float32))
     paths = ["compute", "fragment"] if has_compute(ctx) else ["fragment"]
     rng = np.random.default_rng(1)
     query = ctx.query(time=True)
@@ -41,7 +43,7 @@ def main(argv=None) -> int:
     for n in (int(x) for x in args.agents.split(",")):
         layers = random_layers(n, 4, len(plain.clips), rng)
         for path in paths:
-            procs = {name: AnimationProcessor(ctx, bake, 4, path=path) for name, bake in (("plain", plain), ("scale", scaled))}
+            procs = {name: AnimationProcessor(ctx, bake, 4, path=path) for name, bake in (("plain", plain), ("scale", scaled), ("uneven", uneven))}
             try:
                 samples = {name: [] for name in procs}
                 for proc in procs.values():
@@ -57,10 +59,12 @@ def main(argv=None) -> int:
             finally:
                 for proc in procs.values():
                     proc.release()
-            plain_ms, scale_ms = (float(np.median(samples[k])) for k in ("plain", "scale"))
+            plain_ms, scale_ms, uneven_ms = (float(np.median(samples[k])) for k in ("plain", "scale", "uneven"))
             rows.append({"agents": n, "path": path, "plain_ms": round(plain_ms, 4), "scale_ms": round(scale_ms, 4),
-                         "ratio": round(scale_ms / plain_ms, 3)})
-            print(f"{n:>9} {path:>9}  without scale {plain_ms:8.3f} ms  with {scale_ms:8.3f} ms  ratio {scale_ms / plain_ms:.3f}")
+                         "ratio": round(scale_ms / plain_ms, 3), "non_uniform_ms": round(uneven_ms, 4),
+                         "non_uniform_ratio": round(uneven_ms / plain_ms, 3)})
+            print(f"{n:>9} {path:>9}  without scale {plain_ms:8.3f} ms  uniform {scale_ms:8.3f} ms ({scale_ms / plain_ms:.3f})  "
+                  f"non-uniform {uneven_ms:8.3f} ms ({uneven_ms / plain_ms:.3f})")
     if args.json:
         from crowd.files import atomic_write_bytes
 

@@ -112,6 +112,9 @@ void main() {
         m = compose(Affine(s_local0[base + p], s_local1[base + p], s_local2[base + p]), m);
         p = parent_of(p);
     }
+#ifdef HAS_RESIDUAL
+    m = scaled_axes(m, blended_residual(agent, joint));  // (its own matrix only: its children took m before)
+#endif
     m = compose(m, stored_affine(joint, 0, 0));  // row 0 holds the inverse bind pose
     imageStore(u_palette0, texel, m.r0);
     imageStore(u_palette1, texel, m.r1);

@@ -75,6 +75,9 @@ void main() {
         m = compose(local_of(texel), m);
         p = parent_of(p);
     }
+#ifdef HAS_RESIDUAL
+    m = scaled_axes(m, blended_residual(agent, joint));  // (its own matrix only: its children took m before)
+#endif
     m = compose(m, stored_affine(joint, 0, 0));  // row 0 holds the inverse bind pose
     o_row0 = m.r0;
     o_row1 = m.r1;

@@ -14,6 +14,9 @@ uniform usampler2D u_keys;       // packed key words, u_key_width a row (crowd.a
 uniform usampler2D u_tracks;     // (4J, clips): four RGBA32UI texels of track headers per (clip, joint)
 uniform int u_key_width;
 #endif
+#ifdef HAS_RESIDUAL
+uniform sampler2D u_anim_residual;  // (J, rows) RGB: each joint's non-uniform scale over its uniform one, own matrix only
+#endif
 #ifdef HAS_SCALE
 uniform sampler2D u_anim_scale;  // (J, rows): uniform joint scale per frame
 #endif
@@ -360,6 +363,44 @@ vec4 impostor_key(int agent) {
         }
     }
     return key;
+}
+#endif
+
+#ifdef HAS_RESIDUAL
+// The joint's non-uniform scale over its uniform one, blended as its scale is (each layer's lerped
+// between its keys, linearly whatever the interpolation), the rest pose's where the weights add up to
+// about nothing: applied to the joint's own skinning matrix only (crowd/anim/bake.py).
+vec3 blended_residual(int agent, int joint) {
+    vec4 layer[LAYERS];
+    float layer_sum = agent_layers(agent, layer);
+    float unit = power_of_two_below(layer_sum);
+    layer_sum *= unit;
+    vec3 sum = vec3(0.0);
+    float total = 0.0;
+    for (int l = 0; l < LAYERS; ++l) {
+        float w = max(layer[l].z, 0.0) * unit;
+#ifdef HAS_MASKS
+        if (layer[l].w >= 0.0) w *= texelFetch(u_masks, ivec2(joint, int(layer[l].w)), 0).x;
+#endif
+        if (w > 0.0) {
+            vec4 info = texelFetch(u_clips, ivec2(int(layer[l].x), 0), 0);
+            float phase = info.w > 0.5 ? fract(layer[l].y) : clamp(layer[l].y, 0.0, 1.0);
+            float f = phase * (info.y - 1.0);
+            float i0 = clamp(floor(f), 0.0, info.y - 2.0);
+            int row = int(info.x) + int(i0);
+            vec3 r1 = texelFetch(u_anim_residual, ivec2(joint, row), 0).xyz;
+            vec3 r2 = texelFetch(u_anim_residual, ivec2(joint, row + 1), 0).xyz;
+            sum += w * (r1 + (r2 - r1) * (f - i0));
+            total += w;
+        }
+    }
+    if (!(total > 0.0) || total < REST_THRESHOLD * layer_sum) return texelFetch(u_anim_residual, ivec2(joint, u_rest_scale_row), 0).xyz;
+    return sum / total;
+}
+
+// `m` with a scale along its own axes applied first (its columns scaled).
+Affine scaled_axes(Affine m, vec3 s) {
+    return Affine(m.r0 * vec4(s, 1.0), m.r1 * vec4(s, 1.0), m.r2 * vec4(s, 1.0));
 }
 #endif
 

@@ -18,9 +18,13 @@ Layout of ``texels`` (rows, 2 * J, 4), one texture row per baked frame:
   a joint whose layer weights add up to about 0 (ozz-animation's blending job does the same).
 
 Dual quaternions carry no scale. A character with joint scale (static or animated, such as
-Quaternius' hedgehog) gets ``scale``: (rows, J) uniform scale per joint and frame; characters without
-it get ``scale = None``, and no scale texture exists. Non-uniform joint scale is approximated by its
-geometric mean, and the bake says so in ``warnings``.
+Quaternius' hedgehog) gets ``scale``: (rows, J) uniform scale per joint and frame (the geometric mean of
+its three), which runs down the chains as glTF's does; characters without it get ``scale = None``, and
+no scale texture exists. Non-uniform scale sits only where it cannot make skew: ``residual`` (rows, J, 3,
+float32, or None where every joint's scale is uniform) is each joint's scale over that mean, applied to
+its own skinning matrix only, so a leaf is drawn exactly and a joint with children exactly on its own
+vertices, its children taking its uniform part; the bake names each such joint with how far (mm) its
+descendants are from glTF's pose, measured over the baked frames.
 
 Compressed: with precision "compressed" the clips' keys are quantised per track to the error bound
 ``bound_mm`` (crowd.anim.compress says how): ``packed`` holds what the GPU decodes, ``texels`` the
@@ -36,6 +40,7 @@ f32 would give. A warning, not a refusal: see the comment where it is raised.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -100,6 +105,7 @@ class AnimationBake:
     # The character's morph weight tracks for these clips (crowd.anim.morph), or None where the scene
     # moves no morph target: then the processor and the draw have no morph code at all.
     morphs: "MorphBake | None" = None
+    residual: np.ndarray | None = None  # (rows, J, 3) float32: non-uniform scale over `scale`, own matrix only; None: none
 
     @property
     def joint_count(self) -> int:
@@ -130,13 +136,13 @@ class AnimationBake:
         """Bytes of animation data on the GPU: DQ texture, packed keys if any, scale texture if any,
         hierarchy, clip table."""
         packed = 0 if self.packed is None else self.packed.nbytes
-        scale = 0 if self.scale is None else self.scale.nbytes
+        scale = (0 if self.scale is None else self.scale.nbytes) + (0 if self.residual is None else self.residual.nbytes)
         return int(self.gpu_texels.nbytes + packed + scale + self.parents.astype(np.int32).nbytes + self.clip_table.nbytes)
 
     @property
     def f32_nbytes(self) -> int:
         """What the same bake takes in f32: the compression ratio's denominator."""
-        scale = 0 if self.scale is None else self.scale.size * 4
+        scale = (0 if self.scale is None else self.scale.size * 4) + (0 if self.residual is None else self.residual.size * 4)
         return int(self.texels.size * 4 + scale + self.parents.astype(np.int32).nbytes + self.clip_table.nbytes)
 
     @property
@@ -183,6 +189,14 @@ class AnimationBake:
             scale = s[row] + (s[row + 1] - s[row]) * u[:, None]
         return real, dual, scale
 
+    def sample_residual(self, clip: int, phases) -> np.ndarray:
+        """Each joint's non-uniform scale over its uniform one, lerped as the processor lerps it: (P, J, 3)."""
+        row, u = self.frame_position(clip, phases)
+        if self.residual is None:
+            return np.ones((len(row), self.joint_count, 3))
+        r = self.residual.astype(np.float64)
+        return r[row] + (r[row + 1] - r[row]) * u[:, None, None]
+
     def inverse_bind(self) -> np.ndarray:
         t = self.texels[0].astype(np.float64)
         s = None if self.scale is None else self.scale[0].astype(np.float64)
@@ -194,16 +208,63 @@ class AnimationBake:
         glob = np.empty_like(local)
         for j, p in enumerate(self.parents):
             glob[:, j] = local[:, j] if p < 0 else glob[:, p] @ local[:, j]
+        if self.residual is not None:  # (each joint's own matrix only)
+            glob[..., :3, :3] = glob[..., :3, :3] * self.sample_residual(clip, phases)[..., None, :]
         return glob @ self.inverse_bind()[None]
 
 
 def _uniform_scale(s: np.ndarray, where: str, warnings: list[str]) -> np.ndarray:
-    """(…, 3) scale → (…,) uniform scale; non-uniform scale becomes its geometric mean, with a warning."""
+    """(…, 3) scale → (…,) uniform scale; non-uniform scale becomes its geometric mean, with a warning
+    (the inverse binds: a skin bound through a non-uniform scale)."""
     mean = np.cbrt(np.prod(s, axis=-1))
     spread = float(np.max(np.abs(s - mean[..., None]))) if s.size else 0.0
     if spread > 1e-4:
         warnings.append(f"{where}: non-uniform scale (spread {spread:.3g}) approximated by its geometric mean")
     return mean
+
+
+def _split_scale(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(…, 3) scale → (its geometric mean (…,), which runs down the chain; the rest (…, 3), own matrix only)."""
+    s = np.asarray(s, np.float64)
+    mean = np.cbrt(np.prod(s, axis=-1))
+    return mean, s / np.where(mean == 0.0, 1.0, mean)[..., None]
+
+
+def _inner_residual_warnings(skeleton: Skeleton, poses: list, names: list[str], residual: np.ndarray, warnings: list[str]) -> None:
+    """One line per joint with children whose scale is non-uniform: how far its descendants are from
+    glTF's pose (their world positions with the full scale, skew and all, against the uniform part), the
+    worst over the baked frames of every clip."""
+    parents = np.asarray(skeleton.parents)
+    has_children = np.zeros(len(parents), bool)
+    has_children[parents[parents >= 0]] = True
+    uneven = np.flatnonzero(has_children & (np.abs(residual - 1.0).max(axis=(0, 2)) > SCALE_EPS))
+    if not uneven.size:
+        return
+    below = {j: [k for k in range(len(parents)) if _is_below(parents, k, j)] for j in uneven}
+    worst = {j: (0.0, "") for j in uneven}
+    for pose, name in zip(poses, names):
+        truth = reference.global_matrices(skeleton, pose)[..., :3, 3]
+        mean, _ = _split_scale(pose.scale)
+        drawn = reference.global_matrices(skeleton, type(pose)(pose.translation, pose.rotation, np.repeat(mean[..., None], 3, -1)))[..., :3, 3]
+        gap = np.linalg.norm(truth - drawn, axis=-1)  # (P, J)
+        for j in uneven:
+            if below[j]:
+                e = float(gap[:, below[j]].max())
+                if e > worst[j][0]:
+                    worst[j] = (e, name)
+    for j in uneven:
+        e, name = worst[j]
+        warnings.append(f"joint {skeleton.names[j]!r}: non-uniform scale on a joint with children: its own vertices are drawn with it, "
+                        f"its children with its uniform part, up to {_length(e)} from glTF's pose ({name or 'its rest'})")
+
+
+def _is_below(parents: np.ndarray, k: int, j: int) -> bool:
+    p = int(parents[k])
+    while p >= 0:
+        if p == j:
+            return True
+        p = int(parents[p])
+    return False
 
 
 def _intervals(exact: float) -> int:
@@ -255,6 +316,8 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, 
     real_rows = [q[None]]
     dual_rows = [tf.dq_from_rt(q, t)[1][None]]
     scale_rows = [_uniform_scale(s, "inverse bind", warnings)[None]]
+    residual_rows = [np.ones((1, jc, 3))]
+    poses, pose_names = [], []
 
     # How many rows the clips need, counted before any is sampled: a long clip at a high rate is
     # refused in a moment instead of after sampling hundreds of megabytes of poses.
@@ -274,7 +337,11 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, 
         _, qd = tf.dq_from_rt(qr, pose.translation)
         real_rows.append(qr)
         dual_rows.append(qd)
-        scale_rows.append(_uniform_scale(pose.scale, f"clip {clip.name!r}", warnings))
+        mean, rest_of = _split_scale(pose.scale)
+        scale_rows.append(mean)
+        residual_rows.append(rest_of)
+        poses.append(pose)
+        pose_names.append(f"clip {clip.name!r}")
         clip_keys.append((qr, pose.translation, scale_rows[-1]))
         actual = n / clip.duration if clip.duration > 0 else (1.0 if fps == SOURCE_RATE else float(fps))
         infos.append(ClipInfo(clip.name, row, n + 1, actual, clip.loop, clip.duration))
@@ -282,7 +349,9 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, 
     rest_q = skeleton.rest_rotation
     real_rows.append(rest_q[None])
     dual_rows.append(tf.dq_from_rt(rest_q, skeleton.rest_translation)[1][None])
-    scale_rows.append(_uniform_scale(skeleton.rest_scale, "rest pose", warnings)[None])
+    mean, rest_of = _split_scale(skeleton.rest_scale)
+    scale_rows.append(mean[None])
+    residual_rows.append(rest_of[None])
     row += 1
     if 2 * jc > max_rows:
         raise BakeError(f"{jc} joints need {2 * jc} texels per row, more than {max_rows}")
@@ -300,10 +369,17 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, 
         raise BakeError("values exceed the half-float range; bake with precision f32")
     deviation = float(np.max(np.abs(scale - 1.0)))
     needs_scale = deviation > SCALE_EPS
+    residual = np.concatenate(residual_rows)
+    if not np.all(np.isfinite(residual)):
+        raise BakeError("baked joint scales hold NaN or Inf")
+    stored_residual = residual.astype(np.float32) if float(np.max(np.abs(residual - 1.0))) > SCALE_EPS else None
+    if stored_residual is not None:
+        _inner_residual_warnings(skeleton, poses, pose_names, residual, warnings)
     if 1e-6 < deviation <= SCALE_EPS:
         warnings.append(f"joint scale deviates from 1 by at most {deviation:.2g}; treated as 1 (no scale texture)")
     if precision == COMPRESSED:
-        return _compressed(skeleton, texels, scale if needs_scale else None, clip_keys, infos, fps, bound_mm, warnings, report)
+        return dataclasses.replace(_compressed(skeleton, texels, scale if needs_scale else None, clip_keys, infos, fps, bound_mm, warnings, report),
+                                   residual=stored_residual)
     stored_scale = scale.astype(dtype) if needs_scale else None
     # Warn, not refuse: f16 is a deliberate trade of accuracy for half the bytes, and its floor on a
     # human-sized character is about the 1 mm target itself (the built-in zombie's f16 keys are 1.03 mm
@@ -329,6 +405,7 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, 
         precision=precision,
         warnings=warnings,
         bound_mm=bound_mm,
+        residual=stored_residual,
     )
 
 

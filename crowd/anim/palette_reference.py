@@ -156,7 +156,28 @@ def reference_palette(bake: AnimationBake, layers, masks=None, interpolation: st
     glob = np.empty_like(local)
     for j, p in enumerate(bake.parents):
         glob[:, j] = local[:, j] if p < 0 else glob[:, p] @ local[:, j]
+    if bake.residual is not None:  # each joint's non-uniform scale over its uniform one: its own matrix only
+        glob[..., :3, :3] = glob[..., :3, :3] * _blended_residual(bake, layers, weight, low, safe)[..., None, :]
     return (glob @ bake.inverse_bind()[None])[:, :, :3, :]
+
+
+def _blended_residual(bake, layers, weight, low, safe) -> np.ndarray:
+    """(N, J, 3): each layer's residual lerped between its keys (linearly, whatever the interpolation),
+    weighted as the scale is, the rest pose's where the weights add up to about nothing."""
+    res = bake.residual.astype(np.float64)
+    table = bake.clip_table.astype(np.float64)
+    out = np.zeros(weight.shape[1:] + (3,))
+    for l in range(layers.shape[1]):
+        first, count, _, loop = table[layers[:, l, CLIP].astype(np.int64)].T
+        phase = layers[:, l, PHASE]
+        phase = np.where(loop > 0.5, phase - np.floor(phase), np.clip(phase, 0.0, 1.0))
+        f = phase * (count - 1.0)
+        i0 = np.clip(np.floor(f), 0.0, count - 2.0)
+        row = (first + i0).astype(np.int64)
+        u = (f - i0)[:, None, None]
+        out += weight[l][..., None] * (res[row] + (res[row + 1] - res[row]) * u)
+    out /= safe[..., None]
+    return np.where(low[..., None], res[bake.rest_row][None], out)
 
 
 def palette_joint_positions(palette_rows: np.ndarray, inverse_bind: np.ndarray) -> np.ndarray:

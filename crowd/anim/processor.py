@@ -71,7 +71,7 @@ FAR_PLACES, FAR_LOOKS = 2, 3  # processor.comp.glsl's storage bindings of the GP
 # Each sampler's texture unit (those a program compiled out are left out when written).
 TEXTURE_UNITS = {"u_anim": 0, "u_parents": 1, "u_clips": 2, "u_layers": 3, "u_anim_scale": 4, "u_masks": 5, "u_keys": 6, "u_tracks": 7,
                  "u_morph_tracks": 8, "u_morph_clips": 9, "u_morph_variation": 10, "u_morph_held": 11,
-                 **dict(zip(("u_locals0", "u_locals1", "u_locals2"), LOCALS_UNITS))}
+                 **dict(zip(("u_locals0", "u_locals1", "u_locals2"), LOCALS_UNITS)), "u_anim_residual": 15}
 
 # Every name importers have found here stays importable from here, wherever it now lives.
 
@@ -479,7 +479,7 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
         for unit, name in enumerate(("u_anim", "u_parents", "u_clips")):
             part.textures[name].use(unit)
         for unit, name in ((4, "u_anim_scale"), (5, "u_masks"), (6, "u_keys"), (7, "u_tracks"), (8, "u_morph_tracks"), (9, "u_morph_clips"),
-                           (10, "u_morph_variation"), (11, "u_morph_held")):
+                           (10, "u_morph_variation"), (11, "u_morph_held"), (15, "u_anim_residual")):
             if name in part.textures:
                 part.textures[name].use(unit)
         # One call: the units, the part's constants and the dispatch's rows, each written where it changed

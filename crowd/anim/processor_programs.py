@@ -58,6 +58,8 @@ class CharacterPrograms:
         t["u_anim"] = self._texture("animation", (2 * jc, anim_rows.shape[0]), 4, anim_rows, dtype)
         if bake.scale is not None:
             t["u_anim_scale"] = self._texture("animation", (jc, bake.rows), 1, bake.scale, dtype)
+        if bake.residual is not None:  # (non-uniform scale: only a character that has it pays for it)
+            t["u_anim_residual"] = self._texture("animation", (jc, bake.rows), 3, bake.residual, "f4")
         if compressed:
             words = bake.packed.word_texture
             t["u_keys"] = self._texture("animation", (words.shape[1], words.shape[0]), 1, words, "u4")
@@ -84,6 +86,8 @@ class CharacterPrograms:
                            MAX_MORPH_WEIGHT=f"{MAX_MORPH_WEIGHT!r}")
         if bake.scale is not None:
             defines["HAS_SCALE"] = 1
+        if bake.residual is not None:
+            defines["HAS_RESIDUAL"] = 1
         if compressed:
             defines["COMPRESSED"] = 1
             defines["PER_KEY"] = f"{PER_KEY}u"
