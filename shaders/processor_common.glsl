@@ -15,7 +15,7 @@ uniform usampler2D u_tracks;     // (4J, clips): four RGBA32UI texels of track h
 uniform int u_key_width;
 #endif
 #ifdef HAS_RESIDUAL
-uniform sampler2D u_anim_residual;  // (J, rows) RGB: each joint's non-uniform scale over its uniform one, own matrix only
+uniform sampler2D u_anim_residual;  // (J, rows): xyz each joint's non-uniform scale over its uniform one (own matrix only), w 1 where it has one
 #endif
 #ifdef HAS_SCALE
 uniform sampler2D u_anim_scale;  // (J, rows): uniform joint scale per frame
@@ -371,6 +371,7 @@ vec4 impostor_key(int agent) {
 // between its keys, linearly whatever the interpolation), the rest pose's where the weights add up to
 // about nothing: applied to the joint's own skinning matrix only (crowd/anim/bake.py).
 vec3 blended_residual(int agent, int joint) {
+    if (texelFetch(u_anim_residual, ivec2(joint, u_rest_scale_row), 0).w == 0.0) return vec3(1.0);  // (its scale is uniform throughout)
     vec4 layer[LAYERS];
     float layer_sum = agent_layers(agent, layer);
     float unit = power_of_two_below(layer_sum);

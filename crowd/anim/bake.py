@@ -372,6 +372,7 @@ def bake(skeleton: Skeleton, clips: list[Clip], fps: float | str = DEFAULT_FPS, 
     residual = np.concatenate(residual_rows)
     if not np.all(np.isfinite(residual)):
         raise BakeError("baked joint scales hold NaN or Inf")
+    residual[:, np.abs(residual - 1.0).max(axis=(0, 2)) <= SCALE_EPS] = 1.0  # (uniform to within SCALE_EPS: uniform, as the GPU skips it)
     stored_residual = residual.astype(np.float32) if float(np.max(np.abs(residual - 1.0))) > SCALE_EPS else None
     if stored_residual is not None:
         _inner_residual_warnings(skeleton, poses, pose_names, residual, warnings)

@@ -8,7 +8,7 @@ import numpy as np
 
 from . import foot_lock as lock
 from ..gl import load_shader
-from .bake import AnimationBake
+from .bake import SCALE_EPS, AnimationBake
 from .compress import PER_KEY
 from .morph import ACTIVE_WEIGHT, MAX_MORPH_WEIGHT, MORPH_PAIRS, NOT_HELD
 from .palette_reference import SLERP_FIT
@@ -59,7 +59,10 @@ class CharacterPrograms:
         if bake.scale is not None:
             t["u_anim_scale"] = self._texture("animation", (jc, bake.rows), 1, bake.scale, dtype)
         if bake.residual is not None:  # (non-uniform scale: only a character that has it pays for it)
-            t["u_anim_residual"] = self._texture("animation", (jc, bake.rows), 3, bake.residual, "f4")
+            # w: 1 for a joint whose scale is non-uniform anywhere (the others skip the blend: most joints)
+            uneven = (np.abs(bake.residual.astype(np.float64) - 1.0).max(axis=(0, 2)) > SCALE_EPS).astype(np.float32)
+            flagged = np.concatenate([bake.residual, np.broadcast_to(uneven[None, :, None], bake.residual.shape[:2] + (1,))], axis=2)
+            t["u_anim_residual"] = self._texture("animation", (jc, bake.rows), 4, np.ascontiguousarray(flagged, np.float32), "f4")
         if compressed:
             words = bake.packed.word_texture
             t["u_keys"] = self._texture("animation", (words.shape[1], words.shape[0]), 1, words, "u4")
