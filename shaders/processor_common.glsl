@@ -221,15 +221,32 @@ vec4 catmull_rom(vec4 p0, vec4 p1, vec4 p2, vec4 p3, float u) {
 // at bake time, so they lerp blindly). dq_lerp: real and dual parts lerped, then divided by |real|;
 // `second` is the dual part. qt_lerp / qt_cubic: each key split into rotation and translation, the
 // rotation nlerped (or Catmull-Rom'd) and made unit, the translation lerped; `second` is (t, 0).
-void sample_layer(vec4 layer, int joint, out vec4 real, out vec4 second, out float scale) {
-    int clip = int(layer.x);
-    vec4 info = texelFetch(u_clips, ivec2(clip, 0), 0);
-    bool looping = info.w > 0.5;
-    float phase = looping ? fract(layer.y) : clamp(layer.y, 0.0, 1.0);
+// Where a layer's phase falls in its clip: the clip's table entry `info`, the key before it (its row is
+// info.x + key) and, returned, the share of the way to the next key.
+float layer_frame(vec4 layer, out vec4 info, out int key) {
+    info = texelFetch(u_clips, ivec2(int(layer.x), 0), 0);
+    float phase = info.w > 0.5 ? fract(layer.y) : clamp(layer.y, 0.0, 1.0);
     float f = phase * (info.y - 1.0);
     float i0 = clamp(floor(f), 0.0, info.y - 2.0);
-    float u = f - i0;
-    int key = int(i0);
+    key = int(i0);
+    return f - i0;
+}
+
+// A layer's weight for `joint`: its weight times `unit` (power_of_two_below), times its mask's entry.
+float layer_weight(vec4 layer, int joint, float unit) {
+    float w = max(layer.z, 0.0) * unit;
+#ifdef HAS_MASKS
+    if (layer.w >= 0.0) w *= texelFetch(u_masks, ivec2(joint, int(layer.w)), 0).x;
+#endif
+    return w;
+}
+
+void sample_layer(vec4 layer, int joint, out vec4 real, out vec4 second, out float scale) {
+    int clip = int(layer.x);
+    vec4 info;
+    int key;
+    float u = layer_frame(layer, info, key);
+    bool looping = info.w > 0.5;
     int row = int(info.x) + key;
     float s1 = joint_scale(joint, row);
     float s2 = joint_scale(joint, row + 1);
@@ -379,19 +396,15 @@ vec3 blended_residual(int agent, int joint) {
     vec3 sum = vec3(0.0);
     float total = 0.0;
     for (int l = 0; l < LAYERS; ++l) {
-        float w = max(layer[l].z, 0.0) * unit;
-#ifdef HAS_MASKS
-        if (layer[l].w >= 0.0) w *= texelFetch(u_masks, ivec2(joint, int(layer[l].w)), 0).x;
-#endif
+        float w = layer_weight(layer[l], joint, unit);
         if (w > 0.0) {
-            vec4 info = texelFetch(u_clips, ivec2(int(layer[l].x), 0), 0);
-            float phase = info.w > 0.5 ? fract(layer[l].y) : clamp(layer[l].y, 0.0, 1.0);
-            float f = phase * (info.y - 1.0);
-            float i0 = clamp(floor(f), 0.0, info.y - 2.0);
-            int row = int(info.x) + int(i0);
+            vec4 info;
+            int key;
+            float u = layer_frame(layer[l], info, key);
+            int row = int(info.x) + key;
             vec3 r1 = texelFetch(u_anim_residual, ivec2(joint, row), 0).xyz;
             vec3 r2 = texelFetch(u_anim_residual, ivec2(joint, row + 1), 0).xyz;
-            sum += w * (r1 + (r2 - r1) * (f - i0));
+            sum += w * (r1 + (r2 - r1) * u);
             total += w;
         }
     }
@@ -416,10 +429,7 @@ Affine blended_local(int agent, int joint) {
     layer_sum *= unit;
     float total = 0.0;
     for (int l = 0; l < LAYERS; ++l) {
-        float w = max(layer[l].z, 0.0) * unit;
-#ifdef HAS_MASKS
-        if (layer[l].w >= 0.0) w *= texelFetch(u_masks, ivec2(joint, int(layer[l].w)), 0).x;
-#endif
+        float w = layer_weight(layer[l], joint, unit);
         weight[l] = w;
         total += w;
         if (w > 0.0) {

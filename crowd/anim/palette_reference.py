@@ -41,16 +41,22 @@ def _catmull_rom(p0, p1, p2, p3, u):
     return p1 + u * (0.5 * (p2 - p0) + u * ((p0 - 2.5 * p1 + 2.0 * p2 - 0.5 * p3) + u * (0.5 * (p3 - p0) + 1.5 * (p1 - p2))))
 
 
+def _frame(table, clip, phase):
+    """Where each agent's layer falls in its clip, as the shader's layer_frame finds it: (the texture
+    row of the key before it (N,), the share of the way to the next (N, 1, 1))."""
+    first, count, _, loop = table[clip].T
+    phase = np.where(loop > 0.5, phase - np.floor(phase), np.clip(phase, 0.0, 1.0))
+    f = phase * (count - 1.0)
+    i0 = np.clip(np.floor(f), 0.0, count - 2.0)
+    return (first + i0).astype(np.int64), (f - i0)[:, None, None]
+
+
 def _sample_keys(texels, scales, table, clip, phase, interpolation):
     """One layer's local transform of every joint, float64, as the shader samples it. Returns
     (rotation or DQ real (N, J, 4), translation (N, J, 3) or DQ dual (N, J, 4), scale (N, J))."""
     first, count, _, loop = table[clip].T
     looping = loop > 0.5
-    phase = np.where(looping, phase - np.floor(phase), np.clip(phase, 0.0, 1.0))
-    f = phase * (count - 1.0)
-    i0 = np.clip(np.floor(f), 0.0, count - 2.0)
-    u = (f - i0)[:, None, None]
-    row = (first + i0).astype(np.int64)
+    row, u = _frame(table, clip, phase)
 
     def key(r):
         s = np.ones(texels.shape[1] // 2) if scales is None else scales[r]
@@ -168,13 +174,7 @@ def _blended_residual(bake, layers, weight, low, safe) -> np.ndarray:
     table = bake.clip_table.astype(np.float64)
     out = np.zeros(weight.shape[1:] + (3,))
     for l in range(layers.shape[1]):
-        first, count, _, loop = table[layers[:, l, CLIP].astype(np.int64)].T
-        phase = layers[:, l, PHASE]
-        phase = np.where(loop > 0.5, phase - np.floor(phase), np.clip(phase, 0.0, 1.0))
-        f = phase * (count - 1.0)
-        i0 = np.clip(np.floor(f), 0.0, count - 2.0)
-        row = (first + i0).astype(np.int64)
-        u = (f - i0)[:, None, None]
+        row, u = _frame(table, layers[:, l, CLIP].astype(np.int64), layers[:, l, PHASE])
         out += weight[l][..., None] * (res[row] + (res[row + 1] - res[row]) * u)
     out /= safe[..., None]
     return np.where(low[..., None], res[bake.rest_row][None], out)

@@ -216,12 +216,19 @@ def _reach(world: np.ndarray, at: dict, side: str, want: np.ndarray, tmap: dict,
 
 
 def _turns(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(F, 3, 3) rotations taking each direction of `a` onto `b` by the shortest arc."""
+    """(F, 3, 3) rotations taking each direction of `a` onto `b` by the shortest arc (half a turn about
+    an axis square to `a` where they are opposite)."""
     a = a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
     b = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12)
     axis = np.cross(a, b)
     s, c = np.linalg.norm(axis, axis=1), np.clip(np.sum(a * b, axis=1), -1.0, 1.0)
+    opposite = (s < 1e-12) & (c < 0.0)
+    if np.any(opposite):
+        other = np.where(np.abs(a[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+        axis = np.where(opposite[:, None], np.cross(a, other), axis)
+        s = np.where(opposite, np.linalg.norm(axis, axis=1), s)
     axis = axis / np.maximum(s, 1e-15)[:, None]
+    s = np.where(opposite, 0.0, s)  # (sin of half a turn)
     x, y, z = axis[:, 0], axis[:, 1], axis[:, 2]
     one = 1.0 - c
     out = np.empty((len(a), 3, 3))
@@ -302,17 +309,7 @@ def _align(role: str, tmap, smap, t_rest, s_rest) -> np.ndarray:
     b = s_rest[smap[end_key], :3, 3] - s_rest[smap[role], :3, 3]
     if np.linalg.norm(a) < 1e-9 or np.linalg.norm(b) < 1e-9:
         return np.eye(3)
-    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-    axis, cos = np.cross(a, b), float(np.clip(np.dot(a, b), -1.0, 1.0))
-    if np.linalg.norm(axis) < 1e-12:
-        return np.eye(3) if cos > 0 else tf.quat_to_mat3(tf.quat_from_axis_angle(_perpendicular(a), np.pi))
-    return tf.quat_to_mat3(tf.quat_from_axis_angle(axis / np.linalg.norm(axis), np.arccos(cos)))
-
-
-def _perpendicular(v: np.ndarray) -> np.ndarray:
-    other = np.array([1.0, 0.0, 0.0]) if abs(v[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    p = np.cross(v, other)
-    return p / np.linalg.norm(p)
+    return _turns(a[None], b[None])[0]
 
 
 def _locals(skeleton: Skeleton, placed: dict[int, np.ndarray], frames: int) -> np.ndarray:
