@@ -16,6 +16,7 @@
 - ``morph``: the processor's and the skinned draw's GPU ms with morph targets off and 0 to 4 active (bench/morph_cost.py).
 - ``impostor``: the impostor atlas's error against the mesh, its bytes and bake time, over a grid of atlas settings (bench/impostor_quality.py).
 - ``soak``: the default scene for many frames: resident memory, live GL objects and faults (bench/soak.py).
+- ``meshopt``: import time of meshopt-compressed files and the decoder's throughput (bench/meshopt_decode.py).
 - ``readback``: the weapons' socket gather and GPU→CPU transfer against the number of armed agents,
   the CPU's wait on it, and the weapon-to-hand error with the body drawn in step with the read-back
   (sync) and from the newest palette (unsync), side by side in one run.
@@ -593,6 +594,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .storage_cost import add_parsers as add_storage_cost_parsers
     from .rounds_report import add_parsers as add_rounds_parsers
     from .texture_report import add_parsers as add_texture_parsers
+    from .meshopt_decode import add_parsers as add_meshopt_parsers
 
     add_parsers(sub)
     add_rounds_parsers(sub)
@@ -600,6 +602,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_storage_cost_parsers(sub)
     add_texture_parsers(sub)
     add_peers_parsers(sub)
+    add_meshopt_parsers(sub)
     return parser
 
 

@@ -1,8 +1,7 @@
 """Compressed glTF (issue 44, point 4). KHR_draco_mesh_compression is decoded by DracoPy (the optional
 extra crowd[draco]): a Draco copy of the built-in zombie gives the plain file's vertices within its
 position quantisation, and the hostile-file rules hold for the compressed data (one line each).
-EXT_meshopt_compression is refused in one line that says what to do (no decoder installs without a
-compiler)."""
+meshopt compression has its own tests (test_meshopt.py)."""
 
 from __future__ import annotations
 
@@ -101,13 +100,3 @@ def test_without_dracopy_the_refusal_names_the_extra(draco_zombie, monkeypatch):
     monkeypatch.setattr(builtins, "__import__", without)
     with pytest.raises(GltfImportError, match=r"install the optional extra with pip install 'crowd\[draco\]'"):
         load_character(draco_zombie[0])
-
-
-def test_meshopt_is_refused_with_what_to_do(tmp_path):
-    path = make_gltf(tmp_path)
-    doc = json.loads(path.read_text())
-    doc["extensionsUsed"] = doc["extensionsRequired"] = ["EXT_meshopt_compression"]
-    path.write_text(json.dumps(doc))
-    with pytest.raises(GltfImportError, match="EXT_meshopt_compression, which this importer does not decode yet") as info:
-        load_character(path)
-    assert "\n" not in str(info.value)

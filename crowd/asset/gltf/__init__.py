@@ -32,8 +32,8 @@ colours; positions, translations and morph deltas beyond ±MAX_COORDINATE, morph
 ±MAX_MORPH_WEIGHT; primitives of one mesh with different numbers of targets; scales beyond ±MAX_SCALE or multiplying beyond it along a joint
 chain; a zero quaternion among rotation keys (which pose the clip means there is unknown, and a bake of
 it draws NaN) or a CUBICSPLINE rotation passing through zero; negative weights; a clip longer than
-MAX_CLIP_SECONDS; extensions the file requires that the importer does not implement (meshopt; Draco without
-the draco extra);
+MAX_CLIP_SECONDS; extensions the file requires that the importer does not implement (Draco without the
+draco extra); meshopt streams that do not decode or break their extension's rules (`meshopt`);
 a file none of whose animations moves the skin's joints (the crowd has nothing to play).
 """
 

@@ -18,8 +18,10 @@ Hostile files (issue 18). No input makes the importer read outside its buffers, 
   the JSON's count of values (MAX_JSON_VALUES), nodes, joints, animations, channels and primitives
   (tree.MAX_NODES, skins.MAX_JOINTS, clips.MAX_ANIMATIONS and MAX_CHANNELS, MAX_PRIMITIVES), one accessor as the
   float64 values the importer makes of it (MAX_ACCESSOR_BYTES), all accessor reads of one import
-  (MAX_DECODED_BYTES), a clip's length (clips.MAX_CLIP_SECONDS); every walk over the node tree is linear in
-  the number of nodes, so a file at every bound at once imports in about 10 s;
+  (MAX_DECODED_BYTES), meshopt-compressed bufferViews (MAX_MESHOPT_BYTES), a clip's length
+  (clips.MAX_CLIP_SECONDS); every walk over the node tree is linear in the number of nodes, so a file at
+  every bound at once imports in about 10 s, plus the meshopt decoder's slowest streams at their budget
+  (docs/BENCHMARKS.md, "meshopt decoded by hand");
 - external buffers must be regular files inside the model's folder: nothing else is opened;
 - alignment (byteOffset a multiple of the component size, byteStride of 4) is not enforced: it matters
   to a GPU reading the buffer in place, and here bytes are copied into fresh arrays;
@@ -41,6 +43,7 @@ import numpy as np
 
 from ...errors import CrowdError
 from ... import transforms as tf
+from . import meshopt
 
 _COMPONENT = {5120: np.dtype("<i1"), 5121: np.dtype("<u1"), 5122: np.dtype("<i2"), 5123: np.dtype("<u2"),
               5125: np.dtype("<u4"), 5126: np.dtype("<f4")}
@@ -57,6 +60,7 @@ MAX_JSON_VALUES = 4_000_000  # json.loads makes an object of each: a few hundred
 MAX_PRIMITIVES = 1 << 14  # primitives read, skinned and rigid (a rigid mesh is read once per node using it)
 MAX_ACCESSOR_BYTES = 256 << 20  # one accessor, as the float64 values the importer makes of it
 MAX_DECODED_BYTES = 1 << 30  # every accessor read of one import, together
+MAX_MESHOPT_BYTES = 256 << 20  # bufferViews decoded from meshopt compression, together, an index as 8 (crowd-bench meshopt times the bound)
 # Values the stages can draw (float32 on the GPU, a shadow map around the crowd).
 MAX_COORDINATE = 1e6  # positions and translations, in the file's units (metres)
 MAX_SCALE = 1e6  # one scale component, and the product of the largest scales along a joint chain
@@ -66,7 +70,6 @@ AFFINE_TOLERANCE = 1e-4  # a matrix's last row against (0, 0, 0, 1)
 _SAFE_EXTENSION_PREFIXES = ("KHR_materials_", "KHR_texture_", "EXT_texture_", "KHR_lights_", "KHR_xmp")
 _SAFE_EXTENSIONS = {"KHR_mesh_quantization"}  # any component type is read as numbers: that is all it asks
 DRACO = "KHR_draco_mesh_compression"  # decoded by DracoPy, the optional extra crowd[draco] (crowd.asset.gltf.draco)
-MESHOPT = "EXT_meshopt_compression"
 
 
 class GltfImportError(CrowdError, ValueError):
@@ -118,12 +121,12 @@ class Reader:
         if not isinstance(required, list):
             self.fail("extensionsRequired must be an array")
         for ext in required:
-            if ext == MESHOPT:
-                self.fail(f"requires extension {MESHOPT}, which this importer does not decode yet (no meshopt decoder installs with pip "
-                          "without a compiler; decompress the file with gltfpack -noq, or re-export it with Draco)")
-            if not isinstance(ext, str) or not (ext in _SAFE_EXTENSIONS or ext == DRACO or ext.startswith(_SAFE_EXTENSION_PREFIXES)):
+            if not isinstance(ext, str) or not (ext in _SAFE_EXTENSIONS or ext in (DRACO, *meshopt.EXTENSIONS)
+                                                or ext.startswith(_SAFE_EXTENSION_PREFIXES)):
                 self.fail(f"requires extension {show(ext)}, which this importer does not implement")
         self._buffers: dict[int, bytes] = {}
+        self._unpacked: dict[int, bytes] = {}  # bufferView -> its bytes decoded from meshopt compression
+        self._meshopt_bytes = 0
         self._cache: dict[int, np.ndarray] = {}
         self.decoded: dict[int, np.ndarray] = {}  # accessor -> its elements as a compressed primitive decoded them (crowd.asset.gltf.draco)
         self._trs: dict[int, tuple] = {}
@@ -342,10 +345,50 @@ class Reader:
         stride = 0 if stride is None else stride  # 0: tightly packed (glTF 1.0 files wrote it)
         if not is_whole(stride) or not (stride == 0 or 4 <= stride <= 252):
             self.fail(f"{where}: byteStride must be a whole number from 4 to 252, got {show(stride)}")
+        packed = [name for name in meshopt.EXTENSIONS if name in (self.obj(v, "extensions", where) or {})]
+        if packed:
+            # The view's own buffer is then a fallback that need hold no bytes: only its declared length counts.
+            if start + length > self.whole(self.item("buffers", buffer), "byteLength", f"buffer {buffer}", lo=1, required=True):
+                self.fail(f"{where} runs past the end of buffer {buffer}")
+            return self._unpack(index, v, packed, length, stride), 0, length, stride or None
         data, buffer_length = self.buffer(buffer)
         if start + length > buffer_length:
             self.fail(f"{where} runs past the end of buffer {buffer}")
         return data, start, length, stride or None
+
+    def _unpack(self, index: int, view: dict, names: list[str], length: int, stride: int) -> bytes:
+        """The bytes of a bufferView compressed with meshoptimizer's codecs (crowd.asset.gltf.meshopt)."""
+        if index in self._unpacked:
+            return self._unpacked[index]
+        if len(names) > 1:
+            self.fail(f"bufferView {index} uses both {names[0]} and {names[1]}, which the KHR extension forbids")
+        where = f"bufferView {index} {names[0]}"
+        ext = self.obj(view["extensions"], names[0], where) or self.fail(f"{where} must be an object")
+        count = self.whole(ext, "count", where, lo=1, required=True)
+        packed_stride = self.whole(ext, "byteStride", where, lo=1, required=True)
+        if stride and stride != packed_stride:
+            self.fail(f"{where}: byteStride {packed_stride} is not the bufferView's {stride}")
+        mode = self.choice(ext, "mode", where, meshopt.MODES)
+        filt = self.choice(ext, "filter", where, meshopt.FILTERS, default="NONE")
+        source = self.index(ext, "buffer", "buffers", where, required=True)
+        start = self.whole(ext, "byteOffset", where, default=0)
+        size = self.whole(ext, "byteLength", where, lo=1, required=True)
+        data, buffer_length = self.buffer(source)
+        if start + size > buffer_length:
+            self.fail(f"{where} runs past the end of buffer {source}")
+        try:
+            meshopt.check_layout(names[0], count, packed_stride, mode, filt, length)
+            # Decoding steps in Python per group of 16 bytes and per index: its own budget bounds the time.
+            self._meshopt_bytes += length if mode == "ATTRIBUTES" else 8 * count
+            if self._meshopt_bytes > MAX_MESHOPT_BYTES:
+                self.fail(f"{where} brings the meshopt data decoded to {self._meshopt_bytes:,} bytes "
+                          f"(indices counted as 8), more than the {MAX_MESHOPT_BYTES:,} allowed")
+            self.charge_bytes(length, where)
+            decoded = meshopt.decode(bytes(data[start:start + size]), count, packed_stride, mode, filt, names[0] == meshopt.EXTENSIONS[1])
+        except meshopt.MeshoptError as exc:
+            self.fail(f"{where}: {exc}")
+        self._unpacked[index] = decoded
+        return decoded
 
     def _view_array(self, view_index: int, offset: int, count: int, dtype: np.dtype, ncomp: int, what: str) -> np.ndarray:
         data, start, length, stride = self.view(view_index)
