@@ -5,7 +5,8 @@
 // expressions of skin.vert.glsl, so the weapon and the hand holding it round alike. Shares
 // skin.frag.glsl and depth.frag.glsl with the crowd.
 //
-// Defines: DEPTH_ONLY (shadow pass: position only).
+// Defines: DEPTH_ONLY (shadow pass: position only); UNLIT_PIECES (some prop is KHR_materials_unlit: each
+// vertex says whether its prop is lit, as skin.vert.glsl's pieces do).
 
 in vec3 in_position;
 in uvec2 in_packed;  // x: normal, snorm10 x3 | y: colour, RGBA8
@@ -28,6 +29,9 @@ uniform mat4 u_view_proj;  // the shadow cascade's, camera-relative
 out vec3 v_world;
 out vec3 v_normal;
 out vec4 v_color;
+#ifdef UNLIT_PIECES
+flat out uint v_unlit;  // bit 30 of the packed normal (crowd.draw.packing.UNLIT_BIT)
+#endif
 #endif
 
 void main() {
@@ -43,5 +47,8 @@ void main() {
     v_world = world;
     v_normal = turn_about_y(heading, normal);
     v_color = unpack_rgba8(in_packed.y);
+#ifdef UNLIT_PIECES
+    v_unlit = (in_packed.x >> 30u) & 1u;
+#endif
 #endif
 }

@@ -1,7 +1,7 @@
 """KHR_materials_unlit (issue 44, point 6): a piece whose material is unlit is drawn in its base colour
 (through the fog, as everything is), without the sun, sky or shadows; one lit piece beside it keeps its
-lighting; a character all of whose pieces are unlit has unlit impostors; a cast without unlit pieces
-compiles none of it."""
+lighting; a character all of whose pieces are unlit has unlit impostors; an unlit prop is drawn unlit in
+the hand; a cast without unlit pieces compiles none of it."""
 
 from __future__ import annotations
 
@@ -61,4 +61,55 @@ def test_an_unlit_character_is_one_colour_and_a_lit_one_is_shaded(gl_context, tm
         colours = drawn[mask]
         spreads[unlit] = int((colours.max(axis=0) - colours.min(axis=0)).max())
     # Lit: the sun and sky shade the faces apart; unlit: one colour, bar the fog's few metres and the edges' blend.
+    assert spreads[False] > 40 and spreads[True] <= 12, spreads
+
+
+def _zombie_with_prop(folder, unlit: bool):
+    """The built-in zombie with its props one colour (COLOUR, no vertex colours), their material unlit or not."""
+    import struct
+
+    from crowd.asset.zombie import ASSET_PATH
+
+    data = ASSET_PATH.read_bytes()
+    n = struct.unpack_from("<I", data, 12)[0]
+    doc, blob = json.loads(data[20:20 + n]), data[28 + n:]
+    prop_material = next(i for i, m in enumerate(doc["materials"]) if m.get("name") == "prop")
+    doc["materials"][prop_material]["pbrMetallicRoughness"]["baseColorFactor"] = COLOUR
+    if unlit:
+        doc["materials"][prop_material]["extensions"] = {"KHR_materials_unlit": {}}
+        doc["extensionsUsed"] = sorted(set(doc.get("extensionsUsed", [])) | {"KHR_materials_unlit"})
+    for node in doc["nodes"]:
+        if "prop" in ((node.get("extras") or {}).get("crowd") or {}):
+            for prim in doc["meshes"][node["mesh"]]["primitives"]:
+                prim["attributes"].pop("COLOR_0", None)
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    path = folder / ("prop_unlit.glb" if unlit else "prop_lit.glb")
+    path.write_bytes(b"glTF" + struct.pack("<II", 2, 28 + len(text) + len(blob)) + struct.pack("<I", len(text)) + b"JSON" + text
+                     + struct.pack("<I", len(blob)) + b"BIN\x00" + blob)
+    return path
+
+
+def _weapon_pixels(gl_context, path) -> np.ndarray:
+    """The colours of the pixels the one armed agent's weapon covers (the frame with weapons against without)."""
+    frames = []
+    for weapons in (False, True):
+        config = PipelineConfig(model=path, agents=1, town=False, survivor=False, shadows=False, weapons=weapons, ai_path="cpu",
+                                ai=AIConfig(half_extent=1.0, wander_speed=0.0, armed_share=1.0))
+        with Offscreen(gl_context, SIZE) as target, CrowdPipeline(gl_context, config) as p:
+            p.camera = type(p.overview_camera(SIZE[0] / SIZE[1]))(eye=(0.0, 1.0, 1.6), target=(0.0, 0.8, 0.0))
+            for _ in range(3):
+                p.frame(target.framebuffer, 0.0)
+            frames.append(np.frombuffer(target.framebuffer.read(), np.uint8).reshape(SIZE[1], SIZE[0], 3).astype(np.int64))
+    mask = np.any(frames[0] != frames[1], axis=2)
+    assert mask.sum() > 60, mask.sum()  # the weapon covers pixels
+    return frames[1][mask]
+
+
+def test_an_unlit_prop_is_one_colour_and_a_lit_one_is_shaded(gl_context, tmp_path):
+    assert all(m.unlit for prop in load_character(_zombie_with_prop(tmp_path, True)).props.values() for m in prop.lods)
+    spreads = {}
+    for unlit in (False, True):
+        colours = _weapon_pixels(gl_context, _zombie_with_prop(tmp_path, unlit))
+        spreads[unlit] = int((colours.max(axis=0) - colours.min(axis=0)).max())
     assert spreads[False] > 40 and spreads[True] <= 12, spreads

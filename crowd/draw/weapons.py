@@ -46,7 +46,7 @@ from .feedback_cull import STREAMS, FeedbackCounter, TransformFeedbacks, capture
 from .gpu_cull import BUFFER_UPDATE, COMMAND, COMMAND_DTYPE, GROUP_SIZE, VERTEX_ATTRIB_ARRAY, CountRing
 from ..asset.model import Character, RigidMesh, cast_weapons
 from ..asset.vertex_cache import best_triangle_order
-from .packing import heading_snorm16, pack_colors, pack_normals, shared_buffers, write_heading
+from .packing import UNLIT_BIT, heading_snorm16, pack_colors, pack_normals, shared_buffers, write_heading
 from .draw_programs import fixed_units, lighting_defines
 from .frame_block import FRAME_DEFINES
 from .view import gl_bytes
@@ -108,7 +108,8 @@ def pack_rigid(mesh: RigidMesh, to_socket: np.ndarray) -> np.ndarray:
     linear = to_socket[:3, :3]
     v["position"] = np.asarray(mesh.positions, np.float64) @ linear.T + to_socket[:3, 3]
     normals = np.asarray(mesh.normals, np.float64) @ np.linalg.inv(linear)  # the inverse transpose, for any scale
-    v["packed"][:, 0] = pack_normals(normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12))
+    v["packed"][:, 0] = pack_normals(normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)) | \
+        (np.uint32(UNLIT_BIT) if mesh.unlit else np.uint32(0))
     v["packed"][:, 1] = pack_colors(mesh.colors, mesh.base_color, len(v))
     return v
 
@@ -212,8 +213,10 @@ class WeaponRenderer(CountsWhenAsked, GLStage):
                                             len(self._slots))
             self._capacity = np.zeros(len(self.names), np.int64)  # weapons each mesh's lists hold
         defines = lighting_defines(shadows)
+        unlit = {"UNLIT_PIECES": 1} if any(m.unlit for p in props for m in p.lods) else {}  # KHR_materials_unlit props
         self._programs = {
-            "color": self._objects.add(ctx.program(vertex_shader=load_shader("weapon.vert.glsl", FRAME_DEFINES), fragment_shader=load_shader("skin.frag.glsl", defines))),
+            "color": self._objects.add(ctx.program(vertex_shader=load_shader("weapon.vert.glsl", {**FRAME_DEFINES, **unlit}),
+                                                   fragment_shader=load_shader("skin.frag.glsl", {**defines, **unlit}))),
             "depth": self._objects.add(ctx.program(vertex_shader=load_shader("weapon.vert.glsl", {"DEPTH_ONLY": 1}), fragment_shader=load_shader("depth.frag.glsl"))),
         }
         fixed_units(self._programs["color"])

@@ -375,13 +375,18 @@ def _rigid_parts(r: Reader, mesh_index: int, materials: Materials, warn: list[st
     return out
 
 
-def _untextured(parts: list[RigidMesh]) -> RigidMesh | None:
-    """The parts as one untextured mesh (a prop: the weapons stage draws one mesh per prop)."""
+def _untextured(parts: list[RigidMesh], label: str, warn: list[str]) -> RigidMesh | None:
+    """The parts as one untextured mesh (a prop: the weapons stage draws one mesh per prop), unlit where
+    every part is (KHR_materials_unlit)."""
     if not parts:
         return None
+    unlit = all(p.unlit for p in parts)
+    if any(p.unlit for p in parts) and not unlit:
+        warn.append(f"{label}: some of its materials are unlit and some lit; drawn lit")
     starts = np.cumsum([0] + [len(p.positions) for p in parts])
     return RigidMesh(parts[0].name.split("#")[0], np.concatenate([p.positions for p in parts]), np.concatenate([p.normals for p in parts]),
-                     np.concatenate([p.indices + k for p, k in zip(parts, starts)]).astype(np.uint32), np.concatenate([p.colors for p in parts]))
+                     np.concatenate([p.indices + k for p, k in zip(parts, starts)]).astype(np.uint32), np.concatenate([p.colors for p in parts]),
+                     unlit=unlit)
 
 
 def read_rigid(r: Reader, tree: Tree, new_index, factor: float, materials: Materials, warn: list[str]):
@@ -395,7 +400,7 @@ def read_rigid(r: Reader, tree: Tree, new_index, factor: float, materials: Mater
                 parts = _rigid_parts(r, node["mesh"], materials, warn, textures=False)
                 if any(materials.has_texture(prim) for prim in r.list(r.item("meshes", node["mesh"]), "primitives", "") if isinstance(prim, dict)):
                     warn.append(f"prop {extras['prop']!r}: its texture is left out (props are drawn in their vertex and base colours)")
-                mesh = _untextured(parts)
+                mesh = _untextured(parts, f"prop {extras['prop']!r}", warn)
                 lod = _mesh_extras(r, extras, r.node_where(ni))[1]
                 if lod > 0:
                     if mesh is not None:
