@@ -13,6 +13,9 @@
 //                through three render targets; the slots' fragments write the key and the morph pairs.
 // The one-draw version blended every ancestor of each joint itself: 6 to 8 times the sampling for a hand,
 // 63 times the compute path's time on the H200 (docs/BENCHMARKS.md, "The path without compute").
+#if defined(LOCALS_PASS) && defined(HAS_RESIDUAL)
+#define RESIDUAL_IN_BLEND
+#endif
 #include "processor_common.glsl"
 #if defined(MORPHS) && !defined(LOCALS_PASS)
 #include "morph_weights.glsl"
@@ -21,6 +24,9 @@
 layout(location = 0) out vec4 o_row0;
 layout(location = 1) out vec4 o_row1;
 layout(location = 2) out vec4 o_row2;
+#if defined(LOCALS_PASS) && defined(HAS_RESIDUAL)
+layout(location = 3) out vec4 o_residual;  // the joint's own non-uniform scale, a fourth scratch plane
+#endif
 flat in int g_layer;         // the layer within this run's ring slot (and within the scratch)
 uniform int u_palette_rows;  // texture rows per layer
 uniform int u_first_row;     // this character's first row in the ring slot
@@ -29,6 +35,9 @@ uniform int u_stride;        // texels an agent: ROW_SLOTS (impostor key, morph 
 uniform sampler2DArray u_locals0;  // the locals pass's scratch: rows 0, 1, 2 of each joint's local transform
 uniform sampler2DArray u_locals1;
 uniform sampler2DArray u_locals2;
+#ifdef HAS_RESIDUAL
+uniform sampler2DArray u_locals3;
+#endif
 
 Affine local_of(ivec3 texel) {
     return Affine(texelFetch(u_locals0, texel, 0), texelFetch(u_locals1, texel, 0), texelFetch(u_locals2, texel, 0));
@@ -49,6 +58,9 @@ void main() {
     o_row0 = m.r0;
     o_row1 = m.r1;
     o_row2 = m.r2;
+#ifdef HAS_RESIDUAL
+    o_residual = vec4(g_residual, 0.0);
+#endif
 #else
     if (joint < 0) {  // the agent's impostor key or morph pairs
 #ifdef IMPOSTOR_KEY
@@ -69,6 +81,9 @@ void main() {
     }
     ivec3 texel = ivec3(x, int(gl_FragCoord.y), g_layer);
     Affine m = local_of(texel);
+#ifdef HAS_RESIDUAL
+    vec3 own_scale = texelFetch(u_locals3, texel, 0).xyz;
+#endif
     int p = parent_of(joint);
     for (int k = 0; k < MAX_JOINTS && p >= 0; ++k) {
         texel.x = x - joint + p;  // the same agent's texel of joint p
@@ -76,7 +91,7 @@ void main() {
         p = parent_of(p);
     }
 #ifdef HAS_RESIDUAL
-    m = scaled_axes(m, blended_residual(agent, joint));  // (its own matrix only: its children took m before)
+    m = scaled_axes(m, own_scale);  // (its own matrix only: its children took m before)
 #endif
     m = compose(m, stored_affine(joint, 0, 0));  // row 0 holds the inverse bind pose
     o_row0 = m.r0;

@@ -14,11 +14,26 @@ uniform usampler2D u_keys;       // packed key words, u_key_width a row (crowd.a
 uniform usampler2D u_tracks;     // (4J, clips): four RGBA32UI texels of track headers per (clip, joint)
 uniform int u_key_width;
 #endif
-#ifdef HAS_RESIDUAL
-uniform sampler2D u_anim_residual;  // (J, rows): xyz each joint's non-uniform scale over its uniform one (own matrix only), w 1 where it has one
-#endif
 #ifdef HAS_SCALE
 uniform sampler2D u_anim_scale;  // (J, rows): uniform joint scale per frame
+#endif
+#ifdef HAS_RESIDUAL
+uniform sampler2D u_anim_residual;  // (J, rows): xyz each joint's non-uniform scale over its uniform one (own matrix only)
+uniform uint u_residual_joints[8];  // a bit a joint: those whose scale is non-uniform somewhere (the others fetch none)
+
+bool has_residual(int joint) {
+    return ((u_residual_joints[joint >> 5] >> uint(joint & 31)) & 1u) != 0u;
+}
+#endif
+// Where the residual is blended: the fragment path's locals pass blends it with the local transform
+// (RESIDUAL_IN_BLEND) and hands it to the compose pass in a fourth plane; the compute path blends it
+// after the chain walk (blended_residual), which the H200 ran faster than carrying it across the barrier.
+#ifdef RESIDUAL_IN_BLEND
+#define ScaleKey vec4  // xyz the residual, w the uniform scale
+bool g_has_residual;   // the joint being blended has one
+vec3 g_residual;       // which blended_local leaves here beside the local it returns
+#else
+#define ScaleKey float
 #endif
 uniform isampler2D u_parents;    // hierarchy texture (J, 1): parent index, -1 for roots, parents first
 uniform sampler2D u_clips;       // clip table (C, 1): first row, frame count, fps, loop flag
@@ -77,11 +92,29 @@ Affine dq_affine(vec4 r, vec4 d, float s) {
     return qt_affine(r, dq_translation(r, d), s);
 }
 
-float joint_scale(int joint, int row) {
+float uniform_scale(int joint, int row) {
 #ifdef HAS_SCALE
     return texelFetch(u_anim_scale, ivec2(joint, row), 0).x;
 #else
     return 1.0;
+#endif
+}
+
+ScaleKey joint_scale(int joint, int row) {
+#ifdef RESIDUAL_IN_BLEND
+    vec3 residual = g_has_residual ? texelFetch(u_anim_residual, ivec2(joint, row), 0).xyz : vec3(1.0);
+    return vec4(residual, uniform_scale(joint, row));
+#else
+    return uniform_scale(joint, row);
+#endif
+}
+
+// A scale key's uniform part (what runs down the chain).
+float uniform_part(ScaleKey s) {
+#ifdef RESIDUAL_IN_BLEND
+    return s.w;
+#else
+    return s;
 #endif
 }
 
@@ -90,7 +123,7 @@ float joint_scale(int joint, int row) {
 Affine stored_affine(int joint, int row, int scale_row) {
     vec4 r = texelFetch(u_anim, ivec2(2 * joint, row), 0);
     float inv = 1.0 / length(r);
-    return dq_affine(r * inv, texelFetch(u_anim, ivec2(2 * joint + 1, row), 0) * inv, joint_scale(joint, scale_row));
+    return dq_affine(r * inv, texelFetch(u_anim, ivec2(2 * joint + 1, row), 0) * inv, uniform_scale(joint, scale_row));
 }
 
 int parent_of(int joint) {
@@ -241,15 +274,15 @@ float layer_weight(vec4 layer, int joint, float unit) {
     return w;
 }
 
-void sample_layer(vec4 layer, int joint, out vec4 real, out vec4 second, out float scale) {
+void sample_layer(vec4 layer, int joint, out vec4 real, out vec4 second, out ScaleKey scale) {
     int clip = int(layer.x);
     vec4 info;
     int key;
     float u = layer_frame(layer, info, key);
     bool looping = info.w > 0.5;
     int row = int(info.x) + key;
-    float s1 = joint_scale(joint, row);
-    float s2 = joint_scale(joint, row + 1);
+    ScaleKey s1 = joint_scale(joint, row);
+    ScaleKey s2 = joint_scale(joint, row + 1);
 #if !defined(INTERPOLATION_QT)
     vec4 r1, d1, r2, d2;
     Tracks tracks = clip_tracks(clip, joint);
@@ -289,8 +322,8 @@ void sample_layer(vec4 layer, int joint, out vec4 real, out vec4 second, out flo
     vec3 t0, t3;
     key_rt(tracks, joint, first + prev_key, prev_key, r0, t0);
     key_rt(tracks, joint, first + next_key, next_key, r3, t3);
-    float s0 = joint_scale(joint, first + prev_key);
-    float s3 = joint_scale(joint, first + next_key);
+    ScaleKey s0 = joint_scale(joint, first + prev_key);
+    ScaleKey s3 = joint_scale(joint, first + next_key);
     // Keys across the loop seam may hold the other sign (a joint that spins a full turn).
     if (dot(r0, r1) < 0.0) r0 = -r0;
     if (dot(r3, r2) < 0.0) r3 = -r3;
@@ -305,9 +338,13 @@ void sample_layer(vec4 layer, int joint, out vec4 real, out vec4 second, out flo
         s3 = 2.0 * s2 - s1;
     }
     real = catmull_rom(r0, r1, r2, r3, u);
-    vec4 ts = catmull_rom(vec4(t0, s0), vec4(t1, s1), vec4(t2, s2), vec4(t3, s3), u);  // translation and scale
-    second = vec4(ts.xyz, 0.0);
+    vec4 ts = catmull_rom(vec4(t0, uniform_part(s0)), vec4(t1, uniform_part(s1)), vec4(t2, uniform_part(s2)), vec4(t3, uniform_part(s3)), u);
+    second = vec4(ts.xyz, 0.0);  // translation, and the uniform scale in w
+#ifdef RESIDUAL_IN_BLEND
+    scale = vec4(s1.xyz + (s2.xyz - s1.xyz) * u, ts.w);  // (the residual lerped whatever the interpolation)
+#else
     scale = ts.w;
+#endif
 #else
 #ifdef INTERPOLATION_CORRECTED
     real = r1 + (r2 - r1) * corrected_weight(u, dot(r1, r2));  // nlerp that turns as slerp does
@@ -388,7 +425,7 @@ vec4 impostor_key(int agent) {
 // between its keys, linearly whatever the interpolation), the rest pose's where the weights add up to
 // about nothing: applied to the joint's own skinning matrix only (crowd/anim/bake.py).
 vec3 blended_residual(int agent, int joint) {
-    if (texelFetch(u_anim_residual, ivec2(joint, u_rest_scale_row), 0).w == 0.0) return vec3(1.0);  // (its scale is uniform throughout)
+    if (!has_residual(joint)) return vec3(1.0);
     vec4 layer[LAYERS];
     float layer_sum = agent_layers(agent, layer);
     float unit = power_of_two_below(layer_sum);
@@ -421,13 +458,16 @@ Affine scaled_axes(Affine m, vec3 s) {
 Affine blended_local(int agent, int joint) {
     vec4 real[LAYERS];
     vec4 second[LAYERS];  // dual parts (dq_lerp) or translations (qt_*)
-    float scale[LAYERS];
+    ScaleKey scale[LAYERS];
     float weight[LAYERS];
     vec4 layer[LAYERS];
     float layer_sum = agent_layers(agent, layer);
     float unit = power_of_two_below(layer_sum);
     layer_sum *= unit;
     float total = 0.0;
+#ifdef RESIDUAL_IN_BLEND
+    g_has_residual = has_residual(joint);
+#endif
     for (int l = 0; l < LAYERS; ++l) {
         float w = layer_weight(layer[l], joint, unit);
         weight[l] = w;
@@ -437,10 +477,15 @@ Affine blended_local(int agent, int joint) {
         } else {
             real[l] = vec4(0.0);
             second[l] = vec4(0.0);
-            scale[l] = 0.0;
+            scale[l] = ScaleKey(0.0);
         }
     }
-    if (!(total > 0.0) || total < REST_THRESHOLD * layer_sum) return stored_affine(joint, u_rest_row, u_rest_scale_row);
+    if (!(total > 0.0) || total < REST_THRESHOLD * layer_sum) {
+#ifdef RESIDUAL_IN_BLEND
+        g_residual = joint_scale(joint, u_rest_scale_row).xyz;
+#endif
+        return stored_affine(joint, u_rest_row, u_rest_scale_row);
+    }
     // The anchor's parts, picked last to first with constant indices: no array is indexed by a value
     // known only at run time, which would put the arrays in slow local memory.
     vec4 anchor_real = real[LAYERS - 1];
@@ -453,7 +498,7 @@ Affine blended_local(int agent, int joint) {
     }
     vec4 r = vec4(0.0);
     vec4 d = vec4(0.0);
-    float s = 0.0;
+    ScaleKey s = ScaleKey(0.0);
     for (int l = 0; l < LAYERS; ++l) {
         float signed_w = aligned_sign(real[l], anchor_real) * weight[l];
         r += signed_w * real[l];
@@ -478,11 +523,14 @@ Affine blended_local(int agent, int joint) {
     }
     float inv = 1.0 / norm;
     r *= inv;
+#ifdef RESIDUAL_IN_BLEND
+    g_residual = s.xyz / total;
+#endif
 #ifdef INTERPOLATION_QT
-    return qt_affine(r, d.xyz / total, s / total);
+    return qt_affine(r, d.xyz / total, uniform_part(s) / total);
 #else
     d *= inv;
     d -= r * dot(r, d);
-    return dq_affine(r, d, s / total);
+    return dq_affine(r, d, uniform_part(s) / total);
 #endif
 }

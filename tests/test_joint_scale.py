@@ -98,3 +98,30 @@ def test_both_processor_paths_agree_with_the_twin(gl_context, tmp_path, path):
             gpu = proc.read_palette()
             assert proc.gpu_bytes()["animation"] >= baked.residual.nbytes
         assert np.abs(gpu[:, :, :3, :] - reference_palette(baked, layers)).max() <= 1e-5
+
+
+@pytest.mark.parametrize("path", ["compute", "fragment"])
+def test_a_cast_with_and_without_non_uniform_scale(gl_context, tmp_path, path):
+    """The fragment path's fourth scratch plane and the residual's unit, with a character that has neither
+    drawn before and after the one that has them."""
+    from crowd.anim.roles import bake_roles, match_roles
+    from crowd.gl import has_compute
+
+    if path == "compute" and not has_compute(gl_context):
+        pytest.skip("no GL 4.3")
+    zombie = load_character(None)
+    plain = bake_roles(zombie, match_roles(zombie.clips)[0])
+    c = _scaled(tmp_path, LEAF, STRETCH)
+    scaled = bake(c.skeleton, c.clips, fps=120)
+    n = 16
+    layers = np.zeros((2 * n, 4, 4), np.float32)
+    layers[:, :, MASK] = -1
+    layers[:, 0, PHASE], layers[:, 0, WEIGHT] = np.random.default_rng(3).uniform(0, 1, 2 * n), 1.0
+    for cast in ((plain, scaled), (scaled, plain)):
+        with AnimationProcessor(gl_context, list(cast), 4, path=path) as proc:
+            proc.resize([n, n])
+            proc.process(layers)
+            gpu = proc.read_palette()
+        k = cast.index(scaled)
+        mine = gpu[k * n:(k + 1) * n, :scaled.joint_count, :3, :]
+        assert np.abs(mine - reference_palette(scaled, layers[k * n:(k + 1) * n])).max() <= 1e-5

@@ -66,12 +66,15 @@ from .processor_inputs import DEFAULT_INTERPOLATION, ProcessorError, check_histo
 from .processor_programs import GROUP_SIZE, LAYERS_IN, MAX_JOINTS, CharacterPrograms, ProcessorPart
 from .processor_readback import ProcessorReadback
 
-LOCALS_UNITS = (12, 13, 14)  # the fragment path's scratch of blended locals, read by its compose pass
+# The fragment path's scratch of blended locals, read by its compose pass: three planes, a fourth (each
+# joint's own non-uniform scale) where a character has one; that pass reads no u_anim_residual, so the
+# fourth takes its unit.
+LOCALS_UNITS = (12, 13, 14, 15)
 FAR_PLACES, FAR_LOOKS = 2, 3  # processor.comp.glsl's storage bindings of the GPU crowd's places and looks (0 and 1: the foot lock's)
 # Each sampler's texture unit (those a program compiled out are left out when written).
 TEXTURE_UNITS = {"u_anim": 0, "u_parents": 1, "u_clips": 2, "u_layers": 3, "u_anim_scale": 4, "u_masks": 5, "u_keys": 6, "u_tracks": 7,
                  "u_morph_tracks": 8, "u_morph_clips": 9, "u_morph_variation": 10, "u_morph_held": 11,
-                 **dict(zip(("u_locals0", "u_locals1", "u_locals2"), LOCALS_UNITS)), "u_anim_residual": 15}
+                 **dict(zip(("u_locals0", "u_locals1", "u_locals2", "u_locals3"), LOCALS_UNITS)), "u_anim_residual": 15}
 
 # Every name importers have found here stays importable from here, wherever it now lives.
 
@@ -292,8 +295,9 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
         layer_rows_needed = math.ceil(agents / self.layer_agents_per_row)
         # (the fragment path's layer texture and its pixel-unpack buffer, the same size; the compute path's buffer)
         need = 3 * width * layer_rows * layers * 16 + (2 if self.path == "fragment" else 1) * self.layer_agents_per_row * self.layer_count * layer_rows_needed * 16
+        scratch = 4 if any(part.bake.residual is not None for part in self.parts) else 3
         if self.path == "fragment":
-            need += 3 * width * layer_rows * slot_layers * 16  # (the locals pass's scratch)
+            need += scratch * width * layer_rows * slot_layers * 16  # (the locals pass's scratch)
         self.ctx.error  # clear an earlier error, so the check below sees these allocations'
         failure = None
         try:
@@ -304,7 +308,7 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
             fb = self.ctx.framebuffer(color_attachments=list(self.planes))
             self._own["palette"].append(fb)
             if self.path == "fragment":  # the locals pass's scratch: one ring slot's shape (processor.frag.glsl)
-                self._locals = tuple(self._array("locals", (width, layer_rows, slot_layers)) for _ in range(3))
+                self._locals = tuple(self._array("locals", (width, layer_rows, slot_layers)) for _ in range(scratch))
                 self._locals_framebuffer = self.ctx.framebuffer(color_attachments=list(self._locals))
                 self._own["locals"].append(self._locals_framebuffer)
         except moderngl.Error as exc:
@@ -480,7 +484,8 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
             part.textures[name].use(unit)
         for unit, name in ((4, "u_anim_scale"), (5, "u_masks"), (6, "u_keys"), (7, "u_tracks"), (8, "u_morph_tracks"), (9, "u_morph_clips"),
                            (10, "u_morph_variation"), (11, "u_morph_held"), (15, "u_anim_residual")):
-            if name in part.textures:
+            # (the fragment path's compose pass has the scratch's fourth plane on the residual's unit)
+            if name in part.textures and (name != "u_anim_residual" or self.path == "compute" or prog is part.locals_program):
                 part.textures[name].use(unit)
         # One call: the units, the part's constants and the dispatch's rows, each written where it changed
         # since the program's last write (two characters of one source share a program).

@@ -59,10 +59,8 @@ class CharacterPrograms:
         if bake.scale is not None:
             t["u_anim_scale"] = self._texture("animation", (jc, bake.rows), 1, bake.scale, dtype)
         if bake.residual is not None:  # (non-uniform scale: only a character that has it pays for it)
-            # w: 1 for a joint whose scale is non-uniform anywhere (the others skip the blend: most joints)
-            uneven = (np.abs(bake.residual.astype(np.float64) - 1.0).max(axis=(0, 2)) > SCALE_EPS).astype(np.float32)
-            flagged = np.concatenate([bake.residual, np.broadcast_to(uneven[None, :, None], bake.residual.shape[:2] + (1,))], axis=2)
-            t["u_anim_residual"] = self._texture("animation", (jc, bake.rows), 4, np.ascontiguousarray(flagged, np.float32), "f4")
+            t["u_anim_residual"] = self._texture("animation", (jc, bake.rows), 4, np.ascontiguousarray(
+                np.concatenate([bake.residual, np.ones(bake.residual.shape[:2] + (1,), np.float32)], axis=2), np.float32), "f4")
         if compressed:
             words = bake.packed.word_texture
             t["u_keys"] = self._texture("animation", (words.shape[1], words.shape[0]), 1, words, "u4")
@@ -125,8 +123,14 @@ class CharacterPrograms:
         stride = part.slots + jc
         if stride > GROUP_SIZE:
             raise ProcessorError(f"{jc} joints and a morph slot need {stride} invocations an agent; a work group has {GROUP_SIZE}")
+        if bake.residual is not None:  # the joints whose scale is non-uniform somewhere: only they fetch the residual
+            uneven = np.flatnonzero(np.abs(bake.residual.astype(np.float64) - 1.0).max(axis=(0, 2)) > SCALE_EPS)
+            bits = np.zeros(8, np.uint32)
+            np.bitwise_or.at(bits, uneven // 32, (np.uint32(1) << (uneven % 32).astype(np.uint32)))
         part.uniforms = {"u_joints": jc, "u_stride": stride, "u_agents_per_group": GROUP_SIZE // stride, "u_rest_row": anim_rows.shape[0] - 1,
                          "u_rest_scale_row": bake.rest_row, "u_layer_agents_per_row": self.layer_agents_per_row}
+        if bake.residual is not None:
+            part.uniforms["u_residual_joints"] = bits.tobytes()
         if morphs is not None:
             part.uniforms.update(u_morph_seed=morphs.seed, u_character=self.parts.index(part))
         if compressed:
