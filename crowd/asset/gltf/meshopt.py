@@ -17,13 +17,16 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...errors import CrowdError
+
 EXTENSIONS = ("EXT_meshopt_compression", "KHR_meshopt_compression")
 MODES = ("ATTRIBUTES", "TRIANGLES", "INDICES")
 FILTERS = ("NONE", "OCTAHEDRAL", "QUATERNION", "EXPONENTIAL", "COLOR")
 
 
-class MeshoptError(ValueError):
-    """A compressed view its extension does not allow, or whose stream does not decode. One line."""
+class MeshoptError(CrowdError, ValueError):
+    """A compressed view its extension does not allow, or whose stream does not decode. One line (the
+    reader turns it into a GltfImportError naming the file and the bufferView)."""
 
 
 def check_layout(ext: str, count: int, stride: int, mode: str, filt: str, parent_length: int) -> None:
@@ -122,23 +125,23 @@ def decode_attributes(src: bytes, count: int, stride: int, khr: bool) -> np.ndar
                 pos += n
                 continue
             table = _HEADERS[(1, ctrl) if version else 0]
-            heads = (block_groups + 3) // 4
+            header = src[pos:pos + (block_groups + 3) // 4]
+            pos += (block_groups + 3) // 4
             cell = (row // 16) * stride + k
             g = 0
-            for head in src[pos:pos + heads]:
+            for head in header:
                 for bits in table[head]:
                     if g == block_groups or pos > end:
                         break
                     if bits:
-                        offsets[bits].append(pos + heads)
+                        offsets[bits].append(pos)
                         cells[bits].append(cell + g * stride)
                         if bits == 8:
                             pos += 16
                         else:
                             packed = 2 * bits
-                            pos += packed + sum(sentinels[bits][pos + heads:pos + heads + packed])
+                            pos += packed + sum(sentinels[bits][pos:pos + packed])
                     g += 1
-            pos += heads
             if pos > end:
                 raise MeshoptError(f"runs out of data at byte {k} of the block at element {row}")
         row += block_groups * 16
