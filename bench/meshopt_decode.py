@@ -3,8 +3,9 @@
 Three things, on this machine's CPU: importing meshopt-compressed files beside the plain one (median of
 runs, side by side); the decoder's throughput per codec on the files' own views; and the slowest stream
 per byte the budget lets through (every group of the attribute codec at 2 bits, so each 16 bytes cost a
-Python step, and triangles whose every index is explicit), timed at a size and scaled to
-reader.MAX_MESHOPT_BYTES, to show how long a hostile file can keep an import busy.
+Python step; triangles whose every index is an explicit 5-byte varint; index sequences of 5-byte varints),
+timed at a size and scaled to reader.MAX_MESHOPT_BYTES, to show how long a hostile file can keep an
+import busy.
 """
 
 from __future__ import annotations
@@ -40,8 +41,14 @@ def _slow_attributes(size: int, stride: int = 256) -> tuple[bytes, int]:
 
 
 def _slow_triangles(triangles: int) -> bytes:
-    """A triangle stream whose every index is explicit: code 0xff, then three one-byte index deltas."""
-    return b"\xe1" + b"\xff" * triangles + b"\xff\x02\x02\x02" * triangles + bytes(16)
+    """A triangle stream whose every index is explicit and as long as a varint may be: code 0xff, then
+    three 5-byte index deltas of 0."""
+    return b"\xe1" + b"\xff" * triangles + (b"\xff" + b"\x80\x80\x80\x80\x00" * 3) * triangles + bytes(16)
+
+
+def _slow_indices(count: int) -> bytes:
+    """An index sequence of 5-byte varints."""
+    return b"\xd1" + b"\x80\x80\x80\x80\x00" * count + bytes(4)
 
 
 def run(args) -> int:
@@ -73,11 +80,15 @@ def run(args) -> int:
     ms = _median_ms(lambda: meshopt.decode_attributes(src, count, 256, False), 1)
     rows.append({"what": "slowest attributes (2-bit groups)", "bytes": count * 256, "ms": round(ms, 1),
                  "s_at_budget": round(ms / 1e3 * reader.MAX_MESHOPT_BYTES / (count * 256), 1)})
+    budget_indices = reader.MAX_MESHOPT_BYTES // reader.MESHOPT_INDEX_BYTES
     triangles = size // 64
     src = _slow_triangles(triangles)
     ms = _median_ms(lambda: meshopt.decode_triangles(src, 3 * triangles), 1)
-    budget_indices = reader.MAX_MESHOPT_BYTES // 8
-    rows.append({"what": "slowest triangles (explicit indices)", "indices": 3 * triangles, "ms": round(ms, 1),
+    rows.append({"what": "slowest triangles (5-byte explicit indices)", "indices": 3 * triangles, "ms": round(ms, 1),
+                 "s_at_budget": round(ms / 1e3 * budget_indices / (3 * triangles), 1)})
+    src = _slow_indices(3 * triangles)
+    ms = _median_ms(lambda: meshopt.decode_sequence(src, 3 * triangles), 1)
+    rows.append({"what": "slowest indices (5-byte)", "indices": 3 * triangles, "ms": round(ms, 1),
                  "s_at_budget": round(ms / 1e3 * budget_indices / (3 * triangles), 1)})
 
     print(f"meshopt decoding on {device_cpu()}")

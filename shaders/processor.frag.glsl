@@ -7,7 +7,8 @@
 // Two draws, because a fragment cannot share work with its neighbours as the compute path's work group
 // does through shared memory:
 //   LOCALS_PASS  each joint's fragment blends its joint's local transform once (the layers' sampling, the
-//                costly part) into a scratch of the slot's shape (three targets, a row of the matrix each);
+//                costly part) into a scratch of the slot's shape (three targets, a row of the matrix each,
+//                and a fourth, the joint's own non-uniform scale, where the character has one);
 //   otherwise    each joint's fragment composes its chain to the root from the scratch's texels (three
 //                fetches an ancestor, no sampling) and writes the three rows of its skinning matrix at once
 //                through three render targets; the slots' fragments write the key and the morph pairs.
@@ -15,6 +16,8 @@
 // 63 times the compute path's time on the H200 (docs/BENCHMARKS.md, "The path without compute").
 #if defined(LOCALS_PASS) && defined(HAS_RESIDUAL)
 #define RESIDUAL_IN_BLEND
+#elif defined(HAS_RESIDUAL)
+#define RESIDUAL_PLANE
 #endif
 #include "processor_common.glsl"
 #if defined(MORPHS) && !defined(LOCALS_PASS)

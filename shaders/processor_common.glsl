@@ -17,7 +17,7 @@ uniform int u_key_width;
 #ifdef HAS_SCALE
 uniform sampler2D u_anim_scale;  // (J, rows): uniform joint scale per frame
 #endif
-#ifdef HAS_RESIDUAL
+#if defined(HAS_RESIDUAL) && !defined(RESIDUAL_PLANE)
 uniform sampler2D u_anim_residual;  // (J, rows): xyz each joint's non-uniform scale over its uniform one (own matrix only)
 uniform uint u_residual_joints[8];  // a bit a joint: those whose scale is non-uniform somewhere (the others fetch none)
 
@@ -26,8 +26,9 @@ bool has_residual(int joint) {
 }
 #endif
 // Where the residual is blended: the fragment path's locals pass blends it with the local transform
-// (RESIDUAL_IN_BLEND) and hands it to the compose pass in a fourth plane; the compute path blends it
-// after the chain walk (blended_residual), which the H200 ran faster than carrying it across the barrier.
+// (RESIDUAL_IN_BLEND) and hands it to the compose pass in a fourth plane (RESIDUAL_PLANE: that pass reads
+// no residual texture); the compute path blends it after the chain walk (blended_residual), which the
+// H200 ran faster than carrying it across the barrier.
 #ifdef RESIDUAL_IN_BLEND
 #define ScaleKey vec4  // xyz the residual, w the uniform scale
 bool g_has_residual;   // the joint being blended has one
@@ -322,24 +323,24 @@ void sample_layer(vec4 layer, int joint, out vec4 real, out vec4 second, out Sca
     vec3 t0, t3;
     key_rt(tracks, joint, first + prev_key, prev_key, r0, t0);
     key_rt(tracks, joint, first + next_key, next_key, r3, t3);
-    ScaleKey s0 = joint_scale(joint, first + prev_key);
-    ScaleKey s3 = joint_scale(joint, first + next_key);
+    float s0 = uniform_scale(joint, first + prev_key);  // (the residual is lerped: its outer keys are not read)
+    float s3 = uniform_scale(joint, first + next_key);
     // Keys across the loop seam may hold the other sign (a joint that spins a full turn).
     if (dot(r0, r1) < 0.0) r0 = -r0;
     if (dot(r3, r2) < 0.0) r3 = -r3;
     if (at_start && !looping) {
         r0 = 2.0 * r1 - r2;
         t0 = 2.0 * t1 - t2;
-        s0 = 2.0 * s1 - s2;
+        s0 = 2.0 * uniform_part(s1) - uniform_part(s2);
     }
     if (at_end && !looping) {
         r3 = 2.0 * r2 - r1;
         t3 = 2.0 * t2 - t1;
-        s3 = 2.0 * s2 - s1;
+        s3 = 2.0 * uniform_part(s2) - uniform_part(s1);
     }
     real = catmull_rom(r0, r1, r2, r3, u);
-    vec4 ts = catmull_rom(vec4(t0, uniform_part(s0)), vec4(t1, uniform_part(s1)), vec4(t2, uniform_part(s2)), vec4(t3, uniform_part(s3)), u);
-    second = vec4(ts.xyz, 0.0);  // translation, and the uniform scale in w
+    vec4 ts = catmull_rom(vec4(t0, s0), vec4(t1, uniform_part(s1)), vec4(t2, uniform_part(s2)), vec4(t3, s3), u);  // translation, uniform scale
+    second = vec4(ts.xyz, 0.0);
 #ifdef RESIDUAL_IN_BLEND
     scale = vec4(s1.xyz + (s2.xyz - s1.xyz) * u, ts.w);  // (the residual lerped whatever the interpolation)
 #else
@@ -420,7 +421,7 @@ vec4 impostor_key(int agent) {
 }
 #endif
 
-#ifdef HAS_RESIDUAL
+#if defined(HAS_RESIDUAL) && !defined(RESIDUAL_IN_BLEND) && !defined(RESIDUAL_PLANE)
 // The joint's non-uniform scale over its uniform one, blended as its scale is (each layer's lerped
 // between its keys, linearly whatever the interpolation), the rest pose's where the weights add up to
 // about nothing: applied to the joint's own skinning matrix only (crowd/anim/bake.py).
@@ -449,6 +450,9 @@ vec3 blended_residual(int agent, int joint) {
     return sum / total;
 }
 
+#endif
+
+#ifdef HAS_RESIDUAL
 // `m` with a scale along its own axes applied first (its columns scaled).
 Affine scaled_axes(Affine m, vec3 s) {
     return Affine(m.r0 * vec4(s, 1.0), m.r1 * vec4(s, 1.0), m.r2 * vec4(s, 1.0));

@@ -113,3 +113,13 @@ def test_an_unlit_prop_is_one_colour_and_a_lit_one_is_shaded(gl_context, tmp_pat
         colours = _weapon_pixels(gl_context, _zombie_with_prop(tmp_path, unlit))
         spreads[unlit] = int((colours.max(axis=0) - colours.min(axis=0)).max())
     assert spreads[False] > 40 and spreads[True] <= 12, spreads
+
+
+def test_an_unlit_prop_is_unlit_in_its_impostors_hand_too(tmp_path):
+    """Past the impostor distance the weapon is a skinned piece of the impostor's LOD (held_pieces): it
+    keeps its material's unlit flag, so it does not turn lit where the body turns into an impostor."""
+    from crowd.draw.impostors import held_pieces
+
+    for unlit in (False, True):
+        pieces = held_pieces(load_character(_zombie_with_prop(tmp_path, unlit)), 4)
+        assert pieces and all(p.unlit == unlit for p in pieces)

@@ -136,7 +136,7 @@ class AnimationBake:
         """Bytes of animation data on the GPU: DQ texture, packed keys if any, scale texture if any,
         hierarchy, clip table."""
         packed = 0 if self.packed is None else self.packed.nbytes
-        scale = (0 if self.scale is None else self.scale.nbytes) + (0 if self.residual is None else self.residual[..., 0].size * 16)  # (RGBA f32)
+        scale = (0 if self.scale is None else self.scale.nbytes) + (0 if self.residual is None else self.residual.nbytes)
         return int(self.gpu_texels.nbytes + packed + scale + self.parents.astype(np.int32).nbytes + self.clip_table.nbytes)
 
     @property

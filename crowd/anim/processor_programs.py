@@ -59,8 +59,7 @@ class CharacterPrograms:
         if bake.scale is not None:
             t["u_anim_scale"] = self._texture("animation", (jc, bake.rows), 1, bake.scale, dtype)
         if bake.residual is not None:  # (non-uniform scale: only a character that has it pays for it)
-            t["u_anim_residual"] = self._texture("animation", (jc, bake.rows), 4, np.ascontiguousarray(
-                np.concatenate([bake.residual, np.ones(bake.residual.shape[:2] + (1,), np.float32)], axis=2), np.float32), "f4")
+            t["u_anim_residual"] = self._texture("animation", (jc, bake.rows), 3, np.ascontiguousarray(bake.residual, np.float32), "f4")
         if compressed:
             words = bake.packed.word_texture
             t["u_keys"] = self._texture("animation", (words.shape[1], words.shape[0]), 1, words, "u4")

@@ -252,7 +252,7 @@ def held_pieces(character: Character, lod: int) -> list:
         weights = np.zeros((v, 4), np.float32)
         weights[:, 0] = 1.0
         pieces.append(SkinnedMesh(f"{name} (held)", f"{HELD_GROUP}:{name}", lod, positions.astype(np.float32), normals.astype(np.float32), joints,
-                                  weights, mesh.indices, mesh.colors, mesh.base_color, HELD_GROUP, mesh.texture, mesh.uvs))
+                                  weights, mesh.indices, mesh.colors, mesh.base_color, HELD_GROUP, mesh.texture, mesh.uvs, unlit=mesh.unlit))
     return pieces
 
 

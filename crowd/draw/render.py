@@ -147,9 +147,9 @@ class CrowdRenderer(DrawnCounts, GLStage):
         self.morph: MorphDeltas | None = None
         self.morph_buffers = has_compute(ctx) if morph_buffers is None else bool(morph_buffers)
         per_character = [[m for m in c.meshes if pieces is None or m.piece in pieces] for c in cast]
-        # KHR_materials_unlit: the colour programs read each vertex's flag only where some piece is unlit, and a
-        # character's impostor is unlit where all its pieces are (its atlas holds no flag).
-        self.unlit_pieces = any(m.unlit for meshes in per_character for m in meshes)
+        # KHR_materials_unlit: the colour programs read each vertex's flag only where some piece is unlit
+        # (the held weapons' too: set below), and a character's impostor is unlit where all its pieces are
+        # (its atlas holds no flag).
         self.unlit_impostor = [bool(meshes) and all(m.unlit for m in meshes) for meshes in per_character]
         for c, meshes in zip(cast, per_character):
             if not meshes:
@@ -170,6 +170,7 @@ class CrowdRenderer(DrawnCounts, GLStage):
         for k, c in enumerate(cast):
             if self.impostor_lods[k] >= 0:
                 per_character[k] = per_character[k] + held_pieces(c, self.impostor_lods[k])
+        self.unlit_pieces = any(m.unlit for meshes in per_character for m in meshes)
         # Variation groups, per character (group -> its pieces, in order), and every group any has, in
         # the order met (an agent's choice in each is a field of its record: crowd.draw.cull_lists).
         self.groups: list[dict[str, list[str]]] = []

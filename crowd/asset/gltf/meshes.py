@@ -381,8 +381,9 @@ def _untextured(parts: list[RigidMesh], label: str, warn: list[str]) -> RigidMes
     if not parts:
         return None
     unlit = all(p.unlit for p in parts)
-    if any(p.unlit for p in parts) and not unlit:
-        warn.append(f"{label}: some of its materials are unlit and some lit; drawn lit")
+    mixed = f"{label}: some of its materials are unlit and some lit; drawn lit"
+    if any(p.unlit for p in parts) and not unlit and mixed not in warn:  # (once, not once per LOD)
+        warn.append(mixed)
     starts = np.cumsum([0] + [len(p.positions) for p in parts])
     return RigidMesh(parts[0].name.split("#")[0], np.concatenate([p.positions for p in parts]), np.concatenate([p.normals for p in parts]),
                      np.concatenate([p.indices + k for p, k in zip(parts, starts)]).astype(np.uint32), np.concatenate([p.colors for p in parts]),
@@ -434,5 +435,7 @@ def read_rigid(r: Reader, tree: Tree, new_index, factor: float, materials: Mater
         for lod in range(1, max(by_lod) + 1):
             lods.append(by_lod.get(lod, lods[-1]))
         props[name] = dataclasses.replace(props[name], coarser=tuple(lods[1:]))
+        if len({m.unlit for m in lods}) > 1:
+            warn.append(f"prop {name!r}: its LODs differ in KHR_materials_unlit; each is drawn as its own material says")
     return attachments, props
 

@@ -15,6 +15,8 @@ extension asks.
 
 from __future__ import annotations
 
+from array import array
+
 import numpy as np
 
 from ...errors import CrowdError
@@ -70,6 +72,7 @@ def decode(src: bytes, count: int, stride: int, mode: str, filt: str, khr: bool)
 _WIDTHS = {0: (0, 2, 4, 8), (1, 0): (0, 1, 2, 4), (1, 1): (1, 2, 4, 8)}
 # Each header byte as its four groups' bit widths, and each byte's count of all-ones fields per width.
 _HEADERS = {key: [tuple(w[(b >> 2 * g) & 3] for g in range(4)) for b in range(256)] for key, w in _WIDTHS.items()}
+_CHUNK = 1 << 16  # groups unpacked at once
 _SENTINELS = {bits: bytes(sum(((b >> s) & ((1 << bits) - 1)) == (1 << bits) - 1 for s in range(0, 8, bits)) for b in range(256))
               for bits in (1, 2, 4)}
 
@@ -98,11 +101,11 @@ def decode_attributes(src: bytes, count: int, stride: int, khr: bool) -> np.ndar
     block_max = min((8192 // stride) & ~15, 256)
     groups = (count + 15) // 16
     deltas = np.zeros((groups * 16, stride), np.uint8)  # zigzag-coded, or XOR words' bytes
-    # The walk: where each group's deltas start. Sentinel counts per byte come from translate tables so
-    # that the one sequential step per group stays a few C calls.
-    sentinels = {bits: src.translate(_SENTINELS[bits]) for bits in (1, 2, 4)}
-    offsets: dict[int, list[int]] = {1: [], 2: [], 4: [], 8: []}
-    cells: dict[int, list[int]] = {1: [], 2: [], 4: [], 8: []}  # (element // 16) * stride + byte
+    # The walk: where each group's deltas start. Sentinel counts per byte come from translate tables
+    # (made for the widths the stream uses) so that the one sequential step per group stays a few C calls.
+    sentinels = _Sentinels(src)
+    offsets = {bits: array("i") for bits in (1, 2, 4, 8)}  # (a stream is under 2 GiB: the file budget)
+    cells = {bits: array("i") for bits in (1, 2, 4, 8)}  # (element // 16) * stride + byte
     pos, row = 1, 0
     while row < count:
         block_rows = min(count - row, block_max)
@@ -148,27 +151,41 @@ def decode_attributes(src: bytes, count: int, stride: int, khr: bool) -> np.ndar
     if pos != end:
         raise MeshoptError(f"leaves {end - pos} bytes unread before its tail")
 
+    del sentinels
     data = np.frombuffer(src, np.uint8)
+    flat = deltas.reshape(-1)
     lane = np.arange(16)
     for bits in offsets:
-        if not offsets[bits]:
-            continue
-        offset = np.array(offsets[bits], np.int64)[:, None]
-        cell = np.array(cells[bits], np.int64)
-        rows, cols = (cell // stride * 16)[:, None] + lane, (cell % stride)[:, None]
-        if bits == 8:
-            deltas[rows, cols] = data[offset + lane]
-            continue
-        packed = 2 * bits
-        raw = data[offset + np.arange(packed)]
-        # 2- and 4-bit fields run from the high bits of each byte down, 1-bit fields from the low bit up.
-        shifts = np.arange(0, 8, bits) if bits == 1 else np.arange(8 - bits, -1, -bits)
-        fields = ((raw[:, :, None] >> shifts.astype(np.uint8)) & ((1 << bits) - 1)).reshape(len(cell), 16)
-        sentinel = fields == (1 << bits) - 1
-        extra = offset + packed + np.cumsum(sentinel, axis=1) - 1
-        deltas[rows, cols] = np.where(sentinel, data[np.where(sentinel, extra, 0)], fields)
+        # In chunks of groups, so that the index arrays (16 int64 a group) stay small beside the data.
+        for start in range(0, len(offsets[bits]), _CHUNK):
+            offset = np.frombuffer(offsets[bits], np.int32)[start:start + _CHUNK].astype(np.int64)[:, None]
+            cell = np.frombuffer(cells[bits], np.int32)[start:start + _CHUNK].astype(np.int64)
+            at = ((cell // stride) * 16 * stride + cell % stride)[:, None] + lane * stride  # the group's 16 bytes in `deltas`
+            if bits == 8:
+                flat[at] = data[offset + lane]
+                continue
+            packed = 2 * bits
+            raw = data[offset + np.arange(packed)]
+            # 2- and 4-bit fields run from the high bits of each byte down, 1-bit fields from the low bit up.
+            shifts = np.arange(0, 8, bits) if bits == 1 else np.arange(8 - bits, -1, -bits)
+            fields = ((raw[:, :, None] >> shifts.astype(np.uint8)) & ((1 << bits) - 1)).reshape(len(cell), 16)
+            sentinel = fields == (1 << bits) - 1
+            extra = offset + packed + np.cumsum(sentinel, axis=1) - 1
+            flat[at] = np.where(sentinel, data[np.where(sentinel, extra, 0)], fields)
 
     return _undelta(deltas[:count], baseline, modes, stride)
+
+
+class _Sentinels(dict):
+    """bits -> the stream's bytes, each replaced by its count of all-ones `bits`-wide fields; made on first use."""
+
+    def __init__(self, src: bytes):
+        super().__init__()
+        self.src = src
+
+    def __missing__(self, bits: int) -> bytes:
+        self[bits] = table = self.src.translate(_SENTINELS[bits])
+        return table
 
 
 def _undelta(deltas: np.ndarray, baseline: np.ndarray, modes: np.ndarray, stride: int) -> np.ndarray:
@@ -377,23 +394,31 @@ def decode_triangles(src: bytes, count: int) -> np.ndarray:
 
 
 def decode_sequence(src: bytes, count: int) -> np.ndarray:
-    """Mode 2: indices as deltas from one of two running baselines."""
+    """Mode 2: indices as deltas from one of two running baselines. Nothing carries from index to index
+    but the baselines' sums, so the varints and the sums are worked out at once."""
     size = len(src)
     if size < 1 or src[0] != 0xD1:
         raise MeshoptError(f"is not an INDICES stream (header {src[0]:#04x}; 0xd1 expected)" if size else "is empty")
     end = size - 4
     if end < 1 + count:
         raise MeshoptError(f"holds {size} bytes, too few for {count} indices and the 4-byte tail")
-    last = [0, 0]
-    out = [0] * count
-    pos = 1
-    for i in range(count):
-        if pos < end and src[pos] < 0x80:
-            v, pos = src[pos], pos + 1
-        else:
-            v, pos = _varint(src, pos, end)
-        d = (~(v >> 2)) if v & 2 else (v >> 2)
-        last[v & 1] = out[i] = (last[v & 1] + d) & 0xFFFF_FFFF
-    if pos != end:
-        raise MeshoptError(f"leaves {end - pos} bytes of index data unread")
-    return np.array(out, np.uint32)
+    body = np.frombuffer(src, np.uint8, end - 1, 1)
+    last = np.flatnonzero(body < 0x80)  # each varint's last byte
+    if len(last) < count:
+        raise MeshoptError(f"runs out of data after {len(last)} of its {count} indices")
+    used = int(last[count - 1]) + 1
+    if used != len(body):
+        raise MeshoptError(f"leaves {len(body) - used} bytes of index data unread")
+    first = np.concatenate([[0], last[:count - 1] + 1])
+    lengths = last[:count] - first + 1
+    if lengths.max() > 5:
+        k = int(np.argmax(lengths > 5))
+        raise MeshoptError(f"has an index longer than 5 bytes at byte {int(first[k]) + 1}")
+    place = np.arange(used) - np.repeat(first, lengths)  # each byte's place in its varint
+    v = np.add.reduceat((body.astype(np.uint64) & 0x7F) << (7 * place).astype(np.uint64), first) & 0xFFFF_FFFF
+    delta = np.where(v & 2, ~(v >> 2), v >> 2) & 0xFFFF_FFFF
+    out = np.empty(count, np.uint32)
+    for baseline in (0, 1):
+        mine = np.flatnonzero((v & 1) == baseline)
+        out[mine] = np.cumsum(delta[mine]) & 0xFFFF_FFFF
+    return out
