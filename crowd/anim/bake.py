@@ -230,6 +230,11 @@ def _split_scale(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return mean, s / np.where(mean == 0.0, 1.0, mean)[..., None]
 
 
+def uneven_joints(residual: np.ndarray) -> np.ndarray:
+    """The joints (indices) whose scale is non-uniform, beyond SCALE_EPS, in some row of `residual` (rows, J, 3)."""
+    return np.flatnonzero(np.abs(np.asarray(residual, np.float64) - 1.0).max(axis=(0, 2)) > SCALE_EPS)
+
+
 def _inner_residual_warnings(skeleton: Skeleton, poses: list, names: list[str], residual: np.ndarray, warnings: list[str]) -> None:
     """One line per joint with children whose scale is non-uniform: how far its descendants are from
     glTF's pose (their world positions with the full scale, skew and all, against the uniform part), the
@@ -237,7 +242,8 @@ def _inner_residual_warnings(skeleton: Skeleton, poses: list, names: list[str], 
     parents = np.asarray(skeleton.parents)
     has_children = np.zeros(len(parents), bool)
     has_children[parents[parents >= 0]] = True
-    uneven = np.flatnonzero(has_children & (np.abs(residual - 1.0).max(axis=(0, 2)) > SCALE_EPS))
+    uneven = uneven_joints(residual)
+    uneven = uneven[has_children[uneven]]
     if not uneven.size:
         return
     below = {j: [k for k in range(len(parents)) if _is_below(parents, k, j)] for j in uneven}

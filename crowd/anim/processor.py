@@ -63,7 +63,7 @@ from .bake import AnimationBake
 from .layer_upload import LayerUpload
 from .palette_layout import MAX_PALETTE_ROWS, MAX_TEXTURE_WIDTH, PaletteLayout, palette_limits
 from .processor_inputs import DEFAULT_INTERPOLATION, ProcessorError, check_history, check_interpolation, resolve_path
-from .processor_programs import GROUP_SIZE, LAYERS_IN, MAX_JOINTS, CharacterPrograms, ProcessorPart
+from .processor_programs import GROUP_SIZE, LAYERS_IN, MAX_JOINTS, CharacterPrograms, ProcessorPart, joint_mask
 from .processor_readback import ProcessorReadback
 
 # The fragment path's scratch of blended locals, read by its compose pass: three planes, a fourth (each
@@ -542,7 +542,7 @@ class AnimationProcessor(GLStage, CharacterPrograms, LayerUpload, ProcessorReadb
                     while j >= 0 and not bits[j]:
                         bits[j] = True
                         j = int(parents[j])
-                masks.append(tuple(int(w) for w in np.packbits(bits, bitorder="little").view(np.uint32)))
+                masks.append(joint_mask(np.flatnonzero(bits)))
             self._far_masks = (key, masks)
         self._far = (places, looks, tuple(float(v) for v in eye), float(beyond_m), int(rows), self._far_masks[1])
 

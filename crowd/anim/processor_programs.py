@@ -8,7 +8,7 @@ import numpy as np
 
 from . import foot_lock as lock
 from ..gl import load_shader
-from .bake import SCALE_EPS, AnimationBake
+from .bake import AnimationBake, uneven_joints
 from .compress import PER_KEY
 from .morph import ACTIVE_WEIGHT, MAX_MORPH_WEIGHT, MORPH_PAIRS, NOT_HELD
 from .palette_reference import SLERP_FIT
@@ -42,6 +42,13 @@ class ProcessorPart:
         self.quad = self.quad_vao = None
         self.locals_program = self.locals_vao = None  # the fragment path's first draw (LOCALS_PASS) and its quads
         self.quad_vertices = 0
+
+
+def joint_mask(joints) -> tuple[int, ...]:
+    """A bit a joint, MAX_JOINTS of them, as the processor's uint[8] uniforms read them."""
+    bits = np.zeros(MAX_JOINTS, bool)
+    bits[np.asarray(joints, np.int64)] = True
+    return tuple(int(w) for w in np.packbits(bits, bitorder="little").view(np.uint32))
 
 
 class CharacterPrograms:
@@ -122,14 +129,10 @@ class CharacterPrograms:
         stride = part.slots + jc
         if stride > GROUP_SIZE:
             raise ProcessorError(f"{jc} joints and a morph slot need {stride} invocations an agent; a work group has {GROUP_SIZE}")
-        if bake.residual is not None:  # the joints whose scale is non-uniform somewhere: only they fetch the residual
-            uneven = np.flatnonzero(np.abs(bake.residual.astype(np.float64) - 1.0).max(axis=(0, 2)) > SCALE_EPS)
-            bits = np.zeros(8, np.uint32)
-            np.bitwise_or.at(bits, uneven // 32, (np.uint32(1) << (uneven % 32).astype(np.uint32)))
         part.uniforms = {"u_joints": jc, "u_stride": stride, "u_agents_per_group": GROUP_SIZE // stride, "u_rest_row": anim_rows.shape[0] - 1,
                          "u_rest_scale_row": bake.rest_row, "u_layer_agents_per_row": self.layer_agents_per_row}
-        if bake.residual is not None:
-            part.uniforms["u_residual_joints"] = bits.tobytes()
+        if bake.residual is not None:  # the joints whose scale is non-uniform somewhere: only they fetch the residual
+            part.uniforms["u_residual_joints"] = joint_mask(uneven_joints(bake.residual))
         if morphs is not None:
             part.uniforms.update(u_morph_seed=morphs.seed, u_character=self.parts.index(part))
         if compressed:

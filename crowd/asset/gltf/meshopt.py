@@ -290,15 +290,22 @@ def _varint(src: bytes, pos: int, end: int) -> tuple[int, int]:
     raise MeshoptError(f"has an index longer than 5 bytes at byte {pos - 5}")
 
 
+def _index_stream(src: bytes, header: int, mode: str, tail: int, least: int, what: str) -> int:
+    """Where the tail of an index stream starts, once its header byte and its length (at least `least`
+    bytes between the header and a `tail`-byte tail) are checked."""
+    if not src or src[0] != header:
+        raise MeshoptError(f"is not {'an' if mode[0] in 'AEIOU' else 'a'} {mode} stream (header {src[0]:#04x}; {header:#04x} expected)"
+                           if src else "is empty")
+    end = len(src) - tail
+    if end < 1 + least:
+        raise MeshoptError(f"holds {len(src)} bytes, too few for {least} {what}")
+    return end
+
+
 def decode_triangles(src: bytes, count: int) -> np.ndarray:
     """Mode 1: a triangle list, each triangle a code byte that reuses recent edges and vertices."""
     triangles = count // 3
-    size = len(src)
-    if size < 1 or src[0] != 0xE1:
-        raise MeshoptError(f"is not a TRIANGLES stream (header {src[0]:#04x}; 0xe1 expected)" if size else "is empty")
-    end = size - 16
-    if end < 1 + triangles:
-        raise MeshoptError(f"holds {size} bytes, too few for {triangles} triangle codes and the 16-byte table")
+    end = _index_stream(src, 0xE1, "TRIANGLES", 16, triangles, "triangle codes and the 16-byte table")
     aux = src[end:]
     if aux[14] or aux[15] or any(b >> 4 == 0xF or b & 0xF == 0xF for b in aux):
         raise MeshoptError("has a code table that the codec does not allow")
@@ -396,12 +403,7 @@ def decode_triangles(src: bytes, count: int) -> np.ndarray:
 def decode_sequence(src: bytes, count: int) -> np.ndarray:
     """Mode 2: indices as deltas from one of two running baselines. Nothing carries from index to index
     but the baselines' sums, so the varints and the sums are worked out at once."""
-    size = len(src)
-    if size < 1 or src[0] != 0xD1:
-        raise MeshoptError(f"is not an INDICES stream (header {src[0]:#04x}; 0xd1 expected)" if size else "is empty")
-    end = size - 4
-    if end < 1 + count:
-        raise MeshoptError(f"holds {size} bytes, too few for {count} indices and the 4-byte tail")
+    end = _index_stream(src, 0xD1, "INDICES", 4, count, "indices and the 4-byte tail")
     body = np.frombuffer(src, np.uint8, end - 1, 1)
     last = np.flatnonzero(body < 0x80)  # each varint's last byte
     if len(last) < count:
