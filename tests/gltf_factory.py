@@ -584,6 +584,26 @@ def add_channel(doc: dict, node: int, path: str, keys: np.ndarray) -> None:
     doc["buffers"][0] = {"byteLength": len(blob), "uri": "data:application/octet-stream;base64," + base64.b64encode(bytes(blob)).decode()}
 
 
+def glb_parts(path: Path) -> tuple[dict, bytes]:
+    """A GLB's JSON and binary chunk."""
+    import struct
+
+    data = Path(path).read_bytes()
+    n = struct.unpack_from("<I", data, 12)[0]
+    return json.loads(data[20:20 + n]), data[20 + n + 8:]
+
+
+def write_glb(path: Path, doc: dict, blob: bytes) -> Path:
+    """A GLB of `doc` (its JSON padded with spaces) and `blob` as they are."""
+    import struct
+
+    js = json.dumps(doc).encode()
+    js += b" " * (-len(js) % 4)
+    body = struct.pack("<I4s", len(js), b"JSON") + js + struct.pack("<I4s", len(blob), b"BIN\x00") + bytes(blob)
+    Path(path).write_bytes(b"glTF" + struct.pack("<II", 2, 12 + len(body)) + body)
+    return Path(path)
+
+
 DRACO_POSITION_BITS = 16  # the copies' position quantisation: a vertex within its box's size / 2^16 of the plain file's
 
 
@@ -591,14 +611,10 @@ def draco_copy(source: Path, target: Path) -> dict:
     """A copy of the GLB `source` with every skinned primitive Draco-compressed (KHR_draco_mesh_compression,
     DracoPy's encoder, vertex order kept), its accessors' plain data no longer referenced. Returns
     {mesh name: the position box's size} for the tolerance."""
-    import struct
-
     import DracoPy
 
-    data = Path(source).read_bytes()
-    length = struct.unpack_from("<I", data, 12)[0]
-    doc = json.loads(data[20:20 + length])
-    blob = bytearray(data[28 + length:])
+    doc, blob = glb_parts(source)
+    blob = bytearray(blob)
     dtypes = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
     sizes = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
 
@@ -636,14 +652,10 @@ def draco_copy(source: Path, target: Path) -> dict:
                 doc["accessors"][index].pop("byteOffset", None)
     for key in ("extensionsUsed", "extensionsRequired"):
         doc[key] = sorted(set(doc.get(key, [])) | {"KHR_draco_mesh_compression"})
-    doc["buffers"][0]["byteLength"] = len(blob)
-    text = json.dumps(doc).encode()
-    text += b" " * (-len(text) % 4)
     while len(blob) % 4:
         blob.append(0)
-    out = b"glTF" + struct.pack("<II", 2, 28 + len(text) + len(blob)) + struct.pack("<I", len(text)) + b"JSON" + text
-    out += struct.pack("<I", len(blob)) + b"BIN\x00" + bytes(blob)
-    Path(target).write_bytes(out)
+    doc["buffers"][0]["byteLength"] = len(blob)
+    write_glb(target, doc, blob)
     return boxes
 
 

@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import builtins
 import importlib
-import json
-import struct
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +14,7 @@ import pytest
 
 from crowd.asset.gltf import load_character
 from crowd.asset.gltf.reader import GltfImportError
-from gltf_factory import DRACO_POSITION_BITS, draco_copy, make_gltf
+from gltf_factory import DRACO_POSITION_BITS, draco_copy, glb_parts, write_glb
 
 pytest.importorskip("DracoPy")
 ZOMBIE = importlib.import_module("crowd.asset.zombie").ASSET_PATH
@@ -41,29 +39,15 @@ def test_a_draco_copy_gives_the_plain_files_vertices(draco_zombie):
     assert [c.name for c in plain.clips] == [c.name for c in packed.clips]
 
 
-def _glb(path: Path) -> tuple[dict, bytes]:
-    data = path.read_bytes()
-    n = struct.unpack_from("<I", data, 12)[0]
-    return json.loads(data[20:20 + n]), data[28 + n:]
-
-
-def _write_glb(path: Path, doc: dict, blob: bytes) -> Path:
-    text = json.dumps(doc).encode()
-    text += b" " * (-len(text) % 4)
-    path.write_bytes(b"glTF" + struct.pack("<II", 2, 28 + len(text) + len(blob)) + struct.pack("<I", len(text)) + b"JSON" + text
-                     + struct.pack("<I", len(blob)) + b"BIN\x00" + blob)
-    return path
-
-
 def _draco_of(doc: dict) -> dict:
     return next(p for m in doc["meshes"] for p in m["primitives"] if "extensions" in p)["extensions"]["KHR_draco_mesh_compression"]
 
 
 def _broken(tmp_path, draco_zombie, mutate) -> Path:
-    doc, blob = _glb(draco_zombie[0])
+    doc, blob = glb_parts(draco_zombie[0])
     blob = bytearray(blob)
     mutate(doc, blob)
-    return _write_glb(tmp_path / "broken.glb", doc, bytes(blob))
+    return write_glb(tmp_path / "broken.glb", doc, bytes(blob))
 
 
 def _garbage(doc, blob):

@@ -21,7 +21,8 @@ from crowd.asset.gltf import load_character
 from crowd.asset.gltf.reader import GltfImportError
 from crowd.asset.model import vertex_normals
 from crowd.asset.zombie import ASSET_PATH
-from gltf_factory import make_gltf
+import gltf_factory
+from gltf_factory import make_gltf, write_glb
 
 
 # -- building hostile files
@@ -61,17 +62,7 @@ def hostile(tmp_path, mutate, **options):
 
 
 def glb_parts(path=ASSET_PATH):
-    data = path.read_bytes()
-    n = struct.unpack_from("<I", data, 12)[0]
-    return json.loads(data[20:20 + n]), data[20 + n + 8:]
-
-
-def write_glb(path, doc, blob: bytes):
-    js = json.dumps(doc).encode()
-    js += b" " * (-len(js) % 4)
-    body = struct.pack("<I4s", len(js), b"JSON") + js + struct.pack("<I4s", len(blob), b"BIN\x00") + blob
-    path.write_bytes(b"glTF" + struct.pack("<II", 2, 12 + len(body)) + body)
-    return path
+    return gltf_factory.glb_parts(path)
 
 
 def refused(path, *needles):

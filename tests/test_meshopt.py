@@ -7,7 +7,6 @@ from __future__ import annotations
 import base64
 import gzip
 import json
-import struct
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +16,7 @@ from hypothesis import given, settings, strategies as st
 from crowd.asset.gltf import load_character, meshopt, reader
 from crowd.asset.gltf.reader import GltfImportError
 from crowd.asset.pose import global_matrices, rest_pose, sample_clip
+from gltf_factory import glb_parts, write_glb
 
 DATA = Path(__file__).parent / "data" / "meshopt"
 ZOMBIE = Path(__file__).parent.parent / "assets" / "zombie.glb"
@@ -114,21 +114,6 @@ def test_a_gltfpack_copy_of_the_zombie_draws_its_vertices(plain, name):
 # -- hostile files: each a one-line refusal naming the file and the bufferView
 
 
-def _glb(path: Path) -> tuple[dict, bytearray]:
-    data = path.read_bytes()
-    n = struct.unpack_from("<I", data, 12)[0]
-    return json.loads(data[20:20 + n]), bytearray(data[28 + n:])
-
-
-def _write_glb(path: Path, doc: dict, blob: bytes) -> Path:
-    text = json.dumps(doc).encode()
-    text += b" " * (-len(text) % 4)
-    blob = bytes(blob) + b"\0" * (-len(blob) % 4)
-    path.write_bytes(b"glTF" + struct.pack("<II", 2, 28 + len(text) + len(blob)) + struct.pack("<I", len(text)) + b"JSON" + text
-                     + struct.pack("<I", len(blob)) + b"BIN\x00" + blob)
-    return path
-
-
 def _packed(doc: dict, mode: str = "ATTRIBUTES", ext: str = "EXT_meshopt_compression") -> dict:
     return next(v["extensions"][ext] for v in doc["bufferViews"] if v.get("extensions", {}).get(ext, {}).get("mode") == mode)
 
@@ -178,18 +163,19 @@ def _huge(doc, blob):
     (_huge, "more than the"),
 ])
 def test_hostile_meshopt_data_is_refused_in_one_line(tmp_path, mutate, message):
-    doc, blob = _glb(DATA / "zombie_ext.glb")
+    doc, blob = glb_parts(DATA / "zombie_ext.glb")
+    blob = bytearray(blob)
     mutate(doc, blob)
     with pytest.raises(GltfImportError, match=message) as info:
-        load_character(_write_glb(tmp_path / "broken.glb", doc, blob))
+        load_character(write_glb(tmp_path / "broken.glb", doc, blob))
     assert "\n" not in str(info.value) and str(info.value).startswith("broken.glb: ")
 
 
 def test_version_1_streams_need_the_khr_extension(tmp_path):
-    doc, blob = _glb(DATA / "zombie_khr.glb")
+    doc, blob = glb_parts(DATA / "zombie_khr.glb")
     text = json.dumps(doc).replace("KHR_meshopt_compression", "EXT_meshopt_compression")
     with pytest.raises(GltfImportError, match="version 1 of the attribute codec, which only KHR_meshopt_compression allows"):
-        load_character(_write_glb(tmp_path / "renamed.glb", json.loads(text), blob))
+        load_character(write_glb(tmp_path / "renamed.glb", json.loads(text), blob))
 
 
 def test_the_decoding_budget_bounds_the_time(tmp_path, monkeypatch):

@@ -66,13 +66,9 @@ def test_an_unlit_character_is_one_colour_and_a_lit_one_is_shaded(gl_context, tm
 
 def _zombie_with_prop(folder, unlit: bool):
     """The built-in zombie with its props one colour (COLOUR, no vertex colours), their material unlit or not."""
-    import struct
-
     from crowd.asset.zombie import ASSET_PATH
 
-    data = ASSET_PATH.read_bytes()
-    n = struct.unpack_from("<I", data, 12)[0]
-    doc, blob = json.loads(data[20:20 + n]), data[28 + n:]
+    doc, blob = gltf_factory.glb_parts(ASSET_PATH)
     prop_material = next(i for i, m in enumerate(doc["materials"]) if m.get("name") == "prop")
     doc["materials"][prop_material]["pbrMetallicRoughness"]["baseColorFactor"] = COLOUR
     if unlit:
@@ -82,12 +78,7 @@ def _zombie_with_prop(folder, unlit: bool):
         if "prop" in ((node.get("extras") or {}).get("crowd") or {}):
             for prim in doc["meshes"][node["mesh"]]["primitives"]:
                 prim["attributes"].pop("COLOR_0", None)
-    text = json.dumps(doc).encode()
-    text += b" " * (-len(text) % 4)
-    path = folder / ("prop_unlit.glb" if unlit else "prop_lit.glb")
-    path.write_bytes(b"glTF" + struct.pack("<II", 2, 28 + len(text) + len(blob)) + struct.pack("<I", len(text)) + b"JSON" + text
-                     + struct.pack("<I", len(blob)) + b"BIN\x00" + blob)
-    return path
+    return gltf_factory.write_glb(folder / ("prop_unlit.glb" if unlit else "prop_lit.glb"), doc, blob)
 
 
 def _weapon_pixels(gl_context, path) -> np.ndarray:
